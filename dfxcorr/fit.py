@@ -1,0 +1,361 @@
+"""Stage 4, the vibration fit: maximum-likelihood per-frame parameters by L-BFGS on the reduced cost.
+
+The cost is the weighted least-squares approximation of the shot-noise log-likelihood (paper eqs. 6,
+20) with the images solved in closed form for every trial of the per-frame parameters (eq. 23), so
+L-BFGS only sees the per-frame parameters and the gradient follows from the envelope theorem
+(eq. 25). The problem is rescaled by the diagonal of its Fisher information (eqs. 27, 34).
+
+Against local minima (paper Sec. II-E) the fit runs in stages: first the phase effects with the
+phase image held at its circular mean (eq. 36), then the phase effects with free images, then every
+enabled effect (visibility loss is added only once the phases have mostly converged). A weak prior
+around the neutral value keeps frames that light only a few rows sane; it is negligible wherever
+the data say anything.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import minimize
+
+from . import model as M
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FitResult:
+    """What the vibration fit found.
+
+    Attributes
+    ----------
+    params : dict
+        Effect name -> parameters, gauge fixed (paper eq. 22).
+    uncertainty : dict
+        Effect name -> one-sigma uncertainty from the Fisher information, same shapes (inf where a
+        frame carries no information).
+    cost : ndarray
+        Cost after each iteration, all stages.
+    stage : list of str
+        Stage of each entry of ``cost``.
+    iterations : int
+    converged : bool
+    messages : list of str
+        The optimiser's last word per stage.
+    well_determined : ndarray of bool, shape (J,)
+        Frames lighting at least the configured fraction of the active area (used for the gauge).
+    """
+
+    params: dict[str, np.ndarray]
+    uncertainty: dict[str, np.ndarray]
+    cost: np.ndarray
+    stage: list[str]
+    iterations: int
+    converged: bool
+    messages: list[str] = field(default_factory=list)
+    well_determined: np.ndarray | None = None
+
+
+class _Problem:
+    """Packs effect parameters into one preconditioned vector for scipy."""
+
+    def __init__(self, obs, names, params, weights, *, phase=None, precondition=True, prior=True, limits=None):
+        self.limits = limits or {}
+        self.obs, self.names, self.weights, self.phase, self.prior = obs, list(names), weights, phase, prior
+        self.fixed = {k: v for k, v in params.items() if k not in self.names}
+        self.shapes = [params[n].shape for n in self.names]
+        self.theta0 = np.concatenate([params[n].ravel() for n in self.names])
+        self.neutral = np.concatenate([np.full(params[n].size, M.effect(n).neutral) for n in self.names])
+        self.prior_w = np.concatenate([np.full(params[n].size, 1.0 / M.effect(n).scale ** 2 if
+                                               (prior and M.effect(n).per_frame) else 0.0) for n in self.names])
+        self.scale = np.ones_like(self.theta0)
+        if precondition:
+            self.scale = np.sqrt(self._curvature(params))
+        self.history: list[float] = []
+
+    def unpack(self, theta):
+        out, i = dict(self.fixed), 0
+        for n, shp in zip(self.names, self.shapes):
+            size = int(np.prod(shp))
+            out[n] = theta[i:i + size].reshape(shp)
+            i += size
+        return out
+
+    def _curvature(self, params):
+        """Diagonal of the cost's Gauss-Newton Hessian (2 x Fisher information, paper eq. 27) plus the prior."""
+        dsg = M.design(self.obs, params)
+        images = M.solve_images(self.obs, dsg, self.weights, phase=self.phase)
+        h = []
+        for n in self.names:
+            comps = [M.reduce_component(self.obs, n, self.weights * F ** 2)
+                     for F in M.sample_derivatives(self.obs, dsg, images, n)]
+            h.append(2.0 * np.stack(comps, axis=-1).ravel())
+        h = np.concatenate(h) + 2.0 * self.prior_w
+        positive = h[h > 0]
+        floor = 1e-12 * (positive.max() if positive.size else 1.0)
+        return np.maximum(h, max(floor, 1e-300))
+
+    def evaluate(self, z):
+        theta = z / self.scale
+        params = self.unpack(theta)
+        dsg = M.design(self.obs, params)
+        images = M.solve_images(self.obs, dsg, self.weights, phase=self.phase)
+        resid = self.obs.counts - M.expected(self.obs, dsg, images)
+        dev = theta - self.neutral
+        cost = float(np.sum(self.weights * resid ** 2) + np.sum(self.prior_w * dev ** 2))
+        g = M.gradient(self.obs, dsg, images, self.weights, resid, self.names)
+        grad = np.concatenate([g[n].ravel() for n in self.names]) + 2.0 * self.prior_w * dev
+        return cost, grad / self.scale
+
+    def bounds(self):
+        lows, highs = [], []
+        for n, shp in zip(self.names, self.shapes):
+            lo, hi = self.limits.get(n, (M.effect(n).lower, None))
+            lows.append(np.broadcast_to(-np.inf if lo is None else lo, shp).ravel())
+            highs.append(np.broadcast_to(np.inf if hi is None else hi, shp).ravel())
+        lows, highs = np.concatenate(lows) * self.scale, np.concatenate(highs) * self.scale
+        return [(lo if np.isfinite(lo) else None, hi if np.isfinite(hi) else None) for lo, hi in zip(lows, highs)]
+
+
+def minimise(obs, names, params, weights, *, phase=None, maxiter=200, gtol=1e-3, precondition=True,
+             prior=True, limits=None, on_iteration=None) -> tuple[dict[str, np.ndarray], list[float], str, bool]:
+    """Minimise the reduced cost over the parameters of ``names``, the others held fixed.
+
+    Parameters
+    ----------
+    obs : Observations
+    names : sequence of str
+        Effects whose parameters are free.
+    params : dict
+        Starting values of every effect in the model.
+    weights : ndarray, shape (K, C)
+        Fixed least-squares weights (inverse variances).
+    phase : float, optional
+        Hold the phase image at this constant (circular-mean stage).
+    maxiter : int
+    gtol : float
+        Stop when the largest preconditioned gradient component falls below this (units of the
+        cost per standard deviation of a parameter).
+    precondition : bool
+        Rescale by the Fisher diagonal (paper eq. 34).
+    prior : bool
+        Weak prior towards the neutral value (keeps data-free frames sane).
+    limits : dict, optional
+        Effect name -> (lower, upper) bounds (scalars or arrays shaped like the parameters).
+    on_iteration : callable, optional
+        Called with the cost after every iteration.
+
+    Returns
+    -------
+    params : dict
+    costs : list of float
+    message : str
+    converged : bool
+    """
+    prob = _Problem(obs, names, params, weights, phase=phase, precondition=precondition, prior=prior,
+                    limits=limits)
+    costs: list[float] = []
+
+    def callback(intermediate_result):
+        costs.append(float(intermediate_result.fun))
+        if on_iteration is not None:
+            on_iteration(costs[-1])
+
+    res = minimize(prob.evaluate, prob.theta0 * prob.scale, jac=True, method="L-BFGS-B", bounds=prob.bounds(),
+                   callback=callback, options={"maxiter": maxiter, "maxcor": 20, "ftol": 1e-15, "gtol": gtol})
+    return prob.unpack(res.x / prob.scale), costs, str(res.message), bool(res.success)
+
+
+def fit_vibrations(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | None = None,
+                   weights: np.ndarray | None = None, circmean_iterations: int = 10, staged: bool = True,
+                   maxiter: int = 300, gtol: float = 1e-3, precondition: bool = True, prior: bool = True,
+                   reweight: int = 1, visibility_gauge: str = "max", visibility_quantile: float = 0.9,
+                   gauge_fraction: float = 0.5, on_iteration=None) -> FitResult:
+    """Estimate per-frame effect parameters by maximum likelihood (paper Sec. II-C to II-E).
+
+    Parameters
+    ----------
+    obs : Observations
+        Samples entering the fit (usually every n-th column, motion pixels with ``use = False``).
+    effects : sequence of str
+        Catalogue effects of the model; those without a mean channel are ignored here.
+    start : dict, optional
+        Starting parameters (default neutral).
+    weights : ndarray, shape (K, C), optional
+        Inverse variances; default: from the model without per-frame effects.
+    circmean_iterations : int
+        L-BFGS iterations with the phase image held at its circular mean (eq. 36); 0 skips.
+    staged : bool
+        Fit the phase effects first and add the others afterwards (paper Sec. II-E).
+    maxiter : int
+        Iterations per stage.
+    gtol : float
+        Convergence threshold on the preconditioned gradient.
+    precondition, prior : bool
+        See :func:`minimise`.
+    reweight : int
+        Refits with weights recomputed from the fitted model.
+    visibility_gauge : {'max', 'median'}
+        Normalisation of visibility_loss: the ``visibility_quantile`` quantile (robust maximum, the
+        paper's max v^s = 1 of Sec. III-A) or the median (eq. 22) of the well-determined frames set to 1.
+    visibility_quantile : float
+        Quantile used by the 'max' gauge.
+    gauge_fraction : float
+        Frames lighting at least this fraction of the active area's rows define the gauge.
+    on_iteration : callable, optional
+        Called with (stage, cost) after every iteration.
+
+    Returns
+    -------
+    FitResult
+    """
+    names = [n for n in effects if M.effect(n).channel is not None]
+    J = obs.n_frames
+    params = M.neutral_params(names, J)
+    if start:
+        params.update({k: np.array(v, dtype=np.float64) for k, v in start.items() if k in params})
+    if weights is None:
+        weights = initial_weights(obs, params)
+    phase_names = [n for n in names if M.effect(n).channel == "phase"]
+    stages = []
+    if staged and phase_names:
+        if circmean_iterations > 0:
+            stages.append(("circmean", phase_names, circmean_iterations))
+        stages.append(("phase", phase_names, maxiter))
+    stages.append(("all", names, maxiter))
+    stages += [("reweight", names, maxiter)] * reweight
+    costs, stage_of, messages, converged = [], [], [], True
+    for label, free, iters in stages:
+        if not free:
+            continue
+        phase = None
+        if label == "circmean":
+            images = M.solve_images(obs, M.design(obs, params), weights)
+            amp = np.where(images.valid, np.hypot(images.coef[..., 1], images.coef[..., 2]), 0.0)
+            phase = M.circular_mean(images.phi, amp)
+        if label == "reweight":
+            dsg = M.design(obs, params)
+            weights = M.noise_weights(obs, M.expected(obs, dsg, M.solve_images(obs, dsg, weights)))
+        cb = None if on_iteration is None else (lambda c, _l=label: on_iteration(_l, c))
+        params, c, msg, ok = minimise(obs, free, params, weights, phase=phase, maxiter=iters, gtol=gtol,
+                                      precondition=precondition, prior=prior, on_iteration=cb)
+        log.debug("stage %s: %d iterations, %s", label, len(c), msg)
+        costs += c
+        stage_of += [label] * len(c)
+        messages.append(f"{label}: {msg}")
+        if label != "circmean":
+            converged = ok
+    params = wrap_phases(params, obs)
+    good = well_determined(obs, gauge_fraction)
+    limits, wild = sane_limits(params, good)
+    if wild:
+        log.info("%d weakly determined frames outside the range of the others: refitting them within it",
+                 len(wild))
+        for name, j in wild:
+            params[name][j] = np.median(params[name][good], axis=0)
+        params, c, msg, ok = minimise(obs, names, params, weights, maxiter=maxiter, gtol=gtol, limits=limits,
+                                      precondition=precondition, prior=prior)
+        costs += c
+        stage_of += ["sane"] * len(c)
+        messages.append(f"sane: {msg}")
+        converged = ok
+    params = fix_gauge(params, good, visibility_gauge=visibility_gauge, visibility_quantile=visibility_quantile)
+    unc = uncertainty(obs, params, weights)
+    return FitResult(params=params, uncertainty=unc, cost=np.asarray(costs), stage=stage_of,
+                     iterations=len(costs), converged=converged, messages=messages, well_determined=good)
+
+
+def initial_weights(obs: M.Observations, params: dict) -> np.ndarray:
+    """Inverse shot-noise variances from the model at ``params`` after one data-weighted solve (eq. 6)."""
+    dsg = M.design(obs, params)
+    w0 = M.noise_weights(obs, np.maximum(obs.counts, 1.0))
+    return M.noise_weights(obs, M.expected(obs, dsg, M.solve_images(obs, dsg, w0)))
+
+
+def wrap_phases(params: dict, obs: M.Observations) -> dict:
+    """Move phase parameters into their symmetry window without changing the model.
+
+    A phase offset is defined modulo 2 pi. On columns spaced by n the tilt is defined modulo the alias
+    period pi W / n (paper Sec. II-D.1), up to a constant phase that the offset takes up. Frames that
+    light only a few rows can land on such an equivalent solution; this brings them back.
+    """
+    out = dict(params)
+    W = obs.shape[2]
+    spacing = np.unique(np.diff(obs.columns))
+    if "tilt" in out and spacing.size == 1 and "phase_offset" in out:
+        period = 2 * np.pi * W / (2 * spacing[0])
+        k = np.round(out["tilt"] / period)
+        out["tilt"] = out["tilt"] - k * period
+        out["phase_offset"] = out["phase_offset"] + k * period * obs.x[0]
+    if "phase_offset" in out:
+        out["phase_offset"] = np.angle(np.exp(1j * out["phase_offset"]))
+    return out
+
+
+def sane_limits(params: dict, good: np.ndarray, *, spread: float = 8.0) -> tuple[dict, list]:
+    """Bounds for per-frame parameters from the frames that the data determine well.
+
+    Each component may range over its median +- ``spread`` robust standard deviations of the
+    well-determined frames (at least +- 0.1). Returns the limits and the (effect, frame) pairs of
+    weakly determined frames outside them.
+    """
+    limits, wild = {}, []
+    for name, p in params.items():
+        e = M.effect(name)
+        if not e.per_frame or not np.any(good):
+            continue
+        med = np.median(p[good], axis=0)
+        sd = 1.4826 * np.median(np.abs(p[good] - med), axis=0)
+        half = np.maximum(spread * sd, 0.1)
+        lo = med - half if e.lower is None else np.maximum(med - half, e.lower)
+        limits[name] = (np.broadcast_to(lo, p.shape), np.broadcast_to(med + half, p.shape))
+        out = np.any((p < limits[name][0]) | (p > limits[name][1]), axis=1) & ~good
+        wild += [(name, int(j)) for j in np.flatnonzero(out)]
+    return limits, wild
+
+
+def well_determined(obs: M.Observations, fraction: float) -> np.ndarray:
+    """Frames lighting at least ``fraction`` of the largest number of rows any frame lights, shape (J,)."""
+    rows_per_frame = np.bincount(obs.frame, minlength=obs.n_frames)
+    return rows_per_frame >= fraction * rows_per_frame.max()
+
+
+def fix_gauge(params: dict, good: np.ndarray, *, visibility_gauge: str = "max",
+              visibility_quantile: float = 0.9) -> dict:
+    """Select one of the equivalent solutions (paper eq. 22).
+
+    'shift' effects get median zero over the well-determined frames; 'scale' effects are divided by a
+    robust normaliser (dose: median; visibility_loss: per ``visibility_gauge``).
+    """
+    out = {}
+    for name, p in params.items():
+        e = M.effect(name)
+        if not e.per_frame or e.gauge == "none" or not np.any(good):
+            out[name] = p
+        elif e.gauge == "shift":
+            out[name] = p - np.median(p[good], axis=0) + e.neutral
+        elif name == "visibility_loss" and visibility_gauge == "max":
+            out[name] = p / np.quantile(p[good], visibility_quantile, axis=0)
+        else:
+            out[name] = p / np.median(p[good], axis=0)
+    return out
+
+
+def uncertainty(obs: M.Observations, params: dict, weights: np.ndarray) -> dict[str, np.ndarray]:
+    """One-sigma uncertainty of per-frame parameters from the profiled Fisher information per frame."""
+    dsg = M.design(obs, params)
+    images = M.solve_images(obs, dsg, weights, keep_inverse=True)
+    names = [n for n in params if M.effect(n).per_frame]
+    out = {n: np.full_like(params[n], np.inf) for n in names}
+    if not names:
+        return out
+    blocks, index = M.fisher_blocks(obs, dsg, images, weights, names)
+    for j, B in enumerate(blocks):
+        d = np.diag(B)
+        if np.all(d > 0):
+            s = np.sqrt(d)
+            cov = np.linalg.pinv(B / np.outer(s, s), rcond=1e-10) / np.outer(s, s)
+            for a, (n, m) in enumerate(index):
+                out[n][j, m] = np.sqrt(max(cov[a, a], 0.0)) if cov[a, a] > 0 else np.inf
+    return out

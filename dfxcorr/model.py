@@ -1,0 +1,549 @@
+"""The forward model: paper eq. 19 extended by the effect catalogue of ``spec/diagnosis.md``.
+
+This module is the only definition of the expected count, its derivatives and the per-frame effects;
+the fit, the retrieval, the simulator, the baselines and the diagnosis all call it.
+
+For detector pixel i (row r, column c) in frame j the expected count is
+
+    Ibar = D_j tf (t_i (1 + hc cos 2θ - hs sin 2θ) + vf V_ij t_i v_i cos(θ + phi_i)) + b(x_i, y_i) + dark_i
+    θ = phi^f + phase_step_j + Φ_ij
+
+with the *channels*
+
+    Φ_ij = sum over phase effects of   p_j(e) * x_i^k   (phase_offset k=0, tilt k=1, curvature k=2)
+    V_ij = sum over visibility effects (visibility_loss: v0_j, default 1; visibility_tilt: x v1_j + x^2 v2_j)
+    D_j  = dose, default 1
+    b    = background, a smooth additive term (coefficients of 1, x, y in counts)
+    hc, hs = second harmonic of the stepping curve (global)
+
+Written in the linear per-pixel unknowns (t, c, s) = (t, t v cos phi, t v sin phi) (paper eq. 8),
+
+    Ibar = t A + c Bc + s Bs + offset,   A = D tf (1 + hc cos 2θ - hs sin 2θ),
+    Bc = D tf vf V cos θ,  Bs = -D tf vf V sin θ,   offset = b + dark,
+
+so the images follow in closed form (weighted linear least squares, eq. 9) for given per-frame
+parameters, and v = sqrt(c^2 + s^2) / t, phi = atan2(s, c) (eq. 10).
+
+Data layout
+-----------
+A scan is handled as an :class:`Observations` stack: one block per (illuminated detector row, frame)
+pair, ``K`` blocks sorted by row, each holding the ``C`` selected detector columns. Per-pixel sums are
+segment sums over the blocks of one row; per-frame sums are bincounts over the blocks' frames.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# --------------------------------------------------------------------------------------------------
+# The effect catalogue
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One entry of the effect catalogue.
+
+    Attributes
+    ----------
+    name : str
+        Catalogue name (``spec/diagnosis.md``), also the result dataset name.
+    channel : str or None
+        Which term of the model it enters: 'phase', 'visibility', 'dose', 'background', 'harmonic';
+        None for effects that change the noise ('detector_gain') or the pixel set ('sample_motion').
+    per_frame : bool
+        One parameter set per frame (shape (J, n)) or one global set (shape (n,)).
+    components : tuple of str
+        Names of the n parameter components; for per-frame effects 'x^k' gives the power of the
+        lateral coordinate that multiplies the parameter.
+    neutral : float
+        Value at which the effect is absent.
+    gauge : str
+        'shift' (median over well-determined frames set to the neutral value: the images absorb a
+        constant), 'scale' (robust normalisation to 1: the images absorb a factor) or 'none'.
+    summary : str
+        One line for reports.
+    scale : float
+        Prior width (parameter units) that keeps frames with almost no data near the neutral value.
+    lower : float or None
+        Physical lower bound for the parameters (None: unbounded).
+    """
+
+    name: str
+    channel: str | None
+    per_frame: bool
+    components: tuple[str, ...]
+    neutral: float
+    gauge: str
+    summary: str
+    scale: float = 1.0
+    lower: float | None = None
+
+    @property
+    def powers(self) -> tuple[int, ...]:
+        """Powers of x for per-frame components ('x^k')."""
+        return tuple(int(c.split("^")[1]) for c in self.components)
+
+    @property
+    def size(self) -> int:
+        return len(self.components)
+
+
+CATALOGUE: dict[str, Effect] = {e.name: e for e in (
+    Effect("phase_offset", "phase", True, ("x^0",), 0.0, "shift",
+           "grating shift between exposures (or phase-step error): phi0_j added to the phase", scale=1.0),
+    Effect("tilt", "phase", True, ("x^1",), 0.0, "shift",
+           "grating rotation about the optical axis: x * phi1_j added to the phase", scale=1.0),
+    Effect("curvature", "phase", True, ("x^2",), 0.0, "shift",
+           "second-order grating deformation: x^2 * phi2_j added to the phase", scale=1.0),
+    Effect("visibility_loss", "visibility", True, ("x^0",), 1.0, "scale",
+           "grating motion during the exposure: v^s_j multiplies the visibility", scale=1.0, lower=1e-3),
+    Effect("visibility_tilt", "visibility", True, ("x^1", "x^2"), 0.0, "shift",
+           "rotation during the exposure: visibility factor v0_j + x v1_j + x^2 v2_j", scale=1.0),
+    Effect("dose", "dose", True, ("x^0",), 1.0, "scale",
+           "source output or exposure-time fluctuation: d_j multiplies the expected count", scale=1.0, lower=1e-3),
+    Effect("background", "background", False, ("1", "x", "y"), 0.0, "none",
+           "additive signal not modulated by the gratings: b0 + b1 x + b2 y (counts)", scale=1e6),
+    Effect("harmonic", "harmonic", False, ("cos", "sin"), 0.0, "none",
+           "non-sinusoidal stepping curve: a2 cos(2 psi + beta) in the flat field", scale=1.0),
+    Effect("sample_motion", None, False, (), 0.0, "none",
+           "part of the sample moved during the scan: pixels whose frames disagree"),
+    Effect("detector_gain", None, False, (), 1.0, "none",
+           "noise is not Poisson in the file's units: variance = g * mean (+ electronic noise)"),
+)}
+
+#: The paper's model (eq. 19).
+PAPER_MODEL = ("phase_offset", "tilt", "visibility_loss")
+#: Effects that enter the expected count, in the order the fit stages them.
+MEAN_EFFECTS = tuple(n for n, e in CATALOGUE.items() if e.channel is not None)
+
+
+def effect(name: str) -> Effect:
+    """Catalogue entry by name; ValueError naming the valid names otherwise."""
+    try:
+        return CATALOGUE[name]
+    except KeyError:
+        raise ValueError(f"unknown effect {name!r}; the catalogue has {', '.join(CATALOGUE)}") from None
+
+
+def neutral_params(effects, n_frames: int) -> dict[str, np.ndarray]:
+    """Parameters at which every listed effect is absent.
+
+    Returns
+    -------
+    dict
+        name -> ndarray of shape (J, n) for per-frame effects, (n,) for global ones.
+    """
+    out = {}
+    for name in effects:
+        e = effect(name)
+        if e.channel is None:
+            continue
+        shape = (n_frames, e.size) if e.per_frame else (e.size,)
+        out[name] = np.full(shape, e.neutral, dtype=np.float64)
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Observations: the aligned data
+# --------------------------------------------------------------------------------------------------
+
+
+def lateral_coordinate(columns: np.ndarray, width: int) -> np.ndarray:
+    """x = (2c + 1) / W - 1: -1 and +1 at the outer edges of the first and last column."""
+    return (2.0 * np.asarray(columns, dtype=np.float64) + 1.0) / width - 1.0
+
+
+@dataclass
+class Observations:
+    """Illuminated samples of a scan with their flat field, as blocks of (row, frame).
+
+    Attributes
+    ----------
+    counts : ndarray, shape (K, C)
+        Measured counts (detector units).
+    tf, vf, phif : ndarray, shape (K, C)
+        Flat-field transmission (counts), visibility and phase (rad, the nominal phase step included)
+        at each sample, aligned to the frame's position.
+    dark : ndarray, shape (K, C)
+        Dark signal (counts).
+    use : ndarray of bool, shape (K, C)
+        Samples that enter the fit (False for masked pixels).
+    row, frame : ndarray of int, shape (K,)
+        Detector row and frame of each block, sorted by row.
+    columns : ndarray of int, shape (C,)
+        Detector columns held.
+    shape : tuple
+        (J, H, W) of the scan.
+    gain : float
+        Detector units per photon (variance = gain * (Ibar - dark)).
+    """
+
+    counts: np.ndarray
+    tf: np.ndarray
+    vf: np.ndarray
+    phif: np.ndarray
+    dark: np.ndarray
+    use: np.ndarray
+    row: np.ndarray
+    frame: np.ndarray
+    columns: np.ndarray
+    shape: tuple
+    gain: float = 1.0
+    rows: np.ndarray = field(init=False)
+    starts: np.ndarray = field(init=False)
+    pixel: np.ndarray = field(init=False)
+
+    def __post_init__(self):
+        if np.any(np.diff(self.row) < 0):
+            raise ValueError("observation blocks must be sorted by row")
+        self.rows, self.starts, counts = np.unique(self.row, return_index=True, return_counts=True)
+        self.pixel = np.repeat(np.arange(self.rows.size), counts)
+
+    @property
+    def x(self) -> np.ndarray:
+        """Lateral coordinate of the held columns, shape (C,)."""
+        return lateral_coordinate(self.columns, self.shape[2])
+
+    @property
+    def y(self) -> np.ndarray:
+        """Detector-row coordinate of each block in [-1, 1], shape (K,)."""
+        return (2.0 * self.row + 1.0) / self.shape[1] - 1.0
+
+    @property
+    def n_frames(self) -> int:
+        return self.shape[0]
+
+    def segment_sum(self, a: np.ndarray) -> np.ndarray:
+        """Sum over the blocks of each row: (K, ...) -> (R, ...), R = number of rows held."""
+        return np.add.reduceat(a, self.starts, axis=0)
+
+    def frame_sum(self, a: np.ndarray) -> np.ndarray:
+        """Sum of per-block values (K,) over the blocks of each frame -> (J,)."""
+        return np.bincount(self.frame, weights=a, minlength=self.n_frames)
+
+    def subset(self, columns: np.ndarray) -> "Observations":
+        """The same blocks restricted to the given positions of ``self.columns``."""
+        idx = np.asarray(columns)
+        return Observations(self.counts[:, idx], self.tf[:, idx], self.vf[:, idx], self.phif[:, idx],
+                            self.dark[:, idx], self.use[:, idx], self.row, self.frame, self.columns[idx],
+                            self.shape, self.gain)
+
+
+# --------------------------------------------------------------------------------------------------
+# Channels and design
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Design:
+    """Per-sample coefficients of the linear per-pixel model Ibar = t A + c Bc + s Bs + offset.
+
+    All arrays have shape (K, C) (``dose`` (K, 1)); ``theta`` is the fringe phase without the sample.
+    """
+
+    A: np.ndarray
+    Bc: np.ndarray
+    Bs: np.ndarray
+    offset: np.ndarray
+    theta: np.ndarray
+    dose: np.ndarray
+    vis: np.ndarray
+    harmonic: tuple[float, float]
+
+
+def design(obs: Observations, params: dict[str, np.ndarray]) -> Design:
+    """Evaluate the channels of the model for given effect parameters.
+
+    Parameters
+    ----------
+    obs : Observations
+    params : dict
+        Effect name -> parameters (see :func:`neutral_params`); effects not listed are absent.
+
+    Returns
+    -------
+    Design
+    """
+    x = obs.x
+    K, C = obs.counts.shape
+    phase = np.zeros((K, C))
+    vis = np.ones((K, C))
+    dose = np.ones((K, 1))
+    background = np.zeros((K, C))
+    hc = hs = 0.0
+    for name, p in params.items():
+        e = effect(name)
+        if e.channel in ("phase", "visibility", "dose"):
+            field_ = sum(p[obs.frame, m][:, None] * x[None, :] ** k for m, k in enumerate(e.powers))
+            if e.channel == "phase":
+                phase = phase + field_
+            elif e.channel == "visibility":
+                # visibility_loss replaces the neutral 1; visibility_tilt adds x-dependent terms
+                vis = vis + field_ - (1.0 if e.neutral == 1.0 else 0.0)
+            else:
+                dose = dose * field_[:, :1]
+        elif e.channel == "background":
+            background = background + sum(p[m] * b for m, b in enumerate(background_basis(obs)))
+        elif e.channel == "harmonic":
+            hc, hs = float(p[0]), float(p[1])
+    theta = obs.phif + phase
+    amp = dose * obs.tf
+    A = amp * (1.0 + hc * np.cos(2 * theta) - hs * np.sin(2 * theta)) if (hc or hs) else amp * np.ones_like(theta)
+    Bv = amp * obs.vf * vis
+    return Design(A=A, Bc=Bv * np.cos(theta), Bs=-Bv * np.sin(theta), offset=background + obs.dark,
+                  theta=theta, dose=dose, vis=vis, harmonic=(hc, hs))
+
+
+def background_basis(obs: Observations) -> list[np.ndarray]:
+    """The smooth basis of the background effect (1, x, y), each broadcast to (K, C)."""
+    K, C = obs.counts.shape
+    return [np.ones((K, C)), np.broadcast_to(obs.x[None, :], (K, C)), np.broadcast_to(obs.y[:, None], (K, C))]
+
+
+# --------------------------------------------------------------------------------------------------
+# Images: the per-pixel closed-form solve
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Images:
+    """Per-pixel linear unknowns (t, c, s) for the rows held in the observations.
+
+    Attributes
+    ----------
+    coef : ndarray, shape (R, C, 3)
+        t, c = t v cos phi, s = t v sin phi.
+    valid : ndarray of bool, shape (R, C)
+        Pixels whose normal equations were solvable.
+    inverse : ndarray, shape (R, C, 3, 3) or None
+        Inverse normal matrix per pixel (for leverages and Fisher information).
+    """
+
+    coef: np.ndarray
+    valid: np.ndarray
+    inverse: np.ndarray | None = None
+
+    @property
+    def t(self) -> np.ndarray:
+        return self.coef[..., 0]
+
+    @property
+    def v(self) -> np.ndarray:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.hypot(self.coef[..., 1], self.coef[..., 2]) / self.coef[..., 0]
+
+    @property
+    def phi(self) -> np.ndarray:
+        return np.arctan2(self.coef[..., 2], self.coef[..., 1])
+
+
+def solve_pixels(obs: Observations, columns: list[np.ndarray], target: np.ndarray, weights: np.ndarray,
+                 *, keep_inverse: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Weighted linear least squares per pixel: min sum_k w (target - sum_a coef_a X_a)^2.
+
+    Parameters
+    ----------
+    obs : Observations
+        Supplies the grouping of samples into pixels.
+    columns : list of p ndarray, each (K, C)
+        Design columns X_a.
+    target : ndarray, shape (K, C)
+    weights : ndarray, shape (K, C)
+        Zero for samples that must not count.
+    keep_inverse : bool
+        Also return the inverse normal matrices.
+
+    Returns
+    -------
+    coef : ndarray, shape (R, C, p)
+    valid : ndarray of bool, shape (R, C)
+        False where fewer than p samples count or the normal matrix is singular (coef = 0 there).
+    inverse : ndarray, shape (R, C, p, p) or None
+    """
+    p = len(columns)
+    wX = [weights * X for X in columns]
+    N = np.empty(target.shape[:0] + (obs.rows.size, target.shape[1], p, p))
+    for a in range(p):
+        for b in range(a, p):
+            N[..., a, b] = N[..., b, a] = obs.segment_sum(wX[a] * columns[b])
+    rhs = np.stack([obs.segment_sum(wXa * target) for wXa in wX], axis=-1)
+    n_used = obs.segment_sum((weights > 0).astype(np.float64))
+    diag = np.einsum("...ii->...i", N)
+    scale = np.sqrt(np.where(diag > 0, diag, 1.0))
+    Ns = N / (scale[..., :, None] * scale[..., None, :])
+    # the determinant of the unit-diagonal matrix is scale-free; tiny means collinear columns
+    valid = (n_used >= p) & np.all(diag > 0, axis=-1) & (np.abs(np.linalg.det(Ns)) > 1e-10)
+    Ns[~valid] = np.eye(p)
+    inv_s = np.linalg.inv(Ns)
+    coef = np.einsum("...ab,...b->...a", inv_s, rhs / scale) / scale
+    coef[~valid] = 0.0
+    inverse = inv_s / (scale[..., :, None] * scale[..., None, :]) if keep_inverse else None
+    if inverse is not None:
+        inverse[~valid] = 0.0
+    return coef, valid, inverse
+
+
+def solve_images(obs: Observations, dsg: Design, weights: np.ndarray, *, phase: float | None = None,
+                 keep_inverse: bool = False) -> Images:
+    """Closed-form images for fixed per-frame parameters (paper eqs. 8-9).
+
+    Parameters
+    ----------
+    obs : Observations
+    dsg : Design
+    weights : ndarray, shape (K, C)
+    phase : float, optional
+        If given, the phase image is held at this constant (the circular-mean measure of paper eq. 36)
+        and only t and t v are solved for.
+    keep_inverse : bool
+        Keep the inverse normal matrices (needed for leverages).
+
+    Returns
+    -------
+    Images
+    """
+    target = obs.counts - dsg.offset
+    if phase is None:
+        coef, valid, inv = solve_pixels(obs, [dsg.A, dsg.Bc, dsg.Bs], target, weights, keep_inverse=keep_inverse)
+        return Images(coef, valid, inv)
+    cp, sp = np.cos(phase), np.sin(phase)
+    coef2, valid, _ = solve_pixels(obs, [dsg.A, dsg.Bc * cp + dsg.Bs * sp], target, weights)
+    coef = np.stack([coef2[..., 0], coef2[..., 1] * cp, coef2[..., 1] * sp], axis=-1)
+    return Images(coef, valid, None)
+
+
+def expected(obs: Observations, dsg: Design, images: Images) -> np.ndarray:
+    """Expected counts Ibar, shape (K, C)."""
+    c = images.coef[obs.pixel]
+    return c[..., 0] * dsg.A + c[..., 1] * dsg.Bc + c[..., 2] * dsg.Bs + dsg.offset
+
+
+def circular_mean(phi: np.ndarray, weights: np.ndarray | None = None) -> float:
+    """arg(sum_k w_k exp(i phi_k)) (paper eq. 37), ignoring non-finite entries."""
+    ok = np.isfinite(phi)
+    w = np.ones_like(phi) if weights is None else weights
+    return float(np.angle(np.sum(w[ok] * np.exp(1j * phi[ok]))))
+
+
+# --------------------------------------------------------------------------------------------------
+# Derivatives
+# --------------------------------------------------------------------------------------------------
+
+
+def sample_derivatives(obs: Observations, dsg: Design, images: Images, name: str) -> list[np.ndarray]:
+    """dIbar/d(parameter component) at every sample, before summation over frames.
+
+    For a per-frame effect, component m of frame j acts only on the samples of frame j, so the
+    returned field F (K, C) holds dIbar_k/dp_{frame[k], m} at sample k. For a global effect F is the
+    derivative with respect to the single parameter.
+
+    Returns
+    -------
+    list of ndarray, one (K, C) array per component
+    """
+    e = effect(name)
+    c = images.coef[obs.pixel]
+    t, cc, ss = c[..., 0], c[..., 1], c[..., 2]
+    x = obs.x[None, :]
+    hc, hs = dsg.harmonic
+    amp = dsg.dose * obs.tf
+    if e.channel == "phase":
+        dA = amp * (-2 * hc * np.sin(2 * dsg.theta) - 2 * hs * np.cos(2 * dsg.theta)) if (hc or hs) else 0.0
+        base = t * dA + cc * dsg.Bs - ss * dsg.Bc
+        return [base * x ** k for k in e.powers]
+    if e.channel == "visibility":
+        base = amp * obs.vf * (cc * np.cos(dsg.theta) - ss * np.sin(dsg.theta))
+        return [base * x ** k for k in e.powers]
+    if e.channel == "dose":
+        return [(t * dsg.A + cc * dsg.Bc + ss * dsg.Bs) / dsg.dose]
+    if e.channel == "background":
+        return background_basis(obs)
+    if e.channel == "harmonic":
+        return [t * amp * np.cos(2 * dsg.theta), -t * amp * np.sin(2 * dsg.theta)]
+    raise ValueError(f"effect {name!r} does not enter the expected count")
+
+
+def reduce_component(obs: Observations, name: str, F: np.ndarray) -> np.ndarray:
+    """Sum a per-sample field to the parameter it belongs to: (J,) per-frame or a scalar for global effects."""
+    if effect(name).per_frame:
+        return obs.frame_sum(F.sum(axis=1))
+    return np.asarray(F.sum())
+
+
+def gradient(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, resid: np.ndarray,
+             names) -> dict[str, np.ndarray]:
+    """Gradient of the cost sum w (I - Ibar)^2 with respect to effect parameters at fixed images.
+
+    At the closed-form images this is the gradient of the reduced cost (envelope theorem, paper
+    eq. 25).
+
+    Returns
+    -------
+    dict
+        name -> array shaped like that effect's parameters.
+    """
+    G = -2.0 * weights * resid
+    out = {}
+    for name in names:
+        comps = [reduce_component(obs, name, G * F) for F in sample_derivatives(obs, dsg, images, name)]
+        out[name] = np.stack(comps, axis=-1)
+    return out
+
+
+def leverage(obs: Observations, dsg: Design, images: Images, weights: np.ndarray) -> np.ndarray:
+    """Leverage of each sample in its pixel's image fit, w x^T N^-1 x, shape (K, C)."""
+    X = np.stack([dsg.A, dsg.Bc, dsg.Bs], axis=-1)
+    return weights * np.einsum("kca,kcab,kcb->kc", X, images.inverse[obs.pixel], X)
+
+
+def fisher_blocks(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, names,
+                  *, profiled: bool = True) -> tuple[np.ndarray, list[tuple[str, int]]]:
+    """Fisher information of the per-frame parameters, one block per frame.
+
+    Parameters
+    ----------
+    names : sequence of str
+        Per-frame effects (global ones are skipped here).
+    profiled : bool
+        Account for the images being estimated from the same data (factor 1 - leverage per sample;
+        exact for the diagonal blocks). Needs ``images.inverse``.
+
+    Returns
+    -------
+    blocks : ndarray, shape (J, P, P)
+        Information of frame j's parameters (for the log-likelihood -sum w r^2 / 2).
+    index : list of (name, component)
+        Meaning of the P axes.
+    """
+    fields, index = [], []
+    for name in names:
+        if not effect(name).per_frame:
+            continue
+        for m, F in enumerate(sample_derivatives(obs, dsg, images, name)):
+            fields.append(F)
+            index.append((name, m))
+    w = weights * (1.0 - leverage(obs, dsg, images, weights)) if profiled else weights
+    P = len(fields)
+    blocks = np.zeros((obs.n_frames, P, P))
+    for a in range(P):
+        wa = w * fields[a]
+        for b in range(a, P):
+            blocks[:, a, b] = blocks[:, b, a] = obs.frame_sum((wa * fields[b]).sum(axis=1))
+    return blocks, index
+
+
+def pearson(obs: Observations, ibar: np.ndarray, *, gain: float | None = None,
+            floor: float = 1e-3) -> np.ndarray:
+    """Pearson residual squared (I - Ibar)^2 / (g (Ibar - dark)) per sample, shape (K, C)."""
+    g = obs.gain if gain is None else gain
+    var = g * np.maximum(ibar - obs.dark, floor)
+    return (obs.counts - ibar) ** 2 / var
+
+
+def noise_weights(obs: Observations, ibar: np.ndarray, *, gain: float | None = None,
+                  floor: float = 1.0) -> np.ndarray:
+    """Inverse shot-noise variance 1 / (g max(Ibar - dark, floor)) of the used samples, 0 elsewhere."""
+    g = obs.gain if gain is None else gain
+    return np.where(obs.use, 1.0 / (g * np.maximum(ibar - obs.dark, floor)), 0.0)
