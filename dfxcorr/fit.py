@@ -343,19 +343,23 @@ def fix_gauge(params: dict, good: np.ndarray, *, visibility_gauge: str = "max",
 
 
 def uncertainty(obs: M.Observations, params: dict, weights: np.ndarray) -> dict[str, np.ndarray]:
-    """One-sigma uncertainty of per-frame parameters from the profiled Fisher information per frame."""
+    """One-sigma uncertainty of the effect parameters from the profiled Fisher information.
+
+    The pseudo-inverse leaves out the gauge directions (a common shift or scale that the images take
+    up), so the uncertainties are those of the gauge-fixed parameters. Frames without data get inf.
+    """
     dsg = M.design(obs, params)
     images = M.solve_images(obs, dsg, weights, keep_inverse=True)
-    names = [n for n in params if M.effect(n).per_frame]
+    names = list(params)
     out = {n: np.full_like(params[n], np.inf) for n in names}
     if not names:
         return out
-    blocks, index = M.fisher_blocks(obs, dsg, images, weights, names)
-    for j, B in enumerate(blocks):
-        d = np.diag(B)
-        if np.all(d > 0):
-            s = np.sqrt(d)
-            cov = np.linalg.pinv(B / np.outer(s, s), rcond=1e-10) / np.outer(s, s)
-            for a, (n, m) in enumerate(index):
-                out[n][j, m] = np.sqrt(max(cov[a, a], 0.0)) if cov[a, a] > 0 else np.inf
+    info, index = M.fisher_matrix(obs, dsg, images, weights, names)
+    d = np.diag(info).copy()
+    has = d > 1e-12 * max(d.max(), 1e-300)
+    s = np.sqrt(d[has])
+    sub = info[np.ix_(has, has)] / np.outer(s, s)
+    var = np.diag(np.linalg.pinv(sub, rcond=1e-9, hermitian=True)) / s ** 2
+    for (n, j, m), v in zip([ix for ix, h in zip(index, has) if h], var):
+        out[n][(j, m) if j >= 0 else m] = np.sqrt(v) if v > 0 else np.inf
     return out

@@ -223,6 +223,12 @@ class Observations:
         """Sum of per-block values (K,) over the blocks of each frame -> (J,)."""
         return np.bincount(self.frame, weights=a, minlength=self.n_frames)
 
+    def to_image(self, values: np.ndarray, *, fill: float = np.nan) -> np.ndarray:
+        """Place per-pixel values (R, C) into a detector image (H, W), ``fill`` elsewhere."""
+        out = np.full(self.shape[1:], fill, dtype=np.result_type(values, type(fill)))
+        out[np.ix_(self.rows, self.columns)] = values
+        return out
+
     def subset(self, columns: np.ndarray) -> "Observations":
         """The same blocks restricted to the given positions of ``self.columns``."""
         idx = np.asarray(columns)
@@ -498,40 +504,70 @@ def leverage(obs: Observations, dsg: Design, images: Images, weights: np.ndarray
     return weights * np.einsum("kca,kcab,kcb->kc", X, images.inverse[obs.pixel], X)
 
 
-def fisher_blocks(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, names,
-                  *, profiled: bool = True) -> tuple[np.ndarray, list[tuple[str, int]]]:
-    """Fisher information of the per-frame parameters, one block per frame.
+def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, names,
+                  *, profiled: bool = True) -> tuple[np.ndarray, list[tuple[str, int, int]]]:
+    """Fisher information of all effect parameters, with the images profiled out.
+
+    The images are estimated from the same data, so the information of the effect parameters is
+    the Schur complement sum_i D_i^T (W - W X (X^T W X)^-1 X^T W) D_i over pixels i, where D_i holds
+    the derivatives of the pixel's samples with respect to the effect parameters and X_i its image
+    design. Per-frame parameters of different frames are coupled through the pixels they share.
 
     Parameters
     ----------
+    obs : Observations
+    dsg : Design
+    images : Images
+        Needs ``inverse`` (``solve_images(..., keep_inverse=True)``) when ``profiled``.
+    weights : ndarray, shape (K, C)
     names : sequence of str
-        Per-frame effects (global ones are skipped here).
+        Effects whose parameters are included.
     profiled : bool
-        Account for the images being estimated from the same data (factor 1 - leverage per sample;
-        exact for the diagonal blocks). Needs ``images.inverse``.
+        False gives the information at known images (no Schur complement).
 
     Returns
     -------
-    blocks : ndarray, shape (J, P, P)
-        Information of frame j's parameters (for the log-likelihood -sum w r^2 / 2).
-    index : list of (name, component)
-        Meaning of the P axes.
+    info : ndarray, shape (P, P)
+        For the log-likelihood -sum w r^2 / 2.
+    index : list of (name, frame, component)
+        Meaning of each axis entry; frame is -1 for global effects.
     """
-    fields, index = [], []
-    for name in names:
-        if not effect(name).per_frame:
-            continue
-        for m, F in enumerate(sample_derivatives(obs, dsg, images, name)):
-            fields.append(F)
-            index.append((name, m))
-    w = weights * (1.0 - leverage(obs, dsg, images, weights)) if profiled else weights
-    P = len(fields)
-    blocks = np.zeros((obs.n_frames, P, P))
-    for a in range(P):
-        wa = w * fields[a]
-        for b in range(a, P):
-            blocks[:, a, b] = blocks[:, b, a] = obs.frame_sum((wa * fields[b]).sum(axis=1))
-    return blocks, index
+    J = obs.n_frames
+    per_frame = [(n, m, F) for n in names if effect(n).per_frame
+                 for m, F in enumerate(sample_derivatives(obs, dsg, images, n))]
+    glob = [(n, m, F) for n in names if not effect(n).per_frame
+            for m, F in enumerate(sample_derivatives(obs, dsg, images, n))]
+    Pf, Pg = len(per_frame), len(glob)
+    index = [(n, j, m) for j in range(J) for n, m, _ in per_frame] + [(n, -1, m) for n, m, _ in glob]
+    info = np.zeros((J * Pf + Pg, J * Pf + Pg))
+    Ff = np.stack([F for *_, F in per_frame], axis=-1) if Pf else np.zeros(obs.counts.shape + (0,))
+    Fg = np.stack([F for *_, F in glob], axis=-1) if Pg else np.zeros(obs.counts.shape + (0,))
+    wFf, wFg = weights[..., None] * Ff, weights[..., None] * Fg
+    # information at known images: per-frame blocks, per-frame x global, global x global
+    blocks = np.einsum("kca,kcb->kab", wFf, Ff)
+    cross = np.einsum("kca,kcb->kab", wFf, Fg)
+    fidx = np.arange(J)[:, None] * Pf + np.arange(Pf)[None, :]
+    for j in range(J):
+        sel = obs.frame == j
+        info[np.ix_(fidx[j], fidx[j])] += blocks[sel].sum(axis=0)
+        info[np.ix_(fidx[j], J * Pf + np.arange(Pg))] += cross[sel].sum(axis=0)
+    info[J * Pf:, J * Pf:] += np.einsum("kca,kcb->ab", wFg, Fg)
+    info[J * Pf:, :J * Pf] = info[:J * Pf, J * Pf:].T
+    if not profiled:
+        return info, index
+    X = np.stack([dsg.A, dsg.Bc, dsg.Bs], axis=-1)
+    for r in range(obs.rows.size):
+        lo, hi = obs.starts[r], (obs.starts[r + 1] if r + 1 < obs.rows.size else obs.frame.size)
+        frames = obs.frame[lo:hi]
+        # Y = X^T W D per column: per-frame columns (frame, component) and the global columns
+        Yf = np.einsum("kci,kca->cika", X[lo:hi], wFf[lo:hi]).reshape(X.shape[1], 3, -1)
+        Yg = np.einsum("kci,kca->cia", X[lo:hi], wFg[lo:hi])
+        Y = np.concatenate([Yf, Yg], axis=-1)
+        T = np.einsum("cij,cjl->cil", images.inverse[r], Y)
+        corr = np.einsum("cil,cim->lm", Y, T)
+        idx = np.concatenate([fidx[frames].ravel(), J * Pf + np.arange(Pg)])
+        info[np.ix_(idx, idx)] -= corr
+    return info, index
 
 
 def pearson(obs: Observations, ibar: np.ndarray, *, gain: float | None = None,

@@ -1,0 +1,195 @@
+"""Command-line interface: thin wrappers over the library, one clear line and a non-zero exit on bad input."""
+from __future__ import annotations
+
+import functools
+import logging
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+
+from . import __version__
+from . import config as C
+
+log = logging.getLogger("dfxcorr")
+
+#: Exit code for refused input (bad file, bad configuration, existing output).
+EXIT_INPUT = 2
+
+
+def _user_errors():
+    from .align import AlignmentError
+    from .export import OutputExistsError
+    from .importer import StackImportError
+    from .io import ScanFormatError
+    from .pipeline import IdentifiabilityError
+
+    return (ScanFormatError, C.ConfigError, OutputExistsError, IdentifiabilityError, AlignmentError,
+            StackImportError)
+
+
+def friendly(func):
+    """Turn the library's input errors into one line on stderr and exit code 2."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            return func(*args, **kwargs)
+        except _user_errors() as exc:
+            click.echo(f"error: {exc}", err=True)
+            sys.exit(EXIT_INPUT)
+        except OSError as exc:
+            click.echo(f"error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), err=True)
+            sys.exit(EXIT_INPUT)
+
+    return wrapper
+
+
+def _setup_logging(verbose: int, quiet: bool, log_file: str | None) -> None:
+    level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
+    handlers = [logging.StreamHandler(sys.stderr)]
+    if log_file:
+        handlers.append(logging.FileHandler(log_file))
+    logging.basicConfig(level=level, handlers=handlers, force=True,
+                        format="%(asctime)s %(levelname)-7s %(message)s", datefmt="%H:%M:%S")
+    if verbose < 2:
+        logging.getLogger("dfxcorr").setLevel(level)
+
+
+def _command_line() -> str:
+    return "dfxcorr " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+
+
+config_options = [
+    click.option("-c", "--config", "config_files", multiple=True, type=click.Path(dir_okay=False),
+                 help="YAML configuration (repeatable; later files win)."),
+    click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE",
+                 help="Override one option (repeatable), e.g. --set fit.subsample=10."),
+]
+
+
+def with_config(func):
+    for opt in reversed(config_options):
+        func = opt(func)
+    return func
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="dfxcorr")
+@click.option("-v", "--verbose", count=True, help="More log output (-vv: debug).")
+@click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
+@click.option("--log-file", type=click.Path(dir_okay=False), help="Also write the log to this file.")
+def main(verbose, quiet, log_file):
+    """Correct grating-vibration artefacts in scanning Talbot-Lau X-ray interferometry.
+
+    Typical use: dfxcorr reconstruct scan.h5 -o result.h5 --tiff out/ --preview
+    """
+    _setup_logging(verbose, quiet, log_file)
+
+
+@main.command()
+@click.argument("scan", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", type=click.Path(dir_okay=False),
+              help="Result HDF5 file (default: <scan stem>_result.h5 in the current directory).")
+@with_config
+@click.option("--method", type=click.Choice(["ml", "alternating", "correlation", "none"]),
+              help="Vibration estimator (overrides fit.method).")
+@click.option("--tiff", "tiff_dir", type=click.Path(file_okay=False), help="Also write float32 TIFFs here.")
+@click.option("--preview", is_flag=True, help="Also write a PNG with uncorrected and corrected images.")
+@click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
+@friendly
+def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite):
+    """Reconstruct vibration-corrected images from SCAN (dfxcorr scan format)."""
+    from . import export, pipeline
+
+    sets = list(sets) + ([f"fit.method={method}"] if method else [])
+    cfg = C.load(config_files, sets)
+    out = Path(output) if output else Path(f"{Path(scan).stem}_result.h5")
+    export.check_output(out, overwrite=overwrite)
+    t0 = time.perf_counter()
+    result = pipeline.reconstruct(scan, cfg, command_line=_command_line())
+    _write_outputs(result, out, tiff_dir=tiff_dir, preview=preview, overwrite=overwrite)
+    click.echo(f"{out}: reduced chi-square {result.reduced_chi2:.4f}, {time.perf_counter() - t0:.1f} s")
+
+
+def _write_outputs(result, out: Path, *, tiff_dir=None, preview=False, overwrite=False) -> list[Path]:
+    from . import export
+
+    export.write_result_h5(out, result, overwrite=overwrite, compression=_compression(result.config))
+    written = [out]
+    if tiff_dir:
+        written += export.write_tiffs(tiff_dir, result, stem=out.stem, overwrite=overwrite)
+    if preview:
+        written.append(export.write_preview(out.with_name(f"{out.stem}_preview.png"), result, overwrite=overwrite))
+        written.append(export.write_fit_plot(out.with_name(f"{out.stem}_fit.png"), result, overwrite=overwrite))
+    for p in written:
+        log.info("wrote %s", p)
+    return written
+
+
+def _compression(cfg: dict):
+    c = cfg["export"]["compression"]
+    return None if c == "none" else c
+
+
+@main.command()
+@click.argument("config_file", required=False, type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Scan file to write.")
+@click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE", help="Override one option.")
+@click.option("--truth", type=click.Path(dir_okay=False), help="Truth file (default: <output stem>.truth.npz).")
+@click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
+@friendly
+def simulate(config_file, output, sets, truth, overwrite):
+    """Simulate a scan (the paper's simulation study by default) and write it with its truth."""
+    from . import export
+    from . import simulate as S
+    from .io import write_scan
+
+    cfg = C.load([config_file] if config_file else [], sets, schema=S.SCHEMA)
+    out = Path(output)
+    truth_path = Path(truth) if truth else out.with_name(f"{out.stem}.truth.npz")
+    for p in (out, truth_path):
+        export.check_output(p, overwrite=overwrite)
+    scan, true = S.simulate(cfg)
+    write_scan(out, scan)
+    np.savez_compressed(truth_path, **true)
+    click.echo(f"{out}: {scan.shape[0]} frames of {scan.shape[1]} x {scan.shape[2]}; truth in {truth_path}")
+
+
+@main.command()
+@click.argument("output_dir", type=click.Path(file_okay=False), default="dfxcorr-demo")
+@click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
+@friendly
+def demo(output_dir, overwrite):
+    """Simulate a small scan, reconstruct it and write images, pictures and a summary (under a minute)."""
+    from .demo import run_demo
+
+    summary = run_demo(Path(output_dir), overwrite=overwrite, command_line=_command_line())
+    click.echo(summary)
+
+
+@main.command("config")
+@click.option("--defaults", "show_defaults", is_flag=True, help="Print the commented default configuration.")
+@click.option("--schema", type=click.Choice(["reconstruct", "simulate"]), default="reconstruct", show_default=True,
+              help="Which configuration.")
+@click.option("--check", "check_files", multiple=True, type=click.Path(dir_okay=False),
+              help="Validate these YAML files and print the resolved configuration.")
+@click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE", help="Override one option.")
+@friendly
+def config_cmd(show_defaults, schema, check_files, sets):
+    """Show the default configuration, or validate and resolve configuration files."""
+    from . import simulate as S
+
+    sch = S.SCHEMA if schema == "simulate" else C.SCHEMA
+    if show_defaults or not (check_files or sets):
+        title = "dfxcorr simulate this.yaml -o scan.h5" if schema == "simulate" else "dfxcorr reconstruct SCAN -c this.yaml"
+        click.echo(C.commented_defaults(sch, title=title))
+        return
+    click.echo(C.dump(C.load(check_files, sets, schema=sch)), nl=False)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,240 @@
+"""The configuration schema: every option of every stage with its default, type, help and validation.
+
+A run's configuration is the defaults, overlaid by YAML files (``-c``) in order, overlaid by
+``--set section.key=value``. Unknown sections or keys are refused with the nearest valid name; the
+fully resolved configuration is written into every result so that feeding it back reproduces the run.
+"""
+from __future__ import annotations
+
+import copy
+import difflib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration key or value is not valid; the message names it."""
+
+
+@dataclass(frozen=True)
+class Option:
+    """One configuration option.
+
+    Attributes
+    ----------
+    default : object
+    help : str
+    kind : type or tuple of types
+        Accepted Python types (after YAML parsing); None is accepted when ``nullable``.
+    choices : tuple, optional
+    check : callable, optional
+        Returns an error text for a bad value, or None.
+    nullable : bool
+    """
+
+    default: Any
+    help: str
+    kind: Any
+    choices: tuple | None = None
+    check: Callable[[Any], str | None] | None = None
+    nullable: bool = False
+
+
+def _positive(v):
+    return None if v > 0 else "must be positive"
+
+
+def _nonneg(v):
+    return None if v >= 0 else "must not be negative"
+
+
+def _fraction(v):
+    return None if 0 < v <= 1 else "must lie in (0, 1]"
+
+
+_NUM = (int, float)
+
+SCHEMA: dict[str, dict[str, Option]] = {
+    "load": {
+        "gain": Option(None, "detector units per photon; null takes /entry/instrument/detector/gain of the file",
+                       _NUM, check=_positive, nullable=True),
+    },
+    "align": {
+        "min_frames": Option(3, "detector rows lit in fewer frames are left out (at least the per-pixel unknowns)",
+                             int, check=lambda v: None if v >= 3 else "must be at least 3"),
+        "min_visibility": Option(0.0, "pixels whose reference visibility is below this carry no fringe and are "
+                                      "left out (region of interest; 0 keeps all)", _NUM,
+                                 check=lambda v: None if 0 <= v < 1 else "must lie in [0, 1)"),
+    },
+    "mask": {
+        "enabled": Option(True, "leave pixels whose frames disagree (sample motion, paper Sec. II-E) out of the "
+                                "vibration fit (only of it)", bool),
+        "threshold": Option(None, "absolute threshold on the motion score (residual relative to what noise and "
+                                  "vibration explain); null derives it from the data", _NUM, check=_positive,
+                            nullable=True),
+        "sigma": Option(6.0, "data-driven threshold: median + sigma robust standard deviations of the score",
+                        _NUM, check=_positive),
+        "dilate": Option(1, "grow the motion mask by this many pixels", int, check=_nonneg),
+    },
+    "vibration": {
+        "phase_offset": Option(True, "fit phi0_j, the grating shift between exposures", bool),
+        "tilt": Option(True, "fit phi1_j, the grating rotation (x phi1_j added to the phase)", bool),
+        "visibility": Option(True, "fit v^s_j, the visibility loss from motion during the exposure", bool),
+        "curvature": Option(False, "fit phi2_j (x^2 phi2_j added to the phase)", bool),
+        "visibility_tilt": Option(False, "fit v1_j, v2_j (visibility factor v^s_j + x v1_j + x^2 v2_j)", bool),
+        "dose": Option(False, "fit d_j, a per-frame factor on the whole expected count", bool),
+        "background": Option(False, "fit a smooth additive background b0 + b1 x + b2 y", bool),
+        "harmonic": Option(False, "fit a second harmonic of the stepping curve", bool),
+    },
+    "fit": {
+        "method": Option("ml", "vibration estimator: ml (this paper), alternating, correlation, none", str,
+                         choices=("ml", "alternating", "correlation", "none")),
+        "subsample": Option(20, "fit on every n-th detector column (paper Sec. II-D.1)", int, check=_positive),
+        "column_offset": Option(None, "first column of the subsampled grid; null: subsample // 2", int,
+                                check=_nonneg, nullable=True),
+        "maxiter": Option(300, "L-BFGS iterations per stage", int, check=_positive),
+        "gtol": Option(1e-3, "stop when the preconditioned gradient is below this (cost per parameter sigma)",
+                       _NUM, check=_positive),
+        "circmean_iterations": Option(10, "first iterations with the phase image at its circular mean (eq. 36)",
+                                      int, check=_nonneg),
+        "staged": Option(True, "fit phases first, add visibility and other effects afterwards (Sec. II-E)", bool),
+        "precondition": Option(True, "rescale by the Fisher diagonal (eq. 34)", bool),
+        "reweight": Option(1, "refits with noise weights from the fitted model", int, check=_nonneg),
+        "visibility_gauge": Option("max", "normalise v^s to a robust maximum of 1 (max) or a median of 1 "
+                                          "(median, eq. 22)", str, choices=("max", "median")),
+        "visibility_quantile": Option(0.98, "quantile of v^s set to 1 by the max gauge", _NUM, check=_fraction),
+        "gauge_fraction": Option(0.5, "frames lighting at least this fraction of the active area define the "
+                                      "gauge", _NUM, check=_fraction),
+    },
+    "retrieve": {
+        "iterations": Option(2, "solves with noise weights from the previous model (1: data weights, eq. 6)",
+                             int, check=_positive),
+        "uncorrected": Option(True, "also retrieve the images without vibration correction (previews)", bool),
+    },
+    "export": {
+        "compression": Option("gzip", "HDF5 compression of the images", str, choices=("gzip", "lzf", "none")),
+    },
+}
+
+#: Configuration keys of the vibration section -> catalogue effects.
+VIBRATION_EFFECTS = {"phase_offset": "phase_offset", "tilt": "tilt", "visibility": "visibility_loss",
+                     "curvature": "curvature", "visibility_tilt": "visibility_tilt", "dose": "dose",
+                     "background": "background", "harmonic": "harmonic"}
+
+
+def defaults(schema: dict = SCHEMA) -> dict:
+    """The default configuration as a nested dict."""
+    return {sec: {k: copy.deepcopy(o.default) for k, o in opts.items()} for sec, opts in schema.items()}
+
+
+def _nearest(word: str, candidates) -> str:
+    match = difflib.get_close_matches(word, list(candidates), n=1, cutoff=0.5)
+    return f"; did you mean {match[0]!r}?" if match else f"; valid: {', '.join(candidates)}"
+
+
+def validate_value(section: str, key: str, value: Any, schema: dict = SCHEMA) -> Any:
+    """Check one value against the schema; returns it (ints accepted where floats are)."""
+    opt = schema[section][key]
+    name = f"{section}.{key}"
+    if value is None:
+        if opt.nullable:
+            return None
+        raise ConfigError(f"{name} must not be null")
+    kinds = opt.kind if isinstance(opt.kind, tuple) else (opt.kind,)
+    if isinstance(value, bool) and bool not in kinds:
+        raise ConfigError(f"{name} must be {' or '.join(k.__name__ for k in kinds)}, got {value!r}")
+    if not isinstance(value, kinds):
+        raise ConfigError(f"{name} must be {' or '.join(k.__name__ for k in kinds)}, got {value!r}")
+    if opt.choices and value not in opt.choices:
+        raise ConfigError(f"{name} must be one of {', '.join(map(str, opt.choices))}, got {value!r}"
+                          + (_nearest(str(value), opt.choices) if isinstance(value, str) else ""))
+    if opt.check:
+        problem = opt.check(value)
+        if problem:
+            raise ConfigError(f"{name} {problem}, got {value!r}")
+    return value
+
+
+def merge(base: dict, overlay: dict, *, origin: str = "configuration", schema: dict = SCHEMA) -> dict:
+    """Overlay a (partial) configuration onto a full one, validating every key and value."""
+    if overlay is None:
+        return base
+    if not isinstance(overlay, dict):
+        raise ConfigError(f"{origin}: expected a mapping of sections, got {type(overlay).__name__}")
+    out = copy.deepcopy(base)
+    for section, values in overlay.items():
+        if section not in schema:
+            raise ConfigError(f"{origin}: unknown section {section!r}{_nearest(str(section), schema)}")
+        if values is None:
+            continue
+        if not isinstance(values, dict):
+            raise ConfigError(f"{origin}: section {section!r} must be a mapping")
+        for key, value in values.items():
+            if key not in schema[section]:
+                raise ConfigError(f"{origin}: unknown key {section}.{key}{_nearest(str(key), schema[section])}")
+            out[section][key] = validate_value(section, key, value, schema)
+    return out
+
+
+def parse_set(item: str) -> dict:
+    """``section.key=value`` (value parsed as YAML) -> {section: {key: value}}."""
+    if "=" not in item or "." not in item.split("=", 1)[0]:
+        raise ConfigError(f"--set {item!r}: expected section.key=value")
+    path, raw = item.split("=", 1)
+    section, key = path.strip().split(".", 1)
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"--set {item!r}: value is not valid YAML ({exc.problem})") from None
+    return {section: {key: value}}
+
+
+def load(files=(), sets=(), *, schema: dict = SCHEMA) -> dict:
+    """Resolve a configuration: defaults, then each YAML file, then each ``section.key=value``.
+
+    Raises
+    ------
+    ConfigError
+        Naming the file and the bad key or value.
+    """
+    cfg = defaults(schema)
+    for f in files:
+        path = Path(f)
+        try:
+            data = yaml.safe_load(path.read_text())
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
+        cfg = merge(cfg, data or {}, origin=str(path), schema=schema)
+    for item in sets:
+        cfg = merge(cfg, parse_set(item), origin=f"--set {item}", schema=schema)
+    return cfg
+
+
+def effects_of(cfg: dict) -> tuple[str, ...]:
+    """Catalogue effects switched on in the vibration section, in catalogue order."""
+    return tuple(effect for key, effect in VIBRATION_EFFECTS.items() if cfg["vibration"][key])
+
+
+def dump(cfg: dict) -> str:
+    """YAML of a resolved configuration."""
+    return yaml.safe_dump(cfg, sort_keys=False)
+
+
+def commented_defaults(schema: dict = SCHEMA, *, title: str = "dfxcorr reconstruct SCAN -c this.yaml") -> str:
+    """The default configuration as YAML with every option's help as a comment."""
+    lines = ["# dfxcorr configuration: every option with its default.",
+             f"# Use with `{title}`; override with --set section.key=value.", ""]
+    for section, opts in schema.items():
+        lines.append(f"{section}:")
+        for key, opt in opts.items():
+            extra = f" [{' | '.join(map(str, opt.choices))}]" if opt.choices else ""
+            lines.append(f"  # {opt.help}{extra}")
+            value = yaml.safe_dump({key: opt.default}, default_flow_style=True).strip()[1:-1]
+            lines.append(f"  {value}")
+        lines.append("")
+    return "\n".join(lines)

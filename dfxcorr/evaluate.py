@@ -1,0 +1,47 @@
+"""Comparison with ground truth: vibration-parameter and image errors in the gauge of paper eq. 22."""
+from __future__ import annotations
+
+import numpy as np
+
+#: Result effect name -> truth key (shared truth files and the simulator use these keys).
+TRUTH_KEYS = {"phase_offset": "vib_phase_offset", "tilt": "vib_tilt", "visibility_loss": "vib_visibility",
+              "curvature": "vib_curvature", "dose": "vib_dose"}
+
+
+def gauge_median(p: np.ndarray, good: np.ndarray, *, scale: bool) -> np.ndarray:
+    """Remove the median (shift effects) or divide by it (scale effects) over the frames ``good``."""
+    med = np.median(p[good])
+    return p / med if scale else p - med
+
+
+def frames_lighting(position: np.ndarray, active_rows: int, height: int, fraction: float = 0.5) -> np.ndarray:
+    """Frames lighting at least ``fraction`` of the active area's rows, shape (J,) bool."""
+    top = np.clip(np.asarray(position), 0, height)
+    bottom = np.clip(np.asarray(position) + active_rows, 0, height)
+    return (bottom - top) >= fraction * active_rows
+
+
+def vibration_rmse(params: dict, truth: dict, good: np.ndarray) -> dict[str, float]:
+    """RMSE of each per-frame effect against the truth over ``good`` frames, both in the median gauge."""
+    out = {}
+    for name, key in TRUTH_KEYS.items():
+        if name not in params or key not in truth:
+            continue
+        scale = name in ("visibility_loss", "dose")
+        est = gauge_median(np.asarray(params[name])[:, 0], good, scale=scale)
+        tru = gauge_median(np.asarray(truth[key], dtype=float), good, scale=scale)
+        out[name] = float(np.sqrt(np.mean((est - tru)[good] ** 2)))
+    return out
+
+
+def image_rmse(images: dict, truth: dict) -> dict[str, float]:
+    """RMSE of t, v and phi (phase wrapped to (-pi, pi]) against the truth over finite pixels."""
+    out = {}
+    for name in ("transmission", "dark_field", "differential_phase"):
+        a, b = np.asarray(images[name], float), np.asarray(truth[f"image_{name}"], float)
+        ok = np.isfinite(a) & np.isfinite(b)
+        d = a[ok] - b[ok]
+        if name == "differential_phase":
+            d = np.angle(np.exp(1j * d))
+        out[name] = float(np.sqrt(np.mean(d ** 2)))
+    return out

@@ -1,0 +1,229 @@
+"""The simulator: scans of the paper's simulation study (Sec. III-A) with every catalogue effect switchable.
+
+Expected counts come from :mod:`dfxcorr.model` (the one forward model); the simulator adds what the
+model leaves out on purpose: photon noise, detector gain and electronic noise, and a sample region
+that changes during the scan (``sample_motion``). The truth is returned beside the scan with the
+same keys as the shared truth files (``image_*``, ``vib_*``).
+"""
+from __future__ import annotations
+
+import json
+import logging
+
+import numpy as np
+
+from . import model as M
+from .align import build_observations
+from .config import Option, _fraction, _nonneg, _positive
+from .io import Reference, Scan, SteppingReference
+
+log = logging.getLogger(__name__)
+
+_NUM = (int, float)
+
+SCHEMA: dict[str, dict[str, Option]] = {
+    "simulate": {
+        "seed": Option(101, "seed of the random generator (vibrations and noise)", int),
+        "geometry": Option("scan", "scanning interferometer (scan) or phase stepping (stepping)", str,
+                           choices=("scan", "stepping")),
+        "phantom": Option("thorax", "sample: thorax (FORBILD-like, Table I), slab (constant attenuation), blank",
+                          str, choices=("thorax", "slab", "blank")),
+        "pixel_mm": Option(1.0, "detector pixel pitch (mm)", _NUM, check=_positive),
+        "height_mm": Option(450.0, "detector height along the scan (mm)", _NUM, check=_positive),
+        "width_mm": Option(510.0, "detector width (mm)", _NUM, check=_positive),
+        "active_mm": Option(75.0, "height of the interferometer's active area (mm); stepping: ignored", _NUM,
+                            check=_positive),
+        "step_mm": Option(2.5, "motion of the active area between exposures (mm)", _NUM, check=_positive),
+        "magnification": Option(1.2, "source-detector / source-sample distance (1.8 m / 1.5 m)", _NUM,
+                                check=_positive),
+        "steps": Option(11, "stepping geometry: number of phase steps", int, check=lambda v: None if v >= 3
+                        else "must be at least 3"),
+        "steps_per_period": Option(11, "stepping geometry: steps per grating period", _NUM, check=_positive),
+        "flux": Option(2e4, "flat-field counts per pixel and frame, t^f", _NUM, check=_positive),
+        "visibility": Option(0.3, "flat-field visibility v^f", _NUM, check=_fraction),
+        "fringes_centre": Option(2.0, "moire fringes over the active area at the centre", _NUM),
+        "fringes_edge": Option(2.5, "moire fringes over the active area at the left and right edges", _NUM),
+        "noise": Option(True, "Poisson photon noise", bool),
+        "dtype": Option("uint16", "stored frame type", str, choices=("uint16", "uint32", "float32", "float64")),
+        "reference_steps": Option(0, "0: exact reference maps; S > 2: a noisy S-step reference series", int,
+                                  check=_nonneg),
+        "reference_frames": Option(20, "frames averaged per reference step (its dose multiple)", int,
+                                   check=_positive),
+    },
+    "effects": {
+        "phase_offset": Option(2 * np.pi / 16, "std of phi0_j (rad) (stepping: of the step errors)", _NUM,
+                               check=_nonneg),
+        "tilt": Option(2 * np.pi / 16, "std of phi1_j (rad)", _NUM, check=_nonneg),
+        "visibility_loss": Option(0.2, "std of u in v^s_j = |1 - |u||; 0: none", _NUM, check=_nonneg),
+        "curvature": Option(0.0, "std of phi2_j (rad)", _NUM, check=_nonneg),
+        "visibility_tilt": Option(0.0, "std of v1_j and v2_j (v2_j = -|.|)", _NUM, check=_nonneg),
+        "dose": Option(0.0, "relative std of the per-frame dose d_j", _NUM, check=_nonneg),
+        "background": Option(0.0, "additive background at the detector centre, fraction of the flux", _NUM,
+                             check=_nonneg),
+        "harmonic": Option(0.0, "amplitude a2 of the second harmonic, fraction of the flux", _NUM, check=_nonneg),
+        "harmonic_phase": Option(0.5, "phase beta of the second harmonic (rad)", _NUM),
+        "sample_motion": Option(0.0, "relative transmission change of a moving region (heart-like disc)", _NUM,
+                                check=_nonneg),
+        "detector_gain": Option(1.0, "true detector units per photon (noise variance g * mean)", _NUM,
+                                check=_positive),
+        "declare_gain": Option(True, "write the true gain into the file (false conceals it: readers assume 1)",
+                               bool),
+        "read_noise": Option(0.0, "electronic noise std (detector units)", _NUM, check=_nonneg),
+    },
+}
+
+
+def geometry(cfg: dict) -> dict:
+    """Detector and scan geometry in pixels: H, W, A, positions (J,), phase steps (J,)."""
+    s = cfg["simulate"]
+    px = s["pixel_mm"]
+    H, W = int(round(s["height_mm"] / px)), int(round(s["width_mm"] / px))
+    if s["geometry"] == "stepping":
+        J = s["steps"]
+        return dict(H=H, W=W, A=H, position=np.zeros(J), phase_step=2 * np.pi * np.arange(J) / s["steps_per_period"])
+    A, step = int(round(s["active_mm"] / px)), s["step_mm"] / px
+    J = int(round((H + A) / step)) - 1
+    position = -A + step * (np.arange(J) + 1)
+    return dict(H=H, W=W, A=A, position=position, phase_step=np.zeros(J))
+
+
+def flat_field(cfg: dict, A: int, W: int) -> Reference:
+    """Flat field with a fringe count growing from the centre to the edges (paper Sec. III-A)."""
+    s = cfg["simulate"]
+    u = (np.arange(A) + 0.5)[:, None]
+    x = M.lateral_coordinate(np.arange(W), W)[None, :]
+    fringes = s["fringes_centre"] + (s["fringes_edge"] - s["fringes_centre"]) * x ** 2
+    return Reference(transmission=np.full((A, W), float(s["flux"])), visibility=np.full((A, W), float(s["visibility"])),
+                     phase=2 * np.pi * fringes * u / A)
+
+
+def sample_images(cfg: dict, H: int, W: int) -> dict[str, np.ndarray]:
+    """t, v, phi of the configured phantom, shape (H, W)."""
+    from . import phantom
+
+    s = cfg["simulate"]
+    if s["phantom"] == "thorax":
+        return phantom.thorax(shape=(H, W), pixel_mm=s["pixel_mm"], magnification=s["magnification"])
+    if s["phantom"] == "slab":
+        return phantom.slab(shape=(H, W), pixel_mm=s["pixel_mm"], magnification=s["magnification"])
+    return phantom.blank(shape=(H, W))
+
+
+def draw_effects(cfg: dict, J: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Per-frame and global effect parameters (catalogue names) drawn as configured."""
+    e, s = cfg["effects"], cfg["simulate"]
+    p = {"phase_offset": rng.normal(0, e["phase_offset"], (J, 1)), "tilt": rng.normal(0, e["tilt"], (J, 1))}
+    if s["geometry"] == "stepping":
+        p["tilt"][:] = rng.normal(0, e["tilt"], (J, 1)) if e["tilt"] else 0.0
+    p["visibility_loss"] = np.abs(1 - np.abs(rng.normal(0, e["visibility_loss"], (J, 1)))) if e["visibility_loss"] \
+        else np.ones((J, 1))
+    if e["curvature"]:
+        p["curvature"] = rng.normal(0, e["curvature"], (J, 1))
+    if e["visibility_tilt"]:
+        v1 = rng.normal(0, e["visibility_tilt"], J)
+        p["visibility_tilt"] = np.stack([v1, -np.abs(rng.normal(0, e["visibility_tilt"], J))], axis=1)
+    if e["dose"]:
+        p["dose"] = np.clip(1 + rng.normal(0, e["dose"], (J, 1)), 0.05, None)
+    if e["background"]:
+        b0 = e["background"] * s["flux"]
+        p["background"] = np.array([b0, 0.3 * b0, -0.2 * b0])
+    if e["harmonic"]:
+        a2 = e["harmonic"]
+        p["harmonic"] = np.array([a2 * np.cos(e["harmonic_phase"]), a2 * np.sin(e["harmonic_phase"])])
+    return p
+
+
+def motion_region(H: int, W: int) -> np.ndarray:
+    """A heart-like disc left of the centre, bool (H, W)."""
+    r, c = np.mgrid[:H, :W]
+    return (r - 0.55 * H) ** 2 + (c - 0.45 * W) ** 2 < (0.12 * min(H, W)) ** 2
+
+
+def simulate(cfg: dict) -> tuple[Scan, dict]:
+    """Simulate one acquisition.
+
+    Parameters
+    ----------
+    cfg : dict
+        Resolved configuration of :data:`SCHEMA` (``config.load(..., schema=SCHEMA)``).
+
+    Returns
+    -------
+    scan : Scan
+    truth : dict
+        ``image_transmission``, ``image_dark_field``, ``image_differential_phase`` (H, W); per frame
+        ``vib_phase_offset``, ``vib_tilt``, ``vib_visibility``, ``vib_curvature``, ``vib_dose``
+        (J,), ``vib_visibility_tilt`` (J, 2); ``background`` (3,), ``harmonic`` (2,),
+        ``motion_mask`` (H, W), ``gain``; ``config`` (JSON).
+    """
+    s, e = cfg["simulate"], cfg["effects"]
+    rng = np.random.default_rng(s["seed"])
+    g = geometry(cfg)
+    H, W, A, J = g["H"], g["W"], g["A"], g["position"].size
+    ref = flat_field(cfg, A, W)
+    img = sample_images(cfg, H, W)
+    params = draw_effects(cfg, J, rng)
+    frames = np.zeros((J, H, W), dtype=np.float64)
+    placeholder = Scan(data=frames, position=g["position"], reference=ref, phase_step=g["phase_step"])
+    obs = build_observations(placeholder, ref)
+    t, v, phi = (img[k][obs.rows] for k in ("transmission", "dark_field", "differential_phase"))
+    images = M.Images(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], axis=-1), np.ones(t.shape, bool))
+    dsg = M.design(obs, params)
+    ibar = M.expected(obs, dsg, images)
+    moving = np.zeros((H, W), bool)
+    if e["sample_motion"]:
+        moving = motion_region(H, W)
+        # the region's transmission swings once over the scan, like a slow cardiac or breathing cycle
+        swing = 1 + e["sample_motion"] * np.sin(2 * np.pi * obs.frame / J)[:, None]
+        ibar = np.where(moving[obs.row][:, obs.columns], (ibar - dsg.offset) * swing + dsg.offset, ibar)
+    counts = _detect(ibar - obs.dark, cfg, rng) + obs.dark
+    frames[obs.frame[:, None], obs.row[:, None], obs.columns[None, :]] = counts
+    reference = ref
+    if s["reference_steps"]:
+        reference = _reference_series(ref, s, rng)
+    data = _store(frames, s["dtype"])
+    gain_file = e["detector_gain"] if e["declare_gain"] else 1.0
+    scan = Scan(data=data, position=g["position"], reference=reference, phase_step=g["phase_step"],
+                gain=gain_file, exposure_time=np.full(J, 0.033),
+                pixel_size=(s["pixel_mm"] * 1e-3, s["pixel_mm"] * 1e-3))
+    truth = {f"image_{k}": img[k] for k in ("transmission", "dark_field", "differential_phase")}
+    truth.update(vib_phase_offset=params["phase_offset"][:, 0], vib_tilt=params["tilt"][:, 0],
+                 vib_visibility=params["visibility_loss"][:, 0],
+                 vib_curvature=params.get("curvature", np.zeros((J, 1)))[:, 0],
+                 vib_dose=params.get("dose", np.ones((J, 1)))[:, 0],
+                 vib_visibility_tilt=params.get("visibility_tilt", np.zeros((J, 2))),
+                 background=params.get("background", np.zeros(3)), harmonic=params.get("harmonic", np.zeros(2)),
+                 motion_mask=moving, gain=np.float64(e["detector_gain"]), config=json.dumps(cfg))
+    return scan, truth
+
+
+def _detect(mean: np.ndarray, cfg: dict, rng: np.random.Generator) -> np.ndarray:
+    """Detector response to a mean signal in detector units: g * Poisson(mean / g) + electronic noise."""
+    s, e = cfg["simulate"], cfg["effects"]
+    g = e["detector_gain"]
+    mean = np.maximum(mean, 0.0)
+    out = g * rng.poisson(mean / g).astype(np.float64) if s["noise"] else mean.copy()
+    if e["read_noise"]:
+        out += rng.normal(0, e["read_noise"], out.shape)
+    return out
+
+
+def _reference_series(ref: Reference, s: dict, rng: np.random.Generator) -> SteppingReference:
+    """A noisy S-step series of the unloaded interferometer (the average of ``reference_frames`` frames)."""
+    S = s["reference_steps"]
+    steps = 2 * np.pi * np.arange(S) / S
+    mean = ref.transmission * (1 + ref.visibility * np.cos(ref.phase[None] + steps[:, None, None]))
+    n = s["reference_frames"]
+    data = rng.poisson(mean * n) / n if s["noise"] else mean
+    return SteppingReference(data=data.astype(np.float64), phase_step=steps)
+
+
+def _store(frames: np.ndarray, dtype: str) -> np.ndarray:
+    """Cast to the stored type; integer types are rounded and clipped to their range (with a warning)."""
+    dt = np.dtype(dtype)
+    if dt.kind == "f":
+        return np.maximum(frames, 0).astype(dt)
+    top = np.iinfo(dt).max
+    if frames.max() > top:
+        log.warning("counts above %d are clipped to fit %s", top, dtype)
+    return np.clip(np.rint(frames), 0, top).astype(dt)

@@ -1,0 +1,143 @@
+"""Identities and derivatives of the forward model."""
+import numpy as np
+import pytest
+
+from dfxcorr import model as M
+from dfxcorr.align import build_observations
+from dfxcorr.io import Reference, Scan
+
+
+def tiny_obs(rng, *, J=12, H=6, W=7, A=4):
+    """Random flat field and counts on a small scan geometry (positions step by one row)."""
+    ref = Reference(rng.uniform(500, 1500, (A, W)), rng.uniform(0.2, 0.5, (A, W)),
+                    np.cumsum(rng.uniform(0.5, 1.5, (A, W)), axis=0))
+    position = -A + 1.0 + np.arange(J) * (H + A - 2) / (J - 1)
+    data = rng.poisson(800, (J, H, W)).astype(np.float64)
+    return build_observations(Scan(data=data, position=position, reference=ref), ref)
+
+
+def random_params(rng, J, names):
+    p = {}
+    for n in names:
+        e = M.effect(n)
+        shape = (J, e.size) if e.per_frame else (e.size,)
+        scale = {"background": 20.0}.get(n, 0.05)
+        p[n] = e.neutral + rng.normal(0, scale, shape)
+    return p
+
+
+ALL = [n for n in M.MEAN_EFFECTS]
+
+
+def test_neutral_parameters_leave_the_model_unchanged(rng):
+    obs = tiny_obs(rng)
+    plain = M.design(obs, {})
+    neutral = M.design(obs, M.neutral_params(ALL, obs.n_frames))
+    for a in ("A", "Bc", "Bs", "offset"):
+        np.testing.assert_allclose(getattr(neutral, a), getattr(plain, a), rtol=1e-14, atol=1e-12)
+
+
+def test_closed_form_images_reproduce_noise_free_data(rng):
+    obs = tiny_obs(rng)
+    params = random_params(rng, obs.n_frames, M.PAPER_MODEL)
+    dsg = M.design(obs, params)
+    R, C = obs.rows.size, obs.columns.size
+    t = rng.uniform(0.2, 1.0, (R, C))
+    v = rng.uniform(0.3, 1.0, (R, C))
+    phi = rng.uniform(-1, 1, (R, C))
+    truth = M.Images(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], -1), np.ones((R, C), bool))
+    obs.counts = M.expected(obs, dsg, truth)
+    est = M.solve_images(obs, dsg, np.ones_like(obs.counts))
+    np.testing.assert_allclose(est.t, t, rtol=1e-9)
+    np.testing.assert_allclose(est.v, v, rtol=1e-9)
+    np.testing.assert_allclose(est.phi, phi, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_sample_derivatives_match_finite_differences(rng, name):
+    obs = tiny_obs(rng)
+    params = random_params(rng, obs.n_frames, ALL)
+    images = M.solve_images(obs, M.design(obs, params), np.ones_like(obs.counts))
+    fields = M.sample_derivatives(obs, M.design(obs, params), images, name)
+    e = M.effect(name)
+    for m, F in enumerate(fields):
+        h = 1e-6 * max(1.0, abs(e.neutral))
+        up, down = {k: v.copy() for k, v in params.items()}, {k: v.copy() for k, v in params.items()}
+        if e.per_frame:
+            up[name][:, m] += h
+            down[name][:, m] -= h
+        else:
+            up[name][m] += h
+            down[name][m] -= h
+        fd = (M.expected(obs, M.design(obs, up), images) - M.expected(obs, M.design(obs, down), images)) / (2 * h)
+        np.testing.assert_allclose(F, fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
+
+
+@pytest.mark.parametrize("names", [M.PAPER_MODEL, ALL])
+def test_reduced_cost_gradient_matches_finite_differences(rng, names):
+    """Envelope theorem (paper eq. 25): the gradient at fixed images is the gradient of the reduced cost."""
+    obs = tiny_obs(rng)
+    params = random_params(rng, obs.n_frames, names)
+    w = 1.0 / np.maximum(obs.counts, 1.0)
+
+    def reduced(p):
+        dsg = M.design(obs, p)
+        return float(np.sum(w * (obs.counts - M.expected(obs, dsg, M.solve_images(obs, dsg, w))) ** 2))
+
+    dsg = M.design(obs, params)
+    images = M.solve_images(obs, dsg, w)
+    grad = M.gradient(obs, dsg, images, w, obs.counts - M.expected(obs, dsg, images), names)
+    for name in names:
+        e = M.effect(name)
+        idx = [(3, 0), (7, e.size - 1)] if e.per_frame else [(i,) for i in range(e.size)]
+        for ix in idx:
+            h = 1e-6 * (100.0 if name == "background" else 1.0)
+            up, down = {k: v.copy() for k, v in params.items()}, {k: v.copy() for k, v in params.items()}
+            up[name][ix] += h
+            down[name][ix] -= h
+            fd = (reduced(up) - reduced(down)) / (2 * h)
+            assert grad[name][ix] == pytest.approx(fd, rel=2e-5, abs=1e-6 * abs(fd) + 1e-8)
+
+
+def test_gauge_transformations_leave_the_prediction_unchanged(rng):
+    """Paper eq. 22: phase offset/tilt shifts and a visibility scale are taken up by the images."""
+    obs = tiny_obs(rng)
+    params = random_params(rng, obs.n_frames, M.PAPER_MODEL)
+    w = np.ones_like(obs.counts)
+
+    def prediction(p):
+        dsg = M.design(obs, p)
+        return M.expected(obs, dsg, M.solve_images(obs, dsg, w))
+
+    base = prediction(params)
+    moved = {k: v.copy() for k, v in params.items()}
+    moved["phase_offset"] += 0.3
+    moved["tilt"] -= 0.2
+    moved["visibility_loss"] *= 0.8
+    np.testing.assert_allclose(prediction(moved), base, rtol=1e-10)
+
+
+def test_profiled_fisher_is_smaller_than_plain_and_positive(rng):
+    obs = tiny_obs(rng)
+    params = random_params(rng, obs.n_frames, M.PAPER_MODEL)
+    w = 1.0 / np.maximum(obs.counts, 1.0)
+    dsg = M.design(obs, params)
+    images = M.solve_images(obs, dsg, w, keep_inverse=True)
+    prof, index = M.fisher_matrix(obs, dsg, images, w, M.PAPER_MODEL)
+    plain, _ = M.fisher_matrix(obs, dsg, images, w, M.PAPER_MODEL, profiled=False)
+    lit = np.bincount(obs.frame, minlength=obs.n_frames) > 0
+    assert np.all(np.diag(prof)[lit[[j for _, j, _ in index]]] > 0)
+    # profiling removes information, never adds it: plain - profiled is positive semi-definite
+    assert np.linalg.eigvalsh(plain - prof).min() > -1e-9 * np.abs(plain).max()
+    # the gauge directions of eq. 22 carry no information once the images are free
+    shift = np.array([1.0 if n == "phase_offset" else 0.0 for n, _, _ in index])
+    assert shift @ prof @ shift < 1e-8 * (shift @ plain @ shift)
+    lev = M.leverage(obs, dsg, images, w)
+    assert np.all(prof.diagonal() <= plain.diagonal() + 1e-9)
+    # three unknowns per pixel: the leverages of a pixel sum to 3
+    np.testing.assert_allclose(obs.segment_sum(lev)[images.valid], 3.0, rtol=1e-8)
+
+
+def test_unknown_effect_is_refused():
+    with pytest.raises(ValueError, match="unknown effect 'tilted'"):
+        M.effect("tilted")
