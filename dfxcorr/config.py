@@ -105,7 +105,7 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "reweight": Option(1, "refits with noise weights from the fitted model", int, check=_nonneg),
         "visibility_gauge": Option("max", "normalise v^s to a robust maximum of 1 (max) or a median of 1 "
                                           "(median, eq. 22)", str, choices=("max", "median")),
-        "visibility_quantile": Option(0.98, "quantile of v^s set to 1 by the max gauge", _NUM, check=_fraction),
+        "visibility_quantile": Option(0.99, "quantile of v^s set to 1 by the max gauge", _NUM, check=_fraction),
         "gauge_fraction": Option(0.5, "frames lighting at least this fraction of the active area define the "
                                       "gauge", _NUM, check=_fraction),
     },

@@ -60,15 +60,16 @@ class FitResult:
 class _Problem:
     """Packs effect parameters into one preconditioned vector for scipy."""
 
-    def __init__(self, obs, names, params, weights, *, phase=None, precondition=True, prior=True, limits=None):
-        self.limits = limits or {}
-        self.obs, self.names, self.weights, self.phase, self.prior = obs, list(names), weights, phase, prior
+    def __init__(self, obs, names, params, weights, *, phase=None, precondition=True, prior=None):
+        self.obs, self.names, self.weights, self.phase = obs, list(names), weights, phase
         self.fixed = {k: v for k, v in params.items() if k not in self.names}
         self.shapes = [params[n].shape for n in self.names]
         self.theta0 = np.concatenate([params[n].ravel() for n in self.names])
-        self.neutral = np.concatenate([np.full(params[n].size, M.effect(n).neutral) for n in self.names])
-        self.prior_w = np.concatenate([np.full(params[n].size, 1.0 / M.effect(n).scale ** 2 if
-                                               (prior and M.effect(n).per_frame) else 0.0) for n in self.names])
+        prior = prior or {}
+        self.centre = np.concatenate([np.broadcast_to(prior[n][0], params[n].shape).ravel() if n in prior
+                                      else np.zeros(params[n].size) for n in self.names])
+        self.prior_w = np.concatenate([np.broadcast_to(prior[n][1], params[n].shape).ravel() ** -2.0 if n in prior
+                                       else np.zeros(params[n].size) for n in self.names])
         self.scale = np.ones_like(self.theta0)
         if precondition:
             self.scale = np.sqrt(self._curvature(params))
@@ -102,24 +103,21 @@ class _Problem:
         dsg = M.design(self.obs, params)
         images = M.solve_images(self.obs, dsg, self.weights, phase=self.phase)
         resid = self.obs.counts - M.expected(self.obs, dsg, images)
-        dev = theta - self.neutral
+        dev = theta - self.centre
         cost = float(np.sum(self.weights * resid ** 2) + np.sum(self.prior_w * dev ** 2))
         g = M.gradient(self.obs, dsg, images, self.weights, resid, self.names)
         grad = np.concatenate([g[n].ravel() for n in self.names]) + 2.0 * self.prior_w * dev
         return cost, grad / self.scale
 
     def bounds(self):
-        lows, highs = [], []
-        for n, shp in zip(self.names, self.shapes):
-            lo, hi = self.limits.get(n, (M.effect(n).lower, None))
-            lows.append(np.broadcast_to(-np.inf if lo is None else lo, shp).ravel())
-            highs.append(np.broadcast_to(np.inf if hi is None else hi, shp).ravel())
-        lows, highs = np.concatenate(lows) * self.scale, np.concatenate(highs) * self.scale
-        return [(lo if np.isfinite(lo) else None, hi if np.isfinite(hi) else None) for lo, hi in zip(lows, highs)]
+        """Physical lower bounds (visibility and dose stay positive), in the rescaled variables."""
+        lows = np.concatenate([np.full(int(np.prod(shp)), -np.inf if M.effect(n).lower is None else M.effect(n).lower)
+                               for n, shp in zip(self.names, self.shapes)]) * self.scale
+        return [(lo if np.isfinite(lo) else None, None) for lo in lows]
 
 
 def minimise(obs, names, params, weights, *, phase=None, maxiter=200, gtol=1e-3, precondition=True,
-             prior=True, limits=None, on_iteration=None) -> tuple[dict[str, np.ndarray], list[float], str, bool]:
+             prior=None, on_iteration=None) -> tuple[dict[str, np.ndarray], list[float], str, bool]:
     """Minimise the reduced cost over the parameters of ``names``, the others held fixed.
 
     Parameters
@@ -139,10 +137,9 @@ def minimise(obs, names, params, weights, *, phase=None, maxiter=200, gtol=1e-3,
         cost per standard deviation of a parameter).
     precondition : bool
         Rescale by the Fisher diagonal (paper eq. 34).
-    prior : bool
-        Weak prior towards the neutral value (keeps data-free frames sane).
-    limits : dict, optional
-        Effect name -> (lower, upper) bounds (scalars or arrays shaped like the parameters).
+    prior : dict, optional
+        Effect name -> (centre, width): a Gaussian prior on each per-frame parameter, arrays
+        broadcastable to the parameters (see :func:`catalogue_prior`, :func:`empirical_prior`).
     on_iteration : callable, optional
         Called with the cost after every iteration.
 
@@ -153,8 +150,7 @@ def minimise(obs, names, params, weights, *, phase=None, maxiter=200, gtol=1e-3,
     message : str
     converged : bool
     """
-    prob = _Problem(obs, names, params, weights, phase=phase, precondition=precondition, prior=prior,
-                    limits=limits)
+    prob = _Problem(obs, names, params, weights, phase=phase, precondition=precondition, prior=prior)
     costs: list[float] = []
 
     def callback(intermediate_result):
@@ -170,7 +166,7 @@ def minimise(obs, names, params, weights, *, phase=None, maxiter=200, gtol=1e-3,
 def fit_vibrations(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | None = None,
                    weights: np.ndarray | None = None, circmean_iterations: int = 10, staged: bool = True,
                    maxiter: int = 300, gtol: float = 1e-3, precondition: bool = True, prior: bool = True,
-                   reweight: int = 1, visibility_gauge: str = "max", visibility_quantile: float = 0.9,
+                   reweight: int = 1, visibility_gauge: str = "max", visibility_quantile: float = 0.99,
                    gauge_fraction: float = 0.5, on_iteration=None) -> FitResult:
     """Estimate per-frame effect parameters by maximum likelihood (paper Sec. II-C to II-E).
 
@@ -192,8 +188,12 @@ def fit_vibrations(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | 
         Iterations per stage.
     gtol : float
         Convergence threshold on the preconditioned gradient.
-    precondition, prior : bool
+    precondition : bool
         See :func:`minimise`.
+    prior : bool
+        Keep frames with little data sane: a wide prior around the neutral values during the main
+        stages, then an empirical one (median and robust spread of the well-determined frames) in a
+        final stage that also searches the weakly determined frames globally (:func:`rescue_frames`).
     reweight : int
         Refits with weights recomputed from the fitted model.
     visibility_gauge : {'max', 'median'}
@@ -226,6 +226,7 @@ def fit_vibrations(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | 
     stages.append(("all", names, maxiter))
     stages += [("reweight", names, maxiter)] * reweight
     costs, stage_of, messages, converged = [], [], [], True
+    wide = catalogue_prior(names) if prior else None
     for label, free, iters in stages:
         if not free:
             continue
@@ -239,7 +240,7 @@ def fit_vibrations(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | 
             weights = M.noise_weights(obs, M.expected(obs, dsg, M.solve_images(obs, dsg, weights)))
         cb = None if on_iteration is None else (lambda c, _l=label: on_iteration(_l, c))
         params, c, msg, ok = minimise(obs, free, params, weights, phase=phase, maxiter=iters, gtol=gtol,
-                                      precondition=precondition, prior=prior, on_iteration=cb)
+                                      precondition=precondition, prior=wide, on_iteration=cb)
         log.debug("stage %s: %d iterations, %s", label, len(c), msg)
         costs += c
         stage_of += [label] * len(c)
@@ -248,17 +249,18 @@ def fit_vibrations(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | 
             converged = ok
     params = wrap_phases(params, obs)
     good = well_determined(obs, gauge_fraction)
-    limits, wild = sane_limits(params, good)
-    if wild:
-        log.info("%d weakly determined frames outside the range of the others: refitting them within it",
-                 len(wild))
-        for name, j in wild:
-            params[name][j] = np.median(params[name][good], axis=0)
-        params, c, msg, ok = minimise(obs, names, params, weights, maxiter=maxiter, gtol=gtol, limits=limits,
-                                      precondition=precondition, prior=prior)
+    weak = np.flatnonzero(~good & (np.bincount(obs.frame, minlength=J) > 0))
+    if prior and weak.size and np.any(good):
+        narrow = empirical_prior(params, good)
+        if phase_names:
+            params, moved = rescue_frames(obs, params, weights, weak, narrow)
+            log.info("%d of %d weakly determined frames moved by the global search", moved, weak.size)
+        cb = None if on_iteration is None else (lambda c: on_iteration("prior", c))
+        params, c, msg, ok = minimise(obs, names, params, weights, maxiter=maxiter, gtol=gtol,
+                                      precondition=precondition, prior=narrow, on_iteration=cb)
         costs += c
-        stage_of += ["sane"] * len(c)
-        messages.append(f"sane: {msg}")
+        stage_of += ["prior"] * len(c)
+        messages.append(f"prior: {msg}")
         converged = ok
     params = fix_gauge(params, good, visibility_gauge=visibility_gauge, visibility_quantile=visibility_quantile)
     unc = uncertainty(obs, params, weights)
@@ -293,26 +295,81 @@ def wrap_phases(params: dict, obs: M.Observations) -> dict:
     return out
 
 
-def sane_limits(params: dict, good: np.ndarray, *, spread: float = 8.0) -> tuple[dict, list]:
-    """Bounds for per-frame parameters from the frames that the data determine well.
+def catalogue_prior(names) -> dict:
+    """A wide prior for every per-frame effect: its neutral value, width from the catalogue."""
+    return {n: (M.effect(n).neutral, M.effect(n).scale) for n in names if M.effect(n).per_frame}
 
-    Each component may range over its median +- ``spread`` robust standard deviations of the
-    well-determined frames (at least +- 0.1). Returns the limits and the (effect, frame) pairs of
-    weakly determined frames outside them.
+
+def empirical_prior(params: dict, good: np.ndarray, *, floor: float = 1e-3) -> dict:
+    """Per-frame parameters as draws from the distribution of the well-determined frames.
+
+    Centre: their median; width: their robust standard deviation (1.4826 MAD, at least ``floor``).
+    Where the data determine a frame this prior is negligible (a shrinkage of (sigma_fit / width)^2);
+    where they hardly do, it keeps the frame among the plausible values.
     """
-    limits, wild = {}, []
-    for name, p in params.items():
-        e = M.effect(name)
-        if not e.per_frame or not np.any(good):
-            continue
-        med = np.median(p[good], axis=0)
-        sd = 1.4826 * np.median(np.abs(p[good] - med), axis=0)
-        half = np.maximum(spread * sd, 0.1)
-        lo = med - half if e.lower is None else np.maximum(med - half, e.lower)
-        limits[name] = (np.broadcast_to(lo, p.shape), np.broadcast_to(med + half, p.shape))
-        out = np.any((p < limits[name][0]) | (p > limits[name][1]), axis=1) & ~good
-        wild += [(name, int(j)) for j in np.flatnonzero(out)]
-    return limits, wild
+    out = {}
+    for n, p in params.items():
+        if M.effect(n).per_frame:
+            med = np.median(p[good], axis=0)
+            out[n] = (med, np.maximum(1.4826 * np.median(np.abs(p[good] - med), axis=0), floor))
+    return out
+
+
+def rescue_frames(obs: M.Observations, params: dict, weights: np.ndarray, frames: np.ndarray,
+                  prior: dict, *, n_offset: int = 48, n_tilt: int = 41) -> tuple[dict, int]:
+    """Global search over phase offset and tilt for frames that light only a few rows.
+
+    With few rows a frame's cost has several local minima in (phi0, phi1) (on subsampled columns the
+    tilt is moreover only defined modulo the alias period); L-BFGS keeps whichever it started in.
+    Holding the images at their current values (each frame is one of many that determine a pixel),
+    the frame's own cost plus the prior is evaluated on a grid over a full period of phi0 and +-4
+    prior widths of phi1, and the frame moves to the best grid point where that beats its current value.
+
+    Returns
+    -------
+    params : dict
+        Updated copy.
+    moved : int
+        Number of frames moved.
+    """
+    params = {k: v.copy() for k, v in params.items()}
+    dsg = M.design(obs, params)
+    images = M.solve_images(obs, dsg, weights)
+    resid2 = weights * (obs.counts - M.expected(obs, dsg, images)) ** 2
+    c1, w1 = (float(np.ravel(prior["tilt"][0])[0]), float(np.ravel(prior["tilt"][1])[0])) if "tilt" in prior else (0, 1)
+    g0, g1 = np.meshgrid(np.linspace(-np.pi, np.pi, n_offset, endpoint=False),
+                         c1 + np.linspace(-4 * w1, 4 * w1, n_tilt) if "tilt" in params else [0.0], indexing="ij")
+    g0, g1 = g0.ravel(), g1.ravel()
+    c0, w0 = (float(np.ravel(prior["phase_offset"][0])[0]), float(np.ravel(prior["phase_offset"][1])[0])) \
+        if "phase_offset" in prior else (0.0, np.inf)
+    penalty = (np.angle(np.exp(1j * (g0 - c0))) / w0) ** 2 + ((g1 - c1) / w1) ** 2
+    G = g0.size
+    moved = 0
+    for j in frames:
+        sel = np.flatnonzero(obs.frame == j)
+        nb = sel.size
+        # the frame's blocks, repeated once per grid point, each repetition posing as its own frame
+        rep = M.Observations(*(np.tile(a[sel], (G, 1)) for a in (obs.counts, obs.tf, obs.vf, obs.phif, obs.dark,
+                                                                  obs.use)),
+                             row=np.arange(G * nb), frame=np.repeat(np.arange(G), nb), columns=obs.columns,
+                             shape=(G, G * nb, obs.shape[2]), gain=obs.gain)
+        trial = {k: (np.repeat(v[j:j + 1], G, axis=0) if M.effect(k).per_frame else v) for k, v in params.items()}
+        trial.setdefault("phase_offset", np.zeros((G, 1)))[:, 0] = g0
+        if "tilt" in trial:
+            trial["tilt"][:, 0] = g1
+        coef = M.Images(np.tile(images.coef[obs.pixel[sel]], (G, 1, 1)), np.ones((G * nb, obs.columns.size), bool))
+        r = rep.counts - M.expected(rep, M.design(rep, trial), coef)
+        cost = (np.tile(weights[sel], (G, 1)) * r ** 2).reshape(G, -1).sum(axis=1) + penalty
+        now0 = params["phase_offset"][j, 0] if "phase_offset" in params else 0.0
+        now1 = params["tilt"][j, 0] if "tilt" in params else c1
+        current = float(resid2[sel].sum()) + (np.angle(np.exp(1j * (now0 - c0))) / w0) ** 2 + ((now1 - c1) / w1) ** 2
+        best = int(np.argmin(cost))
+        if cost[best] < current - 1.0:
+            params.setdefault("phase_offset", np.zeros((obs.n_frames, 1)))[j, 0] = g0[best]
+            if "tilt" in params:
+                params["tilt"][j, 0] = g1[best]
+            moved += 1
+    return params, moved
 
 
 def well_determined(obs: M.Observations, fraction: float) -> np.ndarray:
@@ -322,7 +379,7 @@ def well_determined(obs: M.Observations, fraction: float) -> np.ndarray:
 
 
 def fix_gauge(params: dict, good: np.ndarray, *, visibility_gauge: str = "max",
-              visibility_quantile: float = 0.9) -> dict:
+              visibility_quantile: float = 0.99) -> dict:
     """Select one of the equivalent solutions (paper eq. 22).
 
     'shift' effects get median zero over the well-determined frames; 'scale' effects are divided by a

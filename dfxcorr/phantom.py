@@ -42,10 +42,10 @@ _HEART = (22.0, 45.0, -32.0, 64.0, 62.0, 55.0)
 # core given as (a, c, end-plate thickness).
 _SPINE_PITCH, _SPINE_BODY_H = 30.0, 24.0
 _VERTEBRAE = tuple(
-    ((0.0, 65.0, 22.0, 17.0, yc - _SPINE_BODY_H / 2, yc + _SPINE_BODY_H / 2), (17.0, 12.0, 2.0))
+    ((0.0, 65.0, 22.0, 17.0, yc - _SPINE_BODY_H / 2, yc + _SPINE_BODY_H / 2), (19.0, 14.0, 1.0))
     for yc in _SPINE_PITCH * np.arange(-7, 8)
 )
-_STERNUM = ((0.0, -95.0, 16.0, 7.0, -150.0, 20.0), (12.0, 4.0, 2.0))
+_STERNUM = ((0.0, -95.0, 16.0, 7.0, -150.0, 20.0), (13.0, 5.0, 1.0))
 # Rib shell centred at x = z = 0: outer semi-axes, radial thickness, band height and cortex (the
 # rest is marrow). Bony only for |x| > x_min (the vertebral body on the posterior side, the costal
 # cartilage on the anterior side).
@@ -85,18 +85,18 @@ def _add_rib_arc(bone, marrow, x, y, y_k, posterior):
     """Add one rib's posterior or anterior half-arc (both sides) to the bone and marrow lengths."""
     lateral_y = y_k + _RIB_SAG * _RIB_A ** 2  # where the two arcs join at |x| = _RIB_A
     xmin = _RIB_XMIN_POST if posterior else _RIB_XMIN_ANT
-    cortex = _RIB_CORTEX
     for cs in (_window(x, -_RIB_A, -xmin), _window(x, xmin, _RIB_A)):
         ax = np.abs(x[cs])
         if ax.size == 0:
             continue
         # Outer minus inner half-chord is exact on both sides of |x| = inner semi-axis.
         chord = _shell_chord(ax, _RIB_A, _RIB_C, _RIB_T)
-        core = _shell_chord(ax, _RIB_A - cortex, _RIB_C - cortex, _RIB_T - 2 * cortex)
+        core = _shell_chord(ax, _RIB_A - _RIB_CORTEX, _RIB_C - _RIB_CORTEX,
+                            _RIB_T - 2 * _RIB_CORTEX)
         yc = y_k + _RIB_SAG * ax ** 2 if posterior else lateral_y + _RIB_SLOPE * (_RIB_A - ax)
         rs = _window(y, yc.min() - _RIB_H / 2, yc.max() + _RIB_H / 2)
         dy = np.abs(y[rs, None] - yc[None, :])
-        in_core = dy <= _RIB_H / 2 - cortex
+        in_core = dy <= _RIB_H / 2 - _RIB_CORTEX
         bone[rs, cs] += (dy <= _RIB_H / 2) * chord - in_core * core
         marrow[rs, cs] += in_core * core
 
@@ -157,6 +157,7 @@ def _axis(n: int, p: float, s: int) -> np.ndarray:
 
 
 def _check_shape(shape) -> tuple[int, int]:
+    """(H, W) as positive ints."""
     h, w = (int(v) for v in shape)
     if h < 1 or w < 1:
         raise ValueError(f"shape must be two positive integers, got {shape!r}")
@@ -164,6 +165,7 @@ def _check_shape(shape) -> tuple[int, int]:
 
 
 def _sample_pixel(pixel_mm: float, magnification: float) -> float:
+    """Pixel size at the sample plane, mm."""
     if pixel_mm <= 0 or magnification <= 0:
         raise ValueError("pixel_mm and magnification must be positive")
     return pixel_mm / magnification
@@ -199,6 +201,7 @@ def path_lengths(*, shape, pixel_mm: float = 1.0, magnification: float = 1.2,
 
 
 def _images(lengths, c_v, phi):
+    """Transmission and dark-field from path lengths (paper eqs 2-3), bundled with phi."""
     t = np.exp(-sum(MATERIALS[m]["mu"] * v for m, v in lengths.items()))
     v = np.exp(-c_v * sum(MATERIALS[m]["eps"] * v for m, v in lengths.items()))
     return {"transmission": t, "dark_field": v, "differential_phase": phi}

@@ -134,9 +134,9 @@ def draw_effects(cfg: dict, J: int, rng: np.random.Generator) -> dict[str, np.nd
 
 
 def motion_region(H: int, W: int) -> np.ndarray:
-    """A heart-like disc left of the centre, bool (H, W)."""
+    """A disc in the left lung next to the heart, bool (H, W): bright and modulated, where motion misleads a fit."""
     r, c = np.mgrid[:H, :W]
-    return (r - 0.55 * H) ** 2 + (c - 0.45 * W) ** 2 < (0.12 * min(H, W)) ** 2
+    return (r - 0.55 * H) ** 2 + (c - 0.32 * W) ** 2 < (0.1 * min(H, W)) ** 2
 
 
 def simulate(cfg: dict) -> tuple[Scan, dict]:
@@ -173,8 +173,8 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
     moving = np.zeros((H, W), bool)
     if e["sample_motion"]:
         moving = motion_region(H, W)
-        # the region's transmission swings once over the scan, like a slow cardiac or breathing cycle
-        swing = 1 + e["sample_motion"] * np.sin(2 * np.pi * obs.frame / J)[:, None]
+        # the region's transmission beats about 7 times over the scan, like a heart during a 7 s scan
+        swing = 1 + e["sample_motion"] * np.sin(2 * np.pi * 7 * obs.frame / J)[:, None]
         ibar = np.where(moving[obs.row][:, obs.columns], (ibar - dsg.offset) * swing + dsg.offset, ibar)
     counts = _detect(ibar - obs.dark, cfg, rng) + obs.dark
     frames[obs.frame[:, None], obs.row[:, None], obs.columns[None, :]] = counts

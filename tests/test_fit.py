@@ -1,0 +1,82 @@
+"""Vibration fit: recovery of known parameters within the reported (Fisher) uncertainty."""
+import numpy as np
+import pytest
+
+from dfxcorr import config as C
+from dfxcorr import pipeline
+from dfxcorr.evaluate import frames_lighting, gauge_median
+
+
+def standardized_errors(result, truth, scan):
+    good = frames_lighting(scan.position, scan.active_rows, scan.shape[1])
+    out = {}
+    for name, key, scale in (("phase_offset", "vib_phase_offset", False), ("tilt", "vib_tilt", False),
+                             ("visibility_loss", "vib_visibility", True)):
+        est = gauge_median(result.params[name][:, 0], good, scale=scale)
+        tru = gauge_median(truth[key], good, scale=scale)
+        out[name] = (est - tru)[good] / result.uncertainty[name][good, 0]
+    return out
+
+
+@pytest.mark.parametrize("phantom", ["thorax", "blank"])
+def test_ml_fit_recovers_the_paper_model_within_noise(small_scan, phantom):
+    scan, truth = small_scan(**{"simulate.phantom": phantom})
+    result = pipeline.reconstruct(scan, C.load([], ["fit.subsample=3"]))
+    for name, z in standardized_errors(result, truth, scan).items():
+        # errors in units of the reported standard deviation: rms ~1 if the fit is efficient and the
+        # uncertainty honest; 1.4 leaves room for the spread of an rms over ~90 frames and the prior
+        assert np.sqrt(np.mean(z ** 2)) < 1.4, name
+        assert np.abs(z).max() < 5.0, name
+    assert result.reduced_chi2 == pytest.approx(1.0, abs=0.02)
+
+
+def test_vibration_correction_improves_the_dark_field(small_scan):
+    scan, truth = small_scan()
+    result = pipeline.reconstruct(scan, C.load([], ["fit.subsample=3"]))
+    lit = np.isfinite(result.dark_field) & (truth["image_transmission"] > 0.05)
+    err = np.sqrt(np.mean((result.dark_field - truth["image_dark_field"])[lit] ** 2))
+    err0 = np.sqrt(np.mean((result.uncorrected["dark_field"] - truth["image_dark_field"])[lit] ** 2))
+    assert err < 0.5 * err0
+
+
+def test_edge_frames_stay_within_the_range_of_the_others(small_scan):
+    scan, truth = small_scan(**{"simulate.seed": 4})
+    result = pipeline.reconstruct(scan, C.load([], ["fit.subsample=6"]))
+    for name in ("phase_offset", "tilt"):
+        p = result.params[name][:, 0]
+        assert np.all(np.abs(p) < 8 * np.std(truth[f"vib_{name}"]) + 0.1)
+    assert np.all(np.isfinite(result.uncertainty["tilt"][result.uncertainty["tilt"] < np.inf]))
+
+
+def test_switching_off_visibility_keeps_it_neutral(small_scan):
+    scan, _ = small_scan(**{"effects.visibility_loss": 0.0})
+    result = pipeline.reconstruct(scan, C.load([], ["fit.subsample=3", "vibration.visibility=false"]))
+    assert "visibility_loss" not in result.params or not result.estimated.get("visibility_loss", False)
+    assert result.reduced_chi2 == pytest.approx(1.0, abs=0.02)
+
+
+def test_method_none_has_neutral_parameters_and_no_fit(small_scan):
+    scan, _ = small_scan()
+    result = pipeline.reconstruct(scan, C.load([], ["fit.method=none"]))
+    assert np.all(result.params["phase_offset"] == 0) and np.all(result.params["visibility_loss"] == 1)
+    assert not any(result.estimated.values())
+    assert result.cost.size == 0
+    assert result.reduced_chi2 > 2  # the vibrations are in the data
+
+
+def test_visibility_loss_is_refused_for_a_stepping_recording(small_scan):
+    scan, _ = small_scan(**{"simulate.geometry": "stepping", "effects.visibility_loss": 0.0})
+    with pytest.raises(pipeline.IdentifiabilityError, match="not identifiable.*stepping"):
+        pipeline.reconstruct(scan, C.defaults())
+
+
+def test_separable_flat_field_refuses_visibility(small_scan):
+    scan, _ = small_scan(**{"simulate.fringes_edge": 2.0})  # equal fringe counts: phase = f(c) + a u
+    with pytest.raises(pipeline.IdentifiabilityError, match="separable"):
+        pipeline.reconstruct(scan, C.defaults())
+
+
+def test_too_coarse_subsampling_is_refused(small_scan):
+    scan, _ = small_scan()
+    with pytest.raises(C.ConfigError, match="fit.subsample"):
+        pipeline.reconstruct(scan, C.load([], ["fit.subsample=60"]))
