@@ -8,11 +8,12 @@ interpolation of wrapped values would put a wrong phase into every sample near a
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 
 from .io import Reference, Scan, SteppingReference
-from .model import Observations, lateral_coordinate, solve_pixels
+from .model import Observations, lateral_coordinate
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +108,7 @@ def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray 
     phif = interpolate_rows(phase[:, cols], u) + scan.phase_step[frame][:, None]
     counts = scan.data[frame[:, None], row[:, None], cols[None, :]].astype(np.float64)
     dark = scan.dark[row[:, None], cols[None, :]]
-    use = np.ones(counts.shape, dtype=bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
+    use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
     return Observations(counts=counts, tf=tf, vf=vf, phif=phif, dark=dark, use=use, row=row, frame=frame,
                         columns=cols, shape=(J, H, W), gain=scan.gain if gain is None else gain)
 
@@ -134,51 +135,141 @@ def stepping_observations(data: np.ndarray, phase_step: np.ndarray, *, dark: np.
     return build_observations(series, flat)
 
 
-def reference_from_stepping(ref: SteppingReference, *, gain: float = 1.0) -> Reference:
-    """Flat-field maps from a stepping series by per-pixel weighted least squares with the nominal steps.
+@dataclass
+class ReferenceFit:
+    """Flat-field maps retrieved from a stepping series, with what the fit said about the steps.
 
-    Weights are the inverse shot-noise variance of a first unweighted solution.
+    Attributes
+    ----------
+    reference : Reference
+    params : dict
+        Estimated per-step effects (phase_offset: step phase errors in rad, dose), empty when the
+        nominal steps were taken as exact.
+    reduced_chi2 : dict
+        'nominal': Pearson chi-square per degree of freedom with the nominal steps; 'fitted': with the
+        estimated step errors and dose (absent when not estimated). Over the modulated pixels.
+    """
+
+    reference: Reference
+    params: dict
+    reduced_chi2: dict
+
+
+def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=("phase_offset", "dose"),
+                  optional=("dose",), min_visibility: float | str = "auto", subsample: int = 4) -> ReferenceFit:
+    """Flat-field maps from a stepping series, with per-step phase errors and dose estimated.
+
+    The series is a phase-stepping recording of the unloaded interferometer: flat field 1, 1, 0 and the
+    images are the maps. Step phase errors and dose fluctuations are per-frame effects of the same
+    model, so the maximum-likelihood vibration fit estimates them. Per-step visibility loss is never
+    identifiable here (paper Sec. II-F). Per-step dose is identifiable only where some pixels carry
+    no fringe (outside the gratings): where every pixel is modulated, a dose modulation in step with
+    the phase trades off exactly against the maps (see :mod:`dfxcorr.identify`). Unmodulated pixels
+    therefore enter the step fit as dose monitors; the reduced chi-square is reported over the
+    modulated ones.
+
+    Parameters
+    ----------
+    ref : SteppingReference
+    gain : float
+    effects : sequence of str
+        Per-step effects to estimate (phase_offset, tilt, dose); empty: nominal steps.
+    optional : sequence of str
+        Effects of ``effects`` to leave out (with a log line) where not identifiable; the others are
+        refused with an error.
+    min_visibility : float or 'auto'
+        Pixels below this visibility carry no fringe (chi-square region).
+    subsample : int
+        Every n-th column enters the step fit.
 
     Returns
     -------
-    Reference
+    ReferenceFit
         Visibility is clipped into (0, 1] (a noisy estimate can exceed 1).
 
     Raises
     ------
     AlignmentError
-        If fewer than 3 steps are given or the steps do not determine a sinusoid.
+        If fewer than 3 steps are given, the steps do not determine a sinusoid, or a required effect is
+        not identifiable.
     """
+    from . import identify
+    from .fit import fit_vibrations, initial_weights
+    from .retrieve import retrieve
+
     S = ref.data.shape[0]
     if S < 3:
         raise AlignmentError(f"/entry/reference/stepping/data has {S} steps; at least 3 are needed")
+    bad = [e for e in effects if e not in ("phase_offset", "tilt", "dose")]
+    if bad:
+        raise AlignmentError(f"{', '.join(bad)} cannot be estimated from a reference stepping series "
+                             f"(not identifiable there, paper Sec. II-F)")
     obs = stepping_observations(ref.data, ref.phase_step, dark=ref.dark, gain=gain)
-    cols = [np.ones_like(obs.counts), np.cos(obs.phif), -np.sin(obs.phif)]
-    target = obs.counts - obs.dark
-    weights = np.ones_like(target)
-    for _ in range(2):
-        coef, valid, _ = solve_pixels(obs, cols, target, weights)
-        if not np.any(valid):
-            raise AlignmentError("/entry/reference/stepping/phase_step does not determine a sinusoid")
-        fit = sum(coef[obs.pixel][..., a] * cols[a] for a in range(3))
-        weights = 1.0 / (gain * np.maximum(fit, 1.0))
-    t = np.where(valid, coef[..., 0], np.nan)
-    v = np.hypot(coef[..., 1], coef[..., 2]) / np.where(t > 0, t, np.nan)
-    phase = np.arctan2(coef[..., 2], coef[..., 1])
+    nominal = retrieve(obs, {})
+    if not np.any(nominal.images.valid):
+        raise AlignmentError("/entry/reference/stepping/phase_step does not determine a sinusoid")
+    vis = obs.to_image(nominal.images.v, fill=0.0)
+    thr = auto_visibility_threshold(vis) if min_visibility == "auto" else float(min_visibility)
+    roi = obs.subset(np.arange(obs.columns.size))
+    roi.use = (np.nan_to_num(vis) >= thr)[obs.row][:, obs.columns]
+    chi2 = {"nominal": retrieve(roi, {}).reduced_chi2}
+    params, rec = {}, nominal
+    fit_obs = obs.subset(subsample_columns(obs.columns.size, subsample))
+    # unmodulated pixels (outside the gratings) have transmission as their only unknown: dose monitors
+    fit_obs.vf = np.where(roi.use[:, fit_obs.columns], fit_obs.vf, 0.0)
+    chosen: list[str] = []
+    for name in effects if S > 3 else ():
+        verdict = identify.check(fit_obs, {}, initial_weights(fit_obs, {}), chosen, [name])[0]
+        if verdict.identifiable:
+            chosen.append(name)
+            continue
+        why = (f"per-step {name} is not identifiable in this reference series ({verdict.excess} direction(s) "
+               f"without information: every pixel is modulated, so it trades off against the maps)")
+        if name not in optional:
+            raise AlignmentError(why)
+        log.info("%s; not fitted", why)
+    if chosen:
+        params = fit_vibrations(fit_obs, effects=chosen, staged=False, circmean_iterations=0).params
+        rec = retrieve(obs, params)
+        chi2["fitted"] = retrieve(roi, params).reduced_chi2
+    images = rec.images
+    t = np.where(images.valid, images.t, np.nan)
+    v = images.v
+    phase = images.phi
     bad = ~np.isfinite(t) | (t <= 0)
     if np.any(bad):
         log.warning("reference stepping series: %d pixels without usable signal", int(bad.sum()))
         t = np.where(bad, np.nanmedian(t[~bad]) if np.any(~bad) else 1.0, t)
     v = np.clip(np.nan_to_num(v, nan=1e-3), 1e-3, 1.0)
-    return Reference(transmission=t, visibility=v, phase=phase)
+    return ReferenceFit(Reference(transmission=t, visibility=v, phase=phase), params, chi2)
 
 
-def resolve_reference(scan: Scan) -> Reference:
-    """The scan's flat-field maps, retrieved from its stepping series if that is what it holds."""
+def auto_visibility_threshold(visibility: np.ndarray) -> float:
+    """A quarter of the 95th percentile of the reference visibility: splits fringe from no fringe.
+
+    Outside the gratings and in detector gaps the visibility is noise (about 0.01); on the gratings it
+    is tens of percent, so the split is wide and the factor uncritical.
+    """
+    v = np.asarray(visibility)[np.isfinite(visibility)]
+    return 0.25 * float(np.percentile(v, 95)) if v.size else 0.0
+
+
+def resolve_reference(scan: Scan, *, effects=("phase_offset", "dose"), optional=("dose",)) -> Reference:
+    """The scan's flat-field maps, retrieved from its stepping series if that is what it holds.
+
+    Parameters
+    ----------
+    effects, optional : sequence of str
+        Per-step effects of a reference stepping series to estimate (see :func:`fit_reference`).
+    """
     if isinstance(scan.reference, SteppingReference):
-        log.info("retrieving flat-field maps from the reference stepping series (%d steps)",
-                 scan.reference.data.shape[0])
-        return reference_from_stepping(scan.reference, gain=scan.gain)
+        fitted = fit_reference(scan.reference, gain=scan.gain, effects=effects, optional=optional)
+        log.info("flat field from the reference stepping series (%d steps): reduced chi-square %s",
+                 scan.reference.data.shape[0], ", ".join(f"{k} {v:.4f}" for k, v in fitted.reduced_chi2.items()))
+        if "phase_offset" in fitted.params:
+            log.info("reference step phase errors (rad): %s",
+                     np.array2string(fitted.params["phase_offset"][:, 0], precision=3))
+        return fitted.reference
     return scan.reference
 
 
@@ -208,6 +299,6 @@ def _ranges(idx: np.ndarray) -> str:
     return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends))
 
 
-__all__ = ["AlignmentError", "build_observations", "interpolate_rows", "lit_blocks", "reference_from_stepping",
-           "resolve_reference", "stepping_observations", "subsample_columns", "tilt_alias_period",
-           "lateral_coordinate"]
+__all__ = ["AlignmentError", "ReferenceFit", "auto_visibility_threshold", "build_observations", "fit_reference",
+           "interpolate_rows", "lit_blocks", "resolve_reference", "stepping_observations", "subsample_columns",
+           "tilt_alias_period", "lateral_coordinate"]

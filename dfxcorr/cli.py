@@ -159,6 +159,51 @@ def simulate(config_file, output, sets, truth, overwrite):
     click.echo(f"{out}: {scan.shape[0]} frames of {scan.shape[1]} x {scan.shape[2]}; truth in {truth_path}")
 
 
+@main.group("import")
+def import_group():
+    """Convert recordings from other layouts into the dfxcorr scan format."""
+
+
+@import_group.command("stepping")
+@click.option("--sample", required=True, help="Sample series: glob, one file per step or one stack (.npy, .tif, raw).")
+@click.option("--reference", required=True, help="Reference (flat-field) series of the unloaded interferometer.")
+@click.option("--dark", help="Dark frame(s) of the sample series (averaged).")
+@click.option("--reference-dark", help="Dark frame(s) of the reference series (default: --dark).")
+@click.option("--steps-per-period", type=float, help="Nominal steps: 2 pi k / steps-per-period.")
+@click.option("--phases", help="Nominal step phases in rad, comma-separated (instead of --steps-per-period).")
+@click.option("--reference-phases", help="Step phases of the reference series if they differ (comma-separated).")
+@click.option("--shape", help="Raw files: frame shape ROWSxCOLS.")
+@click.option("--dtype", help="Raw files: numpy dtype with byte order, e.g. '<u2'.")
+@click.option("--offset", type=int, default=0, show_default=True, help="Raw files: header bytes to skip.")
+@click.option("--gain", type=float, default=1.0, show_default=True, help="Detector units per photon.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Scan file to write.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output.")
+@friendly
+def import_stepping_cmd(sample, reference, dark, reference_dark, steps_per_period, phases, reference_phases, shape,
+                        dtype, offset, gain, output, overwrite):
+    """Import a phase-stepping recording (sample and reference series), losslessly."""
+    from .importer import StackImportError, import_stepping
+
+    def floats(text, name):
+        try:
+            return [float(p) for p in text.split(",")] if text else None
+        except ValueError:
+            raise StackImportError(f"--{name} {text!r}: expected comma-separated numbers") from None
+
+    dims = None
+    if shape:
+        try:
+            dims = tuple(int(p) for p in shape.lower().split("x"))
+        except ValueError:
+            raise StackImportError(f"--shape {shape!r}: expected ROWSxCOLS, e.g. 195x487") from None
+    scan = import_stepping(output, sample=sample, reference=reference, dark=dark, reference_dark=reference_dark,
+                           steps_per_period=steps_per_period, phases=floats(phases, "phases"),
+                           reference_phases=floats(reference_phases, "reference-phases"), shape=dims, dtype=dtype,
+                           offset=offset, gain=gain, overwrite=overwrite)
+    click.echo(f"{output}: {scan.shape[0]} steps of {scan.shape[1]} x {scan.shape[2]} ({scan.data.dtype}), "
+               f"reference {scan.reference.data.shape[0]} steps")
+
+
 @main.command()
 @click.argument("output_dir", type=click.Path(file_okay=False), default="dfxcorr-demo")
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
@@ -189,6 +234,69 @@ def config_cmd(show_defaults, schema, check_files, sets):
         click.echo(C.commented_defaults(sch, title=title))
         return
     click.echo(C.dump(C.load(check_files, sets, schema=sch)), nl=False)
+
+
+@main.command()
+@click.argument("scan", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", "output_dir", required=True, type=click.Path(file_okay=False),
+              help="Directory for the per-method results, the pictures and the table.")
+@click.option("--truth", type=click.Path(dir_okay=False),
+              help="Ground truth (.npz of dfxcorr simulate): adds RMSE of parameters and images.")
+@click.option("--methods", default="none,correlation,alternating,ml", show_default=True,
+              help="Comma-separated estimators (fit.method values).")
+@with_config
+@click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
+@friendly
+def compare(scan, output_dir, truth, methods, config_files, sets, overwrite):
+    """Run every vibration estimator on SCAN and compare them: results, pictures and a table."""
+    from . import compare as CMP
+    from . import export
+    from .io import read_scan
+
+    cfg = C.load(config_files, sets)
+    methods = CMP.parse_methods(methods)
+    for p in CMP.comparison_paths(Path(output_dir), methods).values():
+        export.check_output(p, overwrite=overwrite)
+    data = read_scan(scan)
+    try:
+        true = CMP.load_truth(truth, data.shape) if truth else None
+    except CMP.TruthError as exc:
+        raise click.BadParameter(str(exc), param_hint="--truth") from None
+    cfg = C.merge(cfg, {"retrieve": {"uncorrected": False}})
+    results, runtimes = CMP.run_methods(data, cfg, methods=methods, command_line=_command_line())
+    paths = CMP.write_comparison(output_dir, data, results, runtimes, truth=true, source=scan, overwrite=overwrite)
+    click.echo(paths["table_md"].read_text(), nl=False)
+    click.echo(f"wrote {len(paths)} files to {output_dir}")
+
+
+@main.command()
+@click.argument("scans", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("-o", "--output", "output_dir", required=True, type=click.Path(file_okay=False),
+              help="Directory for nps.png, nps.csv and nps.json.")
+@click.option("--methods", default="none,correlation,ml", show_default=True,
+              help="Comma-separated estimators (fit.method values).")
+@click.option("--bins", default=32, show_default=True, type=click.IntRange(4, 1000),
+              help="Radial frequency bins between 0 and 0.5 cycles/pixel.")
+@with_config
+@click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
+@friendly
+def nps(scans, output_dir, methods, bins, config_files, sets, overwrite):
+    """Noise power spectra of the dark-field images of blank SCANS (no sample), per estimator."""
+    from . import compare as CMP
+    from . import export
+
+    cfg = C.load(config_files, sets)
+    methods = CMP.parse_methods(methods)
+    for p in CMP.nps_paths(Path(output_dir)).values():
+        export.check_output(p, overwrite=overwrite)
+    study = CMP.nps_study(scans, cfg, methods=methods, bins=bins, command_line=_command_line())
+    paths = CMP.write_nps(output_dir, study, overwrite=overwrite)
+    ff = study["fringe_frequency"]
+    click.echo(f"fringe frequency {ff:.4f} cycles/pixel (first harmonic {2 * ff:.4f})")
+    for m, p in CMP.fringe_power(study).items():
+        click.echo(f"{m}: NPS at the fringe {p['fringe']:.3g}, at the harmonic {p['harmonic']:.3g}, "
+                   f"elsewhere {p['other']:.3g} (pixel^2)")
+    click.echo(f"wrote {', '.join(str(p) for p in paths.values())}")
 
 
 if __name__ == "__main__":  # pragma: no cover

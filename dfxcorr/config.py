@@ -65,9 +65,11 @@ SCHEMA: dict[str, dict[str, Option]] = {
     "align": {
         "min_frames": Option(3, "detector rows lit in fewer frames are left out (at least the per-pixel unknowns)",
                              int, check=lambda v: None if v >= 3 else "must be at least 3"),
-        "min_visibility": Option(0.0, "pixels whose reference visibility is below this carry no fringe and are "
-                                      "left out (region of interest; 0 keeps all)", _NUM,
-                                 check=lambda v: None if 0 <= v < 1 else "must lie in [0, 1)"),
+        "min_visibility": Option("auto", "samples whose reference visibility is below this carry no fringe and are "
+                                         "left out (region of interest, NaN in the images); auto: a quarter of the "
+                                         "95th percentile of the reference visibility; 0 keeps all", (int, float, str),
+                                 check=lambda v: None if v == "auto" or (not isinstance(v, str) and 0 <= v < 1)
+                                 else "must be auto or lie in [0, 1)"),
     },
     "mask": {
         "enabled": Option(True, "leave pixels whose frames disagree (sample motion, paper Sec. II-E) out of the "
@@ -82,12 +84,22 @@ SCHEMA: dict[str, dict[str, Option]] = {
     "vibration": {
         "phase_offset": Option(True, "fit phi0_j, the grating shift between exposures", bool),
         "tilt": Option(True, "fit phi1_j, the grating rotation (x phi1_j added to the phase)", bool),
-        "visibility": Option(True, "fit v^s_j, the visibility loss from motion during the exposure", bool),
+        "visibility": Option("auto", "fit v^s_j, the visibility loss from motion during the exposure; auto: where "
+                                     "the acquisition can identify it (not in phase stepping, paper Sec. II-F)",
+                             (bool, str), check=lambda v: None if v in (True, False, "auto") else "must be true, false "
+                                                                                                  "or auto"),
         "curvature": Option(False, "fit phi2_j (x^2 phi2_j added to the phase)", bool),
         "visibility_tilt": Option(False, "fit v1_j, v2_j (visibility factor v^s_j + x v1_j + x^2 v2_j)", bool),
         "dose": Option(False, "fit d_j, a per-frame factor on the whole expected count", bool),
         "background": Option(False, "fit a smooth additive background b0 + b1 x + b2 y", bool),
         "harmonic": Option(False, "fit a second harmonic of the stepping curve", bool),
+    },
+    "reference": {
+        "step_errors": Option(True, "estimate per-step phase errors of a reference stepping series by the same "
+                                    "maximum-likelihood fit (otherwise the nominal steps are taken as exact)", bool),
+        "dose": Option("auto", "estimate per-step dose of a reference stepping series (auto: where identifiable, "
+                               "i.e. some pixels carry no fringe)", (bool, str),
+                       check=lambda v: None if v in (True, False, "auto") else "must be true, false or auto"),
     },
     "fit": {
         "method": Option("ml", "vibration estimator: ml (this paper), alternating, correlation, none", str,
@@ -216,8 +228,8 @@ def load(files=(), sets=(), *, schema: dict = SCHEMA) -> dict:
 
 
 def effects_of(cfg: dict) -> tuple[str, ...]:
-    """Catalogue effects switched on in the vibration section, in catalogue order."""
-    return tuple(effect for key, effect in VIBRATION_EFFECTS.items() if cfg["vibration"][key])
+    """Catalogue effects switched on in the vibration section, in catalogue order ('auto' counts as on)."""
+    return tuple(effect for key, effect in VIBRATION_EFFECTS.items() if cfg["vibration"][key] is not False)
 
 
 def dump(cfg: dict) -> str:

@@ -365,7 +365,9 @@ def solve_pixels(obs: Observations, columns: list[np.ndarray], target: np.ndarra
     -------
     coef : ndarray, shape (R, C, p)
     valid : ndarray of bool, shape (R, C)
-        False where fewer than p samples count or the normal matrix is singular (coef = 0 there).
+        False where the first column is absent, fewer samples count than there are unknowns, or the
+        normal matrix is singular (coef = 0 there). Other columns that vanish at every sample of a
+        pixel are left out of that pixel's unknowns (coefficient 0).
     inverse : ndarray, shape (R, C, p, p) or None
     """
     p = len(columns)
@@ -377,10 +379,13 @@ def solve_pixels(obs: Observations, columns: list[np.ndarray], target: np.ndarra
     rhs = np.stack([obs.segment_sum(wXa * target) for wXa in wX], axis=-1)
     n_used = obs.segment_sum((weights > 0).astype(np.float64))
     diag = np.einsum("...ii->...i", N)
-    scale = np.sqrt(np.where(diag > 0, diag, 1.0))
+    # a column that is zero at every sample of a pixel (no fringe: v^f = 0) is not an unknown there
+    present = diag > 0
+    scale = np.sqrt(np.where(present, diag, 1.0))
     Ns = N / (scale[..., :, None] * scale[..., None, :])
+    Ns = np.where(present[..., :, None] | present[..., None, :], Ns, 0.0) + np.eye(p) * ~present[..., None, :]
     # the determinant of the unit-diagonal matrix is scale-free; tiny means collinear columns
-    valid = (n_used >= p) & np.all(diag > 0, axis=-1) & (np.abs(np.linalg.det(Ns)) > 1e-10)
+    valid = (n_used >= present.sum(axis=-1)) & present[..., 0] & (np.abs(np.linalg.det(Ns)) > 1e-10)
     Ns[~valid] = np.eye(p)
     inv_s = np.linalg.inv(Ns)
     coef = np.einsum("...ab,...b->...a", inv_s, rhs / scale) / scale

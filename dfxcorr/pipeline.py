@@ -20,8 +20,11 @@ import numpy as np
 from . import __version__
 from . import config as C
 from . import model as M
-from .align import build_observations, resolve_reference, subsample_columns, tilt_alias_period
-from .fit import FitResult, fit_vibrations
+from .align import (auto_visibility_threshold, build_observations, resolve_reference, subsample_columns,
+                    tilt_alias_period)
+from .baselines import fit_alternating, fit_correlation
+from . import identify
+from .fit import FitResult, fit_vibrations, initial_weights
 from .io import Scan, read_scan
 from .mask import motion_mask
 from .progress import Progress
@@ -71,16 +74,8 @@ def separable_flat_field(reference, *, tol: float = 1e-3) -> bool:
     return bool(np.sqrt(np.mean(resid ** 2)) < tol and max(flat) < tol)
 
 
-def check_identifiable(scan: Scan, reference, effects) -> None:
-    """Refuse effects the acquisition cannot determine (paper Sec. II-F).
-
-    Raises
-    ------
-    IdentifiabilityError
-    """
-    asks = [e for e in effects if e in ("visibility_loss", "visibility_tilt")]
-    if not asks:
-        return
+def visibility_unidentifiable(scan: Scan, reference) -> str | None:
+    """Why per-frame visibility loss cannot be told apart from the images here, or None (paper Sec. II-F)."""
     if scan.is_stepping:
         why = ("in a phase-stepping recording the flat field is the same in every frame, so a per-frame "
                "visibility loss trades off exactly against the transmission and dark-field images (paper Sec. II-F)")
@@ -88,9 +83,47 @@ def check_identifiable(scan: Scan, reference, effects) -> None:
         why = ("the flat-field phase of this scan is separable (paper eq. 48) and t^f, v^f do not vary along the "
                "scan, so per-frame visibility loss cannot be told apart from the images")
     else:
-        return
-    raise IdentifiabilityError(f"{', '.join(asks)} is not identifiable here: {why}; "
-                               f"set vibration.visibility=false (and vibration.visibility_tilt=false)")
+        why = None
+    return why
+
+
+def resolve_effects(cfg: dict, scan: Scan, reference, fit_obs: M.Observations) -> tuple[str, ...]:
+    """The effects to fit: the configured ones that this acquisition can determine.
+
+    Every enabled effect is checked in turn against the Fisher information of the fit's samples
+    (:mod:`dfxcorr.identify`); visibility effects in a stepping recording or over a separable flat
+    field are refused with the paper's reason. An effect set to ``auto`` is dropped with a log line.
+
+    Raises
+    ------
+    IdentifiabilityError
+        If the configuration explicitly asks for an effect the acquisition cannot determine.
+    """
+    keys = {e: k for k, e in C.VIBRATION_EFFECTS.items()}
+
+    def refuse_or_drop(name, why):
+        if cfg["vibration"][keys[name]] is True:
+            raise IdentifiabilityError(f"{name} is not identifiable here: {why}; set vibration.{keys[name]}=false"
+                                       + (" (or auto)" if name == "visibility_loss" else ""))
+        log.info("%s is not fitted: %s", name, why)
+
+    chosen: list[str] = []
+    paper_why = visibility_unidentifiable(scan, reference)
+    weights = None
+    for name in C.effects_of(cfg):
+        if paper_why and name in ("visibility_loss", "visibility_tilt"):
+            refuse_or_drop(name, paper_why)
+            continue
+        if weights is None:
+            weights = initial_weights(fit_obs, {})
+        verdict = identify.check(fit_obs, {}, weights, chosen, [name])[0]
+        if verdict.identifiable:
+            chosen.append(name)
+        else:
+            refuse_or_drop(name, f"the Fisher information of this acquisition has {verdict.excess} direction(s) of "
+                                 f"its parameters without information beyond its gauge (they trade off exactly "
+                                 f"against the images{' or ' + ', '.join(chosen) if chosen else ''})")
+    return tuple(chosen)
 
 
 def fit_columns(width: int, cfg: dict) -> np.ndarray:
@@ -104,16 +137,6 @@ def fit_columns(width: int, cfg: dict) -> np.ndarray:
         raise C.ConfigError(f"fit.subsample={n}: tilts that differ by {period:.2f} rad are indistinguishable on "
                             f"every {n}-th of {width} columns (paper Sec. II-D.1); use at most {width // 4}")
     return cols
-
-
-def region_of_interest(reference, scan: Scan, min_visibility: float) -> np.ndarray | None:
-    """Pixels whose reference visibility reaches ``min_visibility`` (stepping recordings: the grating area)."""
-    if min_visibility <= 0:
-        return None
-    if not scan.is_stepping:
-        cols = reference.visibility.max(axis=0) >= min_visibility
-        return np.broadcast_to(cols, scan.shape[1:]).copy()
-    return reference.visibility >= min_visibility
 
 
 def reconstruct(scan: Scan | str | Path, cfg: dict | None = None, *, command_line: str = "",
@@ -144,28 +167,35 @@ def reconstruct(scan: Scan | str | Path, cfg: dict | None = None, *, command_lin
             scan = read_scan(path)
             log.info("scan %s: %d frames of %d x %d, active area %d rows%s", path.name, *scan.shape,
                      scan.active_rows, ", phase stepping" if scan.is_stepping else "")
-    effects = C.effects_of(cfg)
     method = cfg["fit"]["method"]
     gain = cfg["load"]["gain"] or scan.gain
     with stage("align", timings):
-        reference = resolve_reference(scan)
-        if method != "none":
-            check_identifiable(scan, reference, effects)
-        roi = region_of_interest(reference, scan, cfg["align"]["min_visibility"])
-        if roi is not None:
-            log.info("region of interest: %d of %d pixels have reference visibility >= %g", int(roi.sum()), roi.size,
-                     cfg["align"]["min_visibility"])
-        obs = build_observations(scan, reference, min_frames=cfg["align"]["min_frames"], pixel_mask=roi, gain=gain)
-        if roi is not None:
-            obs = _drop_unused(obs)
+        step_effects = tuple(e for e, on in (("phase_offset", cfg["reference"]["step_errors"]),
+                                             ("dose", cfg["reference"]["dose"])) if on is not False)
+        reference = resolve_reference(scan, effects=step_effects,
+                                      optional=("dose",) if cfg["reference"]["dose"] == "auto" else ())
+        obs = build_observations(scan, reference, min_frames=cfg["align"]["min_frames"], gain=gain)
+        vmin = cfg["align"]["min_visibility"]
+        vmin = auto_visibility_threshold(reference.visibility) if vmin == "auto" else vmin
+        # samples without fringe carry transmission only (v^f = 0 there): no images (NaN), but in the fit
+        # they monitor dose and background
+        roi = obs.vf >= vmin
+        obs.vf = np.where(roi, obs.vf, 0.0)
+        left_out = obs.segment_sum(roi.astype(float)) == 0
+        if left_out.any():
+            log.info("region of interest: %d pixels see no fringe (reference visibility < %.3g) and are left out "
+                     "of the images", int(left_out.sum()), vmin)
     moving = np.zeros(scan.shape[1:], bool)
     with stage("mask", timings):
         if cfg["mask"]["enabled"] and method != "none":
             moving, _, thr = motion_mask(obs, threshold=cfg["mask"]["threshold"], sigma=cfg["mask"]["sigma"],
                                          dilate=cfg["mask"]["dilate"])
+            # the score assumes a fringe; pixels without one only monitor dose and background
+            moving &= obs.to_image(obs.segment_sum(roi.astype(float)), fill=0.0) > 0
             log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
     with stage("fit", timings):
-        fitted, fit_mask = run_fit(obs, scan, cfg, effects, moving, progress=progress)
+        fitted, fit_mask, effects = run_fit(obs, scan, reference, cfg, moving, progress=progress)
+    obs.use = roi
     with stage("retrieve", timings):
         rec = retrieve(obs, fitted.params, iterations=cfg["retrieve"]["iterations"])
         maps = image_maps(obs, rec.images)
@@ -173,28 +203,23 @@ def reconstruct(scan: Scan | str | Path, cfg: dict | None = None, *, command_lin
         if cfg["retrieve"]["uncorrected"] and method != "none":
             uncorrected = image_maps(obs, retrieve(obs, {}, iterations=cfg["retrieve"]["iterations"]).images)
         log.info("reduced chi-square of the final model: %.4f", rec.reduced_chi2)
-    estimated = {n: (n in effects and method != "none") for n in fitted.params}
+    # the paper's three parameters are always reported, at their neutral value where not estimated
+    params = {**M.neutral_params(M.PAPER_MODEL, scan.shape[0]), **fitted.params}
+    uncertainty = {**{n: np.full_like(p, np.inf) for n, p in params.items()}, **fitted.uncertainty}
+    estimated = {n: (n in effects and n in fitted.params and method != "none") for n in params}
     provenance = {"program": "dfxcorr", "version": __version__,
                   "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                   "command_line": command_line, "input_file": str(path) if path else "",
                   "input_sha256": sha256(path) if path else ""}
     return Result(transmission=maps["transmission"], dark_field=maps["dark_field"],
-                  differential_phase=maps["differential_phase"], params=fitted.params, estimated=estimated,
-                  uncertainty=fitted.uncertainty, fit_mask=fit_mask, motion_mask=moving.astype(np.uint8),
+                  differential_phase=maps["differential_phase"], params=params, estimated=estimated,
+                  uncertainty=uncertainty, fit_mask=fit_mask, motion_mask=moving.astype(np.uint8),
                   cost=fitted.cost, cost_stage=fitted.stage, reduced_chi2=rec.reduced_chi2, method=method,
                   config=cfg, provenance=provenance, uncorrected=uncorrected, timings=timings)
 
 
-def _drop_unused(obs: M.Observations) -> M.Observations:
-    """Keep only the columns with at least one usable sample (outside a region of interest nothing is solved)."""
-    keep = np.flatnonzero(obs.use.any(axis=0))
-    sub = obs.subset(keep)
-    sub.counts = np.where(sub.use, sub.counts, 0.0)
-    return sub
-
-
-def run_fit(obs: M.Observations, scan: Scan, cfg: dict, effects, moving: np.ndarray, *,
-            progress: bool | None = None) -> tuple[FitResult, np.ndarray]:
+def run_fit(obs: M.Observations, scan: Scan, reference, cfg: dict, moving: np.ndarray, *,
+            progress: bool | None = None) -> tuple[FitResult, np.ndarray, tuple[str, ...]]:
     """Estimate the per-frame parameters with the configured method.
 
     Returns
@@ -202,6 +227,8 @@ def run_fit(obs: M.Observations, scan: Scan, cfg: dict, effects, moving: np.ndar
     FitResult
     fit_mask : ndarray of uint8, shape (H, W)
         1 where the pixel entered the fit.
+    effects : tuple of str
+        The effects fitted (the configured ones this acquisition can determine).
     """
     method = cfg["fit"]["method"]
     J = scan.shape[0]
@@ -210,12 +237,13 @@ def run_fit(obs: M.Observations, scan: Scan, cfg: dict, effects, moving: np.ndar
         params = M.neutral_params(M.PAPER_MODEL, J)
         unc = {k: np.full_like(v, np.inf) for k, v in params.items()}
         return FitResult(params=params, uncertainty=unc, cost=np.zeros(0), stage=[], iterations=0,
-                         converged=True), fit_mask
+                         converged=True), fit_mask, ()
     if method not in FIT_METHODS:
         raise C.ConfigError(f"fit.method={method!r} is not available; available: {', '.join(FIT_METHODS)}, none")
     cols = np.searchsorted(obs.columns, fit_columns(scan.shape[2], cfg))
     fit_obs = obs.subset(cols)
     fit_obs.use = fit_obs.use & ~moving[fit_obs.row][:, fit_obs.columns]
+    effects = resolve_effects(cfg, scan, reference, fit_obs)
     used = fit_obs.segment_sum(fit_obs.use.astype(np.float64)) > 0
     fit_mask[np.ix_(fit_obs.rows, fit_obs.columns)] = used
     log.info("vibration fit (%s): %s on %d columns, %d pixels, %d frames", method, ", ".join(effects),
@@ -244,8 +272,8 @@ def run_fit(obs: M.Observations, scan: Scan, cfg: dict, effects, moving: np.ndar
             log.info("  %s: std %.4g over %d well-determined frames, median uncertainty %.2g", name,
                      float(np.std(result.params[name][good])), int(good.sum()),
                      float(np.median(result.uncertainty[name][good])))
-    return result, fit_mask
+    return result, fit_mask, effects
 
 
 #: Vibration estimators selectable by ``fit.method``.
-FIT_METHODS = {"ml": fit_vibrations}
+FIT_METHODS = {"ml": fit_vibrations, "alternating": fit_alternating, "correlation": fit_correlation}

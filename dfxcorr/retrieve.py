@@ -41,7 +41,7 @@ def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_
     Parameters
     ----------
     obs : Observations
-        All samples to use (``obs.use`` is ignored: every illuminated pixel is retrieved).
+        Samples with ``obs.use`` False (outside the region of interest) do not count.
     params : dict
         Effect parameters (see :func:`dfxcorr.model.neutral_params`).
     iterations : int
@@ -58,12 +58,12 @@ def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_
     """
     dsg = M.design(obs, params)
     g = obs.gain if gain is None else gain
-    weights = 1.0 / (g * np.maximum(obs.counts - obs.dark, 1.0))
+    weights = M.noise_weights(obs, obs.counts, gain=g)
     for it in range(iterations):
         images = M.solve_images(obs, dsg, weights)
         ibar = M.expected(obs, dsg, images)
         if it + 1 < iterations:
-            weights = 1.0 / (g * np.maximum(ibar - obs.dark, 1.0))
+            weights = M.noise_weights(obs, ibar, gain=g)
     n_par = sum(np.size(p) for p in params.values()) if n_frame_params is None else n_frame_params
     chi2 = reduced_chi2(obs, ibar, images.valid, n_params=n_par, gain=g)
     return Retrieval(images=images, expected=ibar, weights=weights, reduced_chi2=chi2)
@@ -71,11 +71,11 @@ def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_
 
 def reduced_chi2(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *, n_params: int = 0,
                  gain: float | None = None, per_pixel_unknowns: int = 3) -> float:
-    """Pearson chi-square per degree of freedom over the samples of valid pixels.
+    """Pearson chi-square per degree of freedom over the used samples of valid pixels.
 
     dof = samples - per_pixel_unknowns * pixels - n_params.
     """
-    sel = valid[obs.pixel]
+    sel = valid[obs.pixel] & obs.use
     chi2 = float(M.pearson(obs, ibar, gain=gain)[sel].sum())
     dof = int(sel.sum()) - per_pixel_unknowns * int(valid.sum()) - n_params
     return chi2 / max(dof, 1)

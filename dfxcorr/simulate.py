@@ -49,6 +49,8 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                   check=_nonneg),
         "reference_frames": Option(20, "frames averaged per reference step (its dose multiple)", int,
                                    check=_positive),
+        "reference_step_errors": Option(0.0, "std of the phase errors of the reference series' steps (rad)", _NUM,
+                                        check=_nonneg),
     },
     "effects": {
         "phase_offset": Option(2 * np.pi / 16, "std of phi0_j (rad) (stepping: of the step errors)", _NUM,
@@ -154,7 +156,8 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
         ``image_transmission``, ``image_dark_field``, ``image_differential_phase`` (H, W); per frame
         ``vib_phase_offset``, ``vib_tilt``, ``vib_visibility``, ``vib_curvature``, ``vib_dose``
         (J,), ``vib_visibility_tilt`` (J, 2); ``background`` (3,), ``harmonic`` (2,),
-        ``motion_mask`` (H, W), ``gain``; ``config`` (JSON).
+        ``motion_mask`` (H, W), ``gain``; ``reference_steps`` (actual step phases of a simulated
+        reference series, else empty) and the exact flat-field maps ``reference_*``; ``config`` (JSON).
     """
     s, e = cfg["simulate"], cfg["effects"]
     rng = np.random.default_rng(s["seed"])
@@ -178,9 +181,9 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
         ibar = np.where(moving[obs.row][:, obs.columns], (ibar - dsg.offset) * swing + dsg.offset, ibar)
     counts = _detect(ibar - obs.dark, cfg, rng) + obs.dark
     frames[obs.frame[:, None], obs.row[:, None], obs.columns[None, :]] = counts
-    reference = ref
+    reference, reference_steps = ref, np.zeros(0)
     if s["reference_steps"]:
-        reference = _reference_series(ref, s, rng)
+        reference, reference_steps = _reference_series(ref, s, rng)
     data = _store(frames, s["dtype"])
     gain_file = e["detector_gain"] if e["declare_gain"] else 1.0
     scan = Scan(data=data, position=g["position"], reference=reference, phase_step=g["phase_step"],
@@ -193,7 +196,9 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
                  vib_dose=params.get("dose", np.ones((J, 1)))[:, 0],
                  vib_visibility_tilt=params.get("visibility_tilt", np.zeros((J, 2))),
                  background=params.get("background", np.zeros(3)), harmonic=params.get("harmonic", np.zeros(2)),
-                 motion_mask=moving, gain=np.float64(e["detector_gain"]), config=json.dumps(cfg))
+                 motion_mask=moving, gain=np.float64(e["detector_gain"]), reference_steps=reference_steps,
+                 reference_transmission=ref.transmission, reference_visibility=ref.visibility,
+                 reference_phase=ref.phase, config=json.dumps(cfg))
     return scan, truth
 
 
@@ -208,14 +213,18 @@ def _detect(mean: np.ndarray, cfg: dict, rng: np.random.Generator) -> np.ndarray
     return out
 
 
-def _reference_series(ref: Reference, s: dict, rng: np.random.Generator) -> SteppingReference:
-    """A noisy S-step series of the unloaded interferometer (the average of ``reference_frames`` frames)."""
+def _reference_series(ref: Reference, s: dict, rng: np.random.Generator) -> tuple[SteppingReference, np.ndarray]:
+    """A noisy S-step series of the unloaded interferometer (the average of ``reference_frames`` frames).
+
+    Returns the series (with nominal steps) and the actual step phases (rad).
+    """
     S = s["reference_steps"]
     steps = 2 * np.pi * np.arange(S) / S
-    mean = ref.transmission * (1 + ref.visibility * np.cos(ref.phase[None] + steps[:, None, None]))
+    actual = steps + rng.normal(0, s["reference_step_errors"], S)
+    mean = ref.transmission * (1 + ref.visibility * np.cos(ref.phase[None] + actual[:, None, None]))
     n = s["reference_frames"]
     data = rng.poisson(mean * n) / n if s["noise"] else mean
-    return SteppingReference(data=data.astype(np.float64), phase_step=steps)
+    return SteppingReference(data=data.astype(np.float64), phase_step=steps), actual
 
 
 def _store(frames: np.ndarray, dtype: str) -> np.ndarray:

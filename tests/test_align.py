@@ -1,7 +1,7 @@
 """Flat-field alignment against analytic references."""
 import numpy as np
 
-from dfxcorr.align import build_observations, interpolate_rows, lit_blocks, reference_from_stepping
+from dfxcorr.align import build_observations, fit_reference, interpolate_rows, lit_blocks
 from dfxcorr.io import Reference, Scan, SteppingReference
 
 
@@ -43,7 +43,7 @@ def test_reference_maps_from_a_noise_free_stepping_series(rng):
     phi = rng.uniform(-3, 3, (A, W))
     steps = 2 * np.pi * np.arange(S) / S + 0.1
     data = t * (1 + v * np.cos(phi + steps[:, None, None]))
-    ref = reference_from_stepping(SteppingReference(data=data, phase_step=steps))
+    ref = fit_reference(SteppingReference(data=data, phase_step=steps), effects=()).reference
     np.testing.assert_allclose(ref.transmission, t, rtol=1e-10)
     np.testing.assert_allclose(ref.visibility, v, rtol=1e-9)
     np.testing.assert_allclose(np.angle(np.exp(1j * (ref.phase - phi))), 0, atol=1e-9)

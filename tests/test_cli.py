@@ -107,7 +107,11 @@ def test_stepping_scan_with_visibility_is_refused(tmp_path):
     scan = tmp_path / "step.h5"
     assert run("simulate", "-o", scan, *SMALL, "--set", "simulate.geometry=stepping",
                "--set", "effects.visibility_loss=0").exit_code == 0
-    refused(run("reconstruct", scan, "-o", tmp_path / "r.h5"), "visibility_loss", "not identifiable")
+    refused(run("reconstruct", scan, "-o", tmp_path / "r.h5", "--set", "vibration.visibility=true"),
+            "visibility_loss", "not identifiable")
+    res = run("reconstruct", scan, "-o", tmp_path / "r.h5")  # auto: fitted where identifiable, else not
+    assert res.exit_code == 0, res.output
+    assert not read_result_h5(tmp_path / "r.h5")["estimated"]["visibility"]
 
 
 def test_config_defaults_and_check(tmp_path):

@@ -23,10 +23,13 @@ def test_ml_fit_recovers_the_paper_model_within_noise(small_scan, phantom):
     scan, truth = small_scan(**{"simulate.phantom": phantom})
     result = pipeline.reconstruct(scan, C.load([], ["fit.subsample=3"]))
     for name, z in standardized_errors(result, truth, scan).items():
-        # errors in units of the reported standard deviation: rms ~1 if the fit is efficient and the
-        # uncertainty honest; 1.4 leaves room for the spread of an rms over ~90 frames and the prior
-        assert np.sqrt(np.mean(z ** 2)) < 1.4, name
-        assert np.abs(z).max() < 5.0, name
+        # errors in units of the reported standard deviation: spread ~1 if the fit is efficient and the
+        # uncertainty honest (1.4 leaves room for the spread of a std over ~90 frames). The common mode is
+        # one draw shared by all frames (nearly separable flat field, paper eq. 48, leaves an additive
+        # visibility mode weakly determined), so it gets its own, wider bound.
+        assert np.std(z) < 1.4, name
+        assert abs(np.mean(z)) < 3.0, name
+        assert np.abs(z - np.mean(z)).max() < 5.0, name
     assert result.reduced_chi2 == pytest.approx(1.0, abs=0.02)
 
 
@@ -67,13 +70,15 @@ def test_method_none_has_neutral_parameters_and_no_fit(small_scan):
 def test_visibility_loss_is_refused_for_a_stepping_recording(small_scan):
     scan, _ = small_scan(**{"simulate.geometry": "stepping", "effects.visibility_loss": 0.0})
     with pytest.raises(pipeline.IdentifiabilityError, match="not identifiable.*stepping"):
-        pipeline.reconstruct(scan, C.defaults())
+        pipeline.reconstruct(scan, C.load([], ["vibration.visibility=true"]))
+    result = pipeline.reconstruct(scan, C.load([], ["fit.subsample=3"]))  # auto leaves it out
+    assert not result.estimated["visibility_loss"] and result.estimated["phase_offset"]
 
 
 def test_separable_flat_field_refuses_visibility(small_scan):
     scan, _ = small_scan(**{"simulate.fringes_edge": 2.0})  # equal fringe counts: phase = f(c) + a u
     with pytest.raises(pipeline.IdentifiabilityError, match="separable"):
-        pipeline.reconstruct(scan, C.defaults())
+        pipeline.reconstruct(scan, C.load([], ["vibration.visibility=true"]))
 
 
 def test_too_coarse_subsampling_is_refused(small_scan):
