@@ -159,6 +159,31 @@ def simulate(config_file, output, sets, truth, overwrite):
     click.echo(f"{out}: {scan.shape[0]} frames of {scan.shape[1]} x {scan.shape[2]}; truth in {truth_path}")
 
 
+@main.command()
+@click.argument("scan", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Folder for diagnosis.json, report.md and pictures.")
+@with_config
+@click.option("--base", type=click.Choice(["configured", "none"]), default="configured", show_default=True,
+              help="Start from the configured model, or from plain retrieval without per-frame terms.")
+@click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
+@friendly
+def diagnose(scan, out_dir, config_files, sets, base, overwrite):
+    """Find where SCAN and the model disagree, name the missing physics, add it and refit."""
+    from .diagnose import diagnose as run, write_report
+
+    cfg = C.load(config_files, sets)
+    out = Path(out_dir)
+    for name in ("diagnosis.json", "report.md", "residuals.png"):
+        from .export import check_output
+        check_output(out / name, overwrite=overwrite)
+    diag = run(scan, cfg, base=base)
+    write_report(diag, out, overwrite=overwrite)
+    found = [e.name for e in diag.effects if e.detected]
+    click.echo(f"{out / 'report.md'}: reduced chi-square {diag.initial_chi2:.4f} -> {diag.final_chi2:.4f}; "
+               f"detected: {', '.join(found) or 'nothing'}")
+
+
 @main.group("import")
 def import_group():
     """Convert recordings from other layouts into the dfxcorr scan format."""

@@ -18,7 +18,9 @@ import numpy as np
 from . import model as M
 
 #: Exact gauge directions an effect brings (its per-frame parameters' common shift or scale).
-GAUGE_DIMENSIONS = {"phase_offset": 1, "tilt": 1, "curvature": 1, "visibility_loss": 1, "dose": 1}
+GAUGE_DIMENSIONS = {"phase_offset": 1, "tilt": 1, "curvature": 1, "visibility_loss": 1, "dose": 1,
+                    # v1_j, v2_j proportional to v0_j: a factor (1 + a x + b x^2) that the dark-field image takes up
+                    "visibility_tilt": 2}
 
 
 @dataclass

@@ -17,21 +17,24 @@ from scipy import ndimage
 from . import model as M
 
 
-def motion_score(obs: M.Observations, weights: np.ndarray | None = None) -> np.ndarray:
-    """Per-pixel residual relative to what noise and vibrations explain.
+def motion_score(obs: M.Observations, params: dict | None = None, weights: np.ndarray | None = None) -> np.ndarray:
+    """Per-pixel residual relative to what noise and (unmodelled) vibrations explain.
 
     Parameters
     ----------
     obs : Observations
+    params : dict, optional
+        Effect parameters of the model to compare with (default: none, paper eq. 35).
     weights : ndarray, shape (K, C), optional
-        Inverse noise variances; default from a retrieval without per-frame terms.
+        Inverse noise variances; default from a retrieval with ``params``.
 
     Returns
     -------
     ndarray, shape (R, C)
-        About 1 for consistent pixels, NaN where the pixel could not be solved.
+        About 1 for consistent pixels (a reduced chi-square with n - 3 degrees of freedom), NaN where
+        the pixel could not be solved.
     """
-    dsg = M.design(obs, {})
+    dsg = M.design(obs, params or {})
     if weights is None:
         w0 = M.noise_weights(obs, np.maximum(obs.counts, 1.0))
         weights = M.noise_weights(obs, M.expected(obs, dsg, M.solve_images(obs, dsg, w0)))

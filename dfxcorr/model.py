@@ -177,7 +177,9 @@ class Observations:
     shape : tuple
         (J, H, W) of the scan.
     gain : float
-        Detector units per photon (variance = gain * (Ibar - dark)).
+        Detector units per photon.
+    electronic : float
+        Electronic noise variance (counts^2); the variance of a sample is gain * (Ibar - dark) + electronic.
     """
 
     counts: np.ndarray
@@ -191,6 +193,7 @@ class Observations:
     columns: np.ndarray
     shape: tuple
     gain: float = 1.0
+    electronic: float = 0.0
     rows: np.ndarray = field(init=False)
     starts: np.ndarray = field(init=False)
     pixel: np.ndarray = field(init=False)
@@ -234,7 +237,7 @@ class Observations:
         idx = np.asarray(columns)
         return Observations(self.counts[:, idx], self.tf[:, idx], self.vf[:, idx], self.phif[:, idx],
                             self.dark[:, idx], self.use[:, idx], self.row, self.frame, self.columns[idx],
-                            self.shape, self.gain)
+                            self.shape, self.gain, self.electronic)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -575,16 +578,19 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
     return info, index
 
 
+def variance(obs: Observations, ibar: np.ndarray, *, gain: float | None = None, floor: float = 1e-3) -> np.ndarray:
+    """Noise variance of each sample, g (Ibar - dark) + electronic, shape (K, C)."""
+    g = obs.gain if gain is None else gain
+    return g * np.maximum(ibar - obs.dark, floor) + obs.electronic
+
+
 def pearson(obs: Observations, ibar: np.ndarray, *, gain: float | None = None,
             floor: float = 1e-3) -> np.ndarray:
-    """Pearson residual squared (I - Ibar)^2 / (g (Ibar - dark)) per sample, shape (K, C)."""
-    g = obs.gain if gain is None else gain
-    var = g * np.maximum(ibar - obs.dark, floor)
-    return (obs.counts - ibar) ** 2 / var
+    """Pearson residual squared (I - Ibar)^2 / variance per sample, shape (K, C)."""
+    return (obs.counts - ibar) ** 2 / variance(obs, ibar, gain=gain, floor=floor)
 
 
 def noise_weights(obs: Observations, ibar: np.ndarray, *, gain: float | None = None,
                   floor: float = 1.0) -> np.ndarray:
-    """Inverse shot-noise variance 1 / (g max(Ibar - dark, floor)) of the used samples, 0 elsewhere."""
-    g = obs.gain if gain is None else gain
-    return np.where(obs.use, 1.0 / (g * np.maximum(ibar - obs.dark, floor)), 0.0)
+    """Inverse noise variance of the used samples (shot noise floored at ``floor`` counts), 0 elsewhere."""
+    return np.where(obs.use, 1.0 / variance(obs, ibar, gain=gain, floor=floor), 0.0)
