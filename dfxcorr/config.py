@@ -129,7 +129,8 @@ SCHEMA: dict[str, dict[str, Option]] = {
     "diagnose": {
         "alpha": Option(0.01, "family-wise false-alarm probability per round (Holm over the effects tried)", _NUM,
                         check=_fraction),
-        "subsample": Option(4, "the tests use every n-th column", int, check=_positive),
+        "subsample": Option(4, "the diagnosis fits and tests on every n-th column (finer than fit.subsample: the "
+                               "parameter noise of a coarse fit would read as misfit)", int, check=_positive),
         "max_rounds": Option(8, "at most this many effects are added", int, check=_positive),
         "motion_p": Option(1e-6, "per-pixel p-value below which a pixel's frames disagree", _NUM, check=_fraction),
         "min_pixels": Option(5, "sample_motion needs at least this many flagged pixels", int, check=_positive),

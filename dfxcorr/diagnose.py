@@ -35,7 +35,7 @@ from .align import build_observations, resolve_reference, subsample_columns
 from .fit import fit_vibrations
 from .io import Scan, read_scan
 from .mask import motion_score
-from .pipeline import fit_columns, resolve_effects, stage, visibility_unidentifiable
+from .pipeline import resolve_effects, stage, visibility_unidentifiable
 from .retrieve import retrieve
 
 log = logging.getLogger("dfxcorr")
@@ -383,8 +383,8 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
         reference = resolve_reference(scan)
         obs = build_observations(scan, reference, min_frames=cfg["align"]["min_frames"],
                                  gain=cfg["load"]["gain"] or scan.gain)
-        fit_obs = obs.subset(np.searchsorted(obs.columns, fit_columns(scan.shape[2], cfg)))
-        test_obs = obs.subset(subsample_columns(scan.shape[2], d["subsample"]))
+        # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit
+        fit_obs = obs.subset(subsample_columns(scan.shape[2], d["subsample"]))
         model = list(resolve_effects(cfg, scan, reference, fit_obs)) if base == "configured" else []
     base_model = list(model)
     good_frames = np.bincount(fit_obs.frame, minlength=scan.shape[0]) >= 0.5 * np.bincount(fit_obs.frame).max()
@@ -398,11 +398,15 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
     initial = None
     paper_why = visibility_unidentifiable(scan, reference)
     for rnd in range(d["max_rounds"] + 1):
-        for o in (obs, fit_obs, test_obs):
+        for o in (obs, fit_obs):
             o.use = ~motion[o.row][:, o.columns]
         with stage(f"round {rnd}: fit {'+'.join(model) or 'images only'}", timings):
             if model:
+                # after the first round the fit starts next to its optimum: no staging against local minima
+                warm = bool(params)
                 fitted = fit_vibrations(fit_obs, effects=model, start=params, gtol=cfg["fit"]["gtol"],
+                                        staged=not warm, circmean_iterations=0 if warm else
+                                        cfg["fit"]["circmean_iterations"], reweight=0 if warm else 1,
                                         visibility_gauge=cfg["fit"]["visibility_gauge"],
                                         visibility_quantile=cfg["fit"]["visibility_quantile"])
                 params = {k: v for k, v in fitted.params.items() if k in model}
@@ -421,9 +425,9 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
             break
         with stage(f"round {rnd}: tests", timings):
             dispersion = max(chi2_red, 1e-6)
-            weights = M.noise_weights(test_obs, retrieve(test_obs, params).expected)
+            weights = M.noise_weights(fit_obs, retrieve(fit_obs, params).expected)
             mean_candidates = [c for c in CANDIDATES if M.effect(c).channel is not None and c not in model]
-            tests = score_tests(test_obs, params, weights, model, mean_candidates, dispersion=dispersion)
+            tests = score_tests(fit_obs, params, weights, model, mean_candidates, dispersion=dispersion)
             for c in ("visibility_loss", "visibility_tilt"):
                 if paper_why and c in tests:
                     tests[c]["identifiable"] = False
@@ -456,7 +460,7 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
             motion = ndimage.binary_dilation(t["mask"], iterations=1)
             extra["pixels"] = int(motion.sum())
         elif choice == "detector_gain":
-            for o in (obs, fit_obs, test_obs):
+            for o in (obs, fit_obs):
                 o.gain, o.electronic = t["gain"], t["electronic"]
             modelled_noise = True
             extra = {"gain": t["gain"], "electronic": t["electronic"]}
@@ -464,7 +468,7 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
             model.append(choice)
         detected.append(choice)
         reports[choice] = EffectReport(choice, True, True, t["statistic"], int(t["dof"]), t["p_value"],
-                                       where=_where(choice, t, test_obs), extra=extra)
+                                       where=_where(choice, t, fit_obs), extra=extra)
         rounds.append({"round": rnd, "added": choice, "chi2_before": chi2_sum, "reduced_chi2_before": chi2_red})
         log.info("round %d: adding %s", rnd, choice)
     after = locate(obs, M.design(obs, params), rec.images, rec.expected)

@@ -41,6 +41,8 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "steps_per_period": Option(11, "stepping geometry: steps per grating period", _NUM, check=_positive),
         "flux": Option(2e4, "flat-field counts per pixel and frame, t^f", _NUM, check=_positive),
         "visibility": Option(0.3, "flat-field visibility v^f", _NUM, check=_fraction),
+        "flat_gradient": Option(0.0, "relative change of t^f from the top to the bottom of the active area "
+                                     "(heel effect, grating shadowing); 0: uniform", _NUM),
         "fringes_centre": Option(2.0, "moire fringes over the active area at the centre", _NUM),
         "fringes_edge": Option(2.5, "moire fringes over the active area at the left and right edges", _NUM),
         "noise": Option(True, "Poisson photon noise", bool),
@@ -75,6 +77,24 @@ SCHEMA: dict[str, dict[str, Option]] = {
 }
 
 
+#: Each catalogue effect as the simulator makes it: the setting that switches it on, a realistic amplitude,
+#: smaller ones (for detection limits), further simulator settings it needs, and the reconstruct settings
+#: that leave it out of the model where it is one of the paper's three.
+CONCEALED = {
+    "phase_offset": ("effects.phase_offset", 0.39, [0.1, 0.03, 0.01, 0.003], {}, ["vibration.phase_offset=false"]),
+    "tilt": ("effects.tilt", 0.39, [0.1, 0.03, 0.01, 0.003], {}, ["vibration.tilt=false"]),
+    "visibility_loss": ("effects.visibility_loss", 0.2, [0.05, 0.02, 0.01, 0.005], {}, ["vibration.visibility=false"]),
+    "curvature": ("effects.curvature", 0.2, [0.05, 0.02, 0.01, 0.005], {}, []),
+    "visibility_tilt": ("effects.visibility_tilt", 0.05, [0.02, 0.01, 0.005, 0.002], {}, []),
+    "dose": ("effects.dose", 0.02, [0.005, 0.002, 0.001, 0.0005], {}, []),
+    # an additive term is only told from the transmission where t^f varies along the scan
+    "background": ("effects.background", 0.05, [0.02, 0.01, 0.005, 0.002], {"simulate.flat_gradient": 0.3}, []),
+    "harmonic": ("effects.harmonic", 0.03, [0.01, 0.005, 0.002, 0.001], {}, []),
+    "sample_motion": ("effects.sample_motion", 0.3, [0.1, 0.05, 0.02, 0.01], {}, []),
+    "detector_gain": ("effects.detector_gain", 2.0, [1.3, 1.1, 1.05, 1.02], {"effects.declare_gain": False}, []),
+}
+
+
 def geometry(cfg: dict) -> dict:
     """Detector and scan geometry in pixels: H, W, A, positions (J,), phase steps (J,)."""
     s = cfg["simulate"]
@@ -95,7 +115,8 @@ def flat_field(cfg: dict, A: int, W: int) -> Reference:
     u = (np.arange(A) + 0.5)[:, None]
     x = M.lateral_coordinate(np.arange(W), W)[None, :]
     fringes = s["fringes_centre"] + (s["fringes_edge"] - s["fringes_centre"]) * x ** 2
-    return Reference(transmission=np.full((A, W), float(s["flux"])), visibility=np.full((A, W), float(s["visibility"])),
+    flux = s["flux"] * (1 + s["flat_gradient"] * (u / A - 0.5)) * np.ones((1, W))
+    return Reference(transmission=flux, visibility=np.full((A, W), float(s["visibility"])),
                      phase=2 * np.pi * fringes * u / A)
 
 
