@@ -134,9 +134,9 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "max_rounds": Option(8, "at most this many effects are added", int, check=_positive),
         "motion_p": Option(1e-6, "per-pixel p-value below which a pixel's frames disagree", _NUM, check=_fraction),
         "min_pixels": Option(5, "sample_motion needs at least this many flagged pixels", int, check=_positive),
-        "min_gain_change": Option(0.03, "detector_gain is reported when the gain moves by more than this fraction "
-                                        "(smaller changes are within what the subsampled fit's own noise explains)",
-                                  _NUM, check=_nonneg),
+        "min_gain_change": Option(0.01, "detector_gain is reported only when the gain also moves by more than this "
+                                        "fraction (a practical floor: with millions of samples smaller changes are "
+                                        "significant but immaterial)", _NUM, check=_nonneg),
     },
     "export": {
         "compression": Option("gzip", "HDF5 compression of the images", str, choices=("gzip", "lzf", "none")),
