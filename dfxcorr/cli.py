@@ -288,7 +288,7 @@ def compare(scan, output_dir, truth, methods, config_files, sets, overwrite):
     except CMP.TruthError as exc:
         raise click.BadParameter(str(exc), param_hint="--truth") from None
     cfg = C.merge(cfg, {"retrieve": {"uncorrected": False}})
-    results, runtimes = CMP.run_methods(data, cfg, methods=methods, command_line=_command_line())
+    results, runtimes = CMP.run_methods(scan, cfg, methods=methods, command_line=_command_line())
     paths = CMP.write_comparison(output_dir, data, results, runtimes, truth=true, source=scan, overwrite=overwrite)
     click.echo(paths["table_md"].read_text(), nl=False)
     click.echo(f"wrote {len(paths)} files to {output_dir}")

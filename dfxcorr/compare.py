@@ -1,0 +1,572 @@
+"""Side-by-side comparison of the vibration estimators, and noise power spectra of blank scans.
+
+``dfxcorr compare`` runs every estimator (``fit.method`` none, correlation, alternating, ml) on one scan
+and writes their results, a picture of their images, their cost histories and a table (reduced
+chi-square, runtime and, given a ground truth, RMSE of vibration parameters and images).
+
+``dfxcorr nps`` measures what vibrations leave in the dark-field image of scans without a sample
+(paper Sec. III-D.4, Fig. 11): the binned radial noise power spectrum per method, mean and standard
+deviation over scans, with the fringe frequency and its first harmonic marked.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import config as C
+from . import export, pipeline
+from . import model as M
+from .align import resolve_reference
+from .evaluate import frames_lighting, image_rmse, vibration_rmse
+from .io import Scan, read_scan
+from .result import Result
+
+log = logging.getLogger("dfxcorr")
+
+#: Estimators in the order they are compared (``fit.method`` values).
+METHODS = ("none", "correlation", "alternating", "ml")
+#: Estimators of the noise power spectra by default (the paper's Fig. 11).
+NPS_METHODS = ("none", "correlation", "ml")
+
+
+class TruthError(ValueError):
+    """A ground-truth file that does not fit the scan."""
+
+
+def parse_methods(text: str) -> tuple[str, ...]:
+    """Comma-separated ``fit.method`` values -> tuple, each validated (ConfigError names a bad one)."""
+    methods = tuple(m.strip() for m in text.split(",") if m.strip())
+    if not methods:
+        raise C.ConfigError("--methods: name at least one method")
+    for m in methods:
+        C.validate_value("fit", "method", m)
+    return methods
+
+
+def machine() -> str:
+    """One line describing where the numbers were measured."""
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {platform.system()}, "
+            f"python {platform.python_version()}, numpy {np.__version__}")
+
+
+# --------------------------------------------------------------------------------------------------
+# Running the estimators
+# --------------------------------------------------------------------------------------------------
+
+
+def run_methods(scan: Scan | str | Path, cfg: dict, *, methods=METHODS, method_sets: dict | None = None,
+                command_line: str = "") -> tuple[dict[str, Result], dict[str, float]]:
+    """Reconstruct one scan with each estimator.
+
+    Parameters
+    ----------
+    scan : Scan or path
+        A path is read by each reconstruction, which records it (and its checksum) in the provenance.
+    cfg : dict
+        Resolved configuration shared by all methods (``fit.method`` is set per method).
+    methods : sequence of str
+    method_sets : dict, optional
+        Method -> list of further ``section.key=value`` overrides for that method only.
+    command_line : str
+        Recorded in each result's provenance.
+
+    Returns
+    -------
+    results : dict
+        Method -> Result.
+    runtimes : dict
+        Method -> wall-clock seconds of the reconstruction (s).
+    """
+    results, runtimes = {}, {}
+    for method in methods:
+        cfg_m = C.merge(cfg, {"fit": {"method": method}})
+        for item in (method_sets or {}).get(method, []):
+            cfg_m = C.merge(cfg_m, C.parse_set(item), origin=f"{method}: {item}")
+        log.info("method %s ...", method)
+        t0 = time.perf_counter()
+        results[method] = pipeline.reconstruct(scan, cfg_m, command_line=command_line)
+        runtimes[method] = time.perf_counter() - t0
+        log.info("method %s: %.1f s, reduced chi-square %.4f", method, runtimes[method],
+                 results[method].reduced_chi2)
+    return results, runtimes
+
+
+def load_truth(path: str | Path, shape: tuple) -> dict:
+    """Read a truth file (``dfxcorr simulate``; ``image_*`` (H, W), ``vib_*`` (J,)) and check it fits the scan.
+
+    Parameters
+    ----------
+    path : str or Path
+    shape : tuple
+        (J, H, W) of the scan.
+
+    Raises
+    ------
+    TruthError
+        If an image or per-frame array has the wrong shape, or no image is present.
+    """
+    with np.load(path) as f:
+        truth = {k: f[k] for k in f.files}
+    J, H, W = shape
+    images = [k for k in truth if k.startswith("image_")]
+    if not images:
+        raise TruthError(f"{path} holds no image_transmission / image_dark_field / image_differential_phase")
+    for k in images:
+        if truth[k].shape != (H, W):
+            raise TruthError(f"{path}: {k} has shape {truth[k].shape}, the scan's images are {(H, W)}")
+    for k in (k for k in truth if k.startswith("vib_")):
+        if truth[k].shape[:1] != (J,):
+            raise TruthError(f"{path}: {k} has {truth[k].shape[0] if truth[k].ndim else 0} entries, "
+                             f"the scan has {J} frames")
+    return truth
+
+
+def completed_params(params: dict, n_frames: int) -> dict:
+    """The paper's parameters (eq. 19) with those a method does not estimate at their neutral values."""
+    return {**M.neutral_params(M.PAPER_MODEL, n_frames), **params}
+
+
+def comparison_table(results: dict[str, Result], runtimes: dict[str, float], *, scan: Scan,
+                     truth: dict | None = None) -> list[dict]:
+    """One row per method: reduced chi-square, runtime and, with a truth, RMSE of parameters and images.
+
+    Parameters
+    ----------
+    results, runtimes
+        As returned by :func:`run_methods`.
+    scan : Scan
+        Supplies the geometry: vibration RMSEs are over frames lighting at least half the active area
+        (:func:`dfxcorr.evaluate.frames_lighting`), in the median gauge.
+    truth : dict, optional
+        See :func:`load_truth`.
+
+    Returns
+    -------
+    list of dict
+        Keys 'method', 'reduced_chi2', 'runtime_s', 'fit_s', 'iterations', and with a truth
+        'rmse_<effect>' (rad, v^s dimensionless) and 'rmse_<image>'; parameters a method does not
+        estimate count at their neutral value.
+    """
+    rows = []
+    good = frames_lighting(scan.position, scan.active_rows, scan.shape[1])
+    for method, res in results.items():
+        row = {"method": method, "reduced_chi2": float(res.reduced_chi2), "runtime_s": float(runtimes[method]),
+               "fit_s": float(res.timings.get("fit", 0.0)), "iterations": int(np.size(res.cost))}
+        if truth is not None:
+            vib = vibration_rmse(completed_params(res.params, scan.shape[0]), truth, good)
+            row.update({f"rmse_{k}": v for k, v in vib.items()})
+            row.update({f"rmse_{k}": v for k, v in image_rmse({k: res.image(k) for k in Result.IMAGES},
+                                                               truth).items()})
+        rows.append(row)
+    return rows
+
+
+_HEAD = {"method": "method", "reduced_chi2": "reduced χ²", "runtime_s": "runtime (s)", "fit_s": "fit (s)",
+         "iterations": "iterations", "rmse_phase_offset": "RMSE φ0 (rad)", "rmse_tilt": "RMSE φ1 (rad)",
+         "rmse_visibility_loss": "RMSE v^s", "rmse_curvature": "RMSE φ2 (rad)", "rmse_dose": "RMSE dose",
+         "rmse_transmission": "RMSE t", "rmse_dark_field": "RMSE v", "rmse_differential_phase": "RMSE φ (rad)"}
+
+
+def table_markdown(rows: list[dict]) -> str:
+    """A markdown table of :func:`comparison_table` rows (columns in the order of the first row)."""
+    keys = list(rows[0])
+    out = ["| " + " | ".join(_HEAD.get(k, k) for k in keys) + " |", "|" + "---|" * len(keys)]
+    for r in rows:
+        cells = [r[k] if isinstance(r[k], str) else (f"{r[k]:d}" if isinstance(r[k], int) else f"{r[k]:.4g}")
+                 for k in keys]
+        out.append("| " + " | ".join(cells) + " |")
+    return "\n".join(out) + "\n"
+
+
+# --------------------------------------------------------------------------------------------------
+# Pictures
+# --------------------------------------------------------------------------------------------------
+
+
+def plot_images(path, rows: list[tuple[str, dict]], *, names=Result.IMAGES, window_row: int = 0,
+                crop: tuple[slice, slice] | None = None, title: str = "", overwrite: bool = False) -> Path:
+    """Images of several methods side by side, one shared gray window per image kind.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output PNG.
+    rows : list of (label, images)
+        images: 'transmission', 'dark_field', 'differential_phase' -> (H, W).
+    names : sequence of str
+        Which images to show (columns); with a single name the methods are laid out in one row.
+    window_row : int
+        Row whose 1st-99th percentile sets the window of each image kind (the truth, if shown).
+    crop : (slice, slice), optional
+        Region to show (rows, columns).
+    title : str
+    overwrite : bool
+
+    Returns
+    -------
+    Path
+    """
+    export.check_output(path, overwrite=overwrite)
+    plt = export._pyplot()
+    crop = crop or (slice(None), slice(None))
+    shown = [(label, {n: export._display(n, images[n])[crop] for n in names}) for label, images in rows]
+    windows = {n: export._window(n, shown[window_row][1][n]) for n in names}
+    h, w = shown[0][1][names[0]].shape
+    single = len(names) == 1
+    nr, nc = (1, len(shown)) if single else (len(shown), len(names))
+    panel_w = 4.0 if single else 4.2
+    panel_h = float(np.clip(panel_w * h / max(w, 1), 1.5, 6.0))
+    fig, axes = plt.subplots(nr, nc, figsize=(nc * panel_w + 0.8, nr * (panel_h + 0.45) + 0.7), squeeze=False,
+                             layout="constrained")
+    cmap = plt.get_cmap("gray").with_extremes(bad="#6f8fbf")
+    for i, (label, images) in enumerate(shown):
+        for k, n in enumerate(names):
+            ax = axes[0, i] if single else axes[i, k]
+            im = ax.imshow(images[n], cmap=cmap, vmin=windows[n][0], vmax=windows[n][1], interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if single:
+                ax.set_title(label, fontsize=10)
+            else:
+                if i == 0:
+                    ax.set_title(export._LABELS[n], fontsize=10)
+                if k == 0:
+                    ax.set_ylabel(label, fontsize=10)
+            if single and i == 0:
+                ax.set_ylabel(export._LABELS[n], fontsize=10)
+            if i == len(shown) - 1:
+                fig.colorbar(im, ax=ax, shrink=0.85, location="right" if single else "bottom")
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.supxlabel(f"windows: 1st-99th percentile of '{rows[window_row][0]}'; blue: no data", fontsize=8)
+    return export._save(fig, path)
+
+
+def plot_convergence(path, histories: dict[str, tuple[np.ndarray, list]], *, reference: float | None = None,
+                     whole: bool = True, title: str = "", overwrite: bool = False) -> Path:
+    """Cost per iteration of several fits: the whole history, and the approach to the optimum.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output PNG.
+    histories : dict
+        Label -> (cost per iteration (N,), fit stage of each iteration (N,) or empty).
+    reference : float, optional
+        Optimum for the right panel (e.g. from a long run); default: the lowest cost shown there.
+    whole : bool
+        Also show the left panel (the whole history).
+    title : str
+    overwrite : bool
+
+    Returns
+    -------
+    Path
+
+    Notes
+    -----
+    Left: every iteration, stage changes dotted. Right: cost minus ``reference`` on a log scale, for
+    the iterations before the first 'reweight' stage, where every fit minimises the same cost (the
+    same data weights), so that the curves are comparable.
+    """
+    export.check_output(path, overwrite=overwrite)
+    plt = export._pyplot()
+    fig, axes = plt.subplots(1, 2 if whole else 1, figsize=(12 if whole else 7, 4.6), squeeze=False,
+                             layout="constrained")
+    ax, ax2 = (axes[0, 0], axes[0, 1]) if whole else (None, axes[0, 0])
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    same = {}
+    for (label, (cost, stages)), color in zip(histories.items(), colors):
+        cost = np.asarray(cost, dtype=np.float64)
+        stages = list(stages) if len(stages) == cost.size else [""] * cost.size
+        it = np.arange(1, cost.size + 1)
+        if whole:
+            ax.plot(it, cost, "-", color=color, lw=1.2, label=label)
+            for i in range(cost.size):
+                if i == 0 or stages[i] != stages[i - 1]:
+                    if i:
+                        ax.axvline(it[i] - 0.5, color=color, ls=":", lw=0.8)
+                    ax.annotate(stages[i], (it[i], 0.98), xycoords=("data", "axes fraction"), fontsize=7,
+                                color=color, rotation=90, va="top", xytext=(2, 0), textcoords="offset points")
+        n = stages.index("reweight") if "reweight" in stages else cost.size
+        same[label] = (it[:n], cost[:n], color)
+    shown = [c for _, c, _ in same.values() if c.size]
+    ref = reference if reference is not None else (min(c.min() for c in shown) if shown else 0.0)
+    for label, (it, cost, color) in same.items():
+        excess = cost - ref
+        ax2.plot(it, np.where(excess > 0, excess, np.nan), "-", color=color, lw=1.4, label=label)
+    if whole:
+        ax.set_yscale("log")
+        ax.set_ylabel("cost Σ w (I − Ī)²")
+        ax.set_title("whole fit (dotted: next stage)", fontsize=10)
+    ax2.set_yscale("log")
+    ax2.set_ylabel("cost − optimum")
+    ax2.set_title(f"approach to the optimum {ref:.8g}" + (" (before reweighting)" if any(
+        "reweight" in list(s) for _, s in histories.values()) else ""), fontsize=10)
+    for a in axes[0]:
+        a.set_xlabel("iteration")
+        a.grid(alpha=0.3, which="both")
+        if histories:
+            a.legend(fontsize=9)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    return export._save(fig, path)
+
+
+# --------------------------------------------------------------------------------------------------
+# The compare command
+# --------------------------------------------------------------------------------------------------
+
+
+def comparison_paths(out_dir: Path, methods) -> dict[str, Path]:
+    """Every file :func:`write_comparison` writes, by role."""
+    out = {m: out_dir / f"{m}.h5" for m in methods}
+    out.update(images=out_dir / "images.png", convergence=out_dir / "convergence.png",
+               table_md=out_dir / "table.md", table_json=out_dir / "table.json")
+    return out
+
+
+def write_comparison(out_dir: str | Path, scan: Scan, results: dict[str, Result], runtimes: dict[str, float], *,
+                     truth: dict | None = None, source: str = "", result_files: bool = True,
+                     overwrite: bool = False) -> dict[str, Path]:
+    """Write per-method results, the images and convergence pictures, and the table (markdown + JSON).
+
+    Parameters
+    ----------
+    out_dir : str or Path
+    scan : Scan
+    results, runtimes
+        As returned by :func:`run_methods`.
+    truth : dict, optional
+        See :func:`load_truth`.
+    source : str
+        Name of the scan for titles and the table.
+    result_files : bool
+        Also write each method's results file (``<method>.h5``).
+    overwrite : bool
+
+    Returns
+    -------
+    dict
+        Role -> path, as :func:`comparison_paths` (without the results files unless written).
+    """
+    out_dir = Path(out_dir)
+    paths = comparison_paths(out_dir, results if result_files else ())
+    for p in paths.values():
+        export.check_output(p, overwrite=overwrite)
+    for method, res in results.items() if result_files else ():
+        c = res.config["export"]["compression"]
+        export.write_result_h5(paths[method], res, overwrite=overwrite, compression=None if c == "none" else c)
+    rows = [(m, {k: r.image(k) for k in Result.IMAGES}) for m, r in results.items()]
+    if truth is not None:
+        rows.insert(0, ("truth", {k: truth[f"image_{k}"] for k in Result.IMAGES}))
+    # the windows of the best-corrected images (noise included), as in the reconstruct preview
+    labels = [label for label, _ in rows]
+    window_row = labels.index("ml") if "ml" in labels else len(rows) - 1
+    J, H, W = scan.shape
+    plot_images(paths["images"], rows, window_row=window_row, overwrite=overwrite,
+                title=f"{Path(source).name or 'scan'}: {J} frames of {H} x {W}")
+    hist = {m: (r.cost, r.cost_stage) for m, r in results.items() if np.size(r.cost)}
+    plot_convergence(paths["convergence"], hist, overwrite=overwrite,
+                     title="cost per iteration (the ML fit's includes its weak prior on the per-frame parameters)")
+    table = comparison_table(results, runtimes, scan=scan, truth=truth)
+    header = (f"Scan {Path(source).name or '(in memory)'}: {J} frames of {H} x {W}; measured on {machine()}.\n"
+              + ("RMSE over frames lighting at least half the active area, median gauge; parameters a method "
+                 "does not estimate count at their neutral value.\n" if truth is not None else "") + "\n")
+    export_text(paths["table_md"], header + table_markdown(table), overwrite=overwrite)
+    export_text(paths["table_json"], json.dumps({"scan": str(source), "shape": [J, H, W], "machine": machine(),
+                                                 "methods": table}, indent=2), overwrite=overwrite)
+    return paths
+
+
+def export_text(path: Path, text: str, *, overwrite: bool = False) -> Path:
+    """Write a text file (refusing to replace one unless asked, complete or not at all)."""
+    export.check_output(path, overwrite=overwrite)
+    with export._atomic(path) as tmp:
+        tmp.write_text(text)
+    return path
+
+
+# --------------------------------------------------------------------------------------------------
+# Noise power spectra
+# --------------------------------------------------------------------------------------------------
+
+
+def radial_nps(image: np.ndarray, *, mask: np.ndarray | None = None, bins: int = 32
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Binned radial noise power spectrum of an image.
+
+    The image minus its mean over ``mask`` (zero outside it), over the bounding box of ``mask``, is
+    multiplied by a separable Hann window; the periodogram |FFT|^2 / sum(window^2 mask) is averaged in
+    rings of radial frequency. White noise of variance s^2 gives s^2 at every frequency.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W)
+    mask : ndarray of bool, shape (H, W), optional
+        Pixels that count (default: the finite ones).
+    bins : int
+        Rings of equal width from 0 to 0.5 cycles/pixel.
+
+    Returns
+    -------
+    frequency : ndarray, shape (bins,)
+        Ring centres (cycles/pixel).
+    nps : ndarray, shape (bins,)
+        Mean power in each ring (image units^2 pixel^2); NaN for rings without a frequency sample.
+    """
+    image = np.asarray(image, dtype=np.float64)
+    mask = np.isfinite(image) if mask is None else (np.asarray(mask, bool) & np.isfinite(image))
+    if not mask.any():
+        raise ValueError("no pixel to take a noise power spectrum of")
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    m = mask[box]
+    d = np.where(m, image[box] - image[mask].mean(), 0.0)
+    win = np.outer(np.hanning(d.shape[0] + 2)[1:-1], np.hanning(d.shape[1] + 2)[1:-1])
+    power = np.abs(np.fft.fft2(d * win)) ** 2 / np.sum(win ** 2 * m)
+    fr = np.hypot(*np.meshgrid(np.fft.fftfreq(d.shape[0]), np.fft.fftfreq(d.shape[1]), indexing="ij"))
+    edges = np.linspace(0.0, 0.5, bins + 1)
+    sel = (fr > 0) & (fr <= 0.5)
+    which = np.clip(np.digitize(fr[sel], edges) - 1, 0, bins - 1)
+    n = np.bincount(which, minlength=bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        nps = np.bincount(which, weights=power[sel], minlength=bins) / n
+    return 0.5 * (edges[1:] + edges[:-1]), np.where(n > 0, nps, np.nan)
+
+
+def fringe_frequency(phase: np.ndarray) -> float:
+    """Spatial frequency of the moiré fringes along the scan direction.
+
+    Parameters
+    ----------
+    phase : ndarray, shape (A, W)
+        Flat-field phase (rad, may be wrapped) of the active area, rows along the scan direction.
+
+    Returns
+    -------
+    float
+        median |d phi^f / du| / 2 pi over the map (cycles per detector row).
+    """
+    grad = np.diff(np.unwrap(np.asarray(phase, dtype=np.float64), axis=0), axis=0)
+    return float(np.median(np.abs(grad)) / (2 * np.pi))
+
+
+def nps_study(scans, cfg: dict, *, methods=NPS_METHODS, method_sets: dict | None = None, bins: int = 32,
+              command_line: str = "") -> dict:
+    """Noise power spectra of the dark-field images of blank scans, per method.
+
+    Parameters
+    ----------
+    scans : sequence of Scan or path
+        Scans without a sample; paths are read one at a time.
+    cfg : dict
+        Resolved configuration shared by all methods.
+    methods : sequence of str
+    method_sets : dict, optional
+        Method -> further ``section.key=value`` overrides for that method only.
+    bins : int
+        Radial bins (see :func:`radial_nps`).
+    command_line : str
+
+    Returns
+    -------
+    dict
+        'frequency' (bins,) cycles/pixel; 'nps' method -> (n_scans, bins) (dark-field units^2 pixel^2);
+        'mean', 'std' method -> (bins,); 'fringe_frequency' (cycles/pixel, median over scans);
+        'scans' (names); 'runtime_s' method -> total seconds.
+    """
+    cfg = C.merge(cfg, {"retrieve": {"uncorrected": False}})
+    spectra = {m: [] for m in methods}
+    runtime = {m: 0.0 for m in methods}
+    fringes, names, freq = [], [], None
+    for item in scans:
+        scan = item if isinstance(item, Scan) else read_scan(item)
+        names.append(str(item) if not isinstance(item, Scan) else f"scan {len(names)}")
+        fringes.append(fringe_frequency(resolve_reference(scan).phase))
+        results, runtimes = run_methods(scan, cfg, methods=methods, method_sets=method_sets,
+                                        command_line=command_line)
+        for m, res in results.items():
+            freq, p = radial_nps(res.dark_field, bins=bins)
+            spectra[m].append(p)
+            runtime[m] += runtimes[m]
+    nps = {m: np.array(v) for m, v in spectra.items()}
+    return {"frequency": freq, "nps": nps, "mean": {m: v.mean(axis=0) for m, v in nps.items()},
+            "std": {m: v.std(axis=0, ddof=1) if v.shape[0] > 1 else np.zeros(v.shape[1]) for m, v in nps.items()},
+            "fringe_frequency": float(np.median(fringes)), "scans": names, "runtime_s": runtime}
+
+
+def nps_paths(out_dir: Path) -> dict[str, Path]:
+    """Every file :func:`write_nps` writes, by role."""
+    return {"png": out_dir / "nps.png", "csv": out_dir / "nps.csv", "json": out_dir / "nps.json"}
+
+
+def write_nps(out_dir: str | Path, study: dict, *, title: str = "", overwrite: bool = False) -> dict[str, Path]:
+    """Picture (mean ± std per method, fringe frequency and first harmonic marked), CSV and JSON of a study.
+
+    Returns
+    -------
+    dict
+        Role -> path, as :func:`nps_paths`.
+    """
+    paths = nps_paths(Path(out_dir))
+    for p in paths.values():
+        export.check_output(p, overwrite=overwrite)
+    f, ff = study["frequency"], study["fringe_frequency"]
+    plt = export._pyplot()
+    fig, ax = plt.subplots(figsize=(7.5, 4.6), layout="constrained")
+    for m in study["mean"]:
+        ax.errorbar(f, study["mean"][m], yerr=study["std"][m], fmt=".-", ms=4, lw=1.1, capsize=2, label=m)
+    for k, label in ((1, "fringe frequency"), (2, "first harmonic")):
+        ax.axvline(k * ff, color="0.4", ls="--" if k == 1 else ":", lw=1)
+        ax.annotate(f"{label}\n{k * ff:.3f} /px", (k * ff, 1), xycoords=("data", "axes fraction"), fontsize=8,
+                    xytext=(3, -22), textcoords="offset points", color="0.3")
+    ax.set_yscale("log")
+    ax.set_xlim(0, 0.5)
+    ax.set_xlabel("radial spatial frequency (cycles/pixel)")
+    ax.set_ylabel("NPS of the dark-field image (pixel²)")
+    n = len(study["scans"])
+    ax.set_title(title or f"binned radial NPS of blank-scan dark-field images, {n} scan{'s' * (n > 1)}"
+                 + (" (mean ± std)" if n > 1 else ""), fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=9, title="method")
+    export._save(fig, paths["png"])
+    head = ["frequency_cycles_per_pixel"] + [f"{m}_{s}" for m in study["mean"] for s in ("mean", "std")]
+    cols = [f] + [study[s][m] for m in study["mean"] for s in ("mean", "std")]
+    lines = [",".join(head)] + [",".join(f"{v:.6g}" for v in row) for row in zip(*cols)]
+    export_text(paths["csv"], "\n".join(lines) + "\n", overwrite=overwrite)
+    doc = {"scans": study["scans"], "fringe_frequency": ff, "first_harmonic": 2 * ff, "machine": machine(),
+           "runtime_s": study["runtime_s"], "frequency": f.tolist(),
+           "mean": {m: v.tolist() for m, v in study["mean"].items()},
+           "std": {m: v.tolist() for m, v in study["std"].items()},
+           "power_near_fringe": fringe_power(study)}
+    export_text(paths["json"], json.dumps(doc, indent=2), overwrite=overwrite)
+    return paths
+
+
+def fringe_power(study: dict) -> dict[str, dict[str, float]]:
+    """Power left at the fringe frequency and its first harmonic, per method.
+
+    Parameters
+    ----------
+    study : dict
+        As returned by :func:`nps_study`.
+
+    Returns
+    -------
+    dict
+        Method -> {'fringe', 'harmonic': mean NPS of the rings holding f and 2 f; 'other': median of
+        the rings more than 1.5 ring widths from both} (pixel^2).
+    """
+    f, ff = study["frequency"], study["fringe_frequency"]
+    step = f[1] - f[0]
+    at = [int(np.argmin(np.abs(f - k * ff))) for k in (1, 2)]
+    far = (np.abs(f - ff) > 1.5 * step) & (np.abs(f - 2 * ff) > 1.5 * step)
+    return {m: {"fringe": float(v[at[0]]), "harmonic": float(v[at[1]]), "other": float(np.nanmedian(v[far]))}
+            for m, v in study["mean"].items()}
