@@ -146,7 +146,7 @@ def simulate(config_file, output, sets, truth, overwrite):
     """Simulate a scan (the paper's simulation study by default) and write it with its truth."""
     from . import export
     from . import simulate as S
-    from .io import write_scan
+    from .io import atomic_path, write_scan
 
     cfg = C.load([config_file] if config_file else [], sets, schema=S.SCHEMA)
     out = Path(output)
@@ -155,7 +155,8 @@ def simulate(config_file, output, sets, truth, overwrite):
         export.check_output(p, overwrite=overwrite)
     scan, true = S.simulate(cfg)
     write_scan(out, scan)
-    np.savez_compressed(truth_path, **true)
+    with atomic_path(truth_path) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **true)
     click.echo(f"{out}: {scan.shape[0]} frames of {scan.shape[1]} x {scan.shape[2]}; truth in {truth_path}")
 
 

@@ -10,7 +10,7 @@ from . import config as C
 from . import export, pipeline
 from . import simulate as S
 from .evaluate import frames_lighting, image_rmse, vibration_rmse
-from .io import write_scan
+from .io import atomic_path, write_scan
 
 log = logging.getLogger("dfxcorr")
 
@@ -35,7 +35,8 @@ def run_demo(out_dir: Path, *, overwrite: bool = False, command_line: str = "dfx
     log.info("simulating the paper's study at 2.5 mm pixels")
     scan, truth = S.simulate(sim_cfg)
     write_scan(paths["scan"], scan)
-    np.savez_compressed(paths["truth"], **truth)
+    with atomic_path(paths["truth"]) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **truth)
     cfg = C.defaults()
     result = pipeline.reconstruct(paths["scan"], cfg, command_line=command_line)
     export.write_result_h5(paths["result"], result, overwrite=overwrite)
@@ -59,5 +60,6 @@ def run_demo(out_dir: Path, *, overwrite: bool = False, command_line: str = "dfx
     lines += ["", f"Files: {paths['scan'].name}, {paths['truth'].name}, {paths['result'].name}, "
               f"{preview.name}, {fitplot.name}, tiff/ ({len(tiffs)} files)."]
     text = "\n".join(lines) + "\n"
-    paths["summary"].write_text(text)
+    with atomic_path(paths["summary"]) as tmp:
+        tmp.write_text(text)
     return text

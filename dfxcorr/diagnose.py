@@ -33,7 +33,7 @@ from . import identify
 from . import model as M
 from .align import build_observations, resolve_reference, subsample_columns
 from .fit import fit_vibrations
-from .io import Scan, read_scan
+from .io import Scan, atomic_path, read_scan
 from .mask import motion_score
 from .pipeline import resolve_effects, stage, visibility_unidentifiable
 from .retrieve import retrieve
@@ -501,13 +501,17 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
     paths = {k: out_dir / k for k in ("diagnosis.json", "report.md", "residuals.png")}
     for p in paths.values():
         check_output(p, overwrite=overwrite)
-    paths["diagnosis.json"].write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
-    _plot(diag, paths["residuals.png"])
+    with atomic_path(paths["diagnosis.json"]) as tmp:
+        tmp.write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
+    with atomic_path(paths["residuals.png"]) as tmp:
+        _plot(diag, tmp)
     written = list(paths.values())
     if diag.motion_mask.any():
-        tifffile.imwrite(out_dir / "motion_mask.tif", diag.motion_mask.astype(np.uint8))
+        with atomic_path(out_dir / "motion_mask.tif") as tmp:
+            tifffile.imwrite(tmp, diag.motion_mask.astype(np.uint8))
         written.append(out_dir / "motion_mask.tif")
-    paths["report.md"].write_text(_markdown(diag))
+    with atomic_path(paths["report.md"]) as tmp:
+        tmp.write_text(_markdown(diag))
     return written
 
 
@@ -564,5 +568,5 @@ def _plot(diag: Diagnosis, path: Path) -> None:
         ax.set_xlabel(label)
         ax.set_ylabel("mean squared standardized residual")
         ax.legend(fontsize=8)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, format="png")
     plt.close(fig)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -258,6 +259,23 @@ def _check_counts(name: str, data: np.ndarray) -> None:
             raise ScanFormatError(f"/{name} frame {j} holds negative counts")
 
 
+@contextmanager
+def atomic_path(path: str | os.PathLike):
+    """Yield a temporary path beside ``path``; rename it to ``path`` on success, remove it on failure.
+
+    Readers never see a half-written file, and a failed run leaves nothing behind.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.part")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, np.ndarray] | None = None,
                compression: str | None = "gzip") -> None:
     """Write a scan file atomically (to a temporary name, renamed when complete).
@@ -273,49 +291,42 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, np.ndarr
     compression : str or None
         HDF5 filter for the frames.
     """
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.part")
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["format"] = FORMAT
-            f.attrs["format_version"] = FORMAT_VERSION
-            entry = f.create_group("entry")
-            entry.attrs["NX_class"] = "NXentry"
-            inst = entry.create_group("instrument")
-            inst.attrs["NX_class"] = "NXinstrument"
-            det = inst.create_group("detector")
-            det.attrs["NX_class"] = "NXdetector"
-            J, H, W = scan.data.shape
-            det.create_dataset("data", data=scan.data, compression=compression, chunks=(1, H, W))
-            if np.any(scan.dark != 0):
-                det.create_dataset("dark", data=scan.dark)
-            det.create_dataset("gain", data=float(scan.gain))
-            if scan.pixel_size is not None:
-                det.create_dataset("y_pixel_size", data=scan.pixel_size[0]).attrs["units"] = "m"
-                det.create_dataset("x_pixel_size", data=scan.pixel_size[1]).attrs["units"] = "m"
-            sc = entry.create_group("scan")
-            sc.create_dataset("position", data=np.asarray(scan.position, float)).attrs["units"] = "pixel"
-            if np.any(scan.phase_step != 0):
-                sc.create_dataset("phase_step", data=np.asarray(scan.phase_step, float)).attrs["units"] = "rad"
-            if scan.exposure_time is not None:
-                sc.create_dataset("exposure_time", data=scan.exposure_time).attrs["units"] = "s"
-            ref = entry.create_group("reference")
-            if isinstance(scan.reference, SteppingReference):
-                st = ref.create_group("stepping")
-                st.create_dataset("data", data=scan.reference.data, compression=compression)
-                st.create_dataset("phase_step", data=scan.reference.phase_step).attrs["units"] = "rad"
-                if scan.reference.dark is not None:
-                    st.create_dataset("dark", data=scan.reference.dark)
-            else:
-                ref.create_dataset("transmission", data=scan.reference.transmission)
-                ref.create_dataset("visibility", data=scan.reference.visibility)
-                ref.create_dataset("phase", data=scan.reference.phase).attrs["units"] = "rad"
-            for key, value in (extra or {}).items():
-                f.create_dataset(key, data=value)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["format"] = FORMAT
+        f.attrs["format_version"] = FORMAT_VERSION
+        entry = f.create_group("entry")
+        entry.attrs["NX_class"] = "NXentry"
+        inst = entry.create_group("instrument")
+        inst.attrs["NX_class"] = "NXinstrument"
+        det = inst.create_group("detector")
+        det.attrs["NX_class"] = "NXdetector"
+        J, H, W = scan.data.shape
+        det.create_dataset("data", data=scan.data, compression=compression, chunks=(1, H, W))
+        if np.any(scan.dark != 0):
+            det.create_dataset("dark", data=scan.dark)
+        det.create_dataset("gain", data=float(scan.gain))
+        if scan.pixel_size is not None:
+            det.create_dataset("y_pixel_size", data=scan.pixel_size[0]).attrs["units"] = "m"
+            det.create_dataset("x_pixel_size", data=scan.pixel_size[1]).attrs["units"] = "m"
+        sc = entry.create_group("scan")
+        sc.create_dataset("position", data=np.asarray(scan.position, float)).attrs["units"] = "pixel"
+        if np.any(scan.phase_step != 0):
+            sc.create_dataset("phase_step", data=np.asarray(scan.phase_step, float)).attrs["units"] = "rad"
+        if scan.exposure_time is not None:
+            sc.create_dataset("exposure_time", data=scan.exposure_time).attrs["units"] = "s"
+        ref = entry.create_group("reference")
+        if isinstance(scan.reference, SteppingReference):
+            st = ref.create_group("stepping")
+            st.create_dataset("data", data=scan.reference.data, compression=compression)
+            st.create_dataset("phase_step", data=scan.reference.phase_step).attrs["units"] = "rad"
+            if scan.reference.dark is not None:
+                st.create_dataset("dark", data=scan.reference.dark)
+        else:
+            ref.create_dataset("transmission", data=scan.reference.transmission)
+            ref.create_dataset("visibility", data=scan.reference.visibility)
+            ref.create_dataset("phase", data=scan.reference.phase).attrs["units"] = "rad"
+        for key, value in (extra or {}).items():
+            f.create_dataset(key, data=value)
 
 
 def illumination_count(position: np.ndarray, active_rows: int, height: int) -> np.ndarray:
