@@ -277,34 +277,41 @@ def motion_test(obs: M.Observations, params: dict, *, p_pixel: float = 1e-6, min
 
 
 def noise_model(obs: M.Observations, ibar: np.ndarray, images: M.Images, dsg: M.Design,
-                weights: np.ndarray) -> tuple[float, float]:
+                weights: np.ndarray) -> dict:
     """Gain and electronic variance from the residuals: E[r^2 / (1 - h)] = g (Ibar - dark) + sigma_e^2.
 
-    Weighted least squares with weights 1 / variance^2 (the variance of a squared Gaussian residual).
+    Squared residuals are divided by 1 - h (h the leverage of the sample in its pixel's image fit):
+    fitting the images removes that share of each sample's variance. Weighted least squares with
+    weights 1 / variance^2 (the variance of a squared Gaussian residual).
+
+    Returns
+    -------
+    dict
+        'gain', 'electronic', and the per-sample 'r2' (leverage-corrected), 'mean' (Ibar - dark) and
+        current 'variance' of the used samples.
     """
     h = M.leverage(obs, dsg, images, weights)
     sel = obs.use & (h < 0.99)
     r2 = ((obs.counts - ibar) ** 2 / (1 - h))[sel]
     mu = np.maximum(ibar - obs.dark, 1e-3)[sel]
-    w = 1.0 / M.variance(obs, ibar)[sel] ** 2
+    v0 = M.variance(obs, ibar)[sel]
+    w = 1.0 / v0 ** 2
     A = np.stack([mu, np.ones_like(mu)], axis=1) * np.sqrt(w)[:, None]
     (g, e), *_ = np.linalg.lstsq(A, r2 * np.sqrt(w), rcond=None)
     if e < 0:
         g, e = float(np.sum(w * mu * r2) / np.sum(w * mu * mu)), 0.0
-    return float(g), float(e)
+    return {"gain": float(g), "electronic": float(e), "r2": r2, "mean": mu, "variance": v0}
 
 
 def gain_test(obs: M.Observations, ibar: np.ndarray, images, dsg, weights) -> dict:
     """Likelihood-ratio test of the estimated noise model against the current one (Gaussian, 2 dof)."""
-    g, e = noise_model(obs, ibar, images, dsg, weights)
-    sel = obs.use
-    r2 = ((obs.counts - ibar) ** 2)[sel]
-    v0 = M.variance(obs, ibar)[sel]
-    v1 = (g * np.maximum(ibar - obs.dark, 1e-3) + e)[sel]
-    stat = float(np.sum(np.log(v0 / v1) + r2 / v0 - r2 / v1))
-    stat = max(stat, 0.0)
+    fit = noise_model(obs, ibar, images, dsg, weights)
+    r2, v0 = fit["r2"], fit["variance"]
+    v1 = fit["gain"] * fit["mean"] + fit["electronic"]
+    stat = max(float(np.sum(np.log(v0 / v1) + r2 / v0 - r2 / v1)), 0.0)
     return {"statistic": stat, "dof": 2, "p_value": float(stats.chi2.sf(stat, 2)),
-            "log_p": float(stats.chi2.logsf(stat, 2)), "gain": g, "electronic": e, "identifiable": True, "excess": 0}
+            "log_p": float(stats.chi2.logsf(stat, 2)), "gain": fit["gain"], "electronic": fit["electronic"],
+            "identifiable": True, "excess": 0}
 
 
 # --------------------------------------------------------------------------------------------------
