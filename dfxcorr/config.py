@@ -59,8 +59,10 @@ _NUM = (int, float)
 
 SCHEMA: dict[str, dict[str, Option]] = {
     "load": {
-        "gain": Option(None, "detector units per photon; null takes /entry/instrument/detector/gain of the file",
-                       _NUM, check=_positive, nullable=True),
+        "gain": Option(None, "detector units per photon; null takes /entry/instrument/detector/gain of the file "
+                             "(dfxcorr diagnose estimates it as detector_gain)", _NUM, check=_positive, nullable=True),
+        "electronic": Option(0.0, "electronic noise variance per sample (counts^2), added to gain * mean in the "
+                                  "noise weights (dfxcorr diagnose estimates it)", _NUM, check=_nonneg),
     },
     "align": {
         "min_frames": Option(3, "detector rows lit in fewer frames are left out (at least the per-pixel unknowns)",

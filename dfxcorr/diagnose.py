@@ -390,6 +390,7 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
         reference = resolve_reference(scan)
         obs = build_observations(scan, reference, min_frames=cfg["align"]["min_frames"],
                                  gain=cfg["load"]["gain"] or scan.gain)
+        obs.electronic = cfg["load"]["electronic"]
         # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit
         fit_obs = obs.subset(subsample_columns(scan.shape[2], d["subsample"]))
         model = list(resolve_effects(cfg, scan, reference, fit_obs)) if base == "configured" else []
@@ -543,7 +544,22 @@ def _markdown(diag: Diagnosis) -> str:
               "effects (paper Sec. II-F), so it is never reported as detected.", ""]
     if diag.motion_mask.any():
         lines += [f"The pixels taken as moving are in motion_mask.tif ({int(diag.motion_mask.sum())} pixels).", ""]
+    sets = reconstruct_settings(diag)
+    lines += ["To reconstruct with the final model:", "",
+              f"    dfxcorr reconstruct {diag.scan} -o result.h5" + "".join(f" --set {s}" for s in sets), ""]
     return "\n".join(lines)
+
+
+def reconstruct_settings(diag: Diagnosis) -> list[str]:
+    """The ``--set`` options that make ``reconstruct`` use the diagnosis's final model."""
+    keys = {e: k for k, e in C.VIBRATION_EFFECTS.items()}
+    sets = [f"vibration.{keys[n]}=true" for n in diag.final_model if n in keys and n not in diag.base_model]
+    sets += [f"vibration.{keys[n]}=false" for n in M.PAPER_MODEL if n not in diag.final_model]
+    if "sample_motion" in diag.final_model:
+        sets.append("mask.enabled=true")
+    if "detector_gain" in diag.final_model:
+        sets += [f"load.gain={diag.gain:.4g}", f"load.electronic={diag.electronic:.4g}"]
+    return sets
 
 
 def _plot(diag: Diagnosis, path: Path) -> None:

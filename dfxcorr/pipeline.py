@@ -175,6 +175,7 @@ def reconstruct(scan: Scan | str | Path, cfg: dict | None = None, *, command_lin
         reference = resolve_reference(scan, effects=step_effects,
                                       optional=("dose",) if cfg["reference"]["dose"] == "auto" else ())
         obs = build_observations(scan, reference, min_frames=cfg["align"]["min_frames"], gain=gain)
+        obs.electronic = cfg["load"]["electronic"]
         vmin = cfg["align"]["min_visibility"]
         vmin = auto_visibility_threshold(reference.visibility) if vmin == "auto" else vmin
         # samples without fringe carry transmission only (v^f = 0 there): no images (NaN), but in the fit

@@ -78,7 +78,8 @@ def test_report_files_follow_the_contract(tmp_path):
     assert stats_ == sorted(stats_, reverse=True)
     assert doc["final_model"][-1] == "dose"
     assert (tmp_path / "residuals.png").read_bytes()[:4] == b"\x89PNG" and len(written) == 3
-    assert "Criterion" in (tmp_path / "report.md").read_text()
+    report = (tmp_path / "report.md").read_text()
+    assert "Criterion" in report and "--set vibration.dose=true" in report
 
 
 @pytest.mark.shared
