@@ -218,14 +218,13 @@ def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=("phase_
     # unmodulated pixels (outside the gratings) have transmission as their only unknown: dose monitors
     fit_obs.vf = np.where(roi.use[:, fit_obs.columns], fit_obs.vf, 0.0)
     chosen: list[str] = []
-    for name in effects if S > 3 else ():
-        verdict = identify.check(fit_obs, {}, initial_weights(fit_obs, {}), chosen, [name])[0]
+    for verdict in identify.select(fit_obs, initial_weights(fit_obs, {}), effects if S > 3 else ()):
         if verdict.identifiable:
-            chosen.append(name)
+            chosen.append(verdict.name)
             continue
-        why = (f"per-step {name} is not identifiable in this reference series ({verdict.excess} direction(s) "
-               f"without information: every pixel is modulated, so it trades off against the maps)")
-        if name not in optional:
+        why = (f"per-step {verdict.name} is not identifiable in this reference series ({verdict.excess} "
+               f"direction(s) without information: every pixel is modulated, so it trades off against the maps)")
+        if verdict.name not in optional:
             raise AlignmentError(why)
         log.info("%s; not fitted", why)
     if chosen:

@@ -162,30 +162,6 @@ def _binned(value, z2, edges):
 # --------------------------------------------------------------------------------------------------
 
 
-def _pinv_rank(a: np.ndarray, reference: np.ndarray | None = None, tol: float = 1e-9) -> tuple[np.ndarray, int]:
-    """Pseudo-inverse and rank of a symmetric positive semi-definite matrix, scaled to unit diagonal first.
-
-    The tolerance is relative to the largest eigenvalue. A component whose diagonal entry is below
-    ``tol`` times its ``reference`` (its information before profiling; default the largest diagonal
-    entry) counts as empty: what is left of it is rounding.
-    """
-    if a.size == 0:
-        return a, 0
-    d = np.diag(a)
-    ref = np.full_like(d, max(np.abs(d).max(), 1e-300)) if reference is None else reference
-    live = d > tol * ref
-    out = np.zeros_like(a)
-    if not np.any(live):
-        return out, 0
-    s = np.sqrt(d[live])
-    b = a[np.ix_(live, live)] / np.outer(s, s)
-    w, v = np.linalg.eigh(b)
-    keep = w > tol * w.max()
-    inv = (v[:, keep] / w[keep]) @ v[:, keep].T
-    out[np.ix_(live, live)] = inv / np.outer(s, s)
-    return out, int(keep.sum())
-
-
 def score_tests(obs: M.Observations, params: dict, weights: np.ndarray, model, candidates, *,
                 dispersion: float) -> dict[str, dict]:
     """Efficient-score tests of mean effects at the current fit.
@@ -215,33 +191,22 @@ def score_tests(obs: M.Observations, params: dict, weights: np.ndarray, model, c
     dsg = M.design(obs, full)
     images = M.solve_images(obs, dsg, weights, keep_inverse=True)
     resid = obs.counts - M.expected(obs, dsg, images)
-    info, index = M.fisher_matrix(obs, dsg, images, weights, names)
-    plain = np.diag(M.fisher_matrix(obs, dsg, images, weights, names, profiled=False)[0])
+    inf = identify.information(obs, dsg, images, weights, names)
     grad = M.gradient(obs, dsg, images, weights, resid, names)
-    U = np.array([grad[n][(j, m) if j >= 0 else m] for n, j, m in index]) * -0.5
-    used = np.bincount(obs.frame, weights=obs.use.sum(axis=1), minlength=obs.n_frames) > 0
-    live = np.array([j < 0 or used[j] for _, j, _ in index])
-    owner = np.array([n for n, _, _ in index])
-    frame_of = np.array([j for _, j, _ in index])
-    base = live & np.isin(owner, list(model))
-    base_inv, _ = _pinv_rank(info[np.ix_(base, base)])
+    U = -0.5 * np.array([grad[n][(j, m) if j >= 0 else m] for n, j, m in zip(inf.owner, inf.frame, inf.component)])
     out = {}
     for name in candidates:
-        sel = live & (owner == name)
-        cross = info[np.ix_(sel, base)]
-        eff_info = info[np.ix_(sel, sel)] - cross @ base_inv @ cross.T
-        eff_score = U[sel] - cross @ base_inv @ U[base]
-        inv, dof = _pinv_rank(eff_info, plain[sel])
-        # for a positive semi-definite matrix the null space of [base, candidate] is that of the base plus
-        # that of the candidate's Schur complement: what the candidate adds beyond its gauge is not seen
-        excess = int(sel.sum()) - dof - identify.GAUGE_DIMENSIONS.get(name, 0)
+        cond = identify.conditional(inf, name, model)
+        sel, inv, dof = cond.sel, cond.inverse, cond.dof
+        # the efficient score: the candidate's score with what the model's own parameters explain taken out
+        eff_score = U[sel] - cond.projector @ U[cond.base]
         stat = float(eff_score @ inv @ eff_score) / dispersion
         contrib = eff_score * (inv @ eff_score) / dispersion
-        frames = np.bincount(frame_of[sel][frame_of[sel] >= 0], weights=contrib[frame_of[sel] >= 0],
-                             minlength=obs.n_frames)
+        fr = inf.frame[sel]
+        frames = np.bincount(fr[fr >= 0], weights=contrib[fr >= 0], minlength=obs.n_frames)
         out[name] = {"statistic": stat, "dof": dof, "p_value": float(stats.chi2.sf(stat, dof)) if dof else 1.0,
                      "log_p": float(stats.chi2.logsf(stat, dof)) if dof else 0.0, "explains": stat * dispersion,
-                     "identifiable": excess <= 0 and dof > 0, "excess": max(excess, 0), "frames": frames}
+                     "identifiable": cond.verdict.identifiable, "excess": cond.verdict.excess, "frames": frames}
     return out
 
 

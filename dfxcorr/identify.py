@@ -11,7 +11,7 @@ does not vary (absorbed by the transmission image).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -40,54 +40,124 @@ class Identifiability:
     excess: int
 
 
-def null_dimension(info: np.ndarray, *, tol: float = 1e-9) -> int:
-    """Number of directions without information: eigenvalues of the unit-diagonal matrix below ``tol``.
+@dataclass
+class Information:
+    """Profiled Fisher information of a set of effects, arranged to condition one effect on others.
 
-    Components with zero information on their own count once each.
-    """
-    d = np.diag(info)
-    scale = np.abs(d).max() if d.size else 0.0
-    live = d > 1e-12 * scale
-    if not np.any(live):
-        return int(d.size)
-    s = np.sqrt(d[live])
-    ev = np.linalg.eigvalsh(info[np.ix_(live, live)] / np.outer(s, s))
-    return int((~live).sum() + (ev < tol).sum())
-
-
-def _information(obs: M.Observations, params: dict, weights: np.ndarray, names) -> np.ndarray:
-    dsg = M.design(obs, params)
-    images = M.solve_images(obs, dsg, weights, keep_inverse=True)
-    info, index = M.fisher_matrix(obs, dsg, images, weights, names)
-    used = np.bincount(obs.frame, weights=obs.use.sum(axis=1), minlength=obs.n_frames) > 0
-    keep = np.array([j < 0 or used[j] for _, j, _ in index], dtype=bool)  # frames without data say nothing
-    return info[np.ix_(keep, keep)]
-
-
-def check(obs: M.Observations, params: dict, weights: np.ndarray, base, candidates) -> list[Identifiability]:
-    """Identifiability of each candidate effect added on its own to the base model.
-
-    Parameters
+    Attributes
     ----------
-    obs : Observations
-    params : dict
-        Current parameters of at least the base and candidate effects (others at their neutral value).
-    weights : ndarray, shape (K, C)
-    base : sequence of str
-        Effects already in the model.
-    candidates : sequence of str
-        Mean effects to judge (noise or mask effects are not judged here).
-
-    Returns
-    -------
-    list of Identifiability
+    matrix : ndarray, shape (P, P)
+        :func:`dfxcorr.model.fisher_matrix` with the images profiled out.
+    plain : ndarray, shape (P,)
+        Its diagonal at known images: what each component would carry on its own.
+    owner : ndarray of str, shape (P,)
+        Effect of each entry.
+    frame : ndarray of int, shape (P,)
+        Frame of each entry (-1 for global effects).
+    component : ndarray of int, shape (P,)
+        Parameter component of each entry.
+    live : ndarray of bool, shape (P,)
+        False for entries of frames without usable samples (they say nothing).
     """
-    base = [n for n in base if M.effect(n).channel is not None]
-    full = {**M.neutral_params(list(base) + list(candidates), obs.n_frames), **params}
-    n_base = null_dimension(_information(obs, full, weights, base)) if base else 0
-    out = []
-    for name in candidates:
-        names = base + [name]
-        excess = null_dimension(_information(obs, full, weights, names)) - n_base - GAUGE_DIMENSIONS.get(name, 0)
-        out.append(Identifiability(name, excess <= 0, max(excess, 0)))
+
+    matrix: np.ndarray
+    plain: np.ndarray
+    owner: np.ndarray
+    frame: np.ndarray
+    component: np.ndarray
+    live: np.ndarray
+    _inverses: dict = field(default_factory=dict, repr=False)
+
+    def mask(self, names) -> np.ndarray:
+        return self.live & np.isin(self.owner, list(names))
+
+    def base_inverse(self, base) -> np.ndarray:
+        """Pseudo-inverse of the information of the ``base`` effects (cached: every candidate needs it)."""
+        key = tuple(base)
+        if key not in self._inverses:
+            m = self.mask(base)
+            self._inverses[key] = pinv_rank(self.matrix[np.ix_(m, m)])[0]
+        return self._inverses[key]
+
+
+def information(obs: M.Observations, dsg: M.Design, images: M.Images, weights: np.ndarray, names) -> Information:
+    """Fisher information of ``names`` at the given design and images (``images.inverse`` needed)."""
+    info, index = M.fisher_matrix(obs, dsg, images, weights, names)
+    plain = np.diag(M.fisher_matrix(obs, dsg, images, weights, names, profiled=False)[0])
+    used = np.bincount(obs.frame, weights=obs.use.sum(axis=1), minlength=obs.n_frames) > 0
+    return Information(matrix=info, plain=plain, owner=np.array([n for n, _, _ in index]),
+                       frame=np.array([j for _, j, _ in index]), component=np.array([m for _, _, m in index]),
+                       live=np.array([j < 0 or used[j] for _, j, _ in index], dtype=bool))
+
+
+def pinv_rank(a: np.ndarray, reference: np.ndarray | None = None, tol: float = 1e-9) -> tuple[np.ndarray, int]:
+    """Pseudo-inverse and rank of a symmetric positive semi-definite matrix, scaled to unit diagonal first.
+
+    The tolerance is relative to the largest eigenvalue. A component whose diagonal entry is below
+    ``tol`` times its ``reference`` (its information before profiling; default the largest diagonal
+    entry) counts as empty: what is left of it is rounding.
+    """
+    if a.size == 0:
+        return a, 0
+    d = np.diag(a)
+    ref = np.full_like(d, max(np.abs(d).max(), 1e-300)) if reference is None else reference
+    live = d > tol * ref
+    out = np.zeros_like(a)
+    if not np.any(live):
+        return out, 0
+    s = np.sqrt(d[live])
+    w, v = np.linalg.eigh(a[np.ix_(live, live)] / np.outer(s, s))
+    keep = w > tol * w.max()
+    out[np.ix_(live, live)] = ((v[:, keep] / w[keep]) @ v[:, keep].T) / np.outer(s, s)
+    return out, int(keep.sum())
+
+
+@dataclass
+class Conditional:
+    """One effect's information given the others (Schur complement) and what it needs for a score test."""
+
+    sel: np.ndarray
+    base: np.ndarray
+    projector: np.ndarray
+    inverse: np.ndarray
+    dof: int
+    verdict: Identifiability
+
+
+def conditional(inf: Information, name: str, base) -> Conditional:
+    """The information of ``name``'s parameters once those of ``base`` are estimated too.
+
+    For a positive semi-definite matrix the null space of [base, candidate] is that of the base plus
+    that of the candidate's Schur complement, so what the candidate adds beyond its gauge and carries
+    no information shows as a rank deficit of the Schur complement.
+    """
+    sel, bmask = inf.mask([name]), inf.mask(base)
+    projector = inf.matrix[np.ix_(sel, bmask)] @ inf.base_inverse(base)
+    schur = inf.matrix[np.ix_(sel, sel)] - projector @ inf.matrix[np.ix_(bmask, sel)]
+    inverse, dof = pinv_rank(schur, inf.plain[sel])
+    excess = int(sel.sum()) - dof - GAUGE_DIMENSIONS.get(name, 0)
+    return Conditional(sel, bmask, projector, inverse, dof, Identifiability(name, excess <= 0 and dof > 0,
+                                                                          max(excess, 0)))
+
+
+def select(obs: M.Observations, weights: np.ndarray, names, *, max_columns: int = 64) -> list[Identifiability]:
+    """Judge effects in turn, each given the identifiable ones before it, at their neutral values.
+
+    Identifiability is structural, so at most ``max_columns`` evenly spread columns are used.
+    """
+    names = [n for n in names if M.effect(n).channel is not None]
+    if not names:
+        return []
+    if obs.columns.size > max_columns:
+        keep = np.unique(np.linspace(0, obs.columns.size - 1, max_columns).astype(int))
+        obs, weights = obs.subset(keep), weights[:, keep]
+    params = M.neutral_params(names, obs.n_frames)
+    dsg = M.design(obs, params)
+    inf = information(obs, dsg, M.solve_images(obs, dsg, weights, keep_inverse=True), weights, names)
+    chosen, out = [], []
+    for name in names:
+        verdict = conditional(inf, name, chosen).verdict
+        out.append(verdict)
+        if verdict.identifiable:
+            chosen.append(name)
     return out

@@ -107,22 +107,22 @@ def resolve_effects(cfg: dict, scan: Scan, reference, fit_obs: M.Observations) -
                                        + (" (or auto)" if name == "visibility_loss" else ""))
         log.info("%s is not fitted: %s", name, why)
 
-    chosen: list[str] = []
     paper_why = visibility_unidentifiable(scan, reference)
-    weights = None
+    names = []
     for name in C.effects_of(cfg):
         if paper_why and name in ("visibility_loss", "visibility_tilt"):
             refuse_or_drop(name, paper_why)
-            continue
-        if weights is None:
-            weights = initial_weights(fit_obs, {})
-        verdict = identify.check(fit_obs, {}, weights, chosen, [name])[0]
-        if verdict.identifiable:
-            chosen.append(name)
         else:
-            refuse_or_drop(name, f"the Fisher information of this acquisition has {verdict.excess} direction(s) of "
-                                 f"its parameters without information beyond its gauge (they trade off exactly "
-                                 f"against the images{' or ' + ', '.join(chosen) if chosen else ''})")
+            names.append(name)
+    chosen: list[str] = []
+    for verdict in identify.select(fit_obs, initial_weights(fit_obs, {}), names):
+        if verdict.identifiable:
+            chosen.append(verdict.name)
+        else:
+            refuse_or_drop(verdict.name, f"the Fisher information of this acquisition has {verdict.excess} "
+                                         f"direction(s) of its parameters without information beyond its gauge "
+                                         f"(they trade off exactly against the images"
+                                         f"{' or ' + ', '.join(chosen) if chosen else ''})")
     return tuple(chosen)
 
 
