@@ -22,6 +22,7 @@ import numpy as np
 from scipy import sparse
 
 from . import model as M
+from .config import ConfigError
 from .fit import FitResult, fix_gauge, initial_weights, uncertainty, well_determined, wrap_phases
 
 log = logging.getLogger(__name__)
@@ -289,8 +290,16 @@ def fit_correlation(obs: M.Observations, *, effects=M.PAPER_MODEL, grid: int = 3
     FitResult
         Only the phase effects in ``params``; ``uncertainty`` is the standard error of the robust fit
         (inf for frames with fewer usable columns than polynomial terms); no cost history.
+
+    Raises
+    ------
+    ConfigError
+        If ``effects`` holds no phase effect.
     """
     phase = [n for n in effects if M.effect(n).channel == "phase"]
+    if not phase:
+        raise ConfigError("fit.method=correlation estimates grating positions only: enable vibration.phase_offset, "
+                          "vibration.tilt or vibration.curvature")
     skipped = [n for n in effects if M.effect(n).channel is not None and n not in phase]
     if skipped:
         log.info("the correlation method does not estimate %s (left neutral)", ", ".join(skipped))
@@ -303,7 +312,7 @@ def fit_correlation(obs: M.Observations, *, effects=M.PAPER_MODEL, grid: int = 3
     params = wrap_phases(params, obs)
     good = well_determined(obs, gauge_fraction)
     params = fix_gauge(params, good)
-    n_fit = int(np.isfinite(sigma[:, 0]).sum()) if phase else 0
+    n_fit = int(np.isfinite(sigma[:, 0]).sum())
     return FitResult(params=params, uncertainty=unc, cost=np.zeros(0), stage=[], iterations=0,
                      converged=converged, messages=[f"correlation: {n_fit} of {obs.n_frames} frames fitted"],
                      well_determined=good)

@@ -301,8 +301,9 @@ def compare(scan, output_dir, truth, methods, config_files, sets, overwrite):
               help="Directory for nps.png, nps.csv and nps.json.")
 @click.option("--methods", default="none,correlation,ml", show_default=True,
               help="Comma-separated estimators (fit.method values).")
-@click.option("--bins", default=32, show_default=True, type=click.IntRange(4, 1000),
-              help="Radial frequency bins between 0 and 0.5 cycles/pixel.")
+@click.option("--bins", type=click.IntRange(4, 1000),
+              help="Radial frequency bins between 0 and 0.5 cycles/pixel (default: rings a quarter of the "
+                   "fringe frequency wide).")
 @with_config
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
 @friendly

@@ -24,7 +24,7 @@ from . import export, pipeline
 from . import model as M
 from .align import resolve_reference
 from .evaluate import frames_lighting, image_rmse, vibration_rmse
-from .io import Scan, read_scan
+from .io import Scan, atomic_path, read_scan
 from .result import Result
 
 log = logging.getLogger("dfxcorr")
@@ -213,10 +213,10 @@ def plot_images(path, rows: list[tuple[str, dict]], *, names=Result.IMAGES, wind
     Path
     """
     export.check_output(path, overwrite=overwrite)
-    plt = export._pyplot()
+    plt = export.pyplot()
     crop = crop or (slice(None), slice(None))
-    shown = [(label, {n: export._display(n, images[n])[crop] for n in names}) for label, images in rows]
-    windows = {n: export._window(n, shown[window_row][1][n]) for n in names}
+    shown = [(label, {n: export.display_image(n, images[n])[crop] for n in names}) for label, images in rows]
+    windows = {n: export.display_window(n, shown[window_row][1][n]) for n in names}
     h, w = shown[0][1][names[0]].shape
     single = len(names) == 1
     nr, nc = (1, len(shown)) if single else (len(shown), len(names))
@@ -235,17 +235,17 @@ def plot_images(path, rows: list[tuple[str, dict]], *, names=Result.IMAGES, wind
                 ax.set_title(label, fontsize=10)
             else:
                 if i == 0:
-                    ax.set_title(export._LABELS[n], fontsize=10)
+                    ax.set_title(export.IMAGE_LABELS[n], fontsize=10)
                 if k == 0:
                     ax.set_ylabel(label, fontsize=10)
             if single and i == 0:
-                ax.set_ylabel(export._LABELS[n], fontsize=10)
+                ax.set_ylabel(export.IMAGE_LABELS[n], fontsize=10)
             if i == len(shown) - 1:
                 fig.colorbar(im, ax=ax, shrink=0.85, location="right" if single else "bottom")
     if title:
         fig.suptitle(title, fontsize=11)
     fig.supxlabel(f"windows: 1st-99th percentile of '{rows[window_row][0]}'; blue: no data", fontsize=8)
-    return export._save(fig, path)
+    return export.save_figure(fig, path)
 
 
 def plot_convergence(path, histories: dict[str, tuple[np.ndarray, list]], *, reference: float | None = None,
@@ -276,7 +276,7 @@ def plot_convergence(path, histories: dict[str, tuple[np.ndarray, list]], *, ref
     same data weights), so that the curves are comparable.
     """
     export.check_output(path, overwrite=overwrite)
-    plt = export._pyplot()
+    plt = export.pyplot()
     fig, axes = plt.subplots(1, 2 if whole else 1, figsize=(12 if whole else 7, 4.6), squeeze=False,
                              layout="constrained")
     ax, ax2 = (axes[0, 0], axes[0, 1]) if whole else (None, axes[0, 0])
@@ -316,7 +316,7 @@ def plot_convergence(path, histories: dict[str, tuple[np.ndarray, list]], *, ref
             a.legend(fontsize=9)
     if title:
         fig.suptitle(title, fontsize=11)
-    return export._save(fig, path)
+    return export.save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -388,7 +388,7 @@ def write_comparison(out_dir: str | Path, scan: Scan, results: dict[str, Result]
 def export_text(path: Path, text: str, *, overwrite: bool = False) -> Path:
     """Write a text file (refusing to replace one unless asked, complete or not at all)."""
     export.check_output(path, overwrite=overwrite)
-    with export._atomic(path) as tmp:
+    with atomic_path(path) as tmp:
         tmp.write_text(text)
     return path
 
@@ -458,7 +458,7 @@ def fringe_frequency(phase: np.ndarray) -> float:
     return float(np.median(np.abs(grad)) / (2 * np.pi))
 
 
-def nps_study(scans, cfg: dict, *, methods=NPS_METHODS, method_sets: dict | None = None, bins: int = 32,
+def nps_study(scans, cfg: dict, *, methods=NPS_METHODS, method_sets: dict | None = None, bins: int | None = None,
               command_line: str = "") -> dict:
     """Noise power spectra of the dark-field images of blank scans, per method.
 
@@ -471,8 +471,9 @@ def nps_study(scans, cfg: dict, *, methods=NPS_METHODS, method_sets: dict | None
     methods : sequence of str
     method_sets : dict, optional
         Method -> further ``section.key=value`` overrides for that method only.
-    bins : int
-        Radial bins (see :func:`radial_nps`).
+    bins : int, optional
+        Radial bins (see :func:`radial_nps`); default: rings a quarter of the fringe frequency f of the
+        first scan wide (round(2 / f)), so that f and 2 f are resolved at any pitch.
     command_line : str
 
     Returns
@@ -490,6 +491,7 @@ def nps_study(scans, cfg: dict, *, methods=NPS_METHODS, method_sets: dict | None
         scan = item if isinstance(item, Scan) else read_scan(item)
         names.append(str(item) if not isinstance(item, Scan) else f"scan {len(names)}")
         fringes.append(fringe_frequency(resolve_reference(scan).phase))
+        bins = bins or int(round(2 / fringes[0]))
         results, runtimes = run_methods(scan, cfg, methods=methods, method_sets=method_sets,
                                         command_line=command_line)
         for m, res in results.items():
@@ -519,14 +521,14 @@ def write_nps(out_dir: str | Path, study: dict, *, title: str = "", overwrite: b
     for p in paths.values():
         export.check_output(p, overwrite=overwrite)
     f, ff = study["frequency"], study["fringe_frequency"]
-    plt = export._pyplot()
+    plt = export.pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 4.6), layout="constrained")
     for m in study["mean"]:
         ax.errorbar(f, study["mean"][m], yerr=study["std"][m], fmt=".-", ms=4, lw=1.1, capsize=2, label=m)
     for k, label in ((1, "fringe frequency"), (2, "first harmonic")):
         ax.axvline(k * ff, color="0.4", ls="--" if k == 1 else ":", lw=1)
         ax.annotate(f"{label}\n{k * ff:.3f} /px", (k * ff, 1), xycoords=("data", "axes fraction"), fontsize=8,
-                    xytext=(3, -22), textcoords="offset points", color="0.3")
+                    xytext=(3, -22 * k), textcoords="offset points", color="0.3")
     ax.set_yscale("log")
     ax.set_xlim(0, 0.5)
     ax.set_xlabel("radial spatial frequency (cycles/pixel)")
@@ -536,7 +538,7 @@ def write_nps(out_dir: str | Path, study: dict, *, title: str = "", overwrite: b
                  + (" (mean ± std)" if n > 1 else ""), fontsize=10)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=9, title="method")
-    export._save(fig, paths["png"])
+    export.save_figure(fig, paths["png"])
     head = ["frequency_cycles_per_pixel"] + [f"{m}_{s}" for m in study["mean"] for s in ("mean", "std")]
     cols = [f] + [study[s][m] for m in study["mean"] for s in ("mean", "std")]
     lines = [",".join(head)] + [",".join(f"{v:.6g}" for v in row) for row in zip(*cols)]

@@ -476,8 +476,7 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
         check_output(p, overwrite=overwrite)
     with atomic_path(paths["diagnosis.json"]) as tmp:
         tmp.write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
-    with atomic_path(paths["residuals.png"]) as tmp:
-        _plot(diag, tmp)
+    _plot(diag, paths["residuals.png"])
     written = list(paths.values())
     if diag.motion_mask.any():
         with atomic_path(out_dir / "motion_mask.tif") as tmp:
@@ -504,6 +503,8 @@ def _markdown(diag: Diagnosis) -> str:
                      f"{e.statistic:.4g} | {e.dof} | {e.p_value:.3g} | {fmt(e.delta_chi2, '.4g')} | "
                      f"{fmt(e.reduced_chi2_after, '.4f')} | {e.where or ''} | {e.estimate or ''} |")
     lines += ["", f"Criterion: {diag.criterion}.", "",
+              "delta chi2 is the change of the Pearson chi-square sum when the effect was added; for detector_gain it "
+              "is negative when the noise is below Poisson (the reduced chi-square then rises towards 1).", "",
               "Not identifiable means the Fisher information has directions of that effect's parameters without "
               "information beyond its gauge: the acquisition cannot tell it from the images or the model's other "
               "effects (paper Sec. II-F), so it is never reported as detected.", ""]
@@ -528,11 +529,9 @@ def reconstruct_settings(diag: Diagnosis) -> list[str]:
 
 
 def _plot(diag: Diagnosis, path: Path) -> None:
-    import matplotlib
+    from .export import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig = plt.figure(figsize=(13, 8.5), layout="constrained")
     grid = fig.add_gridspec(2, 4)
     top = np.nanpercentile(diag.before.pixel, 99)
@@ -556,5 +555,4 @@ def _plot(diag: Diagnosis, path: Path) -> None:
         ax.set_xlabel(label)
         ax.set_ylabel("mean squared standardized residual")
         ax.legend(fontsize=8)
-    fig.savefig(path, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path)

@@ -92,4 +92,6 @@ def test_real_recording_is_diagnosed(tmp_path):
     diag = diagnose(tmp_path / "ipp.h5", C.defaults())
     verdict = {e.name: e for e in diag.effects}
     assert not verdict["visibility_loss"].identifiable and not verdict["visibility_loss"].detected
-    assert np.isfinite(diag.final_chi2) and diag.final_chi2 <= diag.initial_chi2
+    # whatever is found, the final model describes the data to within the noise (the real recording's noise
+    # is below Poisson, so modelling it moves the reduced chi-square up to 1)
+    assert abs(diag.final_chi2 - 1) <= abs(diag.initial_chi2 - 1) and abs(diag.final_chi2 - 1) < 0.01
