@@ -172,11 +172,11 @@ def simulate(config_file, output, sets, truth, overwrite):
 def diagnose(scan, out_dir, config_files, sets, base, overwrite):
     """Find where SCAN and the model disagree, name the missing physics, add it and refit."""
     from .diagnose import diagnose as run, write_report
+    from .export import check_output
 
     cfg = C.load(config_files, sets)
     out = Path(out_dir)
     for name in ("diagnosis.json", "report.md", "residuals.png"):
-        from .export import check_output
         check_output(out / name, overwrite=overwrite)
     diag = run(scan, cfg, base=base)
     write_report(diag, out, overwrite=overwrite)
