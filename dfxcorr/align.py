@@ -12,13 +12,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import DfxcorrError
 from .io import Reference, Scan, SteppingReference
 from .model import Observations, lateral_coordinate
 
 log = logging.getLogger(__name__)
 
 
-class AlignmentError(ValueError):
+class AlignmentError(DfxcorrError, ValueError):
     """No usable pixel, or a reference that cannot be aligned."""
 
 
@@ -164,7 +165,7 @@ def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=("phase_
     model, so the maximum-likelihood vibration fit estimates them. Per-step visibility loss is never
     identifiable here (paper Sec. II-F). Per-step dose is identifiable only where some pixels carry
     no fringe (outside the gratings): where every pixel is modulated, a dose modulation in step with
-    the phase trades off exactly against the maps (see :mod:`dfxcorr.identify`). Unmodulated pixels
+    the phase trades off exactly against the maps (see :mod:`dfxcorr.analysis.identify`). Unmodulated pixels
     therefore enter the step fit as dose monitors; the reduced chi-square is reported over the
     modulated ones.
 
@@ -193,7 +194,7 @@ def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=("phase_
         If fewer than 3 steps are given, the steps do not determine a sinusoid, or a required effect is
         not identifiable.
     """
-    from . import identify
+    from .analysis import identify
     from .fit import fit_vibrations, initial_weights
     from .retrieve import retrieve
 

@@ -13,6 +13,7 @@ import numpy as np
 
 from . import __version__
 from . import config as C
+from .errors import DfxcorrError
 
 log = logging.getLogger("dfxcorr")
 
@@ -20,25 +21,14 @@ log = logging.getLogger("dfxcorr")
 EXIT_INPUT = 2
 
 
-def _user_errors():
-    from .align import AlignmentError
-    from .export import OutputExistsError
-    from .importer import StackImportError
-    from .io import ScanFormatError
-    from .pipeline import IdentifiabilityError
-
-    return (ScanFormatError, C.ConfigError, OutputExistsError, IdentifiabilityError, AlignmentError,
-            StackImportError)
-
-
 def friendly(func):
-    """Turn the library's input errors into one line on stderr and exit code 2."""
+    """Turn the library's refusals into one line on stderr and exit code 2."""
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         try:
             return func(*args, **kwargs)
-        except _user_errors() as exc:
+        except DfxcorrError as exc:
             click.echo(f"error: {exc}", err=True)
             sys.exit(EXIT_INPUT)
         except OSError as exc:
@@ -116,15 +106,15 @@ def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, ove
 
 
 def _write_outputs(result, out: Path, *, tiff_dir=None, preview=False, overwrite=False) -> list[Path]:
-    from . import export
+    from . import export, plots
 
     export.write_result_h5(out, result, overwrite=overwrite, compression=_compression(result.config))
     written = [out]
     if tiff_dir:
         written += export.write_tiffs(tiff_dir, result, stem=out.stem, overwrite=overwrite)
     if preview:
-        written.append(export.write_preview(out.with_name(f"{out.stem}_preview.png"), result, overwrite=overwrite))
-        written.append(export.write_fit_plot(out.with_name(f"{out.stem}_fit.png"), result, overwrite=overwrite))
+        written.append(plots.write_preview(out.with_name(f"{out.stem}_preview.png"), result, overwrite=overwrite))
+        written.append(plots.write_fit_plot(out.with_name(f"{out.stem}_fit.png"), result, overwrite=overwrite))
     for p in written:
         log.info("wrote %s", p)
     return written
@@ -145,7 +135,7 @@ def _compression(cfg: dict):
 def simulate(config_file, output, sets, truth, overwrite):
     """Simulate a scan (the paper's simulation study by default) and write it with its truth."""
     from . import export
-    from . import simulate as S
+    from .sim import simulate as S
     from .io import atomic_path, write_scan
 
     cfg = C.load([config_file] if config_file else [], sets, schema=S.SCHEMA)
@@ -171,7 +161,7 @@ def simulate(config_file, output, sets, truth, overwrite):
 @friendly
 def diagnose(scan, out_dir, config_files, sets, base, overwrite):
     """Find where SCAN and the model disagree, name the missing physics, add it and refit."""
-    from .diagnose import diagnose as run, write_report
+    from .analysis.diagnose import diagnose as run, write_report
     from .export import check_output
 
     cfg = C.load(config_files, sets)
@@ -236,7 +226,7 @@ def import_stepping_cmd(sample, reference, dark, reference_dark, steps_per_perio
 @friendly
 def demo(output_dir, overwrite):
     """Simulate a small scan, reconstruct it and write images, pictures and a summary (under a minute)."""
-    from .demo import run_demo
+    from .sim.demo import run_demo
 
     summary = run_demo(Path(output_dir), overwrite=overwrite, command_line=_command_line())
     click.echo(summary)
@@ -252,7 +242,7 @@ def demo(output_dir, overwrite):
 @friendly
 def config_cmd(show_defaults, schema, check_files, sets):
     """Show the default configuration, or validate and resolve configuration files."""
-    from . import simulate as S
+    from .sim import simulate as S
 
     sch = S.SCHEMA if schema == "simulate" else C.SCHEMA
     if show_defaults or not (check_files or sets):
@@ -275,7 +265,7 @@ def config_cmd(show_defaults, schema, check_files, sets):
 @friendly
 def compare(scan, output_dir, truth, methods, config_files, sets, overwrite):
     """Run every vibration estimator on SCAN and compare them: results, pictures and a table."""
-    from . import compare as CMP
+    from .analysis import compare as CMP
     from . import export
     from .io import read_scan
 
@@ -309,7 +299,7 @@ def compare(scan, output_dir, truth, methods, config_files, sets, overwrite):
 @friendly
 def nps(scans, output_dir, methods, bins, config_files, sets, overwrite):
     """Noise power spectra of the dark-field images of blank SCANS (no sample), per estimator."""
-    from . import compare as CMP
+    from .analysis import compare as CMP
     from . import export
 
     cfg = C.load(config_files, sets)

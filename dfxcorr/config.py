@@ -14,8 +14,10 @@ from typing import Any, Callable
 
 import yaml
 
+from .errors import DfxcorrError
 
-class ConfigError(ValueError):
+
+class ConfigError(DfxcorrError, ValueError):
     """A configuration key or value is not valid; the message names it."""
 
 

@@ -13,6 +13,7 @@ import h5py
 import numpy as np
 import yaml
 
+from .errors import OutputExistsError
 from .io import atomic_path
 from .model import CATALOGUE
 from .result import Result
@@ -25,14 +26,6 @@ PROVENANCE_KEYS = ("program", "version", "date", "command_line", "input_file", "
 SPEC_EFFECTS = {"phase_offset": "phase_offset", "tilt": "tilt", "visibility": "visibility_loss"}
 
 _STR = h5py.string_dtype("utf-8")
-
-
-class OutputExistsError(FileExistsError):
-    """An output file exists and overwriting was not asked for."""
-
-    def __init__(self, path):
-        super().__init__(f"{path} exists; use --overwrite to replace it")
-        self.path = Path(path)
 
 
 def check_output(path, *, overwrite: bool) -> None:
@@ -65,7 +58,7 @@ def check_output(path, *, overwrite: bool) -> None:
 
 
 @dataclass
-class _Param:
+class VibrationDataset:
     """One dataset of /entry/dfxcorr/vibration."""
 
     name: str            # dataset name
@@ -91,7 +84,7 @@ def _n_frames(result: Result) -> int:
                      "(pass neutral parameters with estimated=False instead)")
 
 
-def _vibration(result: Result) -> list[_Param]:
+def vibration_datasets(result: Result) -> list[VibrationDataset]:
     """The spec's three parameters (neutral where not estimated), then every further effect."""
     n_frames = _n_frames(result)
     out = []
@@ -103,7 +96,7 @@ def _vibration(result: Result) -> list[_Param]:
             sigma = None if sigma is None else np.asarray(sigma, np.float64).reshape(n_frames, -1)[:, 0]
         else:
             value, sigma = np.full(n_frames, CATALOGUE[eff].neutral), None
-        out.append(_Param(name, eff, value, sigma, estimated, True))
+        out.append(VibrationDataset(name, eff, value, sigma, estimated, True))
     for eff, value in result.params.items():
         if eff in SPEC_EFFECTS.values():
             continue
@@ -111,13 +104,13 @@ def _vibration(result: Result) -> list[_Param]:
         sigma = result.uncertainty.get(eff)
         e = CATALOGUE.get(eff)
         per_frame = e.per_frame if e is not None else value.ndim >= 1 and value.shape[0] == n_frames
-        out.append(_Param(eff, eff, _squeeze(value),
+        out.append(VibrationDataset(eff, eff, _squeeze(value),
                           None if sigma is None else _squeeze(np.asarray(sigma, np.float64)),
                           bool(result.estimated.get(eff, True)), per_frame))
     return out
 
 
-def _units(effect: str) -> str | None:
+def units(effect: str) -> str | None:
     e = CATALOGUE.get(effect)
     if e is None:
         return None
@@ -181,7 +174,7 @@ def write_result_h5(path, result: Result, *, overwrite: bool = False, compressio
     failure the temporary file is removed and ``path`` is left as it was.
     """
     check_output(path, overwrite=overwrite)
-    vibration = _vibration(result)
+    vibration = vibration_datasets(result)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT
         f.attrs["format_version"] = np.int64(FORMAT_VERSION)
@@ -208,9 +201,9 @@ def write_result_h5(path, result: Result, *, overwrite: bool = False, compressio
             attrs = {"estimated": np.int64(p.estimated), "effect": p.effect}
             if e is not None:
                 attrs["components"] = list(e.components)
-            _dataset(vib, p.name, p.value, dtype=np.float64, units=_units(p.effect), **attrs)
+            _dataset(vib, p.name, p.value, dtype=np.float64, units=units(p.effect), **attrs)
             if p.estimated and p.sigma is not None:
-                _dataset(unc, p.name, p.sigma, dtype=np.float64, units=_units(p.effect))
+                _dataset(unc, p.name, p.sigma, dtype=np.float64, units=units(p.effect))
 
         fit = proc.create_group("fit")
         _dataset(fit, "mask", result.fit_mask, dtype=np.uint8, compression=compression)
@@ -337,199 +330,3 @@ def write_tiffs(directory, result: Result, *, stem: str, overwrite: bool = False
 # --------------------------------------------------------------------------------------------------
 
 
-def pyplot():
-    """matplotlib.pyplot on the Agg backend (no display needed), imported only when a picture is drawn."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def save_figure(fig, path) -> Path:
-    """Write a figure as PNG atomically and close it."""
-    try:
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=150)
-    finally:
-        pyplot().close(fig)
-    return Path(path)
-
-
-def display_image(name: str, image) -> np.ndarray:
-    """The field's display convention: t as is, dark field as -ln v, phi as is."""
-    a = np.asarray(image, dtype=np.float64)
-    if name == "dark_field":
-        with np.errstate(divide="ignore", invalid="ignore"):
-            a = -np.log(a)
-    return np.where(np.isfinite(a), a, np.nan)
-
-
-def display_window(name: str, a: np.ndarray) -> tuple[float, float]:
-    """1st-99th percentile, symmetric about 0 for the differential phase."""
-    finite = a[np.isfinite(a)]
-    if finite.size == 0:
-        return (-1.0, 1.0) if name == "differential_phase" else (0.0, 1.0)
-    lo, hi = np.percentile(finite, [1, 99])
-    if name == "differential_phase":
-        hi = max(abs(lo), abs(hi))
-        lo = -hi
-    if hi <= lo:
-        lo, hi = lo - 0.5 * (abs(lo) or 1.0), hi + 0.5 * (abs(hi) or 1.0)
-    return float(lo), float(hi)
-
-
-IMAGE_LABELS = {"transmission": "transmission t", "dark_field": "dark field −ln v",
-                "differential_phase": "differential phase φ (rad)"}
-
-
-def write_preview(path, result: Result, *, overwrite: bool = False, title: str | None = None) -> Path:
-    """Picture of the three images, uncorrected above corrected.
-
-    Parameters
-    ----------
-    path : str or Path
-        Output PNG.
-    result : Result
-        What the reconstruction produced; with ``result.uncorrected`` set, a row of images retrieved
-        with neutral per-frame parameters is shown above the corrected ones.
-    overwrite : bool
-        Replace an existing file.
-    title : str, optional
-        Figure title (default: the input file's name).
-
-    Returns
-    -------
-    Path
-        ``path``.
-
-    Notes
-    -----
-    Transmission is shown as is, dark field as -ln v, differential phase in a window symmetric about
-    zero, all in gray; non-finite pixels (never illuminated) in blue. Both panels of an image share the
-    window of the corrected image (its 1st-99th percentile), so residual stripes compare directly.
-    """
-    check_output(path, overwrite=overwrite)
-    plt = pyplot()
-    rows = [("corrected", result.image)]
-    if result.uncorrected is not None:
-        rows.insert(0, ("uncorrected", result.uncorrected.get))
-    h, w = np.shape(result.transmission)
-    panel_w = 4.6
-    panel_h = float(np.clip(panel_w * 0.8 * h / max(w, 1), 1.4, 5.5))
-    fig, axes = plt.subplots(len(rows), 3, figsize=(3 * panel_w, len(rows) * (panel_h + 0.7) + 0.5),
-                             squeeze=False, layout="constrained")
-    cmap = plt.get_cmap("gray").with_extremes(bad="#6f8fbf")
-    for col, name in enumerate(Result.IMAGES):
-        vmin, vmax = display_window(name, display_image(name, result.image(name)))
-        for row, (kind, get) in enumerate(rows):
-            ax = axes[row, col]
-            image = get(name)
-            label = "corrected (" + result.method + ")" if kind == "corrected" else kind
-            ax.set_title(f"{IMAGE_LABELS[name]}: {label}", fontsize=10)
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if image is None:
-                ax.set_axis_off()
-                continue
-            im = ax.imshow(display_image(name, image), cmap=cmap, vmin=vmin, vmax=vmax, aspect="auto",
-                           interpolation="nearest")
-            fig.colorbar(im, ax=ax, shrink=0.9)
-    fig.suptitle(title if title is not None else Path(result.provenance.get("input_file", "")).name or "dfxcorr")
-    window = "both panels of an image share" if len(rows) == 2 else "window:"
-    fig.supxlabel(f"{window} the corrected image's 1st-99th percentile; blue: no data", fontsize=9)
-    return save_figure(fig, path)
-
-
-def write_fit_plot(path, result: Result, *, overwrite: bool = False) -> Path:
-    """Picture of the fitted per-frame parameters and the cost history.
-
-    Parameters
-    ----------
-    path : str or Path
-        Output PNG.
-    result : Result
-        What the reconstruction produced.
-    overwrite : bool
-        Replace an existing file.
-
-    Returns
-    -------
-    Path
-        ``path``.
-
-    Notes
-    -----
-    One panel per per-frame effect (phase_offset, tilt, visibility, then any other), one line per
-    component, with one-sigma error bars where the uncertainty is finite. The y range follows the
-    values, so a frame without information (huge uncertainty) cannot flatten the others. The last
-    panel is the cost per iteration, coloured by fit stage, on a log scale when all costs are positive.
-    """
-    check_output(path, overwrite=overwrite)
-    plt = pyplot()
-    params = [p for p in _vibration(result) if p.per_frame]
-    n = len(params) + 1
-    ncols = 2 if n > 1 else 1
-    nrows = -(-n // ncols)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(6.5 * ncols, 2.8 * nrows), squeeze=False,
-                             layout="constrained")
-    axes = axes.ravel()
-    for ax, p in zip(axes, params):
-        _plot_param(ax, p)
-    _plot_cost(axes[len(params)], result)
-    for ax in axes[n:]:
-        ax.set_axis_off()
-    fig.suptitle(f"vibration fit ({result.method}), reduced χ² = {result.reduced_chi2:.3g}")
-    return save_figure(fig, path)
-
-
-def _plot_param(ax, p: _Param):
-    values = p.value.reshape(p.value.shape[0], -1)
-    sigma = None if p.sigma is None else p.sigma.reshape(values.shape)
-    frames = np.arange(values.shape[0])
-    e = CATALOGUE.get(p.effect)
-    names = e.components if e is not None and len(e.components) == values.shape[1] else \
-        [str(k) for k in range(values.shape[1])]
-    span = np.nanmax(values) - np.nanmin(values) if np.isfinite(values).any() else 0.0
-    cap = span if span > 0 else 1.0
-    lo, hi = [], []
-    for k in range(values.shape[1]):
-        v = values[:, k]
-        s = None if sigma is None else np.where(np.isfinite(sigma[:, k]), sigma[:, k], np.nan)
-        ax.errorbar(frames, v, yerr=s, fmt=".-", ms=3, lw=0.8, elinewidth=0.6, capsize=0,
-                    label=names[k] if values.shape[1] > 1 else None)
-        s_c = np.zeros_like(v) if s is None else np.nan_to_num(np.minimum(s, cap))
-        lo.append(np.nanmin(v - s_c))
-        hi.append(np.nanmax(v + s_c))
-    if np.isfinite(lo).all() and np.isfinite(hi).all():
-        pad = 0.05 * (max(hi) - min(lo)) or 0.05 * (abs(max(hi)) or 1.0)
-        ax.set_ylim(min(lo) - pad, max(hi) + pad)
-    units = _units(p.effect)
-    ax.set_ylabel(p.name + (f" ({units})" if units else ""))
-    ax.set_xlabel("frame")
-    ax.xaxis.get_major_locator().set_params(integer=True)
-    ax.set_title(p.name if p.estimated else f"{p.name} (not estimated)", fontsize=10)
-    ax.grid(alpha=0.3)
-    if values.shape[1] > 1:
-        ax.legend(fontsize=8)
-
-
-def _plot_cost(ax, result: Result):
-    cost = np.ravel(np.asarray(result.cost, dtype=np.float64))
-    stages = [str(s) for s in result.cost_stage]
-    if len(stages) != cost.size:
-        stages = [""] * cost.size
-    iterations = np.arange(cost.size)
-    for stage in dict.fromkeys(stages):
-        sel = np.array([s == stage for s in stages], dtype=bool)
-        ax.plot(iterations[sel], cost[sel], ".-", ms=3, lw=0.8, label=stage or None)
-    if cost.size and np.all(cost > 0):
-        ax.set_yscale("log")
-    ax.set_xlabel("iteration")
-    ax.xaxis.get_major_locator().set_params(integer=True)
-    ax.set_ylabel("cost")
-    ax.set_title("cost history", fontsize=10)
-    ax.grid(alpha=0.3, which="both")
-    if any(stages):
-        ax.legend(fontsize=8, title="stage", title_fontsize=8)

@@ -17,6 +17,7 @@ import h5py
 import numpy as np
 import tifffile
 
+from .errors import DfxcorrError, OutputExistsError
 from .io import Scan, SteppingReference, write_scan
 
 _NPY = {".npy"}
@@ -26,12 +27,8 @@ _IMPORT_GROUP = "entry/dfxcorr_import"
 _FLOAT64_EXACT_INT = 2 ** 53
 
 
-class StackImportError(ValueError):
+class StackImportError(DfxcorrError, ValueError):
     """A series cannot be imported; the message names the offending file, glob or argument."""
-
-
-class OutputExistsError(StackImportError, FileExistsError):
-    """The output file exists and ``overwrite`` was not given."""
 
 
 def _natural_key(text: str) -> list:
@@ -392,7 +389,7 @@ def import_stepping(output, *, sample, reference, dark=None, reference_dark=None
     """
     output = Path(os.path.expanduser(os.fspath(output)))
     if output.exists() and not overwrite:
-        raise OutputExistsError(f"output {output} exists (use overwrite to replace it)")
+        raise OutputExistsError(output)
     if not output.parent.is_dir():
         raise StackImportError(f"output {output}: directory {output.parent} does not exist")
     if (steps_per_period is None) == (phases is None):

@@ -16,6 +16,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from .errors import DfxcorrError
+
 log = logging.getLogger(__name__)
 
 FORMAT = "dfxcorr-scan"
@@ -24,7 +26,7 @@ _DET = "entry/instrument/detector"
 _FRAME_DTYPES = (np.uint16, np.uint32, np.float32, np.float64)
 
 
-class ScanFormatError(ValueError):
+class ScanFormatError(DfxcorrError, ValueError):
     """The file is not a valid dfxcorr scan; the message names the offending dataset."""
 
 

@@ -23,7 +23,8 @@ from . import model as M
 from .align import (auto_visibility_threshold, build_observations, resolve_reference, subsample_columns,
                     tilt_alias_period)
 from .baselines import fit_alternating, fit_correlation
-from . import identify
+from .analysis import identify
+from .errors import DfxcorrError
 from .fit import FitResult, fit_vibrations, initial_weights
 from .io import Scan, read_scan
 from .mask import motion_mask
@@ -34,7 +35,7 @@ from .retrieve import image_maps, retrieve
 log = logging.getLogger("dfxcorr")
 
 
-class IdentifiabilityError(ValueError):
+class IdentifiabilityError(DfxcorrError, ValueError):
     """An effect was asked for that the acquisition cannot determine."""
 
 
@@ -91,7 +92,7 @@ def resolve_effects(cfg: dict, scan: Scan, reference, fit_obs: M.Observations) -
     """The effects to fit: the configured ones that this acquisition can determine.
 
     Every enabled effect is checked in turn against the Fisher information of the fit's samples
-    (:mod:`dfxcorr.identify`); visibility effects in a stepping recording or over a separable flat
+    (:mod:`dfxcorr.analysis.identify`); visibility effects in a stepping recording or over a separable flat
     field are refused with the paper's reason. An effect set to ``auto`` is dropped with a log line.
 
     Raises

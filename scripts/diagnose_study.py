@@ -17,8 +17,8 @@ import time
 from pathlib import Path
 
 from dfxcorr import config as C
-from dfxcorr import simulate as S
-from dfxcorr.diagnose import diagnose
+from dfxcorr.sim import simulate as S
+from dfxcorr.analysis.diagnose import diagnose
 
 ROOT = Path(__file__).resolve().parents[1]
 

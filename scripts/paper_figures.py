@@ -27,14 +27,14 @@ from pathlib import Path
 
 import numpy as np
 
-from dfxcorr import compare as CMP
+from dfxcorr.analysis import compare as CMP
 from dfxcorr import config as C
 from dfxcorr import model as M
-from dfxcorr import pipeline
-from dfxcorr import simulate as S
+from dfxcorr import pipeline, plots
+from dfxcorr.sim import simulate as S
 from dfxcorr.align import build_observations, resolve_reference
 from dfxcorr.baselines import fit_alternating
-from dfxcorr.evaluate import frames_lighting, image_rmse, vibration_rmse
+from dfxcorr.analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
 from dfxcorr.fit import fit_vibrations, initial_weights
 from dfxcorr.result import Result
 
@@ -106,7 +106,7 @@ def fig4(args) -> dict:
     """Images before and after correction (paper Fig. 4), with the truth above."""
     scan, truth = simulated(args.pixel_mm, args.seed)
     res, seconds = reconstructed(args.pixel_mm, args.seed)
-    CMP.plot_images(png(args, "fig4-images"), [("truth", truth_images(truth)), ("uncorrected", res.uncorrected),
+    plots.plot_images(png(args, "fig4-images"), [("truth", truth_images(truth)), ("uncorrected", res.uncorrected),
                                               ("corrected (ml)", images_of(res))],
                     window_row=2, overwrite=True,
                     title=f"Fig. 4: simulation study at {args.pixel_mm:g} mm ({size_text(scan)})")
@@ -154,7 +154,7 @@ def fig6(args) -> dict:
         entry["frames_differing_from_unpreconditioned_ml_by_0.1_rad"] = np.flatnonzero(
             np.abs(np.angle(np.exp(1j * (f.params["phase_offset"][:, 0] - ref)))) > 0.1).tolist()
     numbers["optimum"] = best
-    CMP.plot_convergence(png(args, "fig6-convergence"), {k: (f.cost, f.stage) for k, f in fits.items()},
+    plots.plot_convergence(png(args, "fig6-convergence"), {k: (f.cost, f.stage) for k, f in fits.items()},
                          reference=best, whole=False, overwrite=True,
                          title=f"Fig. 6: linear displacements only (φ1 = 0, v^s = 1),\nevery column, "
                                f"{size_text(scan)}")
@@ -179,7 +179,7 @@ def fig7(args) -> dict:
     H, W = scan.shape[1:]
     zoom = (slice(int(0.25 * H), int(0.75 * H)), slice(int(0.05 * W), int(0.5 * W)))
     for name, crop in (("fig7-dark-field", None), ("fig7-dark-field-zoom", zoom)):
-        CMP.plot_images(png(args, name), rows, names=("dark_field",), window_row=3, crop=crop, overwrite=True,
+        plots.plot_images(png(args, name), rows, names=("dark_field",), window_row=3, crop=crop, overwrite=True,
                         title=f"Fig. 7: dark field{' (zoom: right lung)' if crop else ''}, {size_text(scan)}")
     write_json(args, "fig7", numbers)
     return numbers
@@ -204,9 +204,9 @@ def fig8(args) -> dict:
             numbers["image_rmse"][key] = image_rmse(images_of(res), truth)
             if (phantom, method) != ("slab", "none"):
                 rows.append((f"{label}: {'uncorrected' if method == 'none' else method}", images_of(res)))
-    CMP.plot_images(png(args, "fig8-correlation"), rows, names=("dark_field",), window_row=2, overwrite=True,
+    plots.plot_images(png(args, "fig8-correlation"), rows, names=("dark_field",), window_row=2, overwrite=True,
                     title="Fig. 8: the correlation method [18] (dark field, −ln v)")
-    CMP.plot_images(png(args, "fig8-correlation-phase"), rows, names=("differential_phase",), window_row=2,
+    plots.plot_images(png(args, "fig8-correlation-phase"), rows, names=("differential_phase",), window_row=2,
                     overwrite=True, title="Fig. 8 (differential phase)")
     write_json(args, "fig8", numbers)
     return numbers

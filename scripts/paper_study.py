@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from dfxcorr import config as C
-from dfxcorr import export, pipeline
-from dfxcorr import simulate as S
+from dfxcorr import pipeline, plots
+from dfxcorr.sim import simulate as S
 from dfxcorr.align import build_observations, resolve_reference
-from dfxcorr.evaluate import frames_lighting, image_rmse, vibration_rmse
+from dfxcorr.analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
 from dfxcorr.retrieve import image_maps, retrieve
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -87,9 +87,9 @@ def main():
     }
     stem = "paper-study" if args.pixel_mm == 1.0 else f"paper-study-{args.pixel_mm:g}mm"
     (args.out / f"{stem}.json").write_text(json.dumps(numbers, indent=2))
-    export.write_preview(args.out / f"{stem}.png", result, overwrite=True,
+    plots.write_preview(args.out / f"{stem}.png", result, overwrite=True,
                          title=f"paper simulation study, {scan.shape[1]} x {scan.shape[2]} pixels, {scan.shape[0]} frames")
-    export.write_fit_plot(args.out / f"{stem}-fit.png", result, overwrite=True)
+    plots.write_fit_plot(args.out / f"{stem}-fit.png", result, overwrite=True)
     print(json.dumps(numbers, indent=2))
 
 

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from dfxcorr import config as C
-from dfxcorr import export, pipeline
+from dfxcorr import pipeline, plots
 from dfxcorr.align import fit_reference
-from dfxcorr.diagnose import diagnose, write_report
+from dfxcorr.analysis.diagnose import diagnose, write_report
 from dfxcorr.importer import import_stepping
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,7 +44,7 @@ def main():
         diag = diagnose(path, C.defaults())
     write_report(diag, args.out / "real-ipp-diagnosis", overwrite=True)
     ml.uncorrected = {k: nominal_steps.image(k) for k in ml.IMAGES}
-    export.write_preview(args.out / "real-ipp.png", ml, overwrite=True,
+    plots.write_preview(args.out / "real-ipp.png", ml, overwrite=True,
                          title="real stepping recording (11 steps, 195 x 487): nominal steps (top) vs estimated step "
                                "errors (bottom)")
     numbers = {

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from dfxcorr import config as C
-from dfxcorr import simulate as S
+from dfxcorr.sim import simulate as S
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

@@ -6,7 +6,7 @@ import pytest
 from click.testing import CliRunner
 
 from dfxcorr.cli import main
-from dfxcorr.compare import fringe_frequency, radial_nps
+from dfxcorr.analysis.compare import fringe_frequency, radial_nps
 from dfxcorr.export import read_result_h5
 
 SMALL = ["--set", "simulate.pixel_mm=5", "--set", "simulate.step_mm=5"]

@@ -5,7 +5,7 @@ import pytest
 import yaml
 
 from dfxcorr import config as C
-from dfxcorr import simulate as S
+from dfxcorr.sim import simulate as S
 
 ROOT = Path(__file__).resolve().parents[1]
 

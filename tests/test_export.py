@@ -8,7 +8,9 @@ import tifffile
 import yaml
 
 from dfxcorr import export
-from dfxcorr.export import (OutputExistsError, check_output, read_result_h5, write_fit_plot, write_preview,
+from dfxcorr.errors import OutputExistsError
+from dfxcorr.plots import write_fit_plot, write_preview
+from dfxcorr.export import (check_output, read_result_h5,
                             write_result_h5, write_tiffs)
 from dfxcorr.result import Result
 

@@ -4,7 +4,7 @@ import pytest
 
 from dfxcorr import config as C
 from dfxcorr import pipeline
-from dfxcorr.evaluate import frames_lighting, gauge_median
+from dfxcorr.analysis.evaluate import frames_lighting, gauge_median
 
 
 def standardized_errors(result, truth, scan):

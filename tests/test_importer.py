@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import tifffile
 
-from dfxcorr.importer import (OutputExistsError, StackImportError, frame_dtype, import_stepping,
+from dfxcorr.errors import DfxcorrError, OutputExistsError
+from dfxcorr.importer import (StackImportError, frame_dtype, import_stepping,
                               nominal_steps, read_stack)
 from dfxcorr.io import SteppingReference, read_scan
 
@@ -306,7 +307,7 @@ def test_existing_output(tmp_path):
     with pytest.raises(FileExistsError, match="exists.h5") as info:
         import_stepping(out, sample=str(tmp_path / "none_*.npy"), reference=str(tmp_path / "none_*.npy"),
                         steps_per_period=S)
-    assert isinstance(info.value, OutputExistsError) and isinstance(info.value, StackImportError)
+    assert isinstance(info.value, OutputExistsError) and isinstance(info.value, DfxcorrError)
     assert out.read_bytes() == b"keep me"
     np.save(tmp_path / "data.npy", counts("uint16", seed=21))
     import_stepping(out, sample=tmp_path / "data.npy", reference=tmp_path / "data.npy", steps_per_period=S,

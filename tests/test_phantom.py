@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from dfxcorr import phantom as ph
+from dfxcorr.sim import phantom as ph
 
 FULL = dict(shape=(450, 510), pixel_mm=1.0, magnification=1.2, supersample=2)
 KEYS = ("transmission", "dark_field", "differential_phase")

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import model as M
+from .. import model as M
 
 #: Exact gauge directions an effect brings (its per-frame parameters' common shift or scale).
 GAUGE_DIMENSIONS = {"phase_offset": 1, "tilt": 1, "curvature": 1, "visibility_loss": 1, "dose": 1,

@@ -19,13 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-from . import config as C
-from . import export, pipeline
-from . import model as M
-from .align import resolve_reference
+from .. import config as C
+from .. import export, pipeline, plots
+from .. import model as M
+from ..align import resolve_reference
 from .evaluate import frames_lighting, image_rmse, vibration_rmse
-from .io import Scan, atomic_path, read_scan
-from .result import Result
+from ..errors import DfxcorrError
+from ..io import Scan, atomic_path, read_scan
+from ..result import Result
 
 log = logging.getLogger("dfxcorr")
 
@@ -35,7 +36,7 @@ METHODS = ("none", "correlation", "alternating", "ml")
 NPS_METHODS = ("none", "correlation", "ml")
 
 
-class TruthError(ValueError):
+class TruthError(DfxcorrError, ValueError):
     """A ground-truth file that does not fit the scan."""
 
 
@@ -142,7 +143,7 @@ def comparison_table(results: dict[str, Result], runtimes: dict[str, float], *, 
         As returned by :func:`run_methods`.
     scan : Scan
         Supplies the geometry: vibration RMSEs are over frames lighting at least half the active area
-        (:func:`dfxcorr.evaluate.frames_lighting`), in the median gauge.
+        (:func:`dfxcorr.analysis.evaluate.frames_lighting`), in the median gauge.
     truth : dict, optional
         See :func:`load_truth`.
 
@@ -187,136 +188,6 @@ def table_markdown(rows: list[dict]) -> str:
 # --------------------------------------------------------------------------------------------------
 # Pictures
 # --------------------------------------------------------------------------------------------------
-
-
-def plot_images(path, rows: list[tuple[str, dict]], *, names=Result.IMAGES, window_row: int = 0,
-                crop: tuple[slice, slice] | None = None, title: str = "", overwrite: bool = False) -> Path:
-    """Images of several methods side by side, one shared gray window per image kind.
-
-    Parameters
-    ----------
-    path : str or Path
-        Output PNG.
-    rows : list of (label, images)
-        images: 'transmission', 'dark_field', 'differential_phase' -> (H, W).
-    names : sequence of str
-        Which images to show (columns); with a single name the methods are laid out in one row.
-    window_row : int
-        Row whose 1st-99th percentile sets the window of each image kind (the truth, if shown).
-    crop : (slice, slice), optional
-        Region to show (rows, columns).
-    title : str
-    overwrite : bool
-
-    Returns
-    -------
-    Path
-    """
-    export.check_output(path, overwrite=overwrite)
-    plt = export.pyplot()
-    crop = crop or (slice(None), slice(None))
-    shown = [(label, {n: export.display_image(n, images[n])[crop] for n in names}) for label, images in rows]
-    windows = {n: export.display_window(n, shown[window_row][1][n]) for n in names}
-    h, w = shown[0][1][names[0]].shape
-    single = len(names) == 1
-    nr, nc = (1, len(shown)) if single else (len(shown), len(names))
-    panel_w = 4.0 if single else 4.2
-    panel_h = float(np.clip(panel_w * h / max(w, 1), 1.5, 6.0))
-    fig, axes = plt.subplots(nr, nc, figsize=(nc * panel_w + 0.8, nr * (panel_h + 0.45) + 0.7), squeeze=False,
-                             layout="constrained")
-    cmap = plt.get_cmap("gray").with_extremes(bad="#6f8fbf")
-    for i, (label, images) in enumerate(shown):
-        for k, n in enumerate(names):
-            ax = axes[0, i] if single else axes[i, k]
-            im = ax.imshow(images[n], cmap=cmap, vmin=windows[n][0], vmax=windows[n][1], interpolation="nearest")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if single:
-                ax.set_title(label, fontsize=10)
-            else:
-                if i == 0:
-                    ax.set_title(export.IMAGE_LABELS[n], fontsize=10)
-                if k == 0:
-                    ax.set_ylabel(label, fontsize=10)
-            if single and i == 0:
-                ax.set_ylabel(export.IMAGE_LABELS[n], fontsize=10)
-            if i == len(shown) - 1:
-                fig.colorbar(im, ax=ax, shrink=0.85, location="right" if single else "bottom")
-    if title:
-        fig.suptitle(title, fontsize=11)
-    fig.supxlabel(f"windows: 1st-99th percentile of '{rows[window_row][0]}'; blue: no data", fontsize=8)
-    return export.save_figure(fig, path)
-
-
-def plot_convergence(path, histories: dict[str, tuple[np.ndarray, list]], *, reference: float | None = None,
-                     whole: bool = True, title: str = "", overwrite: bool = False) -> Path:
-    """Cost per iteration of several fits: the whole history, and the approach to the optimum.
-
-    Parameters
-    ----------
-    path : str or Path
-        Output PNG.
-    histories : dict
-        Label -> (cost per iteration (N,), fit stage of each iteration (N,) or empty).
-    reference : float, optional
-        Optimum for the right panel (e.g. from a long run); default: the lowest cost shown there.
-    whole : bool
-        Also show the left panel (the whole history).
-    title : str
-    overwrite : bool
-
-    Returns
-    -------
-    Path
-
-    Notes
-    -----
-    Left: every iteration, stage changes dotted. Right: cost minus ``reference`` on a log scale, for
-    the iterations before the first 'reweight' stage, where every fit minimises the same cost (the
-    same data weights), so that the curves are comparable.
-    """
-    export.check_output(path, overwrite=overwrite)
-    plt = export.pyplot()
-    fig, axes = plt.subplots(1, 2 if whole else 1, figsize=(12 if whole else 7, 4.6), squeeze=False,
-                             layout="constrained")
-    ax, ax2 = (axes[0, 0], axes[0, 1]) if whole else (None, axes[0, 0])
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    same = {}
-    for (label, (cost, stages)), color in zip(histories.items(), colors):
-        cost = np.asarray(cost, dtype=np.float64)
-        stages = list(stages) if len(stages) == cost.size else [""] * cost.size
-        it = np.arange(1, cost.size + 1)
-        if whole:
-            ax.plot(it, cost, "-", color=color, lw=1.2, label=label)
-            for i in range(cost.size):
-                if i == 0 or stages[i] != stages[i - 1]:
-                    if i:
-                        ax.axvline(it[i] - 0.5, color=color, ls=":", lw=0.8)
-                    ax.annotate(stages[i], (it[i], 0.98), xycoords=("data", "axes fraction"), fontsize=7,
-                                color=color, rotation=90, va="top", xytext=(2, 0), textcoords="offset points")
-        n = stages.index("reweight") if "reweight" in stages else cost.size
-        same[label] = (it[:n], cost[:n], color)
-    shown = [c for _, c, _ in same.values() if c.size]
-    ref = reference if reference is not None else (min(c.min() for c in shown) if shown else 0.0)
-    for label, (it, cost, color) in same.items():
-        excess = cost - ref
-        ax2.plot(it, np.where(excess > 0, excess, np.nan), "-", color=color, lw=1.4, label=label)
-    if whole:
-        ax.set_yscale("log")
-        ax.set_ylabel("cost Σ w (I − Ī)²")
-        ax.set_title("whole fit (dotted: next stage)", fontsize=10)
-    ax2.set_yscale("log")
-    ax2.set_ylabel("cost − optimum")
-    ax2.set_title(f"approach to the optimum {ref:.8g}" + (" (before reweighting)" if any(
-        "reweight" in list(s) for _, s in histories.values()) else ""), fontsize=10)
-    for a in axes[0]:
-        a.set_xlabel("iteration")
-        a.grid(alpha=0.3, which="both")
-        if histories:
-            a.legend(fontsize=9)
-    if title:
-        fig.suptitle(title, fontsize=11)
-    return export.save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -370,10 +241,10 @@ def write_comparison(out_dir: str | Path, scan: Scan, results: dict[str, Result]
     labels = [label for label, _ in rows]
     window_row = labels.index("ml") if "ml" in labels else len(rows) - 1
     J, H, W = scan.shape
-    plot_images(paths["images"], rows, window_row=window_row, overwrite=overwrite,
+    plots.plot_images(paths["images"], rows, window_row=window_row, overwrite=overwrite,
                 title=f"{Path(source).name or 'scan'}: {J} frames of {H} x {W}")
     hist = {m: (r.cost, r.cost_stage) for m, r in results.items() if np.size(r.cost)}
-    plot_convergence(paths["convergence"], hist, overwrite=overwrite,
+    plots.plot_convergence(paths["convergence"], hist, overwrite=overwrite,
                      title="cost per iteration (the ML fit's includes its weak prior on the per-frame parameters)")
     table = comparison_table(results, runtimes, scan=scan, truth=truth)
     header = (f"Scan {Path(source).name or '(in memory)'}: {J} frames of {H} x {W}; measured on {machine()}.\n"
@@ -521,24 +392,7 @@ def write_nps(out_dir: str | Path, study: dict, *, title: str = "", overwrite: b
     for p in paths.values():
         export.check_output(p, overwrite=overwrite)
     f, ff = study["frequency"], study["fringe_frequency"]
-    plt = export.pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 4.6), layout="constrained")
-    for m in study["mean"]:
-        ax.errorbar(f, study["mean"][m], yerr=study["std"][m], fmt=".-", ms=4, lw=1.1, capsize=2, label=m)
-    for k, label in ((1, "fringe frequency"), (2, "first harmonic")):
-        ax.axvline(k * ff, color="0.4", ls="--" if k == 1 else ":", lw=1)
-        ax.annotate(f"{label}\n{k * ff:.3f} /px", (k * ff, 1), xycoords=("data", "axes fraction"), fontsize=8,
-                    xytext=(3, -22 * k), textcoords="offset points", color="0.3")
-    ax.set_yscale("log")
-    ax.set_xlim(0, 0.5)
-    ax.set_xlabel("radial spatial frequency (cycles/pixel)")
-    ax.set_ylabel("NPS of the dark-field image (pixel²)")
-    n = len(study["scans"])
-    ax.set_title(title or f"binned radial NPS of blank-scan dark-field images, {n} scan{'s' * (n > 1)}"
-                 + (" (mean ± std)" if n > 1 else ""), fontsize=10)
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=9, title="method")
-    export.save_figure(fig, paths["png"])
+    plots.plot_nps(paths["png"], study, title=title)
     head = ["frequency_cycles_per_pixel"] + [f"{m}_{s}" for m in study["mean"] for s in ("mean", "std")]
     cols = [f] + [study[s][m] for m in study["mean"] for s in ("mean", "std")]
     lines = [",".join(head)] + [",".join(f"{v:.6g}" for v in row) for row in zip(*cols)]

@@ -14,7 +14,7 @@ Each round fits the current model, then tests every catalogue effect the model l
   against the current one, considered only when no structured effect is left.
 
 Whether an effect can be identified at all comes from the null space of the Fisher information
-(:mod:`dfxcorr.identify`). The significant structured effect that explains the most chi-square is
+(:mod:`dfxcorr.analysis.identify`). The significant structured effect that explains the most chi-square is
 added (Holm's correction over the effects tried in the round), the model refitted, and the loop
 repeats until nothing significant is left.
 """
@@ -28,15 +28,16 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage, stats
 
-from . import config as C
+from .. import config as C
+from .. import plots
 from . import identify
-from . import model as M
-from .align import build_observations, resolve_reference, subsample_columns
-from .fit import fit_vibrations
-from .io import Scan, atomic_path, read_scan
-from .mask import motion_score
-from .pipeline import resolve_effects, stage, visibility_unidentifiable
-from .retrieve import retrieve
+from .. import model as M
+from ..align import build_observations, resolve_reference, subsample_columns
+from ..fit import fit_vibrations
+from ..io import Scan, atomic_path, read_scan
+from ..mask import motion_score
+from ..pipeline import resolve_effects, stage, visibility_unidentifiable
+from ..retrieve import retrieve
 
 log = logging.getLogger("dfxcorr")
 
@@ -467,7 +468,7 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
     """Write ``diagnosis.json``, ``report.md``, ``residuals.png`` and (if detected) ``motion_mask.tif``."""
     import tifffile
 
-    from .export import check_output
+    from ..export import check_output
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -476,7 +477,7 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
         check_output(p, overwrite=overwrite)
     with atomic_path(paths["diagnosis.json"]) as tmp:
         tmp.write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
-    _plot(diag, paths["residuals.png"])
+    plots.plot_diagnosis(diag, paths["residuals.png"])
     written = list(paths.values())
     if diag.motion_mask.any():
         with atomic_path(out_dir / "motion_mask.tif") as tmp:
@@ -528,31 +529,3 @@ def reconstruct_settings(diag: Diagnosis) -> list[str]:
     return sets
 
 
-def _plot(diag: Diagnosis, path: Path) -> None:
-    from .export import pyplot, save_figure
-
-    plt = pyplot()
-    fig = plt.figure(figsize=(13, 8.5), layout="constrained")
-    grid = fig.add_gridspec(2, 4)
-    top = np.nanpercentile(diag.before.pixel, 99)
-    for k, (res, title) in enumerate(((diag.before, "before"), (diag.after, "after"))):
-        ax = fig.add_subplot(grid[0, 2 * k:2 * k + 2])
-        im = ax.imshow(res.pixel, cmap="magma", vmin=0, vmax=max(top, 2))
-        ax.set_title(f"residual per pixel, {title} (model: "
-                     f"{', '.join(diag.base_model if k == 0 else diag.final_model) or 'none'})", fontsize=9)
-        fig.colorbar(im, ax=ax, shrink=0.8)
-    panels = [("frame", None, "frame"), ("x", "x_value", "lateral coordinate x"),
-              ("phase", "phase_value", "fringe phase (rad)"), ("count", "count_value", "expected count")]
-    for k, (attr, xattr, label) in enumerate(panels):
-        ax = fig.add_subplot(grid[1, k])
-        for res, style, title in ((diag.before, "-", "before"), (diag.after, "-", "after")):
-            y = getattr(res, attr)
-            x = np.arange(y.size) if xattr is None else getattr(res, xattr)
-            ax.plot(x, y, style, marker="." if xattr else None, label=title)
-        ax.axhline(1.0, color="k", lw=0.8, ls=":")
-        if attr == "count":
-            ax.set_xscale("log")
-        ax.set_xlabel(label)
-        ax.set_ylabel("mean squared standardized residual")
-        ax.legend(fontsize=8)
-    save_figure(fig, path)

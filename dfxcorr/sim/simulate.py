@@ -12,10 +12,10 @@ import logging
 
 import numpy as np
 
-from . import model as M
-from .align import build_observations
-from .config import Option, _fraction, _nonneg, _positive
-from .io import Reference, Scan, SteppingReference
+from .. import model as M
+from ..align import build_observations
+from ..config import Option, _fraction, _nonneg, _positive
+from ..io import Reference, Scan, SteppingReference
 
 log = logging.getLogger(__name__)
 

@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
-from . import config as C
-from . import export, pipeline
+from .. import config as C
+from .. import export, pipeline, plots
 from . import simulate as S
-from .evaluate import frames_lighting, image_rmse, vibration_rmse
-from .io import atomic_path, write_scan
+from ..analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
+from ..io import atomic_path, write_scan
 
 log = logging.getLogger("dfxcorr")
 
@@ -41,9 +41,9 @@ def run_demo(out_dir: Path, *, overwrite: bool = False, command_line: str = "dfx
     result = pipeline.reconstruct(paths["scan"], cfg, command_line=command_line)
     export.write_result_h5(paths["result"], result, overwrite=overwrite)
     tiffs = export.write_tiffs(out_dir / "tiff", result, stem="result", overwrite=overwrite)
-    preview = export.write_preview(out_dir / "preview.png", result, overwrite=overwrite,
+    preview = plots.write_preview(out_dir / "preview.png", result, overwrite=overwrite,
                                    title="dfxcorr demo: simulated thorax, 2.5 mm pixels")
-    fitplot = export.write_fit_plot(out_dir / "fit.png", result, overwrite=overwrite)
+    fitplot = plots.write_fit_plot(out_dir / "fit.png", result, overwrite=overwrite)
     good = frames_lighting(scan.position, scan.active_rows, scan.shape[1])
     vib = vibration_rmse(result.params, truth, good)
     img = image_rmse({k: result.image(k) for k in result.IMAGES}, truth)

@@ -1,0 +1,1 @@
+"""Analysis beyond the pipeline: model-discrepancy diagnosis, identifiability, method comparison, evaluation."""
