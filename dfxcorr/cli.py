@@ -318,3 +318,43 @@ def nps(scans, output_dir, methods, bins, config_files, sets, overwrite):
 
 if __name__ == "__main__":  # pragma: no cover
     main()
+
+
+@main.command()
+@click.argument("scan_list", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", "output_dir", required=True, type=click.Path(file_okay=False),
+              help="Folder for the results (<scan stem>.h5) and logs (<scan stem>.log).")
+@with_config
+@click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Scans processed at once (each gets an equal share of the cores).")
+@click.option("--array-index", type=click.IntRange(min=1), envvar="SLURM_ARRAY_TASK_ID",
+              help="Process only the scan on this line of SCAN_LIST (from 1, as sed -n Np) and exit with its "
+                   "status; default: $SLURM_ARRAY_TASK_ID.")
+@friendly
+def batch(scan_list, output_dir, config_files, sets, jobs, array_index):
+    """Reconstruct every scan listed in SCAN_LIST (one path per line), one process per scan.
+
+    Finished results are skipped, so a stopped batch resumes where it was. A failed scan does not stop
+    the others; the summary at the end lists every scan with its status, time and reduced chi-square.
+    """
+    from . import batch as B
+
+    C.load(config_files, sets)  # refuse a bad configuration once, before any scan runs
+    entries = B.read_list(scan_list)
+    if array_index is not None:
+        entries = B.select_line(entries, array_index, list_name=scan_list)
+    out_dir = Path(output_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    todo = B.plan(entries, out_dir)
+    done = [0]
+
+    def report(outcome):
+        done[0] += 1
+        extra = f", reduced chi-square {outcome.reduced_chi2:.4f}" if outcome.reduced_chi2 is not None else ""
+        line = f"[{done[0]}/{len(todo)}] {outcome.job.scan}: {outcome.status} ({outcome.seconds:.1f} s{extra})"
+        log.info("%s%s", line, f": {outcome.error}" if outcome.error else "")
+
+    outcomes = B.run_batch(todo, config_files=config_files, sets=sets, n_jobs=jobs, on_done=report)
+    click.echo(B.summary(outcomes))
+    if any(o.status == "failed" for o in outcomes):
+        sys.exit(1)

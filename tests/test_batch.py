@@ -1,0 +1,71 @@
+"""dfxcorr batch: one process per scan, failures isolated, resumable, and one task of a SLURM array."""
+import h5py
+import pytest
+from click.testing import CliRunner
+
+from dfxcorr.cli import main
+
+TINY = ["--set", "simulate.pixel_mm=10", "--set", "simulate.step_mm=10"]
+FIT = ["--set", "fit.subsample=4"]  # 51 columns
+
+
+@pytest.fixture(scope="module")
+def scans(tmp_path_factory):
+    d = tmp_path_factory.mktemp("scans")
+    for k, name in enumerate(("a", "b")):
+        res = CliRunner().invoke(main, ["simulate", "-o", str(d / f"{name}.h5"), *TINY,
+                                        "--set", f"simulate.seed={k + 1}"])
+        assert res.exit_code == 0, res.output
+    (d / "broken.h5").write_bytes(b"not an HDF5 file")
+    listing = d / "scans.txt"
+    listing.write_text(f"# scans of the day\n{d / 'a.h5'}\n\n{d / 'broken.h5'}\n{d / 'b.h5'}\n")
+    return d, listing
+
+
+def run(*args, env=None):
+    return CliRunner().invoke(main, [str(a) for a in args], env=env)
+
+
+def is_result(path):
+    with h5py.File(path, "r") as f:
+        return f.attrs["format"] == "dfxcorr-result"
+
+
+@pytest.mark.slow
+def test_a_failed_scan_does_not_stop_the_others_and_a_rerun_resumes(scans, tmp_path):
+    d, listing = scans
+    out = tmp_path / "out"
+    res = run("batch", listing, "-o", out, "--jobs", "2", *FIT, env={"SLURM_ARRAY_TASK_ID": None})
+    assert res.exit_code == 1, res.output
+    assert is_result(out / "a.h5") and is_result(out / "b.h5")
+    assert not (out / "broken.h5").exists()
+    table = res.stdout.splitlines()
+    row = {line.split()[0]: line.split()[1] for line in table[1:-1]}
+    assert row == {str(d / "a.h5"): "done", str(d / "broken.h5"): "failed", str(d / "b.h5"): "done"}
+    assert "not an HDF5 file" in res.output and "not an HDF5 file" in (out / "broken.log").read_text()
+    assert table[-1] == "3 scans: 2 done, 0 skipped, 1 failed"
+    again = run("batch", listing, "-o", out, *FIT, env={"SLURM_ARRAY_TASK_ID": None})
+    assert again.exit_code == 1
+    assert again.stdout.splitlines()[-1] == "3 scans: 0 done, 2 skipped, 1 failed"
+
+
+def test_one_task_of_a_job_array_processes_its_line_only(scans, tmp_path):
+    d, listing = scans
+    out = tmp_path / "array"
+    res = run("batch", listing, "-o", out, *FIT, env={"SLURM_ARRAY_TASK_ID": "5"})  # line 5: b.h5
+    assert res.exit_code == 0, res.output
+    assert is_result(out / "b.h5") and not (out / "a.h5").exists()
+    failed = run("batch", listing, "-o", out, *FIT, "--array-index", "4")  # line 4: broken.h5
+    assert failed.exit_code == 1
+    blank = run("batch", listing, "-o", out, "--array-index", "3")  # line 3 is blank
+    assert blank.exit_code == 2 and "line 3" in blank.output
+
+
+def test_scans_whose_results_would_collide_are_refused_before_any_run(scans, tmp_path):
+    d, _ = scans
+    (tmp_path / "other").mkdir()
+    listing = tmp_path / "dup.txt"
+    listing.write_text(f"{d / 'a.h5'}\n{tmp_path / 'other' / 'a.h5'}\n")
+    res = run("batch", listing, "-o", tmp_path / "out", env={"SLURM_ARRAY_TASK_ID": None})
+    assert res.exit_code == 2 and "lines 1 and 2" in res.output
+    assert not (tmp_path / "out" / "a.h5").exists()
