@@ -51,9 +51,16 @@ def parse_methods(text: str) -> tuple[str, ...]:
 
 
 def machine() -> str:
-    """One line describing where the numbers were measured."""
-    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {platform.system()}, "
-            f"python {platform.python_version()}, numpy {np.__version__}")
+    """One line describing where the numbers were measured: CPU, cores, memory, system, versions."""
+    cpu, mem = platform.processor() or platform.machine(), ""
+    if os.path.exists("/proc/cpuinfo"):
+        with open("/proc/cpuinfo") as fh:
+            cpu = next((line.split(":", 1)[1].strip() for line in fh if line.startswith("model name")), cpu)
+        with open("/proc/meminfo") as fh:
+            kib = next((int(line.split()[1]) for line in fh if line.startswith("MemTotal")), 0)
+        mem = f", {kib / 2 ** 20:.0f} GiB"
+    return (f"{cpu}, {os.cpu_count()} cores{mem}, {platform.system()}, python {platform.python_version()}, "
+            f"numpy {np.__version__}")
 
 
 # --------------------------------------------------------------------------------------------------
