@@ -168,7 +168,7 @@ def run_job(job: Job, *, config_files=(), sets=(), threads: int = 1) -> Outcome:
                SLURM_CPUS_PER_TASK=str(threads))
     t0 = time.perf_counter()
     proc = subprocess.run(command(job, config_files=config_files, sets=sets), env=env, stdin=subprocess.DEVNULL,
-                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, errors="replace")
+                          capture_output=True, text=True, errors="replace", check=False)
     seconds = time.perf_counter() - t0
     if proc.returncode == 0:
         return Outcome(job, "done", seconds, result_chi2(job.result))

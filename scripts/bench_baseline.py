@@ -45,7 +45,7 @@ def reference_env(ref: str, work: Path) -> Path:
 def timed(cmd: list[str]) -> tuple[float, float]:
     """Wall seconds and peak resident MiB of one process (GNU time)."""
     fmt = "%e %M"
-    proc = subprocess.run(["/usr/bin/time", "-f", fmt] + cmd, capture_output=True, text=True)
+    proc = subprocess.run(["/usr/bin/time", "-f", fmt, *cmd], capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-2000:]}")
     wall, rss_kib = proc.stderr.strip().splitlines()[-1].split()
