@@ -191,15 +191,17 @@ class _Walker:
         self.f = f
         self.allow_external = allow_external
         self.external: list[str] = []
-        self.base = Path(f.filename).resolve().parent
 
-    def _outside(self, path: str, what: str, files) -> None:
+    def _outside(self, path: str, what: str, files=()) -> None:
         if not self.allow_external:
             raise ScanFormatError(f"/{path} is {what}; refused (set load.allow_external=true to follow it)")
         for name in files:
-            full = str((self.base / name).resolve()) if name not in (".", "") else None
-            if full and full not in self.external:
-                self.external.append(full)
+            self._record(name)
+
+    def _record(self, name) -> None:
+        full = str(Path(name).resolve())
+        if full != str(Path(self.f.filename).resolve()) and full not in self.external:
+            self.external.append(full)
 
     def get(self, path: str):
         """The object at ``path`` (or None when absent) after checking every link on the way."""
@@ -213,6 +215,8 @@ class _Walker:
             except (KeyError, RuntimeError, OSError, ValueError) as exc:
                 raise ScanFormatError(f"/{path}: cannot resolve {here} ({exc})") from None
             if link is None:
+                if depth:
+                    raise ScanFormatError(f"/{path}: dangling soft link ({here} does not exist)")
                 return None
             if isinstance(link, h5py.SoftLink):
                 depth += 1
@@ -223,7 +227,7 @@ class _Walker:
                 k = 0
                 continue
             if isinstance(link, h5py.ExternalLink):
-                self._outside(path, f"an external link to {link.filename}:{link.path}", [link.filename])
+                self._outside(path, f"an external link to {link.filename}:{link.path}")
                 break
             k += 1
         try:
@@ -232,6 +236,7 @@ class _Walker:
             raise ScanFormatError(f"/{path}: dangling or broken link ({exc})") from None
         if obj is None:
             raise ScanFormatError(f"/{path}: dangling link")
+        self._record(obj.file.filename)  # the file HDF5 actually opened behind an external link
         return obj
 
     def dataset(self, path: str, *, required: bool = True) -> h5py.Dataset | None:
@@ -255,17 +260,23 @@ class _Walker:
     def _storage(self, path: str, dset: h5py.Dataset) -> None:
         """Refuse data that is declared but not stored, and storage outside the file unless allowed."""
         if dset.is_virtual:
-            sources = [vs.file_name for vs in dset.virtual_sources()]
-            self._outside(path, f"a virtual dataset (sources {', '.join(sorted(set(sources)))})", sources)
+            sources = sorted({vs.file_name for vs in dset.virtual_sources()})
+            self._outside(path, f"a virtual dataset (sources {', '.join(sources)})")
+            # HDF5 looks for a relative source beside the file first, then in the working directory
+            here = Path(dset.file.filename).resolve().parent
+            for name in sources:
+                if name != ".":
+                    self._record(here / name if (here / name).exists() else name)
             return
         declared = dset.size * dset.dtype.itemsize
         if dset.external:
+            # HDF5 opens relative external raw files from the working directory (HDF5_EXTFILE_PREFIX unset)
             self._outside(path, f"stored in external raw file(s) {', '.join(e[0] for e in dset.external)}",
                           [e[0] for e in dset.external])
             present = 0
             for name, offset, size in dset.external:
                 try:
-                    avail = max(0, (self.base / name).stat().st_size - offset)
+                    avail = max(0, Path(name).stat().st_size - offset)
                 except OSError:
                     avail = 0
                 present += min(avail, size)
