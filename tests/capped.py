@@ -41,7 +41,7 @@ def _child(send, func, budget):
         cap = address_space() + budget
         resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
         send.send(func())
-    except BaseException:  # anything escaping func is a finding of the test, reported to the parent
+    except BaseException:  # noqa: BLE001 -- anything escaping func is a finding of the test, reported to the parent
         send.send(Outcome(-1, "", "", traceback.format_exc()))
     finally:
         os._exit(0)

@@ -157,7 +157,7 @@ def test_storage_outside_the_file_is_refused_unless_allowed(tmp_path, kind, matc
 
 
 def test_external_raw_too_short_is_refused(tmp_path):
-    path, scan = _outside_file(tmp_path, "external raw")
+    path, _ = _outside_file(tmp_path, "external raw")
     (tmp_path / "frames.raw").write_bytes(b"\0" * 10)
     with pytest.raises(ScanFormatError, match="external files hold 10"):
         read_scan(path, allow_external=True)
