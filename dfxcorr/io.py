@@ -548,8 +548,7 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, np.ndarr
         inst.attrs["NX_class"] = "NXinstrument"
         det = inst.create_group("detector")
         det.attrs["NX_class"] = "NXdetector"
-        J, H, W = scan.data.shape
-        det.create_dataset("data", data=scan.data, compression=compression, chunks=(1, H, W))
+        _write_frames(det, "data", scan.data, compression)
         if np.any(scan.dark != 0):
             det.create_dataset("dark", data=scan.dark)
         det.create_dataset("gain", data=float(scan.gain))
@@ -565,7 +564,7 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, np.ndarr
         ref = entry.create_group("reference")
         if isinstance(scan.reference, SteppingReference):
             st = ref.create_group("stepping")
-            st.create_dataset("data", data=scan.reference.data, compression=compression)
+            _write_frames(st, "data", scan.reference.data, compression)
             st.create_dataset("phase_step", data=scan.reference.phase_step).attrs["units"] = "rad"
             if scan.reference.dark is not None:
                 st.create_dataset("dark", data=scan.reference.dark)
@@ -575,6 +574,36 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, np.ndarr
             ref.create_dataset("phase", data=scan.reference.phase).attrs["units"] = "rad"
         for key, value in (extra or {}).items():
             f.create_dataset(key, data=value)
+
+
+def _write_frames(group: h5py.Group, name: str, frames, compression: str | None) -> None:
+    """Write frames [N, H, W] chunked per frame, one frame at a time (``frames`` may read them lazily)."""
+    n, h, w = frames.shape
+    dset = group.create_dataset(name, shape=(n, h, w), dtype=frames.dtype, chunks=(1, h, w), compression=compression)
+    for k in range(n):
+        dset[k] = frames[k]
+
+
+def read_reference(path: str | os.PathLike, *, allow_external: bool = False) -> Reference | SteppingReference:
+    """The reference of a scan file (maps or stepping series) with every check of :func:`read_scan`, frames unread.
+
+    Raises
+    ------
+    ScanFormatError
+        As :func:`read_scan`, for the layout of the whole file and the values of the reference.
+    """
+    path = Path(path)
+    if not path.is_file() or not h5py.is_hdf5(path):
+        raise ScanFormatError(f"{path}: no such HDF5 file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise ScanFormatError(f"{path}: cannot open as HDF5 ({exc})") from None
+    with f:
+        try:
+            return _read_reference(f, validate_file(f, allow_external=allow_external).W)
+        except ScanFormatError as exc:
+            raise ScanFormatError(f"{path}: {exc}") from None
 
 
 def illumination_count(position: np.ndarray, active_rows: int, height: int) -> np.ndarray:
