@@ -160,6 +160,8 @@ def _tiff_frames(path: Path, tif) -> _Frames:
                                        f"series 0 has {first[0]} {first[1]}")
             index += [(k, j) for j in range(frames[0])]
         _check_tiff_storage(path, tif, size)
+    except StackImportError:
+        raise
     except (OSError, ValueError, IndexError, tifffile.TiffFileError) as exc:
         raise StackImportError(f"{path}: cannot read as TIFF ({exc})") from exc
     if first is None:

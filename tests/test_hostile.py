@@ -201,3 +201,60 @@ def test_huge_declaration_refused_within_memory_cap(tmp_path, rng):
     assert outcome.traceback == "" and outcome.exit_code == 2
     assert one_error_line(outcome.stderr, "detector/data")
     assert not out.exists()
+
+
+def npy_declaring(path, shape, descr="<f8"):
+    """A .npy file whose header declares ``shape`` but which holds 64 bytes of data."""
+    with open(path, "wb") as fh:
+        np.lib.format.write_array_header_1_0(fh, {"descr": descr, "fortran_order": False, "shape": shape})
+        fh.write(b"\0" * 64)
+
+
+def tiff_declaring(path, pages, height, width, compression=1):
+    """A little-endian TIFF of ``pages`` uint16 pages of ``height`` x ``width`` holding 16 bytes each."""
+    import struct
+
+    entries = 9
+    ifd_size = 2 + entries * 12 + 4
+    out = bytearray(b"II*\0" + struct.pack("<I", 8))
+    for p in range(pages):
+        start = len(out)
+        data = start + ifd_size
+        nxt = data + 16 if p < pages - 1 else 0
+        tags = [(256, 4, width), (257, 4, height), (258, 3, 16), (259, 3, compression), (262, 3, 1),
+                (273, 4, data), (277, 3, 1), (278, 4, height), (279, 4, 16)]
+        out += struct.pack("<H", entries)
+        for tag, typ, value in tags:
+            out += struct.pack("<HHI", tag, typ, 1) + (struct.pack("<HH", value, 0) if typ == 3
+                                                        else struct.pack("<I", value))
+        out += struct.pack("<I", nxt) + b"\0" * 16
+    path.write_bytes(bytes(out))
+
+
+@pytest.mark.parametrize("kind", ["npy 745 GiB", "tiff 3 x 60000 x 60000", "deflate tiff 3 x 60000 x 60000"])
+def test_importer_sizes_files_from_their_headers(tmp_path, kind):
+    if kind.startswith("npy"):
+        sample = tmp_path / "big.npy"
+        npy_declaring(sample, (20000, 2000, 2500))
+        words = "big.npy"
+    else:
+        sample = tmp_path / "big.tif"
+        tiff_declaring(sample, 3, 60000, 60000, compression=8 if kind.startswith("deflate") else 1)
+        words = "big.tif"
+    good = tmp_path / "flat.npy"
+    np.save(good, np.ones((3, 4, 4), np.uint16))
+    out = tmp_path / "o.h5"
+    outcome = cli_capped("import", "stepping", "--sample", sample, "--reference", good, "--steps-per-period", 3,
+                         "-o", out, budget=256 << 20)
+    assert outcome.traceback == "" and outcome.exit_code == 2, outcome
+    assert one_error_line(outcome.stderr, words)
+    assert not out.exists()
+
+
+def test_import_stepping_refuses_infinite_steps(tmp_path):
+    np.save(tmp_path / "a.npy", np.ones((3, 4, 4), np.uint16))
+    res = CliRunner().invoke(main, ["import", "stepping", "--sample", str(tmp_path / "a.npy"), "--reference",
+                                    str(tmp_path / "a.npy"), "--steps-per-period", "1e-310", "-o",
+                                    str(tmp_path / "o.h5")])
+    assert res.exit_code == 2 and one_error_line(res.stderr, "infinite")
+    assert not (tmp_path / "o.h5").exists()
