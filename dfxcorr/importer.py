@@ -112,7 +112,7 @@ def _open_npy(path: Path) -> _Frames:
             version = np.lib.format.read_magic(fh)
             read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
                            else np.lib.format.read_array_header_2_0)
-            shape, fortran, dt = read_header(fh)
+            shape, _, dt = read_header(fh)
             header = fh.tell()
     except (OSError, ValueError, EOFError) as exc:
         raise StackImportError(f"{path}: cannot read as .npy ({exc})") from exc
@@ -800,7 +800,7 @@ def import_scanning(output, *, frames, positions, position_units: str = "pixel",
     if position_units == "mm" and px is None:
         raise StackImportError("positions in mm need the pixel size (pixel_size) to convert them to detector rows")
     gain_value = _gain(gain)
-    raw = dict(shape=shape, dtype=dtype, offset=offset)
+    raw = {"shape": shape, "dtype": dtype, "offset": offset}
     with contextlib.ExitStack() as stack:
         series = stack.enter_context(Series(frames, **raw))
         J, H, W = series.shape

@@ -395,6 +395,19 @@ def validate_file(f: h5py.File, *, allow_external: bool = False) -> Layout:
     return Layout(J=J, H=H, W=W, A=A, S=S, external_files=tuple(walk.external))
 
 
+def _open(path: str | os.PathLike) -> h5py.File:
+    """The scan file opened for reading, or a refusal naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise ScanFormatError(f"{path}: no such file")
+    if not h5py.is_hdf5(path):
+        raise ScanFormatError(f"{path}: not an HDF5 file")
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        raise ScanFormatError(f"{path}: cannot open as HDF5 ({exc})") from None
+
+
 def read_scan(path: str | os.PathLike, *, allow_external: bool = False) -> Scan:
     """Read and validate a dfxcorr scan file.
 
@@ -416,16 +429,7 @@ def read_scan(path: str | os.PathLike, *, allow_external: bool = False) -> Scan:
         For a file that is not HDF5, is not a dfxcorr scan, or breaks a rule of the format; the message
         names the dataset.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise ScanFormatError(f"{path}: no such file")
-    if not h5py.is_hdf5(path):
-        raise ScanFormatError(f"{path}: not an HDF5 file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise ScanFormatError(f"{path}: cannot open as HDF5 ({exc})") from None
-    with f:
+    with _open(path) as f:
         layout = validate_file(f, allow_external=allow_external)
         dset = _require(f, f"{_DET}/data")
         data = dset[()]
@@ -592,14 +596,7 @@ def read_reference(path: str | os.PathLike, *, allow_external: bool = False) -> 
     ScanFormatError
         As :func:`read_scan`, for the layout of the whole file and the values of the reference.
     """
-    path = Path(path)
-    if not path.is_file() or not h5py.is_hdf5(path):
-        raise ScanFormatError(f"{path}: no such HDF5 file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise ScanFormatError(f"{path}: cannot open as HDF5 ({exc})") from None
-    with f:
+    with _open(path) as f:
         try:
             return _read_reference(f, validate_file(f, allow_external=allow_external).W)
         except ScanFormatError as exc:

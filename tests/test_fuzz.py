@@ -22,8 +22,8 @@ DATASETS = [f"{DET}/data", "entry/scan/position", "entry/scan/phase_step", "entr
             f"{DET}/dark", f"{DET}/gain", f"{DET}/x_pixel_size", f"{DET}/y_pixel_size",
             "entry/reference/transmission", "entry/reference/visibility", "entry/reference/phase"]
 GROUPS = ["entry", "entry/scan", "entry/reference", DET]
-SETTINGS = dict(derandomize=True, database=None, deadline=None, print_blob=True,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+SETTINGS = {"derandomize": True, "database": None, "deadline": None, "print_blob": True,
+            "suppress_health_check": [HealthCheck.too_slow, HealthCheck.function_scoped_fixture]}
 # a few ML iterations exercise the fit on whatever passes the checks without taking long
 FAST = ["--set", "fit.subsample=4", "--set", "fit.maxiter=3", "--set", "fit.reweight=0",
         "--set", "retrieve.iterations=1"]

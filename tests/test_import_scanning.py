@@ -84,7 +84,7 @@ def test_imported_scan_reconstructs_as_the_original(simulated, tmp_path):
 def detector_stepping(scan, first, steps=5, seed=0):
     """A reference stepping series on the detector: the active area at rows first .. first + A - 1, dark elsewhere."""
     rng = np.random.default_rng(seed)
-    ref, (J, H, W), A = scan.reference, scan.shape, scan.active_rows
+    ref, (_, H, W), A = scan.reference, scan.shape, scan.active_rows
     phases = 2 * np.pi * np.arange(steps) / steps
     frames = rng.poisson(2.0, (steps, H, W)).astype(np.uint16)
     mean = ref.transmission * (1 + ref.visibility * np.cos(ref.phase[None] + phases[:, None, None]))
