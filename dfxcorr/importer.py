@@ -123,10 +123,12 @@ def _open_npy(path: Path) -> _Frames:
         raise StackImportError(f"{path}: header declares {shape} {dt} ({declared} bytes) but the file holds "
                                f"{_size(path) - header} bytes of data")
     frames = _frames_shape(path, shape)
-    # a memory map reads only the frames asked for
-    arr = np.load(path, mmap_mode="r", allow_pickle=False)
-    arr = arr.reshape(frames) if arr.ndim == 2 else arr
-    return _Frames(path, frames, dt, lambda k: np.array(arr[k]))
+
+    def read(k):
+        # a memory map, opened per frame, reads only that frame and holds no file or mapping in between
+        return np.array(np.load(path, mmap_mode="r", allow_pickle=False).reshape(frames)[k])
+
+    return _Frames(path, frames, dt, read)
 
 
 def _open_tiff(path: Path) -> _Frames:
@@ -166,6 +168,11 @@ def _tiff_frames(path: Path, tif) -> _Frames:
         raise StackImportError(f"{path}: cannot read as TIFF ({exc})") from exc
     if first is None:
         raise StackImportError(f"{path}: holds no image")
+
+    if len(index) == 1:
+        # one frame per file: reopen to read it, so that a series of many files keeps none open
+        tif.close()
+        return _Frames(path, (1, *first[0]), np.dtype(first[1]), lambda k: tifffile.imread(path, series=0, key=0))
 
     def read(k):
         s, j = index[k]

@@ -10,10 +10,10 @@ from click.testing import CliRunner
 from dfxcorr import pipeline
 from dfxcorr.cli import main
 from dfxcorr.export import read_result_h5
-from dfxcorr.importer import StackImportError, active_area, import_scanning, read_positions
+from dfxcorr.importer import StackImportError, active_area, import_scanning, read_positions, read_stack
 from dfxcorr.io import SteppingReference, read_scan, write_scan
 
-from capped import one_error_line
+from capped import one_error_line, run_capped
 
 
 def run(*args):
@@ -161,3 +161,22 @@ def test_refusals_before_anything_is_written(simulated, tmp_path):
         res = run("import", "scanning", *args, "-o", out)
         assert res.exit_code == 2 and one_error_line(res.stderr, words), res.stderr
         assert not out.exists() and not list(tmp_path.glob(".*part"))
+
+
+def _read_with_few_file_handles(pattern):
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_NOFILE, (64, 64))
+    return read_stack(pattern)[:, 0, 0].tolist()
+
+
+@pytest.mark.parametrize("suffix", ["tif", "npy"])
+def test_a_series_of_many_files_keeps_none_open(tmp_path, suffix):
+    for k in range(200):
+        frame = np.full((4, 5), k, np.uint16)
+        if suffix == "tif":
+            tifffile.imwrite(tmp_path / f"f_{k}.tif", frame)
+        else:
+            np.save(tmp_path / f"f_{k}.npy", frame)
+    values = run_capped(lambda: _read_with_few_file_handles(str(tmp_path / f"f_*.{suffix}")))
+    assert values == list(range(200))
