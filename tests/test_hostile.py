@@ -97,6 +97,8 @@ CASES = [
     ("reference map declared, not stored",
      lambda f: (f.__delitem__("entry/reference/phase"), f.create_dataset("entry/reference/phase", shape=(3, 5), dtype="f8")),
      "entry/reference/phase.*not in the file"),
+    ("exposure_time in a system file", put("entry/scan/exposure_time", shape=(6,), dtype="f8",
+                                            external=[("/etc/passwd", 0, 48)]), "exposure_time.*external raw"),
     ("dark declared huge", put(f"{DET}/dark", shape=(100000, 100000), dtype="f8", chunks=(100, 100)),
      f"{DET}/dark"),
 ]
