@@ -180,6 +180,26 @@ def import_group():
     """Convert recordings from other layouts into the dfxcorr scan format."""
 
 
+def _floats(text, name):
+    from .importer import StackImportError
+
+    try:
+        return [float(p) for p in text.split(",")] if text else None
+    except ValueError:
+        raise StackImportError(f"--{name} {text!r}: expected comma-separated numbers") from None
+
+
+def _dims(shape):
+    from .importer import StackImportError
+
+    if not shape:
+        return None
+    try:
+        return tuple(int(p) for p in shape.lower().split("x"))
+    except ValueError:
+        raise StackImportError(f"--shape {shape!r}: expected ROWSxCOLS, e.g. 195x487") from None
+
+
 @import_group.command("stepping")
 @click.option("--sample", required=True, help="Sample series: glob, one file per step or one stack (.npy, .tif, raw).")
 @click.option("--reference", required=True, help="Reference (flat-field) series of the unloaded interferometer.")
@@ -198,26 +218,57 @@ def import_group():
 def import_stepping_cmd(sample, reference, dark, reference_dark, steps_per_period, phases, reference_phases, shape,
                         dtype, offset, gain, output, overwrite):
     """Import a phase-stepping recording (sample and reference series), losslessly."""
-    from .importer import StackImportError, import_stepping
+    from .importer import import_stepping
 
-    def floats(text, name):
-        try:
-            return [float(p) for p in text.split(",")] if text else None
-        except ValueError:
-            raise StackImportError(f"--{name} {text!r}: expected comma-separated numbers") from None
-
-    dims = None
-    if shape:
-        try:
-            dims = tuple(int(p) for p in shape.lower().split("x"))
-        except ValueError:
-            raise StackImportError(f"--shape {shape!r}: expected ROWSxCOLS, e.g. 195x487") from None
     scan = import_stepping(output, sample=sample, reference=reference, dark=dark, reference_dark=reference_dark,
-                           steps_per_period=steps_per_period, phases=floats(phases, "phases"),
-                           reference_phases=floats(reference_phases, "reference-phases"), shape=dims, dtype=dtype,
-                           offset=offset, gain=gain, overwrite=overwrite)
+                           steps_per_period=steps_per_period, phases=_floats(phases, "phases"),
+                           reference_phases=_floats(reference_phases, "reference-phases"), shape=_dims(shape),
+                           dtype=dtype, offset=offset, gain=gain, overwrite=overwrite)
     click.echo(f"{output}: {scan.shape[0]} steps of {scan.shape[1]} x {scan.shape[2]} ({scan.data.dtype}), "
                f"reference {scan.reference.data.shape[0]} steps")
+
+
+@import_group.command("scanning")
+@click.option("--frames", required=True, help="Frames in acquisition order: glob, one file per frame or one stack "
+                                               "(.npy, .tif, raw).")
+@click.option("--positions", required=True, type=click.Path(dir_okay=False),
+              help="Motor log: top edge of the active area per frame, one number per line or a CSV with a header.")
+@click.option("--position-units", type=click.Choice(["pixel", "mm"]), default="pixel", show_default=True,
+              help="Units of the log (mm needs --pixel-size).")
+@click.option("--position-column", help="Column of a CSV log.")
+@click.option("--reference-stepping", help="Phase-stepping series of the unloaded interferometer on the detector.")
+@click.option("--steps-per-period", type=float, help="Its nominal steps: 2 pi k / steps-per-period.")
+@click.option("--reference-phases", help="Its step phases in rad, comma-separated (instead of --steps-per-period).")
+@click.option("--reference", "reference_file", type=click.Path(dir_okay=False),
+              help="Take /entry/reference of this scan file instead.")
+@click.option("--dark", help="Dark frame(s) (averaged).")
+@click.option("--reference-dark", help="Dark frame(s) of the reference series (default: --dark).")
+@click.option("--active-first-row", type=int, help="First detector row of the active area in the reference frames "
+                                                   "(default: found from the flux).")
+@click.option("--active-rows", type=int, help="Height of the active area in rows (with --active-first-row).")
+@click.option("--shape", help="Raw files: frame shape ROWSxCOLS.")
+@click.option("--dtype", help="Raw files: numpy dtype with byte order, e.g. '<u2'.")
+@click.option("--offset", type=int, default=0, show_default=True, help="Raw files: header bytes to skip.")
+@click.option("--gain", type=float, default=1.0, show_default=True, help="Detector units per photon.")
+@click.option("--pixel-size", type=float, help="Pixel pitch in m (e.g. 75e-6).")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Scan file to write.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output.")
+@friendly
+def import_scanning_cmd(frames, positions, position_units, position_column, reference_stepping, steps_per_period,
+                        reference_phases, reference_file, dark, reference_dark, active_first_row, active_rows, shape,
+                        dtype, offset, gain, pixel_size, output, overwrite):
+    """Import a scanning acquisition (frames and a motor log), losslessly, one frame at a time."""
+    from .importer import import_scanning
+
+    scan = import_scanning(output, frames=frames, positions=positions, position_units=position_units,
+                           position_column=position_column, reference_stepping=reference_stepping,
+                           steps_per_period=steps_per_period,
+                           reference_phases=_floats(reference_phases, "reference-phases"), reference=reference_file,
+                           dark=dark, reference_dark=reference_dark, active_first_row=active_first_row,
+                           active_rows=active_rows, shape=_dims(shape), dtype=dtype, offset=offset, gain=gain,
+                           pixel_size=pixel_size, overwrite=overwrite)
+    click.echo(f"{output}: {scan.shape[0]} frames of {scan.shape[1]} x {scan.shape[2]} ({scan.data.dtype}), "
+               f"active area {scan.active_rows} rows")
 
 
 @main.command()

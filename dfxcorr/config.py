@@ -65,6 +65,9 @@ SCHEMA: dict[str, dict[str, Option]] = {
                              "(dfxcorr diagnose estimates it as detector_gain)", _NUM, check=_positive, nullable=True),
         "electronic": Option(0.0, "electronic noise variance per sample (counts^2), added to gain * mean in the "
                                   "noise weights (dfxcorr diagnose estimates it)", _NUM, check=_nonneg),
+        "allow_external": Option(False, "follow HDF5 external links, external raw storage and virtual datasets of "
+                                        "the scan file (each file read is hashed into the provenance); false "
+                                        "refuses them", bool),
     },
     "align": {
         "min_frames": Option(3, "detector rows lit in fewer frames are left out (at least the per-pixel unknowns)",

@@ -20,7 +20,8 @@ from .result import Result
 
 FORMAT = "dfxcorr-result"
 FORMAT_VERSION = 1
-PROVENANCE_KEYS = ("program", "version", "date", "command_line", "input_file", "input_sha256")
+PROVENANCE_KEYS = ("program", "version", "date", "command_line", "input_file", "input_sha256",
+                   "external_files")
 
 #: Results-file names of the paper's parameters -> catalogue effect names.
 SPEC_EFFECTS = {"phase_offset": "phase_offset", "tilt": "tilt", "visibility": "visibility_loss"}

@@ -8,6 +8,7 @@ names the dataset.
 from __future__ import annotations
 
 import logging
+import math
 import os
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -86,6 +87,10 @@ class Scan:
         Seconds.
     pixel_size : tuple of float or None
         (y, x) pixel pitch in m.
+    attrs : dict
+        Attributes of the file's root.
+    external_files : tuple of str
+        Files other than the scan file that were read (only when external storage was allowed).
     """
 
     data: np.ndarray
@@ -97,6 +102,7 @@ class Scan:
     exposure_time: np.ndarray | None = None
     pixel_size: tuple[float, float] | None = None
     attrs: dict = field(default_factory=dict)
+    external_files: tuple[str, ...] = ()
 
     def __post_init__(self):
         J, H, W = self.data.shape
@@ -146,13 +152,272 @@ def _check_finite(name: str, arr: np.ndarray) -> None:
         raise ScanFormatError(f"/{name} holds values that are not finite")
 
 
-def read_scan(path: str | os.PathLike) -> Scan:
+_MAPS = ("transmission", "visibility", "phase")
+# HDF5 itself gives up after 16 nested soft links; a walk of our own stops at the same depth.
+_MAX_LINK_DEPTH = 16
+# Root attributes are read into Scan.attrs; real ones are short strings and numbers.
+_MAX_ATTRIBUTE_BYTES = 1 << 20
+
+
+@dataclass(frozen=True)
+class Layout:
+    """What :func:`validate_file` found: the sizes of a scan file, checked against each other and its storage.
+
+    Attributes
+    ----------
+    J, H, W : int
+        Frames, detector rows and columns of ``/entry/instrument/detector/data``.
+    A : int
+        Rows of the active area (of the reference maps or the stepping series).
+    S : int or None
+        Frames of ``/entry/reference/stepping/data`` when the reference is a stepping series, else None.
+    external_files : tuple of str
+        Files other than the scan file whose bytes the reader follows (external links, external raw storage,
+        virtual dataset sources); empty unless allowed.
+    """
+
+    J: int
+    H: int
+    W: int
+    A: int
+    S: int | None
+    external_files: tuple[str, ...] = ()
+
+
+class _Walker:
+    """Resolves the paths the reader uses one link at a time, refusing or recording what leaves the file."""
+
+    def __init__(self, f: h5py.File, allow_external: bool):
+        self.f = f
+        self.allow_external = allow_external
+        self.external: list[str] = []
+
+    def _outside(self, path: str, what: str, files=()) -> None:
+        if not self.allow_external:
+            raise ScanFormatError(f"/{path} is {what}; refused (set load.allow_external=true to follow it)")
+        for name in files:
+            self._record(name)
+
+    def _record(self, name) -> None:
+        full = str(Path(name).resolve())
+        if full != str(Path(self.f.filename).resolve()) and full not in self.external:
+            self.external.append(full)
+
+    def get(self, path: str):
+        """The object at ``path`` (or None when absent) after checking every link on the way."""
+        parts = [p for p in path.split("/") if p]
+        depth = 0
+        k = 0
+        while k < len(parts):
+            here = "/" + "/".join(parts[:k + 1])
+            try:
+                link = self.f.get(here, getlink=True)
+            except (KeyError, RuntimeError, OSError, ValueError) as exc:
+                raise ScanFormatError(f"/{path}: cannot resolve {here} ({exc})") from None
+            if link is None:
+                if depth:
+                    raise ScanFormatError(f"/{path}: dangling soft link ({here} does not exist)")
+                return None
+            if isinstance(link, h5py.SoftLink):
+                depth += 1
+                if depth > _MAX_LINK_DEPTH:
+                    raise ScanFormatError(f"/{path}: soft links loop (more than {_MAX_LINK_DEPTH} at {here})")
+                target = link.path if link.path.startswith("/") else "/".join(parts[:k]) + "/" + link.path
+                parts = [p for p in target.split("/") if p] + parts[k + 1:]
+                k = 0
+                continue
+            if isinstance(link, h5py.ExternalLink):
+                self._outside(path, f"an external link to {link.filename}:{link.path}")
+                break
+            k += 1
+        try:
+            obj = self.f.get(path)
+        except (KeyError, RuntimeError, OSError, ValueError) as exc:
+            raise ScanFormatError(f"/{path}: dangling or broken link ({exc})") from None
+        if obj is None:
+            raise ScanFormatError(f"/{path}: dangling link")
+        self._record(obj.file.filename)  # the file HDF5 actually opened behind an external link
+        return obj
+
+    def dataset(self, path: str, *, required: bool = True) -> h5py.Dataset | None:
+        """The dataset at ``path`` with its storage checked, or None when optional and absent."""
+        obj = self.get(path)
+        if obj is None:
+            if required:
+                raise ScanFormatError(f"missing required dataset /{path}")
+            return None
+        if not isinstance(obj, h5py.Dataset):
+            kind = "a group" if isinstance(obj, h5py.Group) else "a named datatype" if isinstance(
+                obj, h5py.Datatype) else type(obj).__name__
+            raise ScanFormatError(f"/{path} must be a dataset, found {kind}")
+        if obj.shape is None:
+            raise ScanFormatError(f"/{path} is empty (null dataspace)")
+        if obj.dtype.kind not in "iuf":
+            raise ScanFormatError(f"/{path} has dtype {obj.dtype}, expected numbers")
+        self._storage(path, obj)
+        return obj
+
+    def _storage(self, path: str, dset: h5py.Dataset) -> None:
+        """Refuse data that is declared but not stored, and storage outside the file unless allowed."""
+        if dset.is_virtual:
+            sources = sorted({vs.file_name for vs in dset.virtual_sources()})
+            self._outside(path, f"a virtual dataset (sources {', '.join(sources)})")
+            # HDF5 looks for a relative source beside the file first, then in the working directory
+            here = Path(dset.file.filename).resolve().parent
+            for name in sources:
+                if name != ".":
+                    self._record(here / name if (here / name).exists() else name)
+            return
+        declared = dset.size * dset.dtype.itemsize
+        if dset.external:
+            # HDF5 opens relative external raw files from the working directory (HDF5_EXTFILE_PREFIX unset)
+            self._outside(path, f"stored in external raw file(s) {', '.join(e[0] for e in dset.external)}",
+                          [e[0] for e in dset.external])
+            present = 0
+            for name, offset, size in dset.external:
+                try:
+                    avail = max(0, Path(name).stat().st_size - offset)
+                except OSError:
+                    avail = 0
+                present += min(avail, size)
+            if present < declared:
+                raise ScanFormatError(f"/{path} declares {dset.shape} {dset.dtype} ({declared} bytes) but its "
+                                      f"external files hold {present}")
+            return
+        if declared == 0:
+            return
+        if dset.chunks is not None:
+            expected = math.prod(-(-n // c) for n, c in zip(dset.shape, dset.chunks))
+            stored = dset.id.get_num_chunks()
+            if stored < expected:
+                raise ScanFormatError(f"/{path} declares {dset.shape} in {expected} chunks of {dset.chunks} but "
+                                      f"stores {stored}: the data is not in the file")
+        else:
+            stored = dset.id.get_storage_size()
+            if stored < declared:
+                raise ScanFormatError(f"/{path} declares {dset.shape} {dset.dtype} ({declared} bytes) but stores "
+                                      f"{stored} bytes: the data is not in the file")
+
+
+def _expect_shape(path: str, dset: h5py.Dataset, shape: tuple, what: str) -> None:
+    if dset.shape != shape:
+        raise ScanFormatError(f"/{path} has shape {dset.shape}, expected {shape} ({what})")
+
+
+def _expect_scalar(path: str, dset: h5py.Dataset) -> None:
+    if dset.size != 1 or dset.ndim > 1:
+        raise ScanFormatError(f"/{path} has shape {dset.shape}, expected a scalar")
+
+
+def validate_file(f: h5py.File, *, allow_external: bool = False) -> Layout:
+    """Check an open scan file's layout before any frame is read.
+
+    Reads only attributes, shapes, dtypes and storage information; every dataset the reader uses is checked
+    to be numeric, of the shape the frames imply and actually stored in the file (all chunks present, a
+    contiguous dataset as long as it declares), so that a reader that follows reads nothing unsized.
+
+    Parameters
+    ----------
+    f : h5py.File
+        Open scan file.
+    allow_external : bool
+        Follow external links, external raw storage and virtual datasets (recorded in
+        ``Layout.external_files``) instead of refusing them.
+
+    Returns
+    -------
+    Layout
+
+    Raises
+    ------
+    ScanFormatError
+        Naming the dataset, attribute or link at fault.
+    """
+    fmt = f.attrs.get("format")
+    if isinstance(fmt, bytes):
+        fmt = fmt.decode(errors="replace")
+    if not isinstance(fmt, str) or fmt != FORMAT:
+        raise ScanFormatError(f"/ attribute 'format' is {fmt!r}, expected {FORMAT!r}")
+    version = f.attrs.get("format_version")
+    v = np.asarray(version) if version is not None else None
+    if v is None or v.size != 1 or v.dtype.kind not in "iu" or int(v.reshape(-1)[0]) != FORMAT_VERSION:
+        raise ScanFormatError(f"/ attribute 'format_version' is {version!r}, this reader knows {FORMAT_VERSION}")
+    for key in f.attrs:
+        try:
+            if f.attrs.get_id(key).get_storage_size() > _MAX_ATTRIBUTE_BYTES:
+                raise ScanFormatError(f"/ attribute {key!r} is larger than {_MAX_ATTRIBUTE_BYTES} bytes")
+            f.attrs[key]
+        except (OSError, TypeError, ValueError, KeyError) as exc:
+            raise ScanFormatError(f"/ attribute {key!r} cannot be read ({exc})") from None
+    walk = _Walker(f, allow_external)
+    name = f"{_DET}/data"
+    dset = walk.dataset(name)
+    if dset.ndim != 3 or 0 in dset.shape:
+        raise ScanFormatError(f"/{name} must be 3-D [J, H, W] and not empty, has shape {dset.shape}")
+    if dset.dtype.type not in _FRAME_DTYPES:
+        raise ScanFormatError(f"/{name} has dtype {dset.dtype}, expected uint16, uint32, float32 or float64")
+    J, H, W = dset.shape
+    _expect_shape("entry/scan/position", walk.dataset("entry/scan/position"), (J,), f"one per frame of /{name}")
+    for key in ("phase_step", "exposure_time"):
+        d = walk.dataset(f"entry/scan/{key}", required=False)
+        if d is not None:
+            _expect_shape(f"entry/scan/{key}", d, (J,), "one per frame")
+    d = walk.dataset(f"{_DET}/dark", required=False)
+    if d is not None:
+        _expect_shape(f"{_DET}/dark", d, (H, W), "one value per detector pixel")
+    for key in ("gain", "x_pixel_size", "y_pixel_size"):
+        d = walk.dataset(f"{_DET}/{key}", required=False)
+        if d is not None:
+            _expect_scalar(f"{_DET}/{key}", d)
+    S = None
+    if all(walk.get(f"entry/reference/{m}") is not None for m in _MAPS):
+        t = walk.dataset("entry/reference/transmission")
+        if t.ndim != 2 or t.shape[1] != W or t.shape[0] == 0:
+            raise ScanFormatError(f"/entry/reference/transmission has shape {t.shape}, expected [A, {W}]")
+        for m in _MAPS[1:]:
+            _expect_shape(f"entry/reference/{m}", walk.dataset(f"entry/reference/{m}"), t.shape,
+                          "same as /entry/reference/transmission")
+        A = t.shape[0]
+    elif walk.get("entry/reference/stepping") is not None:
+        base = "entry/reference/stepping"
+        d = walk.dataset(f"{base}/data")
+        if d.ndim != 3 or d.shape[2] != W or 0 in d.shape:
+            raise ScanFormatError(f"/{base}/data has shape {d.shape}, expected [S, A, {W}]")
+        S, A, _ = d.shape
+        _expect_shape(f"{base}/phase_step", walk.dataset(f"{base}/phase_step"), (S,),
+                      "one per frame of the stepping series")
+        dk = walk.dataset(f"{base}/dark", required=False)
+        if dk is not None:
+            _expect_shape(f"{base}/dark", dk, (A, W), "one value per pixel of the active area")
+    else:
+        missing = next(m for m in _MAPS if walk.get(f"entry/reference/{m}") is None)
+        raise ScanFormatError(f"missing required dataset /entry/reference/{missing} (or /entry/reference/stepping/data)")
+    return Layout(J=J, H=H, W=W, A=A, S=S, external_files=tuple(walk.external))
+
+
+def _open(path: str | os.PathLike) -> h5py.File:
+    """The scan file opened for reading, or a refusal naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise ScanFormatError(f"{path}: no such file")
+    if not h5py.is_hdf5(path):
+        raise ScanFormatError(f"{path}: not an HDF5 file")
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        raise ScanFormatError(f"{path}: cannot open as HDF5 ({exc})") from None
+
+
+def read_scan(path: str | os.PathLike, *, allow_external: bool = False) -> Scan:
     """Read and validate a dfxcorr scan file.
 
     Parameters
     ----------
     path : str or path-like
         HDF5 file following ``spec/scan-format.md``.
+    allow_external : bool
+        Follow external links, external raw storage and virtual datasets (see :func:`validate_file`);
+        the files followed are listed in ``Scan.external_files``.
 
     Returns
     -------
@@ -164,25 +429,9 @@ def read_scan(path: str | os.PathLike) -> Scan:
         For a file that is not HDF5, is not a dfxcorr scan, or breaks a rule of the format; the message
         names the dataset.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise ScanFormatError(f"{path}: no such file")
-    if not h5py.is_hdf5(path):
-        raise ScanFormatError(f"{path}: not an HDF5 file")
-    with h5py.File(path, "r") as f:
-        fmt = f.attrs.get("format")
-        if isinstance(fmt, bytes):
-            fmt = fmt.decode()
-        if fmt != FORMAT:
-            raise ScanFormatError(f"/ attribute 'format' is {fmt!r}, expected {FORMAT!r}")
-        version = f.attrs.get("format_version")
-        if version is None or int(version) != FORMAT_VERSION:
-            raise ScanFormatError(f"/ attribute 'format_version' is {version!r}, this reader knows {FORMAT_VERSION}")
+    with _open(path) as f:
+        layout = validate_file(f, allow_external=allow_external)
         dset = _require(f, f"{_DET}/data")
-        if dset.ndim != 3:
-            raise ScanFormatError(f"/{_DET}/data must be 3-D [J, H, W], has shape {dset.shape}")
-        if dset.dtype.type not in _FRAME_DTYPES:
-            raise ScanFormatError(f"/{_DET}/data has dtype {dset.dtype}, expected uint16, uint32, float32 or float64")
         data = dset[()]
         J, H, W = data.shape
         position = np.asarray(_require(f, "entry/scan/position")[()], dtype=np.float64)
@@ -207,12 +456,13 @@ def read_scan(path: str | os.PathLike) -> Scan:
         if not (np.isfinite(gain) and gain > 0):
             raise ScanFormatError(f"/{_DET}/gain must be a positive number, is {gain}")
         px = [_optional(f, f"{_DET}/{k}") for k in ("y_pixel_size", "x_pixel_size")]
-        pixel_size = tuple(float(p) for p in px) if all(p is not None for p in px) else None
+        pixel_size = tuple(float(np.asarray(p).reshape(-1)[0]) for p in px) if all(p is not None for p in px) else None
         reference = _read_reference(f, W)
         attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     _check_counts(f"{_DET}/data", data)
     return Scan(data=data, position=position, reference=reference, phase_step=phase_step, dark=dark,
-                gain=gain, exposure_time=exposure, pixel_size=pixel_size, attrs=attrs)
+                gain=gain, exposure_time=exposure, pixel_size=pixel_size, attrs=attrs,
+                external_files=layout.external_files)
 
 
 def _read_reference(f: h5py.File, W: int) -> Reference | SteppingReference:
@@ -302,8 +552,7 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, np.ndarr
         inst.attrs["NX_class"] = "NXinstrument"
         det = inst.create_group("detector")
         det.attrs["NX_class"] = "NXdetector"
-        J, H, W = scan.data.shape
-        det.create_dataset("data", data=scan.data, compression=compression, chunks=(1, H, W))
+        _write_frames(det, "data", scan.data, compression)
         if np.any(scan.dark != 0):
             det.create_dataset("dark", data=scan.dark)
         det.create_dataset("gain", data=float(scan.gain))
@@ -319,7 +568,7 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, np.ndarr
         ref = entry.create_group("reference")
         if isinstance(scan.reference, SteppingReference):
             st = ref.create_group("stepping")
-            st.create_dataset("data", data=scan.reference.data, compression=compression)
+            _write_frames(st, "data", scan.reference.data, compression)
             st.create_dataset("phase_step", data=scan.reference.phase_step).attrs["units"] = "rad"
             if scan.reference.dark is not None:
                 st.create_dataset("dark", data=scan.reference.dark)
@@ -329,6 +578,29 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, np.ndarr
             ref.create_dataset("phase", data=scan.reference.phase).attrs["units"] = "rad"
         for key, value in (extra or {}).items():
             f.create_dataset(key, data=value)
+
+
+def _write_frames(group: h5py.Group, name: str, frames, compression: str | None) -> None:
+    """Write frames [N, H, W] chunked per frame, one frame at a time (``frames`` may read them lazily)."""
+    n, h, w = frames.shape
+    dset = group.create_dataset(name, shape=(n, h, w), dtype=frames.dtype, chunks=(1, h, w), compression=compression)
+    for k in range(n):
+        dset[k] = frames[k]
+
+
+def read_reference(path: str | os.PathLike, *, allow_external: bool = False) -> Reference | SteppingReference:
+    """The reference of a scan file (maps or stepping series) with every check of :func:`read_scan`, frames unread.
+
+    Raises
+    ------
+    ScanFormatError
+        As :func:`read_scan`, for the layout of the whole file and the values of the reference.
+    """
+    with _open(path) as f:
+        try:
+            return _read_reference(f, validate_file(f, allow_external=allow_external).W)
+        except ScanFormatError as exc:
+            raise ScanFormatError(f"{path}: {exc}") from None
 
 
 def illumination_count(position: np.ndarray, active_rows: int, height: int) -> np.ndarray:

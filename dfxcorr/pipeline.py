@@ -165,7 +165,7 @@ def reconstruct(scan: Scan | str | Path, cfg: dict | None = None, *, command_lin
     if not isinstance(scan, Scan):
         path = Path(scan)
         with stage("load", timings):
-            scan = read_scan(path)
+            scan = read_scan(path, allow_external=cfg["load"]["allow_external"])
             log.info("scan %s: %d frames of %d x %d, active area %d rows%s", path.name, *scan.shape,
                      scan.active_rows, ", phase stepping" if scan.is_stepping else "")
     method = cfg["fit"]["method"]
@@ -212,7 +212,8 @@ def reconstruct(scan: Scan | str | Path, cfg: dict | None = None, *, command_lin
     provenance = {"program": "dfxcorr", "version": __version__,
                   "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                   "command_line": command_line, "input_file": str(path) if path else "",
-                  "input_sha256": sha256(path) if path else ""}
+                  "input_sha256": sha256(path) if path else "",
+                  "external_files": "\n".join(f"{sha256(p)}  {p}" for p in scan.external_files)}
     return Result(transmission=maps["transmission"], dark_field=maps["dark_field"],
                   differential_phase=maps["differential_phase"], params=params, estimated=estimated,
                   uncertainty=uncertainty, fit_mask=fit_mask, motion_mask=moving.astype(np.uint8),

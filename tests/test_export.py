@@ -18,7 +18,7 @@ H, W, J = 12, 10, 7
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 PROVENANCE = {"program": "dfxcorr", "version": "0.1.0", "date": "2024-01-01T00:00:00",
               "command_line": "dfxcorr reconstruct scan.h5 -o out.h5", "input_file": "scan.h5",
-              "input_sha256": "ab" * 32}
+              "input_sha256": "ab" * 32, "external_files": ""}
 CONFIG = {"fit": {"method": "ml", "effects": ["phase_offset", "tilt", "visibility_loss", "dose"],
                   "tolerance": 1e-6},
           "vibration": {"visibility": True}, "output": {"tiff": False, "stem": None}}
