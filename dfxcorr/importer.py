@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 import tifffile
 
-from .errors import DfxcorrError, OutputExistsError
+from .errors import DfxcorrError
 from .io import Scan, SteppingReference, write_scan
 
 _NPY = {".npy"}
@@ -338,6 +338,11 @@ def _pixel_size(pixel_size) -> tuple[float, float] | None:
     return float(values[0]), float(values[1])
 
 
+def input_files(*sources) -> list[Path]:
+    """Every file the given sources (globs, paths or lists; None skipped) name: what an import reads."""
+    return [f for source in sources if source is not None for f in _resolve_files(source)]
+
+
 def import_stepping(output, *, sample, reference, dark=None, reference_dark=None,
                     steps_per_period: float | None = None, phases=None, reference_phases=None,
                     shape: tuple[int, int] | None = None, dtype: str | None = None, offset: int = 0,
@@ -383,15 +388,19 @@ def import_stepping(output, *, sample, reference, dark=None, reference_dark=None
     ------
     OutputExistsError
         ``output`` exists and ``overwrite`` is false (checked before anything is read).
+    OutputError
+        ``output`` is one of the input files (any spelling or link), or cannot be written; see
+        :func:`dfxcorr.check.check_outputs`.
     StackImportError
         Any unreadable or inconsistent input; see :func:`read_stack`, :func:`frame_dtype` and
         :func:`nominal_steps`. Also sample and reference frames of different shape, or fewer than 3 steps.
     """
+    from .check import check_outputs
+
     output = Path(os.path.expanduser(os.fspath(output)))
-    if output.exists() and not overwrite:
-        raise OutputExistsError(output)
     if not output.parent.is_dir():
         raise StackImportError(f"output {output}: directory {output.parent} does not exist")
+    check_outputs([output], inputs=input_files(sample, reference, dark, reference_dark), overwrite=overwrite)
     if (steps_per_period is None) == (phases is None):
         raise StackImportError("give exactly one of steps_per_period and phases")
     raw = dict(shape=shape, dtype=dtype, offset=offset)
@@ -447,5 +456,5 @@ def import_stepping(output, *, sample, reference, dark=None, reference_dark=None
 
     scan = Scan(data=data, position=np.zeros(J), phase_step=steps, dark=dark_frame, gain=gain_value,
                 pixel_size=px, reference=SteppingReference(data=ref, phase_step=ref_steps, dark=ref_dark))
-    write_scan(output, scan, extra=extra)
+    write_scan(output, scan, extra=extra, overwrite=overwrite)
     return scan
