@@ -180,7 +180,7 @@ def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overw
     from . import check
     from .io import read_scan
 
-    out, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
+    _, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
     click.echo(check.plan(read_scan(scan), cfg, name=scan, outputs=outputs, diagnose=True).summary())
     click.echo("ok: reconstruct would run")
 

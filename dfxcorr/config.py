@@ -47,11 +47,11 @@ class Option:
 
 
 def _positive(v):
-    return None if math.isfinite(v) and v > 0 else "must be a finite positive number"
+    return None if math.isfinite(v) and v > 0 else "must be positive and finite"
 
 
 def _nonneg(v):
-    return None if math.isfinite(v) and v >= 0 else "must be a finite number, not negative"
+    return None if math.isfinite(v) and v >= 0 else "must not be negative or infinite"
 
 
 def _fraction(v):

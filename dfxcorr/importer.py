@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 import tifffile
 
-from .errors import DfxcorrError
+from .errors import DfxcorrError, OutputExistsError
 from .io import Scan, SteppingReference, write_scan
 
 _NPY = {".npy"}
@@ -398,6 +398,8 @@ def import_stepping(output, *, sample, reference, dark=None, reference_dark=None
     from .check import check_outputs
 
     output = Path(os.path.expanduser(os.fspath(output)))
+    if output.exists() and not overwrite:
+        raise OutputExistsError(output)
     if not output.parent.is_dir():
         raise StackImportError(f"output {output}: directory {output.parent} does not exist")
     check_outputs([output], inputs=input_files(sample, reference, dark, reference_dark), overwrite=overwrite)

@@ -117,14 +117,13 @@ def load_truth(path: str | Path, shape: tuple) -> dict:
     try:
         with open(path, "rb") as fh:
             f = np.load(fh, allow_pickle=False)
-            if not isinstance(f, np.lib.npyio.NpzFile):
-                raise ValueError("a single array, not an .npz archive")
-            with f:
-                truth = {k: f[k] for k in f.files}
+            truth = {k: f[k] for k in f.files} if isinstance(f, np.lib.npyio.NpzFile) else None
     except OSError as exc:
         raise TruthError(f"{path}: cannot read ({exc.strerror or exc})") from None
     except (ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise TruthError(f"{path}: not a truth file of dfxcorr simulate ({C.show(str(exc), quote=False)})") from None
+    if truth is None:
+        raise TruthError(f"{path}: a single array, not the .npz archive of dfxcorr simulate")
     J, H, W = shape
     images = [k for k in truth if k.startswith("image_")]
     if not images:
