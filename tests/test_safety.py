@@ -14,11 +14,13 @@ import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import sim_config
 
 from dfxcorr import check, io
 from dfxcorr import config as C
 from dfxcorr.cli import main
 from dfxcorr.errors import OutputExistsError
+from dfxcorr.sim import simulate as S
 
 SMALL = ["--set", "simulate.pixel_mm=5", "--set", "simulate.step_mm=5", "--set", "simulate.seed=3"]
 
@@ -26,10 +28,9 @@ SMALL = ["--set", "simulate.pixel_mm=5", "--set", "simulate.step_mm=5", "--set",
 @pytest.fixture(scope="module")
 def scan_file(tmp_path_factory):
     """A small scan (104 frames of 90 x 102) in a folder of its own."""
-    d = tmp_path_factory.mktemp("scan")
-    res = CliRunner().invoke(main, ["simulate", "-o", str(d / "scan.h5"), *SMALL])
-    assert res.exit_code == 0, res.output
-    return d / "scan.h5"
+    path = tmp_path_factory.mktemp("scan") / "scan.h5"
+    io.write_scan(path, S.simulate(sim_config())[0])
+    return path
 
 
 @pytest.fixture(scope="module")
