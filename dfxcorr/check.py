@@ -223,8 +223,9 @@ def memory_estimate(shape, itemsize: int, lit_samples: int) -> int:
 def read_header(path) -> io.Scan:
     """A scan's geometry and reference without reading its frames (their dtype and shape only).
 
-    The returned :class:`~dfxcorr.io.Scan` holds a zero-stride view as ``data``. Anything unexpected
-    is left to :func:`dfxcorr.io.read_scan`, which refuses it naming the dataset.
+    The returned :class:`~dfxcorr.io.Scan` holds a zero-stride view as ``data`` (and as the reference
+    series of a phase-stepping recording). Anything unexpected is left to :func:`dfxcorr.io.read_scan`,
+    which refuses it naming the dataset.
     """
     try:
         with h5py.File(path, "r") as f:
@@ -236,11 +237,15 @@ def read_header(path) -> io.Scan:
             position = np.asarray(f["entry/scan/position"][()], dtype=np.float64)
             if position.shape != (J,) or not np.all(np.isfinite(position)):
                 raise ValueError("position")
+            reference: io.Reference | io.SteppingReference
             if "entry/reference/stepping" in f:
                 st = f["entry/reference/stepping"]
-                reference = io.SteppingReference(data=st["data"][()], phase_step=st["phase_step"][()])
-                if reference.data.ndim != 3 or reference.data.shape[2] != W:
+                if st["data"].ndim != 3 or st["data"].shape[2] != W:
                     raise ValueError("reference")
+                # its counts matter only to a scan that is not itself phase stepping (flat-field separability)
+                stepping = st["data"].shape[1] == H and not np.any(position)
+                data = np.broadcast_to(np.zeros((), st["data"].dtype), st["data"].shape) if stepping else st["data"][()]
+                reference = io.SteppingReference(data=data, phase_step=st["phase_step"][()])
             else:
                 t, v, p = (np.asarray(f[f"entry/reference/{m}"][()], np.float64)
                            for m in ("transmission", "visibility", "phase"))
@@ -268,7 +273,7 @@ def _columns(width: int, cfg: dict) -> np.ndarray:
                             f"use at most {width // 4}") from None
 
 
-def _visibility_reasons(scan: io.Scan, cfg: dict) -> str | None:
+def _visibility_reasons(scan: io.Scan) -> str | None:
     """Why visibility effects cannot be determined by this acquisition (paper Sec. II-F), or None."""
     from .align import resolve_reference
     from .pipeline import visibility_unidentifiable
@@ -320,7 +325,7 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     lit = int(count[used].sum()) * W
     effects = C.effects_of(cfg) if method != "none" else ()
     dropped = {}
-    why = _visibility_reasons(scan, cfg) if {"visibility_loss", "visibility_tilt"} & set(effects) else None
+    why = _visibility_reasons(scan) if {"visibility_loss", "visibility_tilt"} & set(effects) else None
     if why:
         keys = {e: k for k, e in C.VIBRATION_EFFECTS.items()}
         for name_ in ("visibility_loss", "visibility_tilt"):
