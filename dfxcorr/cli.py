@@ -55,7 +55,7 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
 
 def _terminate(signum, frame):
     """SIGTERM (a batch system's time limit) ends the run like Ctrl-C: the writers remove their temporary files."""
-    click.echo(f"error: stopped by {signal.Signals(signum).name}; no output was completed by this step", err=True)
+    click.echo(f"error: stopped by {signal.Signals(signum).name}; files not completed were removed", err=True)
     raise SystemExit(128 + signum)
 
 
