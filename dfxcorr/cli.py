@@ -3,8 +3,11 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 import shlex
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -38,19 +41,51 @@ def friendly(func):
     return wrapper
 
 
-def _setup_logging(verbose: int, quiet: bool, log_file: str | None) -> None:
+_LOG_FORMAT = logging.Formatter("%(asctime)s %(levelname)-7s %(message)s", datefmt="%H:%M:%S")
+
+
+def _setup_logging(verbose: int, quiet: bool) -> None:
     level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
-    handlers = [logging.StreamHandler(sys.stderr)]
-    if log_file:
-        handlers.append(logging.FileHandler(log_file))
-    logging.basicConfig(level=level, handlers=handlers, force=True,
-                        format="%(asctime)s %(levelname)-7s %(message)s", datefmt="%H:%M:%S")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_LOG_FORMAT)
+    logging.basicConfig(level=level, handlers=[handler], force=True)
     if verbose < 2:
         logging.getLogger("dfxcorr").setLevel(level)
 
 
+def _terminate(signum, frame):
+    """SIGTERM (a batch system's time limit) ends the run like Ctrl-C: the writers remove their temporary files."""
+    click.echo(f"error: stopped by {signal.Signals(signum).name}; files not completed were removed", err=True)
+    raise SystemExit(128 + signum)
+
+
+def _install_signal_handlers() -> None:
+    if threading.current_thread() is not threading.main_thread():  # only the main thread may set handlers
+        return
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        if signal.getsignal(sig) is signal.SIG_DFL:  # keep what nohup or a caller chose
+            signal.signal(sig, _terminate)
+
+
+def _guard(outputs, *, inputs=(), overwrite: bool = False) -> None:
+    """Check every output of the command (and the log file) against its inputs, then open the log file.
+
+    The log file is opened only here, after the check, so that it can never append to an input.
+    """
+    from .check import check_outputs
+
+    log_file = (click.get_current_context().find_root().obj or {}).get("log_file")
+    check_outputs(outputs, inputs=inputs, overwrite=overwrite, appended=[log_file] if log_file else [])
+    if log_file:
+        handler = logging.FileHandler(log_file, encoding="utf-8")
+        handler.setFormatter(_LOG_FORMAT)
+        logging.getLogger().addHandler(handler)
+
+
 def _command_line() -> str:
-    return "dfxcorr " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    # arguments that are not UTF-8 (surrogate-escaped) are recorded with backslash escapes
+    return "dfxcorr " + " ".join(shlex.quote(os.fsencode(a).decode("utf-8", "backslashreplace"))
+                                 for a in sys.argv[1:])
 
 
 config_options = [
@@ -71,41 +106,87 @@ def with_config(func):
 @click.version_option(__version__, prog_name="dfxcorr")
 @click.option("-v", "--verbose", count=True, help="More log output (-vv: debug).")
 @click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
-@click.option("--log-file", type=click.Path(dir_okay=False), help="Also write the log to this file.")
-def main(verbose, quiet, log_file):
+@click.option("--log-file", type=click.Path(dir_okay=False),
+              help="Also append the log to this file (its folder must exist; never one of the inputs).")
+@click.pass_context
+def main(ctx, verbose, quiet, log_file):
     """Correct grating-vibration artefacts in scanning Talbot-Lau X-ray interferometry.
 
     Typical use: dfxcorr reconstruct scan.h5 -o result.h5 --tiff out/ --preview
     """
-    _setup_logging(verbose, quiet, log_file)
+    _setup_logging(verbose, quiet)
+    _install_signal_handlers()
+    ctx.obj = {"log_file": log_file}
+
+
+def reconstruct_options(func):
+    """The options of ``reconstruct``, shared with ``check``, which checks the same run."""
+    func = click.option("--overwrite", is_flag=True, help="Replace existing outputs.")(func)
+    func = click.option("--preview", is_flag=True,
+                        help="Also write <output stem>_preview.png (uncorrected and corrected images) and "
+                             "<output stem>_fit.png.")(func)
+    func = click.option("--tiff", "tiff_dir", type=click.Path(file_okay=False),
+                        help="Also write float32 TIFFs here.")(func)
+    func = click.option("--method", type=click.Choice(["ml", "alternating", "correlation", "none"]),
+                        help="Vibration estimator (overrides fit.method).")(func)
+    func = with_config(func)
+    func = click.option("-o", "--output", type=click.Path(dir_okay=False),
+                        help="Result HDF5 file (default: <scan stem>_result.h5 in the current directory).")(func)
+    return click.argument("scan", type=click.Path(dir_okay=False))(func)
+
+
+def _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite):
+    """Check a reconstruction's outputs and configuration before any work; the output, configuration, outputs."""
+    out = Path(output) if output else Path(f"{Path(scan).stem}_result.h5")
+    outputs = _reconstruct_outputs(out, tiff_dir=tiff_dir, preview=preview)
+    _guard(outputs, inputs=[scan, *config_files], overwrite=overwrite)
+    cfg = C.load(config_files, list(sets) + ([f"fit.method={method}"] if method else []))
+    return out, cfg, outputs
+
+
+def _reconstruct_outputs(out: Path, *, tiff_dir=None, preview=False) -> list[Path]:
+    from .export import tiff_paths
+
+    outputs = [out] + (tiff_paths(tiff_dir, out.stem) if tiff_dir else [])
+    return outputs + ([out.with_name(f"{out.stem}_preview.png"), out.with_name(f"{out.stem}_fit.png")]
+                      if preview else [])
 
 
 @main.command()
-@click.argument("scan", type=click.Path(dir_okay=False))
-@click.option("-o", "--output", type=click.Path(dir_okay=False),
-              help="Result HDF5 file (default: <scan stem>_result.h5 in the current directory).")
-@with_config
-@click.option("--method", type=click.Choice(["ml", "alternating", "correlation", "none"]),
-              help="Vibration estimator (overrides fit.method).")
-@click.option("--tiff", "tiff_dir", type=click.Path(file_okay=False), help="Also write float32 TIFFs here.")
-@click.option("--preview", is_flag=True, help="Also write a PNG with uncorrected and corrected images.")
-@click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
+@reconstruct_options
 @friendly
 def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite):
     """Reconstruct vibration-corrected images from SCAN (dfxcorr scan format)."""
-    from . import export, pipeline
+    from . import check, pipeline
 
-    sets = list(sets) + ([f"fit.method={method}"] if method else [])
-    cfg = C.load(config_files, sets)
-    out = Path(output) if output else Path(f"{Path(scan).stem}_result.h5")
-    export.check_output(out, overwrite=overwrite)
+    out, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
+    check.plan(check.read_header(scan), cfg, name=scan, outputs=outputs)
     t0 = time.perf_counter()
     result = pipeline.reconstruct(scan, cfg, command_line=_command_line())
     _write_outputs(result, out, tiff_dir=tiff_dir, preview=preview, overwrite=overwrite)
     click.echo(f"{out}: reduced chi-square {result.reduced_chi2:.4f}, {time.perf_counter() - t0:.1f} s")
 
 
+@main.command("check")
+@reconstruct_options
+@friendly
+def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overwrite):
+    """Check that `dfxcorr reconstruct` with the same arguments would run, in seconds, computing nothing.
+
+    Validates SCAN, the configuration against it (subsampling, column offset, mask dilation, diagnosis
+    subsampling, visibility effects this acquisition cannot determine) and every output, and prints
+    what reconstruct would do and the memory it will need. Exit code 0: it would run; 2: it would refuse.
+    """
+    from . import check
+    from .io import read_scan
+
+    _, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
+    click.echo(check.plan(read_scan(scan), cfg, name=scan, outputs=outputs, diagnose=True).summary())
+    click.echo("ok: reconstruct would run")
+
+
 def _write_outputs(result, out: Path, *, tiff_dir=None, preview=False, overwrite=False) -> list[Path]:
+    """Write the files :func:`_reconstruct_outputs` lists."""
     from . import export, plots
 
     export.write_result_h5(out, result, overwrite=overwrite, compression=_compression(result.config))
@@ -134,18 +215,16 @@ def _compression(cfg: dict):
 @friendly
 def simulate(config_file, output, sets, truth, overwrite):
     """Simulate a scan (the paper's simulation study by default) and write it with its truth."""
-    from . import export
     from .sim import simulate as S
     from .io import atomic_path, write_scan
 
-    cfg = C.load([config_file] if config_file else [], sets, schema=S.SCHEMA)
     out = Path(output)
     truth_path = Path(truth) if truth else out.with_name(f"{out.stem}.truth.npz")
-    for p in (out, truth_path):
-        export.check_output(p, overwrite=overwrite)
+    _guard([out, truth_path], inputs=[config_file] if config_file else [], overwrite=overwrite)
+    cfg = C.load([config_file] if config_file else [], sets, schema=S.SCHEMA)
     scan, true = S.simulate(cfg)
-    write_scan(out, scan)
-    with atomic_path(truth_path) as tmp, open(tmp, "wb") as fh:
+    write_scan(out, scan, overwrite=overwrite)
+    with atomic_path(truth_path, overwrite=overwrite) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **true)
     click.echo(f"{out}: {scan.shape[0]} frames of {scan.shape[1]} x {scan.shape[2]}; truth in {truth_path}")
 
@@ -161,13 +240,16 @@ def simulate(config_file, output, sets, truth, overwrite):
 @friendly
 def diagnose(scan, out_dir, config_files, sets, base, overwrite):
     """Find where SCAN and the model disagree, name the missing physics, add it and refit."""
+    from . import check
     from .analysis.diagnose import diagnose as run, write_report
-    from .export import check_output
 
-    cfg = C.load(config_files, sets)
     out = Path(out_dir)
-    for name in ("diagnosis.json", "report.md", "residuals.png"):
-        check_output(out / name, overwrite=overwrite)
+    _guard([out / name for name in ("diagnosis.json", "report.md", "residuals.png", "motion_mask.tif")],
+           inputs=[scan, *config_files], overwrite=overwrite)
+    cfg = C.load(config_files, sets)
+    # plain retrieval (--base none) fits no configured effect
+    check.plan(check.read_header(scan), C.merge(cfg, {"fit": {"method": "none"}}) if base == "none" else cfg,
+               name=scan, diagnose=True)
     diag = run(scan, cfg, base=base)
     write_report(diag, out, overwrite=overwrite)
     found = [e.name for e in diag.effects if e.detected]
@@ -218,8 +300,9 @@ def _dims(shape):
 def import_stepping_cmd(sample, reference, dark, reference_dark, steps_per_period, phases, reference_phases, shape,
                         dtype, offset, gain, output, overwrite):
     """Import a phase-stepping recording (sample and reference series), losslessly."""
-    from .importer import import_stepping
+    from .importer import import_stepping, input_files
 
+    _guard([output], inputs=input_files(sample, reference, dark, reference_dark), overwrite=overwrite)
     scan = import_stepping(output, sample=sample, reference=reference, dark=dark, reference_dark=reference_dark,
                            steps_per_period=steps_per_period, phases=_floats(phases, "phases"),
                            reference_phases=_floats(reference_phases, "reference-phases"), shape=_dims(shape),
@@ -258,8 +341,10 @@ def import_scanning_cmd(frames, positions, position_units, position_column, refe
                         reference_phases, reference_file, dark, reference_dark, active_first_row, active_rows, shape,
                         dtype, offset, gain, pixel_size, output, overwrite):
     """Import a scanning acquisition (frames and a motor log), losslessly, one frame at a time."""
-    from .importer import import_scanning
+    from .importer import import_scanning, input_files
 
+    _guard([output], inputs=input_files(frames, positions, reference_stepping, reference_file, dark, reference_dark),
+           overwrite=overwrite)
     scan = import_scanning(output, frames=frames, positions=positions, position_units=position_units,
                            position_column=position_column, reference_stepping=reference_stepping,
                            steps_per_period=steps_per_period,
@@ -277,8 +362,9 @@ def import_scanning_cmd(frames, positions, position_units, position_column, refe
 @friendly
 def demo(output_dir, overwrite):
     """Simulate a small scan, reconstruct it and write images, pictures and a summary (under a minute)."""
-    from .sim.demo import run_demo
+    from .sim.demo import demo_paths, run_demo
 
+    _guard(demo_paths(Path(output_dir)).values(), overwrite=overwrite)
     summary = run_demo(Path(output_dir), overwrite=overwrite, command_line=_command_line())
     click.echo(summary)
 
@@ -295,6 +381,7 @@ def config_cmd(show_defaults, schema, check_files, sets):
     """Show the default configuration, or validate and resolve configuration files."""
     from .sim import simulate as S
 
+    _guard([], inputs=check_files)
     sch = S.SCHEMA if schema == "simulate" else C.SCHEMA
     if show_defaults or not (check_files or sets):
         title = "dfxcorr simulate this.yaml -o scan.h5" if schema == "simulate" else "dfxcorr reconstruct SCAN -c this.yaml"
@@ -316,19 +403,19 @@ def config_cmd(show_defaults, schema, check_files, sets):
 @friendly
 def compare(scan, output_dir, truth, methods, config_files, sets, overwrite):
     """Run every vibration estimator on SCAN and compare them: results, pictures and a table."""
+    from . import check
     from .analysis import compare as CMP
-    from . import export
     from .io import read_scan
 
-    cfg = C.load(config_files, sets)
     methods = CMP.parse_methods(methods)
-    for p in CMP.comparison_paths(Path(output_dir), methods).values():
-        export.check_output(p, overwrite=overwrite)
+    _guard(CMP.comparison_paths(Path(output_dir), methods).values(), inputs=[scan, *config_files]
+           + ([truth] if truth else []), overwrite=overwrite)
+    cfg = C.load(config_files, sets)
+    header = check.read_header(scan)
+    for m in methods:
+        check.plan(header, C.merge(cfg, {"fit": {"method": m}}), name=scan)
+    true = CMP.load_truth(truth, header.shape) if truth else None
     data = read_scan(scan)
-    try:
-        true = CMP.load_truth(truth, data.shape) if truth else None
-    except CMP.TruthError as exc:
-        raise click.BadParameter(str(exc), param_hint="--truth") from None
     cfg = C.merge(cfg, {"retrieve": {"uncorrected": False}})
     results, runtimes = CMP.run_methods(scan, cfg, methods=methods, command_line=_command_line())
     paths = CMP.write_comparison(output_dir, data, results, runtimes, truth=true, source=scan, overwrite=overwrite)
@@ -350,13 +437,16 @@ def compare(scan, output_dir, truth, methods, config_files, sets, overwrite):
 @friendly
 def nps(scans, output_dir, methods, bins, config_files, sets, overwrite):
     """Noise power spectra of the dark-field images of blank SCANS (no sample), per estimator."""
+    from . import check
     from .analysis import compare as CMP
-    from . import export
 
-    cfg = C.load(config_files, sets)
     methods = CMP.parse_methods(methods)
-    for p in CMP.nps_paths(Path(output_dir)).values():
-        export.check_output(p, overwrite=overwrite)
+    _guard(CMP.nps_paths(Path(output_dir)).values(), inputs=[*scans, *config_files], overwrite=overwrite)
+    cfg = C.load(config_files, sets)
+    for scan in scans:
+        header = check.read_header(scan)
+        for m in methods:
+            check.plan(header, C.merge(cfg, {"fit": {"method": m}}), name=scan)
     study = CMP.nps_study(scans, cfg, methods=methods, bins=bins, command_line=_command_line())
     paths = CMP.write_nps(output_dir, study, overwrite=overwrite)
     ff = study["fringe_frequency"]
@@ -392,6 +482,7 @@ def batch(scan_list, output_dir, config_files, sets, jobs, array_index):
 
     C.load(config_files, sets)  # refuse a bad configuration once, before any scan runs
     entries = B.read_list(scan_list)
+    _guard([], inputs=[scan_list, *config_files, *(text for _, text in entries)])
     if array_index is not None:
         entries = B.select_line(entries, array_index, list_name=scan_list)
     out_dir = Path(output_dir)

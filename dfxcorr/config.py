@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -46,11 +47,11 @@ class Option:
 
 
 def _positive(v):
-    return None if v > 0 else "must be positive"
+    return None if math.isfinite(v) and v > 0 else "must be positive and finite"
 
 
 def _nonneg(v):
-    return None if v >= 0 else "must not be negative"
+    return None if math.isfinite(v) and v >= 0 else "must not be negative or infinite"
 
 
 def _fraction(v):
@@ -161,6 +162,61 @@ def defaults(schema: dict = SCHEMA) -> dict:
     return {sec: {k: copy.deepcopy(o.default) for k, o in opts.items()} for sec, opts in schema.items()}
 
 
+#: Longest excerpt of a value or name quoted in a message.
+SHOW_CHARS = 60
+#: Largest configuration file read (bytes); a real one is a few kB.
+MAX_FILE_BYTES = 1 << 20
+
+
+def show(value: Any, *, quote: bool = True, limit: int = SHOW_CHARS) -> str:
+    """A value for a message (repr, or the text itself without ``quote``), cut to ``limit`` characters."""
+    text = value if isinstance(value, str) and not quote else repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """YAML that cannot expand: aliases (``*name``, what "billion laughs" files are made of) and repeated
+    keys (a repeated section would silently drop the earlier one) are refused, naming the line."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.MarkedYAMLError(problem=f"line {event.start_mark.line + 1}: aliases "
+                                               f"(*{show(event.anchor, quote=False)}) "
+                                               f"are not accepted in a configuration; write the value out")
+        return super().compose_node(parent, index)
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            line = key_node.start_mark.line + 1
+            try:
+                if key in seen:
+                    raise yaml.MarkedYAMLError(problem=f"line {line}: duplicate key {show(key)} "
+                                                       f"(first on line {seen[key]})")
+                seen[key] = line
+            except TypeError:  # an unhashable key: SafeLoader refuses it with its own message
+                break
+        return super().construct_mapping(node, deep=deep)
+
+
+def parse_yaml(text: str) -> Any:
+    """Parse configuration YAML with :class:`_StrictLoader` (no aliases, no duplicate keys)."""
+    loader = _StrictLoader(text)
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
+
+
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    problem = getattr(exc, "problem", None) or str(exc)
+    mark = getattr(exc, "problem_mark", None)
+    where = f"line {mark.line + 1}: " if mark is not None and not problem.startswith("line ") else ""
+    return show(where + problem, quote=False, limit=3 * SHOW_CHARS)
+
+
 def _nearest(word: str, candidates) -> str:
     match = difflib.get_close_matches(word, list(candidates), n=1, cutoff=0.5)
     return f"; did you mean {match[0]!r}?" if match else f"; valid: {', '.join(candidates)}"
@@ -175,17 +231,15 @@ def validate_value(section: str, key: str, value: Any, schema: dict = SCHEMA) ->
             return None
         raise ConfigError(f"{name} must not be null")
     kinds = opt.kind if isinstance(opt.kind, tuple) else (opt.kind,)
-    if isinstance(value, bool) and bool not in kinds:
-        raise ConfigError(f"{name} must be {' or '.join(k.__name__ for k in kinds)}, got {value!r}")
-    if not isinstance(value, kinds):
-        raise ConfigError(f"{name} must be {' or '.join(k.__name__ for k in kinds)}, got {value!r}")
+    if (isinstance(value, bool) and bool not in kinds) or not isinstance(value, kinds):
+        raise ConfigError(f"{name} must be {' or '.join(k.__name__ for k in kinds)}, got {show(value)}")
     if opt.choices and value not in opt.choices:
-        raise ConfigError(f"{name} must be one of {', '.join(map(str, opt.choices))}, got {value!r}"
-                          + (_nearest(str(value), opt.choices) if isinstance(value, str) else ""))
+        raise ConfigError(f"{name} must be one of {', '.join(map(str, opt.choices))}, got {show(value)}"
+                          + (_nearest(value[:SHOW_CHARS], opt.choices) if isinstance(value, str) else ""))
     if opt.check:
         problem = opt.check(value)
         if problem:
-            raise ConfigError(f"{name} {problem}, got {value!r}")
+            raise ConfigError(f"{name} {problem}, got {show(value)}")
     return value
 
 
@@ -198,14 +252,15 @@ def merge(base: dict, overlay: dict, *, origin: str = "configuration", schema: d
     out = copy.deepcopy(base)
     for section, values in overlay.items():
         if section not in schema:
-            raise ConfigError(f"{origin}: unknown section {section!r}{_nearest(str(section), schema)}")
+            raise ConfigError(f"{origin}: unknown section {show(section)}{_nearest(str(section)[:SHOW_CHARS], schema)}")
         if values is None:
             continue
         if not isinstance(values, dict):
             raise ConfigError(f"{origin}: section {section!r} must be a mapping")
         for key, value in values.items():
             if key not in schema[section]:
-                raise ConfigError(f"{origin}: unknown key {section}.{key}{_nearest(str(key), schema[section])}")
+                raise ConfigError(f"{origin}: unknown key {section}.{show(key, quote=False)}"
+                                  f"{_nearest(str(key)[:SHOW_CHARS], schema[section])}")
             out[section][key] = validate_value(section, key, value, schema)
     return out
 
@@ -213,13 +268,13 @@ def merge(base: dict, overlay: dict, *, origin: str = "configuration", schema: d
 def parse_set(item: str) -> dict:
     """``section.key=value`` (value parsed as YAML) -> {section: {key: value}}."""
     if "=" not in item or "." not in item.split("=", 1)[0]:
-        raise ConfigError(f"--set {item!r}: expected section.key=value")
+        raise ConfigError(f"--set {show(item)}: expected section.key=value")
     path, raw = item.split("=", 1)
     section, key = path.strip().split(".", 1)
     try:
-        value = yaml.safe_load(raw) if raw.strip() else None
+        value = parse_yaml(raw) if raw.strip() else None
     except yaml.YAMLError as exc:
-        raise ConfigError(f"--set {item!r}: value is not valid YAML ({exc.problem})") from None
+        raise ConfigError(f"--set {show(item)}: value is not valid YAML ({_yaml_problem(exc)})") from None
     return {section: {key: value}}
 
 
@@ -235,14 +290,23 @@ def load(files=(), sets=(), *, schema: dict = SCHEMA) -> dict:
     for f in files:
         path = Path(f)
         try:
-            data = yaml.safe_load(path.read_text())
+            with open(path, "rb") as fh:
+                raw = fh.read(MAX_FILE_BYTES + 1)
         except OSError as exc:
             raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
+        if len(raw) > MAX_FILE_BYTES:
+            raise ConfigError(f"{path}: larger than {MAX_FILE_BYTES // 1024} kB, not a configuration file")
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"{path}: not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start})") from None
+        try:
+            data = parse_yaml(text)
         except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
+            raise ConfigError(f"{path}: not valid YAML ({_yaml_problem(exc)})") from None
         cfg = merge(cfg, data or {}, origin=str(path), schema=schema)
     for item in sets:
-        cfg = merge(cfg, parse_set(item), origin=f"--set {item}", schema=schema)
+        cfg = merge(cfg, parse_set(item), origin=f"--set {show(item, quote=False)}", schema=schema)
     return cfg
 
 

@@ -176,7 +176,7 @@ def write_result_h5(path, result: Result, *, overwrite: bool = False, compressio
     """
     check_output(path, overwrite=overwrite)
     vibration = vibration_datasets(result)
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+    with atomic_path(path, overwrite=overwrite) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT
         f.attrs["format_version"] = np.int64(FORMAT_VERSION)
         entry = f.create_group("entry")
@@ -286,6 +286,12 @@ def read_result_h5(path) -> dict:
 # --------------------------------------------------------------------------------------------------
 
 
+def tiff_paths(directory, stem: str) -> list[Path]:
+    """The files :func:`write_tiffs` writes: one TIFF per image (in ``Result.IMAGES`` order), then the YAML."""
+    directory = Path(directory)
+    return [directory / f"{stem}_{name}.tif" for name in Result.IMAGES] + [directory / f"{stem}.yaml"]
+
+
 def write_tiffs(directory, result: Result, *, stem: str, overwrite: bool = False) -> list[Path]:
     """Write one float32 TIFF per image and the resolved configuration beside them.
 
@@ -313,15 +319,14 @@ def write_tiffs(directory, result: Result, *, stem: str, overwrite: bool = False
     """
     import tifffile
 
-    directory = Path(directory)
-    images = {directory / f"{stem}_{name}.tif": name for name in Result.IMAGES}
-    config = directory / f"{stem}.yaml"
+    *names, config = tiff_paths(directory, stem)
+    images = dict(zip(names, Result.IMAGES))
     for path in [*images, config]:
         check_output(path, overwrite=overwrite)
     for path, name in images.items():
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        with atomic_path(path, overwrite=overwrite) as tmp, open(tmp, "wb") as fh:
             tifffile.imwrite(fh, np.asarray(result.image(name), dtype=np.float32), photometric="minisblack")
-    with atomic_path(config) as tmp:
+    with atomic_path(config, overwrite=overwrite) as tmp:
         tmp.write_text(yaml.safe_dump(result.config, sort_keys=False))
     return [*images, config]
 

@@ -499,6 +499,25 @@ def _gain(gain) -> float:
     return value
 
 
+def input_files(*sources) -> list[Path]:
+    """Every file the given sources (globs, paths or lists; None skipped) name: what an import reads."""
+    return [f for source in sources if source is not None for f in _resolve_files(source)]
+
+
+def _checked_output(output, overwrite: bool, *sources) -> Path:
+    """The output path of an import, refused before anything is read if it exists (without ``overwrite``), its
+    folder is missing, or it is one of the files the ``sources`` name (:func:`dfxcorr.check.check_outputs`)."""
+    from .check import check_outputs
+
+    output = Path(os.path.expanduser(os.fspath(output)))
+    if output.exists() and not overwrite:
+        raise OutputExistsError(output)
+    if not output.parent.is_dir():
+        raise StackImportError(f"output {output}: directory {output.parent} does not exist")
+    check_outputs([output], inputs=input_files(*sources), overwrite=overwrite)
+    return output
+
+
 def import_stepping(output, *, sample, reference, dark=None, reference_dark=None,
                     steps_per_period: float | None = None, phases=None, reference_phases=None,
                     shape: tuple[int, int] | None = None, dtype: str | None = None, offset: int = 0,
@@ -544,15 +563,14 @@ def import_stepping(output, *, sample, reference, dark=None, reference_dark=None
     ------
     OutputExistsError
         ``output`` exists and ``overwrite`` is false (checked before anything is read).
+    OutputError
+        ``output`` is one of the input files (any spelling or link), or cannot be written; see
+        :func:`dfxcorr.check.check_outputs`.
     StackImportError
         Any unreadable or inconsistent input; see :func:`read_stack`, :func:`frame_dtype` and
         :func:`nominal_steps`. Also sample and reference frames of different shape, or fewer than 3 steps.
     """
-    output = Path(os.path.expanduser(os.fspath(output)))
-    if output.exists() and not overwrite:
-        raise OutputExistsError(output)
-    if not output.parent.is_dir():
-        raise StackImportError(f"output {output}: directory {output.parent} does not exist")
+    output = _checked_output(output, overwrite, sample, reference, dark, reference_dark)
     if (steps_per_period is None) == (phases is None):
         raise StackImportError("give exactly one of steps_per_period and phases")
     raw = dict(shape=shape, dtype=dtype, offset=offset)
@@ -603,7 +621,7 @@ def import_stepping(output, *, sample, reference, dark=None, reference_dark=None
 
     scan = Scan(data=data, position=np.zeros(J), phase_step=steps, dark=dark_frame, gain=gain_value,
                 pixel_size=px, reference=SteppingReference(data=ref, phase_step=ref_steps, dark=ref_dark))
-    write_scan(output, scan, extra=extra)
+    write_scan(output, scan, extra=extra, overwrite=overwrite)
     return scan
 
 
@@ -794,11 +812,8 @@ def import_scanning(output, *, frames, positions, position_units: str = "pixel",
     OutputExistsError, StackImportError, dfxcorr.io.ScanFormatError
         Before anything is written: existing output, bad options, unreadable or inconsistent inputs.
     """
-    output = Path(os.path.expanduser(os.fspath(output)))
-    if output.exists() and not overwrite:
-        raise OutputExistsError(output)
-    if not output.parent.is_dir():
-        raise StackImportError(f"output {output}: directory {output.parent} does not exist")
+    output = _checked_output(output, overwrite, frames, positions, reference_stepping, reference, dark,
+                             reference_dark)
     if (reference is None) == (reference_stepping is None):
         raise StackImportError("give exactly one of reference (a scan file) and reference_stepping (a series)")
     if position_units not in ("pixel", "mm"):
@@ -856,7 +871,7 @@ def import_scanning(output, *, frames, positions, position_units: str = "pixel",
             if steps_per_period is not None:
                 extra[f"{_IMPORT_GROUP}/steps_per_period"] = float(steps_per_period)
         scan = Scan(data=data, position=position, dark=dark_frame, gain=gain_value, pixel_size=px, reference=ref)
-        write_scan(output, scan, extra=extra)
+        write_scan(output, scan, extra=extra, overwrite=overwrite)
     return scan
 
 

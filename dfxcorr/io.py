@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import secrets
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,7 +18,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .errors import DfxcorrError
+from .errors import DfxcorrError, OutputExistsError
 
 log = logging.getLogger(__name__)
 
@@ -511,25 +512,61 @@ def _check_counts(name: str, data: np.ndarray) -> None:
             raise ScanFormatError(f"/{name} frame {j} holds negative counts")
 
 
-@contextmanager
-def atomic_path(path: str | os.PathLike):
-    """Yield a temporary path beside ``path``; rename it to ``path`` on success, remove it on failure.
+#: Bytes a temporary name adds to the output's name: ``.<name>.<8 hex digits>.part``.
+TEMP_NAME_OVERHEAD = len(".") + len(".01234567.part")
 
-    Readers never see a half-written file, and a failed run leaves nothing behind.
+
+def _exclusive_temp(path: Path) -> Path:
+    """Create a new empty file ``.<name>.<random>.part`` beside ``path``, exclusively (never one another run holds)."""
+    while True:
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.part")
+        try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+            return tmp
+        except FileExistsError:
+            continue
+
+
+def _move_new(tmp: Path, path: Path) -> None:
+    """Give ``tmp`` the name ``path`` only if no file has that name (also not one that appeared meanwhile)."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise OutputExistsError(path) from None
+    except OSError:  # a file system without hard links: check, then rename (a small window remains)
+        if os.path.lexists(path):
+            raise OutputExistsError(path) from None
+        os.replace(tmp, path)
+        return
+    tmp.unlink()
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike, *, overwrite: bool = False):
+    """Yield a temporary path beside ``path``; move it to ``path`` on success, remove it on failure.
+
+    The temporary file is created exclusively under a name of its own (``.<name>.<random>.part``), so
+    concurrent runs writing the same output never share or remove each other's temporary files.
+    Without ``overwrite`` the final step refuses a file that exists by then (:class:`OutputExistsError`,
+    also when another run created it while this one was writing); with it, the rename replaces it.
+    Readers never see a half-written file, and a failed or interrupted run leaves nothing behind.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.part")
+    tmp = _exclusive_temp(path)
     try:
         yield tmp
-        os.replace(tmp, path)
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            _move_new(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
 
 
 def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, np.ndarray] | None = None,
-               compression: str | None = "gzip") -> None:
+               compression: str | None = "gzip", overwrite: bool = False) -> None:
     """Write a scan file atomically (to a temporary name, renamed when complete).
 
     Parameters
@@ -542,8 +579,10 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, np.ndarr
         Further datasets, keyed by path inside the file (ignored by readers, per the spec).
     compression : str or None
         HDF5 filter for the frames.
+    overwrite : bool
+        Replace an existing file (otherwise :class:`OutputExistsError`).
     """
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+    with atomic_path(path, overwrite=overwrite) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT
         f.attrs["format_version"] = FORMAT_VERSION
         entry = f.create_group("entry")

@@ -25,10 +25,10 @@ def pyplot():
     return plt
 
 
-def save_figure(fig, path) -> Path:
-    """Write a figure as PNG atomically and close it."""
+def save_figure(fig, path, *, overwrite: bool = False) -> Path:
+    """Write a figure as PNG atomically and close it (replacing an existing file only with ``overwrite``)."""
     try:
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        with atomic_path(path, overwrite=overwrite) as tmp, open(tmp, "wb") as fh:
             fig.savefig(fh, format="png", dpi=150)
     finally:
         pyplot().close(fig)
@@ -117,7 +117,7 @@ def write_preview(path, result: Result, *, overwrite: bool = False, title: str |
     fig.suptitle(title if title is not None else Path(result.provenance.get("input_file", "")).name or "dfxcorr")
     window = "both panels of an image share" if len(rows) == 2 else "window:"
     fig.supxlabel(f"{window} the corrected image's 1st-99th percentile; blue: no data", fontsize=9)
-    return save_figure(fig, path)
+    return save_figure(fig, path, overwrite=overwrite)
 
 
 def write_fit_plot(path, result: Result, *, overwrite: bool = False) -> Path:
@@ -159,7 +159,7 @@ def write_fit_plot(path, result: Result, *, overwrite: bool = False) -> Path:
     for ax in axes[n:]:
         ax.set_axis_off()
     fig.suptitle(f"vibration fit ({result.method}), reduced χ² = {result.reduced_chi2:.3g}")
-    return save_figure(fig, path)
+    return save_figure(fig, path, overwrite=overwrite)
 
 
 def _plot_param(ax, p: VibrationDataset):
@@ -269,7 +269,7 @@ def plot_images(path, rows: list[tuple[str, dict]], *, names=Result.IMAGES, wind
     if title:
         fig.suptitle(title, fontsize=11)
     fig.supxlabel(f"windows: 1st-99th percentile of '{rows[window_row][0]}'; blue: no data", fontsize=8)
-    return save_figure(fig, path)
+    return save_figure(fig, path, overwrite=overwrite)
 
 
 def plot_convergence(path, histories: dict[str, tuple[np.ndarray, list]], *, reference: float | None = None,
@@ -340,10 +340,10 @@ def plot_convergence(path, histories: dict[str, tuple[np.ndarray, list]], *, ref
             a.legend(fontsize=9)
     if title:
         fig.suptitle(title, fontsize=11)
-    return save_figure(fig, path)
+    return save_figure(fig, path, overwrite=overwrite)
 
 
-def plot_diagnosis(diag, path: Path) -> None:
+def plot_diagnosis(diag, path: Path, *, overwrite: bool = False) -> None:
     """Residual maps before and after, and the residual per frame, x, fringe phase and expected count."""
     plt = pyplot()
     fig = plt.figure(figsize=(13, 8.5), layout="constrained")
@@ -369,10 +369,10 @@ def plot_diagnosis(diag, path: Path) -> None:
         ax.set_xlabel(label)
         ax.set_ylabel("mean squared standardized residual")
         ax.legend(fontsize=8)
-    save_figure(fig, path)
+    save_figure(fig, path, overwrite=overwrite)
 
 
-def plot_nps(path, study: dict, *, title: str = "") -> Path:
+def plot_nps(path, study: dict, *, title: str = "", overwrite: bool = False) -> Path:
     """Binned radial NPS per method (mean ± std over scans), fringe frequency and first harmonic marked.
 
     Parameters
@@ -401,4 +401,4 @@ def plot_nps(path, study: dict, *, title: str = "") -> Path:
                  + (" (mean ± std)" if n > 1 else ""), fontsize=10)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=9, title="method")
-    return save_figure(fig, path)
+    return save_figure(fig, path, overwrite=overwrite)

@@ -15,6 +15,7 @@ import logging
 import os
 import platform
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -117,10 +118,19 @@ def load_truth(path: str | Path, shape: tuple) -> dict:
     Raises
     ------
     TruthError
-        If an image or per-frame array has the wrong shape, or no image is present.
+        If the file cannot be read as an .npz archive of plain arrays (pickled objects are never loaded),
+        an image or per-frame array has the wrong shape, or no image is present.
     """
-    with np.load(path) as f:
-        truth = {k: f[k] for k in f.files}
+    try:
+        with open(path, "rb") as fh:
+            f = np.load(fh, allow_pickle=False)
+            truth = {k: f[k] for k in f.files} if isinstance(f, np.lib.npyio.NpzFile) else None
+    except OSError as exc:
+        raise TruthError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except (ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise TruthError(f"{path}: not a truth file of dfxcorr simulate ({C.show(str(exc), quote=False)})") from None
+    if truth is None:
+        raise TruthError(f"{path}: a single array, not the .npz archive of dfxcorr simulate")
     J, H, W = shape
     images = [k for k in truth if k.startswith("image_")]
     if not images:
@@ -266,7 +276,7 @@ def write_comparison(out_dir: str | Path, scan: Scan, results: dict[str, Result]
 def export_text(path: Path, text: str, *, overwrite: bool = False) -> Path:
     """Write a text file (refusing to replace one unless asked, complete or not at all)."""
     export.check_output(path, overwrite=overwrite)
-    with atomic_path(path) as tmp:
+    with atomic_path(path, overwrite=overwrite) as tmp:
         tmp.write_text(text)
     return path
 
@@ -399,7 +409,7 @@ def write_nps(out_dir: str | Path, study: dict, *, title: str = "", overwrite: b
     for p in paths.values():
         export.check_output(p, overwrite=overwrite)
     f, ff = study["frequency"], study["fringe_frequency"]
-    plots.plot_nps(paths["png"], study, title=title)
+    plots.plot_nps(paths["png"], study, title=title, overwrite=overwrite)
     head = ["frequency_cycles_per_pixel"] + [f"{m}_{s}" for m in study["mean"] for s in ("mean", "std")]
     cols = [f] + [study[s][m] for m in study["mean"] for s in ("mean", "std")]
     lines = [",".join(head)] + [",".join(f"{v:.6g}" for v in row) for row in zip(*cols)]

@@ -475,15 +475,15 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
     paths = {k: out_dir / k for k in ("diagnosis.json", "report.md", "residuals.png")}
     for p in paths.values():
         check_output(p, overwrite=overwrite)
-    with atomic_path(paths["diagnosis.json"]) as tmp:
+    with atomic_path(paths["diagnosis.json"], overwrite=overwrite) as tmp:
         tmp.write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
-    plots.plot_diagnosis(diag, paths["residuals.png"])
+    plots.plot_diagnosis(diag, paths["residuals.png"], overwrite=overwrite)
     written = list(paths.values())
     if diag.motion_mask.any():
-        with atomic_path(out_dir / "motion_mask.tif") as tmp:
+        with atomic_path(out_dir / "motion_mask.tif", overwrite=overwrite) as tmp:
             tifffile.imwrite(tmp, diag.motion_mask.astype(np.uint8))
         written.append(out_dir / "motion_mask.tif")
-    with atomic_path(paths["report.md"]) as tmp:
+    with atomic_path(paths["report.md"], overwrite=overwrite) as tmp:
         tmp.write_text(_markdown(diag))
     return written
 

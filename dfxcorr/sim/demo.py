@@ -18,6 +18,14 @@ log = logging.getLogger("dfxcorr")
 DEMO_SIMULATION = {"simulate": {"pixel_mm": 2.5, "step_mm": 2.5, "seed": 7}}
 
 
+def demo_paths(out_dir: Path) -> dict[str, Path]:
+    """Every file :func:`run_demo` writes, by role."""
+    paths = {k: out_dir / n for k, n in (("scan", "scan.h5"), ("truth", "scan.truth.npz"), ("result", "result.h5"),
+                                           ("preview", "preview.png"), ("fit", "fit.png"), ("summary", "summary.md"))}
+    paths.update({f"tiff{i}": p for i, p in enumerate(export.tiff_paths(out_dir / "tiff", "result"))})
+    return paths
+
+
 def run_demo(out_dir: Path, *, overwrite: bool = False, command_line: str = "dfxcorr demo") -> str:
     """Simulate the paper's study at a coarse pitch, reconstruct it, write everything to ``out_dir``.
 
@@ -26,24 +34,23 @@ def run_demo(out_dir: Path, *, overwrite: bool = False, command_line: str = "dfx
     str
         A summary for the terminal (also written to ``out_dir/summary.md``).
     """
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {k: out_dir / n for k, n in (("scan", "scan.h5"), ("truth", "scan.truth.npz"),
-                                           ("result", "result.h5"), ("summary", "summary.md"))}
+    paths = demo_paths(out_dir)
     for p in paths.values():
         export.check_output(p, overwrite=overwrite)
+    out_dir.mkdir(parents=True, exist_ok=True)
     sim_cfg = C.merge(C.defaults(S.SCHEMA), DEMO_SIMULATION, schema=S.SCHEMA)
     log.info("simulating the paper's study at 2.5 mm pixels")
     scan, truth = S.simulate(sim_cfg)
-    write_scan(paths["scan"], scan)
-    with atomic_path(paths["truth"]) as tmp, open(tmp, "wb") as fh:
+    write_scan(paths["scan"], scan, overwrite=overwrite)
+    with atomic_path(paths["truth"], overwrite=overwrite) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **truth)
     cfg = C.defaults()
     result = pipeline.reconstruct(paths["scan"], cfg, command_line=command_line)
     export.write_result_h5(paths["result"], result, overwrite=overwrite)
     tiffs = export.write_tiffs(out_dir / "tiff", result, stem="result", overwrite=overwrite)
-    preview = plots.write_preview(out_dir / "preview.png", result, overwrite=overwrite,
+    preview = plots.write_preview(paths["preview"], result, overwrite=overwrite,
                                    title="dfxcorr demo: simulated thorax, 2.5 mm pixels")
-    fitplot = plots.write_fit_plot(out_dir / "fit.png", result, overwrite=overwrite)
+    fitplot = plots.write_fit_plot(paths["fit"], result, overwrite=overwrite)
     good = frames_lighting(scan.position, scan.active_rows, scan.shape[1])
     vib = vibration_rmse(result.params, truth, good)
     img = image_rmse({k: result.image(k) for k in result.IMAGES}, truth)
@@ -60,6 +67,6 @@ def run_demo(out_dir: Path, *, overwrite: bool = False, command_line: str = "dfx
     lines += ["", f"Files: {paths['scan'].name}, {paths['truth'].name}, {paths['result'].name}, "
               f"{preview.name}, {fitplot.name}, tiff/ ({len(tiffs)} files)."]
     text = "\n".join(lines) + "\n"
-    with atomic_path(paths["summary"]) as tmp:
+    with atomic_path(paths["summary"], overwrite=overwrite) as tmp:
         tmp.write_text(text)
     return text
