@@ -15,7 +15,7 @@ from . import __version__
 from . import config as C
 from .errors import DfxcorrError
 
-log = logging.getLogger("dfxcorr")
+log = logging.getLogger(__name__)
 
 #: Exit code for refused input (bad file, bad configuration, existing output).
 EXIT_INPUT = 2
@@ -40,7 +40,7 @@ def friendly(func):
 
 def _setup_logging(verbose: int, quiet: bool, log_file: str | None) -> None:
     level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
-    handlers = [logging.StreamHandler(sys.stderr)]
+    handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
     if log_file:
         handlers.append(logging.FileHandler(log_file))
     logging.basicConfig(level=level, handlers=handlers, force=True,
@@ -85,7 +85,7 @@ def main(verbose, quiet, log_file):
 @click.option("-o", "--output", type=click.Path(dir_okay=False),
               help="Result HDF5 file (default: <scan stem>_result.h5 in the current directory).")
 @with_config
-@click.option("--method", type=click.Choice(["ml", "alternating", "correlation", "none"]),
+@click.option("--method", type=click.Choice(C.METHODS),
               help="Vibration estimator (overrides fit.method).")
 @click.option("--tiff", "tiff_dir", type=click.Path(file_okay=False), help="Also write float32 TIFFs here.")
 @click.option("--preview", is_flag=True, help="Also write a PNG with uncorrected and corrected images.")

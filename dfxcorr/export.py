@@ -16,7 +16,7 @@ import yaml
 from .errors import OutputExistsError
 from .io import atomic_path
 from .model import CATALOGUE
-from .result import Result
+from .result import Result, paper_params
 
 FORMAT = "dfxcorr-result"
 FORMAT_VERSION = 1
@@ -87,6 +87,7 @@ def _n_frames(result: Result) -> int:
 def vibration_datasets(result: Result) -> list[VibrationDataset]:
     """The spec's three parameters (neutral where not estimated), then every further effect."""
     n_frames = _n_frames(result)
+    neutral = paper_params({}, n_frames)
     out = []
     for name, eff in SPEC_EFFECTS.items():
         estimated = eff in result.params and bool(result.estimated.get(eff, True))
@@ -95,7 +96,7 @@ def vibration_datasets(result: Result) -> list[VibrationDataset]:
             sigma = result.uncertainty.get(eff)
             sigma = None if sigma is None else np.asarray(sigma, np.float64).reshape(n_frames, -1)[:, 0]
         else:
-            value, sigma = np.full(n_frames, CATALOGUE[eff].neutral), None
+            value, sigma = neutral[eff][:, 0], None
         out.append(VibrationDataset(name, eff, value, sigma, estimated, True))
     for eff, value in result.params.items():
         if eff in SPEC_EFFECTS.values():

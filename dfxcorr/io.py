@@ -329,24 +329,3 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, np.ndarr
             ref.create_dataset("phase", data=scan.reference.phase).attrs["units"] = "rad"
         for key, value in (extra or {}).items():
             f.create_dataset(key, data=value)
-
-
-def illumination_count(position: np.ndarray, active_rows: int, height: int) -> np.ndarray:
-    """Number of frames in which each detector row is illuminated.
-
-    Parameters
-    ----------
-    position : ndarray, shape (J,)
-        Top edge of the active area per frame (rows).
-    active_rows : int
-        A.
-    height : int
-        H, detector rows.
-
-    Returns
-    -------
-    ndarray of int, shape (H,)
-        Row r is lit in frame j iff 0 <= r + 0.5 - position[j] < A.
-    """
-    u = np.arange(height)[:, None] + 0.5 - np.asarray(position)[None, :]
-    return np.count_nonzero((u >= 0) & (u < active_rows), axis=1)

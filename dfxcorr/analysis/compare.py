@@ -21,17 +21,16 @@ import numpy as np
 
 from .. import config as C
 from .. import export, pipeline, plots
-from .. import model as M
 from ..align import resolve_reference
 from .evaluate import frames_lighting, image_rmse, vibration_rmse
 from ..errors import DfxcorrError
 from ..io import Scan, atomic_path, read_scan
-from ..result import Result
+from ..result import Result, paper_params
 
-log = logging.getLogger("dfxcorr")
+log = logging.getLogger(__name__)
 
-#: Estimators in the order they are compared (``fit.method`` values).
-METHODS = ("none", "correlation", "alternating", "ml")
+#: Estimators in the order they are compared: every ``fit.method``, from no correction to this paper's.
+METHODS = tuple(reversed(C.METHODS))
 #: Estimators of the noise power spectra by default (the paper's Fig. 11).
 NPS_METHODS = ("none", "correlation", "ml")
 
@@ -128,11 +127,6 @@ def load_truth(path: str | Path, shape: tuple) -> dict:
     return truth
 
 
-def completed_params(params: dict, n_frames: int) -> dict:
-    """The paper's parameters (eq. 19) with those a method does not estimate at their neutral values."""
-    return {**M.neutral_params(M.PAPER_MODEL, n_frames), **params}
-
-
 def comparison_table(results: dict[str, Result], runtimes: dict[str, float], *, scan: Scan,
                      truth: dict | None = None) -> list[dict]:
     """One row per method: reduced chi-square, runtime and, with a truth, RMSE of parameters and images.
@@ -160,7 +154,7 @@ def comparison_table(results: dict[str, Result], runtimes: dict[str, float], *, 
         row = {"method": method, "reduced_chi2": float(res.reduced_chi2), "runtime_s": float(runtimes[method]),
                "fit_s": float(res.timings.get("fit", 0.0)), "iterations": int(np.size(res.cost))}
         if truth is not None:
-            vib = vibration_rmse(completed_params(res.params, scan.shape[0]), truth, good)
+            vib = vibration_rmse(paper_params(res.params, scan.shape[0]), truth, good)
             row.update({f"rmse_{k}": v for k, v in vib.items()})
             row.update({f"rmse_{k}": v for k, v in image_rmse({k: res.image(k) for k in Result.IMAGES},
                                                                truth).items()})

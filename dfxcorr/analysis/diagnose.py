@@ -33,13 +33,13 @@ from .. import plots
 from . import identify
 from .. import model as M
 from ..align import build_observations, resolve_reference, subsample_columns
-from ..fit import fit_vibrations
+from ..fit import fit_vibrations, well_determined
 from ..io import Scan, atomic_path, read_scan
 from ..mask import motion_score
 from ..pipeline import resolve_effects, stage, visibility_unidentifiable
 from ..retrieve import retrieve
 
-log = logging.getLogger("dfxcorr")
+log = logging.getLogger(__name__)
 
 #: Effects tested, in catalogue order.
 CANDIDATES = tuple(M.CATALOGUE)
@@ -361,7 +361,7 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
         fit_obs = obs.subset(subsample_columns(scan.shape[2], d["subsample"]))
         model = list(resolve_effects(cfg, scan, reference, fit_obs)) if base == "configured" else []
     base_model = list(model)
-    good_frames = np.bincount(fit_obs.frame, minlength=scan.shape[0]) >= 0.5 * np.bincount(fit_obs.frame).max()
+    good_frames = well_determined(fit_obs, cfg["fit"]["gauge_fraction"])
     params: dict = {}
     motion = np.zeros(scan.shape[1:], bool)
     modelled_noise = False
@@ -382,7 +382,8 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
                                         staged=not warm, circmean_iterations=0 if warm else
                                         cfg["fit"]["circmean_iterations"], reweight=0 if warm else 1,
                                         visibility_gauge=cfg["fit"]["visibility_gauge"],
-                                        visibility_quantile=cfg["fit"]["visibility_quantile"])
+                                        visibility_quantile=cfg["fit"]["visibility_quantile"],
+                                        gauge_fraction=cfg["fit"]["gauge_fraction"])
                 params = {k: v for k, v in fitted.params.items() if k in model}
             n_par = sum(np.size(p) for p in params.values())
             chi2_sum, chi2_red, rec = _chi2(obs, params, n_params=n_par)

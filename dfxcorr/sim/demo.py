@@ -12,7 +12,7 @@ from . import simulate as S
 from ..analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
 from ..io import atomic_path, write_scan
 
-log = logging.getLogger("dfxcorr")
+log = logging.getLogger(__name__)
 
 #: The paper's simulation study at 2.5 mm pixels (180 x 204 detector, 209 frames, 30 per pixel).
 DEMO_SIMULATION = {"simulate": {"pixel_mm": 2.5, "step_mm": 2.5, "seed": 7}}

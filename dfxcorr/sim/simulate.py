@@ -13,7 +13,7 @@ import logging
 import numpy as np
 
 from .. import model as M
-from ..align import build_observations
+from ..align import build_observations, stepping_observations
 from ..config import Option, _fraction, _nonneg, _positive
 from ..io import Reference, Scan, SteppingReference
 
@@ -242,7 +242,11 @@ def _reference_series(ref: Reference, s: dict, rng: np.random.Generator) -> tupl
     S = s["reference_steps"]
     steps = 2 * np.pi * np.arange(S) / S
     actual = steps + rng.normal(0, s["reference_step_errors"], S)
-    mean = ref.transmission * (1 + ref.visibility * np.cos(ref.phase[None] + actual[:, None, None]))
+    obs = stepping_observations(np.zeros((S, *ref.transmission.shape)), actual)
+    t, v, phi = (m[obs.rows] for m in (ref.transmission, ref.visibility, ref.phase))
+    images = M.Images(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], axis=-1), np.ones(t.shape, bool))
+    mean = np.zeros((S, *ref.transmission.shape))
+    mean[obs.frame[:, None], obs.row[:, None], obs.columns[None, :]] = M.expected(obs, M.design(obs, {}), images)
     n = s["reference_frames"]
     data = rng.poisson(mean * n) / n if s["noise"] else mean
     return SteppingReference(data=data.astype(np.float64), phase_step=steps), actual
