@@ -113,7 +113,7 @@ def vibration_datasets(result: Result) -> list[VibrationDataset]:
 
 def units(effect: str) -> str | None:
     e = CATALOGUE.get(effect)
-    if e is None:
+    if e is None or e.channel is None:
         return None
     return {"phase": "rad", "background": "counts"}.get(e.channel)
 

@@ -188,7 +188,7 @@ def _read_series(source, shape, dtype, offset) -> tuple[np.ndarray, list[Path]]:
             raise StackImportError(f"series mixes formats: {first} is {_kind(first)}, {f} is {_kind(f)}")
     if len(files) == 1:
         return _read_file(first, shape, dtype, offset), files
-    stack = None
+    stack: np.ndarray | None = None
     for s, f in enumerate(files):
         arr = _read_file(f, shape, dtype, offset)
         if arr.shape[0] != 1:
@@ -203,6 +203,7 @@ def _read_series(source, shape, dtype, offset) -> tuple[np.ndarray, list[Path]]:
         elif arr.dtype != stack.dtype:
             raise StackImportError(f"dtype {arr.dtype} of {f} differs from {stack.dtype} of {first}")
         stack[s] = arr[0]
+    assert stack is not None  # files holds at least two
     return stack, files
 
 
@@ -296,6 +297,8 @@ def nominal_steps(n: int, *, steps_per_period: float | None = None,
         if not np.all(np.isfinite(out)):
             raise StackImportError(f"phases holds values that are not finite: {list(out)}")
         return out
+    if steps_per_period is None:
+        raise StackImportError("give steps_per_period or phases")
     spp = float(steps_per_period)
     if not (np.isfinite(spp) and spp > 0):
         raise StackImportError(f"steps_per_period must be a positive number, got {steps_per_period!r}")
@@ -435,11 +438,12 @@ def import_stepping(output, *, sample, reference, dark=None, reference_dark=None
     }
     if steps_per_period is not None:
         extra[f"{_IMPORT_GROUP}/steps_per_period"] = float(steps_per_period)
-    dark_frame = None
+    dark_frame: np.ndarray | None = None
     if dark is not None:
         dark_frame, files = _read_dark(dark, "dark", (H, W), **raw)
         extra[f"{_IMPORT_GROUP}/dark_files"] = _strings(files)
     if reference_dark is not None:
+        ref_dark: np.ndarray | None
         ref_dark, files = _read_dark(reference_dark, "reference_dark", (H, W), **raw)
         extra[f"{_IMPORT_GROUP}/reference_dark_files"] = _strings(files)
     else:

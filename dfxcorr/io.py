@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import logging
 import os
+from typing import Any
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -91,14 +93,14 @@ class Scan:
     data: np.ndarray
     position: np.ndarray
     reference: Reference | SteppingReference
-    phase_step: np.ndarray = None
-    dark: np.ndarray = None
+    phase_step: np.ndarray | None = None
+    dark: np.ndarray | None = None
     gain: float = 1.0
     exposure_time: np.ndarray | None = None
     pixel_size: tuple[float, float] | None = None
     attrs: dict = field(default_factory=dict)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         J, H, W = self.data.shape
         if self.phase_step is None:
             self.phase_step = np.zeros(J)
@@ -131,7 +133,7 @@ def _require(f: h5py.File, path: str) -> h5py.Dataset:
     return obj
 
 
-def _optional(f: h5py.File, path: str):
+def _optional(f: h5py.File, path: str) -> Any:
     obj = f.get(path)
     return obj[()] if isinstance(obj, h5py.Dataset) else None
 
@@ -207,7 +209,7 @@ def read_scan(path: str | os.PathLike) -> Scan:
         if not (np.isfinite(gain) and gain > 0):
             raise ScanFormatError(f"/{_DET}/gain must be a positive number, is {gain}")
         px = [_optional(f, f"{_DET}/{k}") for k in ("y_pixel_size", "x_pixel_size")]
-        pixel_size = tuple(float(p) for p in px) if all(p is not None for p in px) else None
+        pixel_size = (float(px[0]), float(px[1])) if px[0] is not None and px[1] is not None else None
         reference = _read_reference(f, W)
         attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     _check_counts(f"{_DET}/data", data)
@@ -262,7 +264,7 @@ def _check_counts(name: str, data: np.ndarray) -> None:
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike):
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it to ``path`` on success, remove it on failure.
 
     Readers never see a half-written file, and a failed run leaves nothing behind.
@@ -278,7 +280,7 @@ def atomic_path(path: str | os.PathLike):
         raise
 
 
-def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, np.ndarray] | None = None,
+def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, Any] | None = None,
                compression: str | None = "gzip") -> None:
     """Write a scan file atomically (to a temporary name, renamed when complete).
 

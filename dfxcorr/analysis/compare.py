@@ -349,9 +349,11 @@ def nps_study(scans, cfg: dict, *, methods=NPS_METHODS, method_sets: dict | None
         'scans' (names); 'runtime_s' method -> total seconds.
     """
     cfg = C.merge(cfg, {"retrieve": {"uncorrected": False}})
-    spectra = {m: [] for m in methods}
+    spectra: dict[str, list] = {m: [] for m in methods}
     runtime = {m: 0.0 for m in methods}
-    fringes, names, freq = [], [], None
+    fringes: list = []
+    names: list[str] = []
+    freq = None
     for item in scans:
         scan = item if isinstance(item, Scan) else read_scan(item)
         names.append(str(item) if not isinstance(item, Scan) else f"scan {len(names)}")

@@ -37,7 +37,7 @@ from ..fit import fit_vibrations, well_determined
 from ..io import Scan, atomic_path, read_scan
 from ..mask import motion_score
 from ..pipeline import resolve_effects, stage, visibility_unidentifiable
-from ..retrieve import retrieve
+from ..retrieve import Retrieval, retrieve
 
 log = logging.getLogger(__name__)
 
@@ -285,7 +285,7 @@ def gain_test(obs: M.Observations, ibar: np.ndarray, images, dsg, weights) -> di
 # --------------------------------------------------------------------------------------------------
 
 
-def _chi2(obs: M.Observations, params: dict, *, n_params: int) -> tuple[float, float, object]:
+def _chi2(obs: M.Observations, params: dict, *, n_params: int) -> tuple[float, float, Retrieval]:
     rec = retrieve(obs, params, n_frame_params=n_params)
     sel = rec.images.valid[obs.pixel] & obs.use
     return float(M.pearson(obs, rec.expected)[sel].sum()), rec.reduced_chi2, rec
@@ -367,9 +367,9 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
     modelled_noise = False
     reports: dict[str, EffectReport] = {}
     detected: list[str] = []
-    rounds = []
+    rounds: list[dict] = []
     last_tests: dict[str, dict] = {}
-    initial = None
+    initial = float("nan")
     paper_why = visibility_unidentifiable(scan, reference)
     for rnd in range(d["max_rounds"] + 1):
         for o in (obs, fit_obs):
@@ -387,7 +387,7 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
                 params = {k: v for k, v in fitted.params.items() if k in model}
             n_par = sum(np.size(p) for p in params.values())
             chi2_sum, chi2_red, rec = _chi2(obs, params, n_params=n_par)
-        if initial is None:
+        if rnd == 0:
             initial = chi2_red
             before = locate(obs, M.design(obs, params), rec.images, rec.expected)
         if rounds:

@@ -47,6 +47,7 @@ def run_demo(out_dir: Path, *, overwrite: bool = False, command_line: str = "dfx
     good = frames_lighting(scan.position, scan.active_rows, scan.shape[1])
     vib = vibration_rmse(result.params, truth, good)
     img = image_rmse({k: result.image(k) for k in result.IMAGES}, truth)
+    assert result.uncorrected is not None  # retrieve.uncorrected is on by default
     img0 = image_rmse(result.uncorrected, truth)
     lines = ["# dfxcorr demo", "",
              f"Simulated {scan.shape[0]} frames of {scan.shape[1]} x {scan.shape[2]} pixels (seed "

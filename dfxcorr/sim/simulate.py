@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+from typing import Any
 
 import numpy as np
 
@@ -202,7 +203,8 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
         ibar = np.where(moving[obs.row][:, obs.columns], (ibar - dsg.offset) * swing + dsg.offset, ibar)
     counts = _detect(ibar - obs.dark, cfg, rng) + obs.dark
     frames[obs.frame[:, None], obs.row[:, None], obs.columns[None, :]] = counts
-    reference, reference_steps = ref, np.zeros(0)
+    reference: Reference | SteppingReference = ref
+    reference_steps = np.zeros(0)
     if s["reference_steps"]:
         reference, reference_steps = _reference_series(ref, s, rng)
     data = _store(frames, s["dtype"])
@@ -210,7 +212,7 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
     scan = Scan(data=data, position=g["position"], reference=reference, phase_step=g["phase_step"],
                 gain=gain_file, exposure_time=np.full(J, 0.033),
                 pixel_size=(s["pixel_mm"] * 1e-3, s["pixel_mm"] * 1e-3))
-    truth = {f"image_{k}": img[k] for k in ("transmission", "dark_field", "differential_phase")}
+    truth: dict[str, Any] = {f"image_{k}": img[k] for k in ("transmission", "dark_field", "differential_phase")}
     truth.update(vib_phase_offset=params["phase_offset"][:, 0], vib_tilt=params["tilt"][:, 0],
                  vib_visibility=params["visibility_loss"][:, 0],
                  vib_curvature=params.get("curvature", np.zeros((J, 1)))[:, 0],
