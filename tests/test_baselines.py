@@ -23,6 +23,7 @@ def reduced_cost(obs, params, weights):
     return float(np.sum(weights * (obs.counts - M.expected(obs, dsg, M.solve_images(obs, dsg, weights))) ** 2))
 
 
+@pytest.mark.slow
 def test_alternating_converges_to_the_ml_optimum(small_scan):
     scan, _ = small_scan()
     obs = fit_data(scan, 3)
@@ -44,6 +45,7 @@ def test_alternating_converges_to_the_ml_optimum(small_scan):
     np.testing.assert_allclose(alt.uncertainty["tilt"][good], ml.uncertainty["tilt"][good], rtol=0.02)
 
 
+@pytest.mark.slow
 def test_alternating_updates_global_effects_as_one_block(small_scan):
     scan, truth = small_scan(**{"effects.harmonic": 0.05})
     obs = fit_data(scan, 4)
