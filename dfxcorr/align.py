@@ -159,7 +159,8 @@ class ReferenceFit:
 
 
 def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects: Sequence[str] = ("phase_offset", "dose"),
-                  optional: Sequence[str] = ("dose",), min_visibility: float | str = "auto", subsample: int = 4) -> ReferenceFit:
+                  optional: Sequence[str] = ("dose",), min_visibility: float | str = "auto",
+                  subsample: int = 4) -> ReferenceFit:
     """Flat-field maps from a stepping series, with per-step phase errors and dose estimated.
 
     The series is a phase-stepping recording of the unloaded interferometer: flat field 1, 1, 0 and the
@@ -299,7 +300,7 @@ def _ranges(idx: np.ndarray) -> str:
     breaks = np.flatnonzero(np.diff(idx) > 1)
     starts = np.r_[idx[0], idx[breaks + 1]]
     ends = np.r_[idx[breaks], idx[-1]]
-    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends))
+    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends, strict=True))
 
 
 __all__ = ["AlignmentError", "ReferenceFit", "auto_visibility_threshold", "build_observations", "fit_reference",

@@ -197,14 +197,14 @@ def update_block(obs: M.Observations, names, params: dict, images: M.Images, wei
 
     sizes = [M.effect(n).size for n in names]
     lower = np.concatenate([np.full(s, -np.inf if M.effect(n).lower is None else M.effect(n).lower)
-                            for n, s in zip(names, sizes)])
+                            for n, s in zip(names, sizes, strict=True)])
 
     def pack(p):
         return np.concatenate([p[n].reshape(n_groups, -1) for n in names], axis=1)
 
     def unpack(theta):
         out, i = dict(params), 0
-        for n, s in zip(names, sizes):
+        for n, s in zip(names, sizes, strict=True):
             out[n] = theta[:, i:i + s].reshape(params[n].shape)
             i += s
         return out

@@ -246,7 +246,8 @@ def config_cmd(show_defaults, schema, check_files, sets):
 
     sch = S.SCHEMA if schema == "simulate" else C.SCHEMA
     if show_defaults or not (check_files or sets):
-        title = "dfxcorr simulate this.yaml -o scan.h5" if schema == "simulate" else "dfxcorr reconstruct SCAN -c this.yaml"
+        title = ("dfxcorr simulate this.yaml -o scan.h5" if schema == "simulate"
+                 else "dfxcorr reconstruct SCAN -c this.yaml")
         click.echo(C.commented_defaults(sch, title=title))
         return
     click.echo(C.dump(C.load(check_files, sets, schema=sch)), nl=False)

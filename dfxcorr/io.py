@@ -224,9 +224,9 @@ def _read_reference(f: h5py.File, W: int) -> Reference | SteppingReference:
         t, v, p = (np.asarray(_require(f, f"entry/reference/{m}")[()], dtype=np.float64) for m in maps)
         if t.ndim != 2 or t.shape[1] != W:
             raise ScanFormatError(f"/entry/reference/transmission has shape {t.shape}, expected [A, {W}]")
-        for m, a in zip(maps[1:], (v, p)):
+        for m, a in zip(maps[1:], (v, p), strict=True):
             _check_shape(f"entry/reference/{m}", a, t.shape, "same as /entry/reference/transmission")
-        for m, a in zip(maps, (t, v, p)):
+        for m, a in zip(maps, (t, v, p), strict=True):
             _check_finite(f"entry/reference/{m}", a)
         if np.any(t <= 0):
             raise ScanFormatError("/entry/reference/transmission must be positive everywhere")
@@ -248,7 +248,7 @@ def _read_reference(f: h5py.File, W: int) -> Reference | SteppingReference:
             _check_shape(f"{base}/dark", dark, (A, W), "one value per pixel of the active area")
         _check_counts(f"{base}/data", data)
         return SteppingReference(data=data, phase_step=steps, dark=dark)
-    missing = [f"/entry/reference/{m}" for m, h in zip(maps, have) if not h]
+    missing = [f"/entry/reference/{m}" for m, h in zip(maps, have, strict=True) if not h]
     raise ScanFormatError(f"missing required dataset {missing[0]} (or /entry/reference/stepping/data)")
 
 

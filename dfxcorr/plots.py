@@ -155,7 +155,7 @@ def write_fit_plot(path, result: Result, *, overwrite: bool = False) -> Path:
     fig, axes = plt.subplots(nrows, ncols, figsize=(6.5 * ncols, 2.8 * nrows), squeeze=False,
                              layout="constrained")
     axes = axes.ravel()
-    for ax, p in zip(axes, params):
+    for ax, p in zip(axes, params, strict=False):  # the axes after the parameters hold the cost
         _plot_param(ax, p)
     _plot_cost(axes[len(params)], result)
     for ax in axes[n:]:
@@ -308,7 +308,7 @@ def plot_convergence(path, histories: dict[str, tuple[np.ndarray, list]], *, ref
     ax, ax2 = (axes[0, 0], axes[0, 1]) if whole else (None, axes[0, 0])
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     same = {}
-    for (label, (cost, stages)), color in zip(histories.items(), colors):
+    for (label, (cost, stages)), color in zip(histories.items(), colors, strict=False):
         cost = np.asarray(cost, dtype=np.float64)
         stages = list(stages) if len(stages) == cost.size else [""] * cost.size
         it = np.arange(1, cost.size + 1)

@@ -51,7 +51,7 @@ METHOD_SETS = {"correlation": ["fit.subsample=1"]}
 # --------------------------------------------------------------------------------------------------
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def simulated(pixel_mm: float, seed: int, sets: tuple = ()):
     """(scan, truth) of the paper's simulation study (configs/paper-simulation.yaml) with overrides."""
     cfg = C.load([ROOT / "configs" / "paper-simulation.yaml"],
@@ -59,7 +59,7 @@ def simulated(pixel_mm: float, seed: int, sets: tuple = ()):
     return S.simulate(cfg)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def reconstructed(pixel_mm: float, seed: int, sim_sets: tuple = (), sets: tuple = ()) -> tuple[Result, float]:
     """(Result, wall seconds) of :func:`simulated` reconstructed with the default configuration and ``sets``."""
     scan, _ = simulated(pixel_mm, seed, sim_sets)

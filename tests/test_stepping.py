@@ -121,7 +121,8 @@ def test_visibility_cannot_be_fitted_on_a_stepping_reference(stepping):
 
 
 def test_region_without_fringes_is_left_out_and_nan(stepping):
-    result = pipeline.reconstruct(without_fringes(*stepping[:1], stepping[1]["vib_dose"]), C.load([], ["fit.subsample=2"]))
+    result = pipeline.reconstruct(without_fringes(*stepping[:1], stepping[1]["vib_dose"]),
+                                  C.load([], ["fit.subsample=2"]))
     assert np.all(np.isnan(result.dark_field[:, :10]))
     assert np.isfinite(result.dark_field[:, 12:]).mean() > 0.99
 

@@ -391,7 +391,7 @@ def write_nps(out_dir: str | Path, study: dict, *, title: str = "", overwrite: b
     plots.plot_nps(paths["png"], study, title=title)
     head = ["frequency_cycles_per_pixel"] + [f"{m}_{s}" for m in study["mean"] for s in ("mean", "std")]
     cols = [f] + [study[s][m] for m in study["mean"] for s in ("mean", "std")]
-    lines = [",".join(head)] + [",".join(f"{v:.6g}" for v in row) for row in zip(*cols)]
+    lines = [",".join(head)] + [",".join(f"{v:.6g}" for v in row) for row in zip(*cols, strict=True)]
     export_text(paths["csv"], "\n".join(lines) + "\n", overwrite=overwrite)
     doc = {"scans": study["scans"], "fringe_frequency": ff, "first_harmonic": 2 * ff, "machine": machine(),
            "runtime_s": study["runtime_s"], "frequency": f.tolist(),

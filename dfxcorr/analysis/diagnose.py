@@ -194,7 +194,8 @@ def score_tests(obs: M.Observations, params: dict, weights: np.ndarray, model, c
     resid = obs.counts - M.expected(obs, dsg, images)
     inf = identify.information(obs, dsg, images, weights, names)
     grad = M.gradient(obs, dsg, images, weights, resid, names)
-    U = -0.5 * np.array([grad[n][(j, m) if j >= 0 else m] for n, j, m in zip(inf.owner, inf.frame, inf.component)])
+    U = -0.5 * np.array([grad[n][(j, m) if j >= 0 else m]
+                         for n, j, m in zip(inf.owner, inf.frame, inf.component, strict=True)])
     out = {}
     for name in candidates:
         cond = identify.conditional(inf, name, model)
@@ -323,10 +324,10 @@ def _estimate(name: str, params: dict, good: np.ndarray, extra: dict) -> str:
         unit = " %" if name in ("dose", "visibility_loss") else (" rad" if e.channel == "phase" else "")
         factor = 100.0 if unit == " %" else 1.0
         return ", ".join(f"std {factor * s:.3g}{unit}" + (f" ({c})" if e.size > 1 else "")
-                         for s, c in zip(sd, e.components))
+                         for s, c in zip(sd, e.components, strict=True))
     if name == "harmonic":
         return f"a2 = {np.hypot(*p):.4g}, beta = {np.arctan2(p[1], p[0]):.3f} rad"
-    return ", ".join(f"{c}: {v:.4g}" for c, v in zip(e.components, p)) + " counts"
+    return ", ".join(f"{c}: {v:.4g}" for c, v in zip(e.components, p, strict=True)) + " counts"
 
 
 def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "configured") -> Diagnosis:
@@ -497,16 +498,19 @@ def _markdown(diag: Diagnosis) -> str:
              "![where the model and the data disagree](residuals.png)", "",
              "Top row: mean squared standardized residual per pixel before and after (1 = photon noise). "
              "Below: the same by frame, lateral position, fringe phase and expected count.", "",
-             "| effect | detected | identifiable | statistic | dof | p-value | delta chi2 | reduced chi2 after | where | "
-             "estimate |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "| effect | detected | identifiable | statistic | dof | p-value | delta chi2 | reduced chi2 after "
+             "| where | estimate |", "|---|---|---|---|---|---|---|---|---|---|"]
+
+    def fmt(v, f):
+        return "" if v is None else format(v, f)
+
     for e in diag.effects:
-        fmt = (lambda v, f: "" if v is None else format(v, f))
         lines.append(f"| {e.name} | {'yes' if e.detected else 'no'} | {'yes' if e.identifiable else 'no'} | "
                      f"{e.statistic:.4g} | {e.dof} | {e.p_value:.3g} | {fmt(e.delta_chi2, '.4g')} | "
                      f"{fmt(e.reduced_chi2_after, '.4f')} | {e.where or ''} | {e.estimate or ''} |")
     lines += ["", f"Criterion: {diag.criterion}.", "",
-              "delta chi2 is the change of the Pearson chi-square sum when the effect was added; for detector_gain it "
-              "is negative when the noise is below Poisson (the reduced chi-square then rises towards 1).", "",
+              "delta chi2 is the change of the Pearson chi-square sum when the effect was added; for detector_gain "
+              "it is negative when the noise is below Poisson (the reduced chi-square then rises towards 1).", "",
               "Not identifiable means the Fisher information has directions of that effect's parameters without "
               "information beyond its gauge: the acquisition cannot tell it from the images or the model's other "
               "effects (paper Sec. II-F), so it is never reported as detected.", ""]
