@@ -135,8 +135,8 @@ def _compression(cfg: dict):
 def simulate(config_file, output, sets, truth, overwrite):
     """Simulate a scan (the paper's simulation study by default) and write it with its truth."""
     from . import export
-    from .sim import simulate as S
     from .io import atomic_path, write_scan
+    from .sim import simulate as S
 
     cfg = C.load([config_file] if config_file else [], sets, schema=S.SCHEMA)
     out = Path(output)
@@ -161,7 +161,8 @@ def simulate(config_file, output, sets, truth, overwrite):
 @friendly
 def diagnose(scan, out_dir, config_files, sets, base, overwrite):
     """Find where SCAN and the model disagree, name the missing physics, add it and refit."""
-    from .analysis.diagnose import diagnose as run, write_report
+    from .analysis.diagnose import diagnose as run
+    from .analysis.diagnose import write_report
     from .export import check_output
 
     cfg = C.load(config_files, sets)
@@ -266,8 +267,8 @@ def config_cmd(show_defaults, schema, check_files, sets):
 @friendly
 def compare(scan, output_dir, truth, methods, config_files, sets, overwrite):
     """Run every vibration estimator on SCAN and compare them: results, pictures and a table."""
-    from .analysis import compare as CMP
     from . import export
+    from .analysis import compare as CMP
     from .io import read_scan
 
     cfg = C.load(config_files, sets)
@@ -300,8 +301,8 @@ def compare(scan, output_dir, truth, methods, config_files, sets, overwrite):
 @friendly
 def nps(scans, output_dir, methods, bins, config_files, sets, overwrite):
     """Noise power spectra of the dark-field images of blank SCANS (no sample), per estimator."""
-    from .analysis import compare as CMP
     from . import export
+    from .analysis import compare as CMP
 
     cfg = C.load(config_files, sets)
     methods = CMP.parse_methods(methods)

@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import logging
 import os
-from typing import Any
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np

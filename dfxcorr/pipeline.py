@@ -20,10 +20,15 @@ import numpy as np
 from . import __version__
 from . import config as C
 from . import model as M
-from .align import (auto_visibility_threshold, build_observations, resolve_reference, subsample_columns,
-                    tilt_alias_period)
-from .baselines import fit_alternating, fit_correlation
+from .align import (
+    auto_visibility_threshold,
+    build_observations,
+    resolve_reference,
+    subsample_columns,
+    tilt_alias_period,
+)
 from .analysis import identify
+from .baselines import fit_alternating, fit_correlation
 from .errors import DfxcorrError
 from .fit import FitResult, fit_vibrations, initial_weights
 from .io import Scan, read_scan

@@ -17,8 +17,8 @@ import time
 from pathlib import Path
 
 from dfxcorr import config as C
-from dfxcorr.sim import simulate as S
 from dfxcorr.analysis.diagnose import diagnose
+from dfxcorr.sim import simulate as S
 
 ROOT = Path(__file__).resolve().parents[1]
 

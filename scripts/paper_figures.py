@@ -27,16 +27,16 @@ from pathlib import Path
 
 import numpy as np
 
-from dfxcorr.analysis import compare as CMP
 from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr import pipeline, plots
-from dfxcorr.sim import simulate as S
 from dfxcorr.align import build_observations, resolve_reference
-from dfxcorr.baselines import fit_alternating
+from dfxcorr.analysis import compare as CMP
 from dfxcorr.analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
+from dfxcorr.baselines import fit_alternating
 from dfxcorr.fit import fit_vibrations, initial_weights
 from dfxcorr.result import Result
+from dfxcorr.sim import simulate as S
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data" / "sim"

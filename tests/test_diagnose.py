@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from dfxcorr import config as C
-from dfxcorr.sim import simulate as S
 from dfxcorr.analysis.diagnose import diagnose, write_report
+from dfxcorr.sim import simulate as S
 
 from conftest import shared_path, sim_config
 

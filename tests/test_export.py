@@ -9,9 +9,8 @@ import yaml
 
 from dfxcorr import export
 from dfxcorr.errors import OutputExistsError
+from dfxcorr.export import check_output, read_result_h5, write_result_h5, write_tiffs
 from dfxcorr.plots import write_fit_plot, write_preview
-from dfxcorr.export import (check_output, read_result_h5,
-                            write_result_h5, write_tiffs)
 from dfxcorr.result import Result
 
 H, W, J = 12, 10, 7

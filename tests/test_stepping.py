@@ -5,10 +5,10 @@ import tifffile
 
 from dfxcorr import config as C
 from dfxcorr import pipeline
-from dfxcorr.sim import simulate as S
 from dfxcorr.align import fit_reference
 from dfxcorr.importer import import_stepping
 from dfxcorr.io import read_scan
+from dfxcorr.sim import simulate as S
 
 from conftest import shared_path, sim_config
 

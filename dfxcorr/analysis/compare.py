@@ -22,10 +22,10 @@ import numpy as np
 from .. import config as C
 from .. import export, pipeline, plots
 from ..align import resolve_reference
-from .evaluate import frames_lighting, image_rmse, vibration_rmse
 from ..errors import DfxcorrError
 from ..io import Scan, atomic_path, read_scan
 from ..result import Result, paper_params
+from .evaluate import frames_lighting, image_rmse, vibration_rmse
 
 log = logging.getLogger(__name__)
 

@@ -29,15 +29,15 @@ import numpy as np
 from scipy import ndimage, stats
 
 from .. import config as C
-from .. import plots
-from . import identify
 from .. import model as M
+from .. import plots
 from ..align import build_observations, resolve_reference, subsample_columns
 from ..fit import fit_vibrations, well_determined
 from ..io import Scan, atomic_path, read_scan
 from ..mask import motion_score
 from ..pipeline import resolve_effects, stage, visibility_unidentifiable
 from ..retrieve import Retrieval, retrieve
+from . import identify
 
 log = logging.getLogger(__name__)
 

@@ -8,9 +8,9 @@ import numpy as np
 
 from .. import config as C
 from .. import export, pipeline, plots
-from . import simulate as S
 from ..analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
 from ..io import atomic_path, write_scan
+from . import simulate as S
 
 log = logging.getLogger(__name__)
 
