@@ -8,6 +8,7 @@ interpolation of wrapped values would put a wrong phase into every sample near a
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -103,6 +104,7 @@ def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray 
     if row.size == 0:
         raise AlignmentError(f"no detector row is lit in at least {min_frames} frames: nothing to fit "
                              f"(dataset /entry/scan/position)")
+    assert scan.phase_step is not None and scan.dark is not None  # filled in by Scan.__post_init__
     phase = np.unwrap(reference.phase, axis=0)
     tf = interpolate_rows(reference.transmission[:, cols], u)
     vf = interpolate_rows(reference.visibility[:, cols], u)
@@ -156,8 +158,9 @@ class ReferenceFit:
     reduced_chi2: dict
 
 
-def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=("phase_offset", "dose"),
-                  optional=("dose",), min_visibility: float | str = "auto", subsample: int = 4) -> ReferenceFit:
+def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects: Sequence[str] = ("phase_offset", "dose"),
+                  optional: Sequence[str] = ("dose",), min_visibility: float | str = "auto",
+                  subsample: int = 4) -> ReferenceFit:
     """Flat-field maps from a stepping series, with per-step phase errors and dose estimated.
 
     The series is a phase-stepping recording of the unloaded interferometer: flat field 1, 1, 0 and the
@@ -201,9 +204,9 @@ def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=("phase_
     S = ref.data.shape[0]
     if S < 3:
         raise AlignmentError(f"/entry/reference/stepping/data has {S} steps; at least 3 are needed")
-    bad = [e for e in effects if e not in ("phase_offset", "tilt", "dose")]
-    if bad:
-        raise AlignmentError(f"{', '.join(bad)} cannot be estimated from a reference stepping series "
+    unknown = [e for e in effects if e not in ("phase_offset", "tilt", "dose")]
+    if unknown:
+        raise AlignmentError(f"{', '.join(unknown)} cannot be estimated from a reference stepping series "
                              f"(not identifiable there, paper Sec. II-F)")
     obs = stepping_observations(ref.data, ref.phase_step, dark=ref.dark, gain=gain)
     nominal = retrieve(obs, {})
@@ -254,7 +257,8 @@ def auto_visibility_threshold(visibility: np.ndarray) -> float:
     return 0.25 * float(np.percentile(v, 95)) if v.size else 0.0
 
 
-def resolve_reference(scan: Scan, *, effects=("phase_offset", "dose"), optional=("dose",)) -> Reference:
+def resolve_reference(scan: Scan, *, effects: Sequence[str] = ("phase_offset", "dose"),
+                      optional: Sequence[str] = ("dose",)) -> Reference:
     """The scan's flat-field maps, retrieved from its stepping series if that is what it holds.
 
     Parameters
@@ -296,7 +300,7 @@ def _ranges(idx: np.ndarray) -> str:
     breaks = np.flatnonzero(np.diff(idx) > 1)
     starts = np.r_[idx[0], idx[breaks + 1]]
     ends = np.r_[idx[breaks], idx[-1]]
-    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends))
+    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends, strict=True))
 
 
 __all__ = ["AlignmentError", "ReferenceFit", "auto_visibility_threshold", "build_observations", "fit_reference",

@@ -197,14 +197,14 @@ def update_block(obs: M.Observations, names, params: dict, images: M.Images, wei
 
     sizes = [M.effect(n).size for n in names]
     lower = np.concatenate([np.full(s, -np.inf if M.effect(n).lower is None else M.effect(n).lower)
-                            for n, s in zip(names, sizes)])
+                            for n, s in zip(names, sizes, strict=True)])
 
     def pack(p):
         return np.concatenate([p[n].reshape(n_groups, -1) for n in names], axis=1)
 
     def unpack(theta):
         out, i = dict(params), 0
-        for n, s in zip(names, sizes):
+        for n, s in zip(names, sizes, strict=True):
             out[n] = theta[:, i:i + s].reshape(params[n].shape)
             i += s
         return out
@@ -351,8 +351,9 @@ def column_positions(obs: M.Observations, *, grid: int = 360, min_rows: int = 3,
     """
     S = _frame_matrix(obs)
     u = obs.use.astype(np.float64)
-    I = obs.counts
-    basis = (obs.tf, obs.tf * obs.vf * np.cos(obs.phif), -obs.tf * obs.vf * np.sin(obs.phif))
+    counts = obs.counts
+    dsg = M.design(obs, {})
+    basis = (dsg.A, dsg.Bc, dsg.Bs)
     n = S @ u
     nz = np.maximum(n, 1.0)
 
@@ -362,8 +363,8 @@ def column_positions(obs: M.Observations, *, grid: int = 360, min_rows: int = 3,
     def cov(a, b):
         return mean(a * b) - mean(a) * mean(b)
 
-    var_i = cov(I, I)
-    c_i = np.stack([cov(I, a) for a in basis], axis=-1)                       # (J, C, 3)
+    var_i = cov(counts, counts)
+    c_i = np.stack([cov(counts, a) for a in basis], axis=-1)                       # (J, C, 3)
     sig = np.stack([np.stack([cov(a, b) for b in basis], -1) for a in basis], -1)  # (J, C, 3, 3)
     p = 2 * np.pi * np.arange(grid) / grid
     e = np.stack([np.ones(grid), np.cos(p), np.sin(p)])                      # (3, G)

@@ -105,7 +105,8 @@ def plan(entries: list[tuple[int, str]], out_dir: str | os.PathLike) -> list[Job
     return jobs
 
 
-def select_line(entries: list[tuple[int, str]], index: int, *, list_name: str = "the scan list") -> list[tuple[int, str]]:
+def select_line(entries: list[tuple[int, str]], index: int, *,
+                list_name: str = "the scan list") -> list[tuple[int, str]]:
     """The entry on line ``index`` (from 1, as ``sed -n Np``), for one task of a job array.
 
     Raises

@@ -18,6 +18,7 @@ import numpy as np
 
 from . import config as C
 from . import io
+from .align import lit_blocks
 from .errors import DfxcorrError, OutputExistsError
 
 #: Name length limit where the file system does not tell (bytes; ext4, XFS, Lustre, GPFS).
@@ -220,7 +221,7 @@ def memory_estimate(shape, itemsize: int, lit_samples: int) -> int:
     return int(np.prod(shape)) * itemsize + BYTES_PER_SAMPLE * lit_samples + BASE_BYTES
 
 
-def read_header(path) -> io.Scan:
+def read_header(path, *, allow_external: bool = False) -> io.Scan:
     """A scan's geometry and reference without reading its frames (their dtype and shape only).
 
     The returned :class:`~dfxcorr.io.Scan` holds a zero-stride view as ``data`` (and as the reference
@@ -229,8 +230,7 @@ def read_header(path) -> io.Scan:
     """
     try:
         with h5py.File(path, "r") as f:
-            if f.attrs.get("format") not in (io.FORMAT, io.FORMAT.encode()):
-                raise ValueError("not a scan")
+            io.validate_file(f, allow_external=allow_external)
             dset = f["entry/instrument/detector/data"]
             J, H, W = dset.shape
             dtype = dset.dtype
@@ -252,8 +252,10 @@ def read_header(path) -> io.Scan:
                 if t.ndim != 2 or t.shape[1] != W or v.shape != t.shape or p.shape != t.shape:
                     raise ValueError("reference")
                 reference = io.Reference(t, v, p)
+    except io.ScanFormatError:
+        raise
     except Exception:  # noqa: BLE001 - whatever is wrong, the full reader names it
-        return io.read_scan(path)
+        return io.read_scan(path, allow_external=allow_external)
     return io.Scan(data=np.broadcast_to(np.zeros((), dtype), (J, H, W)), position=position, reference=reference)
 
 
@@ -320,7 +322,7 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
         raise C.ConfigError(f"diagnose.subsample={n} leaves no column of {W} (its first column would be {n // 2}); "
                             f"use at most {2 * W - 1}")
     columns = np.zeros(0, int) if method == "none" else _columns(W, cfg)
-    count = io.illumination_count(scan.position, scan.active_rows, H)
+    count = np.bincount(lit_blocks(scan.position, scan.active_rows, H)[0], minlength=H)
     used = count >= cfg["align"]["min_frames"]
     lit = int(count[used].sum()) * W
     effects = C.effects_of(cfg) if method != "none" else ()

@@ -18,7 +18,7 @@ from . import __version__
 from . import config as C
 from .errors import DfxcorrError
 
-log = logging.getLogger("dfxcorr")
+log = logging.getLogger(__name__)
 
 #: Exit code for refused input (bad file, bad configuration, existing output).
 EXIT_INPUT = 2
@@ -127,7 +127,7 @@ def reconstruct_options(func):
                              "<output stem>_fit.png.")(func)
     func = click.option("--tiff", "tiff_dir", type=click.Path(file_okay=False),
                         help="Also write float32 TIFFs here.")(func)
-    func = click.option("--method", type=click.Choice(["ml", "alternating", "correlation", "none"]),
+    func = click.option("--method", type=click.Choice(C.METHODS),
                         help="Vibration estimator (overrides fit.method).")(func)
     func = with_config(func)
     func = click.option("-o", "--output", type=click.Path(dir_okay=False),
@@ -160,7 +160,8 @@ def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, ove
     from . import check, pipeline
 
     out, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
-    check.plan(check.read_header(scan), cfg, name=scan, outputs=outputs)
+    header = check.read_header(scan, allow_external=cfg["load"]["allow_external"])
+    check.plan(header, cfg, name=scan, outputs=outputs)
     t0 = time.perf_counter()
     result = pipeline.reconstruct(scan, cfg, command_line=_command_line())
     _write_outputs(result, out, tiff_dir=tiff_dir, preview=preview, overwrite=overwrite)
@@ -215,8 +216,8 @@ def _compression(cfg: dict):
 @friendly
 def simulate(config_file, output, sets, truth, overwrite):
     """Simulate a scan (the paper's simulation study by default) and write it with its truth."""
-    from .sim import simulate as S
     from .io import atomic_path, write_scan
+    from .sim import simulate as S
 
     out = Path(output)
     truth_path = Path(truth) if truth else out.with_name(f"{out.stem}.truth.npz")
@@ -241,7 +242,8 @@ def simulate(config_file, output, sets, truth, overwrite):
 def diagnose(scan, out_dir, config_files, sets, base, overwrite):
     """Find where SCAN and the model disagree, name the missing physics, add it and refit."""
     from . import check
-    from .analysis.diagnose import diagnose as run, write_report
+    from .analysis.diagnose import diagnose as run
+    from .analysis.diagnose import write_report
 
     out = Path(out_dir)
     _guard([out / name for name in ("diagnosis.json", "report.md", "residuals.png", "motion_mask.tif")],
@@ -384,7 +386,8 @@ def config_cmd(show_defaults, schema, check_files, sets):
     _guard([], inputs=check_files)
     sch = S.SCHEMA if schema == "simulate" else C.SCHEMA
     if show_defaults or not (check_files or sets):
-        title = "dfxcorr simulate this.yaml -o scan.h5" if schema == "simulate" else "dfxcorr reconstruct SCAN -c this.yaml"
+        title = ("dfxcorr simulate this.yaml -o scan.h5" if schema == "simulate"
+                 else "dfxcorr reconstruct SCAN -c this.yaml")
         click.echo(C.commented_defaults(sch, title=title))
         return
     click.echo(C.dump(C.load(check_files, sets, schema=sch)), nl=False)

@@ -9,9 +9,10 @@ from __future__ import annotations
 import copy
 import difflib
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import yaml
 
@@ -59,6 +60,8 @@ def _fraction(v):
 
 
 _NUM = (int, float)
+#: Vibration estimators (``fit.method``): this paper's, its two baselines, and no correction.
+METHODS = ("ml", "alternating", "correlation", "none")
 
 SCHEMA: dict[str, dict[str, Option]] = {
     "load": {
@@ -111,7 +114,7 @@ SCHEMA: dict[str, dict[str, Option]] = {
     },
     "fit": {
         "method": Option("ml", "vibration estimator: ml (this paper), alternating, correlation, none", str,
-                         choices=("ml", "alternating", "correlation", "none")),
+                         choices=METHODS),
         "subsample": Option(20, "fit on every n-th detector column (paper Sec. II-D.1)", int, check=_positive),
         "column_offset": Option(None, "first column of the subsampled grid; null: subsample // 2", int,
                                 check=_nonneg, nullable=True),

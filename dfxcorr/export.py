@@ -16,7 +16,7 @@ import yaml
 from .errors import OutputExistsError
 from .io import atomic_path
 from .model import CATALOGUE
-from .result import Result
+from .result import Result, paper_params
 
 FORMAT = "dfxcorr-result"
 FORMAT_VERSION = 1
@@ -88,6 +88,7 @@ def _n_frames(result: Result) -> int:
 def vibration_datasets(result: Result) -> list[VibrationDataset]:
     """The spec's three parameters (neutral where not estimated), then every further effect."""
     n_frames = _n_frames(result)
+    neutral = paper_params({}, n_frames)
     out = []
     for name, eff in SPEC_EFFECTS.items():
         estimated = eff in result.params and bool(result.estimated.get(eff, True))
@@ -96,7 +97,7 @@ def vibration_datasets(result: Result) -> list[VibrationDataset]:
             sigma = result.uncertainty.get(eff)
             sigma = None if sigma is None else np.asarray(sigma, np.float64).reshape(n_frames, -1)[:, 0]
         else:
-            value, sigma = np.full(n_frames, CATALOGUE[eff].neutral), None
+            value, sigma = neutral[eff][:, 0], None
         out.append(VibrationDataset(name, eff, value, sigma, estimated, True))
     for eff, value in result.params.items():
         if eff in SPEC_EFFECTS.values():
@@ -113,7 +114,7 @@ def vibration_datasets(result: Result) -> list[VibrationDataset]:
 
 def units(effect: str) -> str | None:
     e = CATALOGUE.get(effect)
-    if e is None:
+    if e is None or e.channel is None:
         return None
     return {"phase": "rad", "background": "counts"}.get(e.channel)
 
@@ -320,7 +321,7 @@ def write_tiffs(directory, result: Result, *, stem: str, overwrite: bool = False
     import tifffile
 
     *names, config = tiff_paths(directory, stem)
-    images = dict(zip(names, Result.IMAGES))
+    images = dict(zip(names, Result.IMAGES, strict=True))
     for path in [*images, config]:
         check_output(path, overwrite=overwrite)
     for path, name in images.items():

@@ -190,7 +190,7 @@ def _check_tiff_storage(path: Path, tif, size: int) -> None:
     for n, page in enumerate(tif.pages):
         declared = math.prod(page.shape) * np.dtype(page.dtype).itemsize
         stored = sum(page.databytecounts)
-        if any(o + c > size for o, c in zip(page.dataoffsets, page.databytecounts)):
+        if any(o + c > size for o, c in zip(page.dataoffsets, page.databytecounts, strict=True)):
             raise StackImportError(f"{path}: page {n} points beyond the end of the file ({size} bytes)")
         limit = stored if page.compression == 1 else stored * _MAX_TIFF_COMPRESSION
         if declared > limit:
@@ -439,6 +439,8 @@ def nominal_steps(n: int, *, steps_per_period: float | None = None,
         if not np.all(np.isfinite(out)):
             raise StackImportError(f"phases holds values that are not finite: {list(out)}")
         return out
+    if steps_per_period is None:
+        raise StackImportError("give steps_per_period or phases")
     spp = float(steps_per_period)
     if not (np.isfinite(spp) and spp > 0):
         raise StackImportError(f"steps_per_period must be a positive number, got {steps_per_period!r}")
@@ -609,11 +611,12 @@ def import_stepping(output, *, sample, reference, dark=None, reference_dark=None
     }
     if steps_per_period is not None:
         extra[f"{_IMPORT_GROUP}/steps_per_period"] = float(steps_per_period)
-    dark_frame = None
+    dark_frame: np.ndarray | None = None
     if dark is not None:
         dark_frame, files = _read_dark(dark, "dark", (H, W), **raw)
         extra[f"{_IMPORT_GROUP}/dark_files"] = _strings(files)
     if reference_dark is not None:
+        ref_dark: np.ndarray | None
         ref_dark, files = _read_dark(reference_dark, "reference_dark", (H, W), **raw)
         extra[f"{_IMPORT_GROUP}/reference_dark_files"] = _strings(files)
     else:

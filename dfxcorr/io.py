@@ -11,9 +11,11 @@ import logging
 import math
 import os
 import secrets
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -97,15 +99,15 @@ class Scan:
     data: np.ndarray
     position: np.ndarray
     reference: Reference | SteppingReference
-    phase_step: np.ndarray = None
-    dark: np.ndarray = None
+    phase_step: np.ndarray | None = None
+    dark: np.ndarray | None = None
     gain: float = 1.0
     exposure_time: np.ndarray | None = None
     pixel_size: tuple[float, float] | None = None
     attrs: dict = field(default_factory=dict)
     external_files: tuple[str, ...] = ()
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         J, H, W = self.data.shape
         if self.phase_step is None:
             self.phase_step = np.zeros(J)
@@ -138,7 +140,7 @@ def _require(f: h5py.File, path: str) -> h5py.Dataset:
     return obj
 
 
-def _optional(f: h5py.File, path: str):
+def _optional(f: h5py.File, path: str) -> Any:
     obj = f.get(path)
     return obj[()] if isinstance(obj, h5py.Dataset) else None
 
@@ -288,7 +290,7 @@ class _Walker:
         if declared == 0:
             return
         if dset.chunks is not None:
-            expected = math.prod(-(-n // c) for n, c in zip(dset.shape, dset.chunks))
+            expected = math.prod(-(-n // c) for n, c in zip(dset.shape, dset.chunks, strict=True))
             stored = dset.id.get_num_chunks()
             if stored < expected:
                 raise ScanFormatError(f"/{path} declares {dset.shape} in {expected} chunks of {dset.chunks} but "
@@ -392,7 +394,8 @@ def validate_file(f: h5py.File, *, allow_external: bool = False) -> Layout:
             _expect_shape(f"{base}/dark", dk, (A, W), "one value per pixel of the active area")
     else:
         missing = next(m for m in _MAPS if walk.get(f"entry/reference/{m}") is None)
-        raise ScanFormatError(f"missing required dataset /entry/reference/{missing} (or /entry/reference/stepping/data)")
+        raise ScanFormatError(f"missing required dataset /entry/reference/{missing} "
+                              f"(or /entry/reference/stepping/data)")
     return Layout(J=J, H=H, W=W, A=A, S=S, external_files=tuple(walk.external))
 
 
@@ -473,9 +476,9 @@ def _read_reference(f: h5py.File, W: int) -> Reference | SteppingReference:
         t, v, p = (np.asarray(_require(f, f"entry/reference/{m}")[()], dtype=np.float64) for m in maps)
         if t.ndim != 2 or t.shape[1] != W:
             raise ScanFormatError(f"/entry/reference/transmission has shape {t.shape}, expected [A, {W}]")
-        for m, a in zip(maps[1:], (v, p)):
+        for m, a in zip(maps[1:], (v, p), strict=True):
             _check_shape(f"entry/reference/{m}", a, t.shape, "same as /entry/reference/transmission")
-        for m, a in zip(maps, (t, v, p)):
+        for m, a in zip(maps, (t, v, p), strict=True):
             _check_finite(f"entry/reference/{m}", a)
         if np.any(t <= 0):
             raise ScanFormatError("/entry/reference/transmission must be positive everywhere")
@@ -497,7 +500,7 @@ def _read_reference(f: h5py.File, W: int) -> Reference | SteppingReference:
             _check_shape(f"{base}/dark", dark, (A, W), "one value per pixel of the active area")
         _check_counts(f"{base}/data", data)
         return SteppingReference(data=data, phase_step=steps, dark=dark)
-    missing = [f"/entry/reference/{m}" for m, h in zip(maps, have) if not h]
+    missing = [f"/entry/reference/{m}" for m, h in zip(maps, have, strict=True) if not h]
     raise ScanFormatError(f"missing required dataset {missing[0]} (or /entry/reference/stepping/data)")
 
 
@@ -542,7 +545,7 @@ def _move_new(tmp: Path, path: Path) -> None:
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike, *, overwrite: bool = False):
+def atomic_path(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; move it to ``path`` on success, remove it on failure.
 
     The temporary file is created exclusively under a name of its own (``.<name>.<random>.part``), so
@@ -565,7 +568,7 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = False):
         raise
 
 
-def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, np.ndarray] | None = None,
+def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, Any] | None = None,
                compression: str | None = "gzip", overwrite: bool = False) -> None:
     """Write a scan file atomically (to a temporary name, renamed when complete).
 
@@ -641,23 +644,3 @@ def read_reference(path: str | os.PathLike, *, allow_external: bool = False) -> 
         except ScanFormatError as exc:
             raise ScanFormatError(f"{path}: {exc}") from None
 
-
-def illumination_count(position: np.ndarray, active_rows: int, height: int) -> np.ndarray:
-    """Number of frames in which each detector row is illuminated.
-
-    Parameters
-    ----------
-    position : ndarray, shape (J,)
-        Top edge of the active area per frame (rows).
-    active_rows : int
-        A.
-    height : int
-        H, detector rows.
-
-    Returns
-    -------
-    ndarray of int, shape (H,)
-        Row r is lit in frame j iff 0 <= r + 0.5 - position[j] < A.
-    """
-    u = np.arange(height)[:, None] + 0.5 - np.asarray(position)[None, :]
-    return np.count_nonzero((u >= 0) & (u < active_rows), axis=1)

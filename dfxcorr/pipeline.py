@@ -20,19 +20,24 @@ import numpy as np
 from . import __version__
 from . import config as C
 from . import model as M
-from .align import (auto_visibility_threshold, build_observations, resolve_reference, subsample_columns,
-                    tilt_alias_period)
-from .baselines import fit_alternating, fit_correlation
+from .align import (
+    auto_visibility_threshold,
+    build_observations,
+    resolve_reference,
+    subsample_columns,
+    tilt_alias_period,
+)
 from .analysis import identify
+from .baselines import fit_alternating, fit_correlation
 from .errors import DfxcorrError
 from .fit import FitResult, fit_vibrations, initial_weights
 from .io import Scan, read_scan
 from .mask import motion_mask
 from .progress import Progress
-from .result import Result
+from .result import Result, paper_params
 from .retrieve import image_maps, retrieve
 
-log = logging.getLogger("dfxcorr")
+log = logging.getLogger(__name__)
 
 
 class IdentifiabilityError(DfxcorrError, ValueError):
@@ -206,7 +211,7 @@ def reconstruct(scan: Scan | str | Path, cfg: dict | None = None, *, command_lin
             uncorrected = image_maps(obs, retrieve(obs, {}, iterations=cfg["retrieve"]["iterations"]).images)
         log.info("reduced chi-square of the final model: %.4f", rec.reduced_chi2)
     # the paper's three parameters are always reported, at their neutral value where not estimated
-    params = {**M.neutral_params(M.PAPER_MODEL, scan.shape[0]), **fitted.params}
+    params = paper_params(fitted.params, scan.shape[0])
     uncertainty = {**{n: np.full_like(p, np.inf) for n, p in params.items()}, **fitted.uncertainty}
     estimated = {n: (n in effects and n in fitted.params and method != "none") for n in params}
     provenance = {"program": "dfxcorr", "version": __version__,
@@ -237,7 +242,7 @@ def run_fit(obs: M.Observations, scan: Scan, reference, cfg: dict, moving: np.nd
     J = scan.shape[0]
     fit_mask = np.zeros(scan.shape[1:], np.uint8)
     if method == "none":
-        params = M.neutral_params(M.PAPER_MODEL, J)
+        params = paper_params({}, J)
         unc = {k: np.full_like(v, np.inf) for k, v in params.items()}
         return FitResult(params=params, uncertainty=unc, cost=np.zeros(0), stage=[], iterations=0,
                          converged=True), fit_mask, ()
@@ -278,5 +283,5 @@ def run_fit(obs: M.Observations, scan: Scan, reference, cfg: dict, moving: np.nd
     return result, fit_mask, effects
 
 
-#: Vibration estimators selectable by ``fit.method``.
+#: The estimator of each ``fit.method`` (:data:`dfxcorr.config.METHODS`) but 'none'.
 FIT_METHODS = {"ml": fit_vibrations, "alternating": fit_alternating, "correlation": fit_correlation}

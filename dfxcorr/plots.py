@@ -5,7 +5,9 @@ and a run without pictures never imports it.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -90,7 +92,7 @@ def write_preview(path, result: Result, *, overwrite: bool = False, title: str |
     """
     check_output(path, overwrite=overwrite)
     plt = pyplot()
-    rows = [("corrected", result.image)]
+    rows: list[tuple[str, Callable[[str], Any]]] = [("corrected", result.image)]
     if result.uncorrected is not None:
         rows.insert(0, ("uncorrected", result.uncorrected.get))
     h, w = np.shape(result.transmission)
@@ -153,7 +155,7 @@ def write_fit_plot(path, result: Result, *, overwrite: bool = False) -> Path:
     fig, axes = plt.subplots(nrows, ncols, figsize=(6.5 * ncols, 2.8 * nrows), squeeze=False,
                              layout="constrained")
     axes = axes.ravel()
-    for ax, p in zip(axes, params):
+    for ax, p in zip(axes, params, strict=False):  # the axes after the parameters hold the cost
         _plot_param(ax, p)
     _plot_cost(axes[len(params)], result)
     for ax in axes[n:]:
@@ -306,11 +308,11 @@ def plot_convergence(path, histories: dict[str, tuple[np.ndarray, list]], *, ref
     ax, ax2 = (axes[0, 0], axes[0, 1]) if whole else (None, axes[0, 0])
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     same = {}
-    for (label, (cost, stages)), color in zip(histories.items(), colors):
+    for (label, (cost, stages)), color in zip(histories.items(), colors, strict=False):
         cost = np.asarray(cost, dtype=np.float64)
         stages = list(stages) if len(stages) == cost.size else [""] * cost.size
         it = np.arange(1, cost.size + 1)
-        if whole:
+        if ax is not None:
             ax.plot(it, cost, "-", color=color, lw=1.2, label=label)
             for i in range(cost.size):
                 if i == 0 or stages[i] != stages[i - 1]:
@@ -325,7 +327,7 @@ def plot_convergence(path, histories: dict[str, tuple[np.ndarray, list]], *, ref
     for label, (it, cost, color) in same.items():
         excess = cost - ref
         ax2.plot(it, np.where(excess > 0, excess, np.nan), "-", color=color, lw=1.4, label=label)
-    if whole:
+    if ax is not None:
         ax.set_yscale("log")
         ax.set_ylabel("cost Σ w (I − Ī)²")
         ax.set_title("whole fit (dotted: next stage)", fontsize=10)

@@ -5,6 +5,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import model as M
+
+
+def paper_params(params: dict, n_frames: int) -> dict:
+    """The paper's three parameters (eq. 19) at their neutral values where ``params`` lacks them.
+
+    Parameters
+    ----------
+    params : dict
+        Effect name -> per-frame (J, n) or global (n,) parameters; every entry is kept.
+    n_frames : int
+        J.
+    """
+    return {**M.neutral_params(M.PAPER_MODEL, n_frames), **params}
+
 
 @dataclass
 class Result:

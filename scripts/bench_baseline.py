@@ -72,7 +72,7 @@ def main():
     versions = {args.ref: reference, "this checkout": current}
     runs: dict = {case: {v: [] for v in versions} for case in CASES}
     for case, sets in CASES.items():
-        for label, exe in versions.items():
+        for exe in versions.values():
             out = args.work / "warm.h5"
             timed([exe, "-q", "reconstruct", str(scan), "-o", str(out), "--overwrite", *sets])
         for r in range(args.runs):

@@ -20,8 +20,8 @@ from pathlib import Path
 
 from dfxcorr import config as C
 from dfxcorr import pipeline
-from dfxcorr.sim import simulate as S
 from dfxcorr.analysis.evaluate import frames_lighting, vibration_rmse
+from dfxcorr.sim import simulate as S
 
 ROOT = Path(__file__).resolve().parents[1]
 

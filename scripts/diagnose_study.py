@@ -17,8 +17,8 @@ import time
 from pathlib import Path
 
 from dfxcorr import config as C
-from dfxcorr.sim import simulate as S
 from dfxcorr.analysis.diagnose import diagnose
+from dfxcorr.sim import simulate as S
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -73,13 +73,15 @@ def main():
         print(json.dumps(r), flush=True)
     (args.out / "diagnosis-study.json").write_text(json.dumps(results, indent=2))
     lines = ["# Diagnosis on concealed effects", "",
-             f"Simulated scans at {args.pixel_mm:g} mm pixels ({results['machine']}); each effect present in the data "
-             "but not in the model; `diagnose` from the configured model (the paper's, minus the effect where it is one "
-             "of the paper's three).", "",
-             "| effect | amplitude | named first | found | reduced chi2 initial -> final | s |", "|---|---|---|---|---|---|"]
+             f"Simulated scans at {args.pixel_mm:g} mm pixels ({results['machine']}); each effect present in the "
+             "data but not in the model; `diagnose` from the configured model (the paper's, minus the effect where it "
+             "is one of the paper's three).", "",
+             "| effect | amplitude | named first | found | reduced chi2 initial -> final | s |",
+             "|---|---|---|---|---|---|"]
     for r in results["concealed"]:
         lines.append(f"| {r['effect']} | {r['amplitude']:g} | {'yes' if r['first'] == r['effect'] else 'no'} | "
-                     f"{', '.join(r['found']) or '-'} | {r['initial_chi2']:.4f} -> {r['final_chi2']:.4f} | {r['seconds']} |")
+                     f"{', '.join(r['found']) or '-'} | {r['initial_chi2']:.4f} -> {r['final_chi2']:.4f} | "
+                     f"{r['seconds']} |")
     lines += ["", "| effect | smallest amplitude still named first |", "|---|---|"]
     lines += [f"| {k} | {'not found' if v is None else f'{v:g}'} |" for k, v in results["limits"].items()]
     alarms = sum(bool(r["found"]) for r in results["clean"])

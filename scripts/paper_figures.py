@@ -27,16 +27,16 @@ from pathlib import Path
 
 import numpy as np
 
-from dfxcorr.analysis import compare as CMP
 from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr import pipeline, plots
-from dfxcorr.sim import simulate as S
 from dfxcorr.align import build_observations, resolve_reference
-from dfxcorr.baselines import fit_alternating
+from dfxcorr.analysis import compare as CMP
 from dfxcorr.analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
+from dfxcorr.baselines import fit_alternating
 from dfxcorr.fit import fit_vibrations, initial_weights
 from dfxcorr.result import Result
+from dfxcorr.sim import simulate as S
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data" / "sim"
@@ -51,7 +51,7 @@ METHOD_SETS = {"correlation": ["fit.subsample=1"]}
 # --------------------------------------------------------------------------------------------------
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def simulated(pixel_mm: float, seed: int, sets: tuple = ()):
     """(scan, truth) of the paper's simulation study (configs/paper-simulation.yaml) with overrides."""
     cfg = C.load([ROOT / "configs" / "paper-simulation.yaml"],
@@ -59,7 +59,7 @@ def simulated(pixel_mm: float, seed: int, sets: tuple = ()):
     return S.simulate(cfg)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def reconstructed(pixel_mm: float, seed: int, sim_sets: tuple = (), sets: tuple = ()) -> tuple[Result, float]:
     """(Result, wall seconds) of :func:`simulated` reconstructed with the default configuration and ``sets``."""
     scan, _ = simulated(pixel_mm, seed, sim_sets)

@@ -24,10 +24,10 @@ import numpy as np
 
 from dfxcorr import config as C
 from dfxcorr import pipeline, plots
-from dfxcorr.sim import simulate as S
 from dfxcorr.align import build_observations, resolve_reference
 from dfxcorr.analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
 from dfxcorr.retrieve import image_maps, retrieve
+from dfxcorr.sim import simulate as S
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -73,7 +73,8 @@ def main():
            "corrected": image_rmse({k: result.image(k) for k in result.IMAGES}, truth),
            "true parameters": image_rmse(ideal, truth)}
     numbers = {
-        "machine": f"{platform.processor() or platform.machine()}, {platform.system()}, python {platform.python_version()}",
+        "machine": f"{platform.processor() or platform.machine()}, {platform.system()}, "
+                   f"python {platform.python_version()}",
         "size": list(scan.shape), "pixel_mm": args.pixel_mm, "seed": args.seed,
         "simulate_s": round(t_sim, 1), "reconstruct_s": round(t_rec, 1),
         "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
@@ -88,7 +89,8 @@ def main():
     stem = "paper-study" if args.pixel_mm == 1.0 else f"paper-study-{args.pixel_mm:g}mm"
     (args.out / f"{stem}.json").write_text(json.dumps(numbers, indent=2))
     plots.write_preview(args.out / f"{stem}.png", result, overwrite=True,
-                         title=f"paper simulation study, {scan.shape[1]} x {scan.shape[2]} pixels, {scan.shape[0]} frames")
+                         title=f"paper simulation study, {scan.shape[1]} x {scan.shape[2]} pixels, "
+                               f"{scan.shape[0]} frames")
     plots.write_fit_plot(args.out / f"{stem}-fit.png", result, overwrite=True)
     print(json.dumps(numbers, indent=2))
 

@@ -29,7 +29,7 @@ def test_wrapped_phase_is_unwrapped_before_interpolation():
 
 def test_lit_blocks_follow_the_geometry():
     row, frame, u = lit_blocks(np.array([-1.5, 0.0, 2.25]), 3, 5)
-    for r, j, uu in zip(row, frame, u):
+    for r, j, uu in zip(row, frame, u, strict=True):
         assert 0 <= uu < 3
         assert uu == r + 0.5 - [-1.5, 0.0, 2.25][j]
     assert list(np.bincount(row, minlength=5)) == [2, 1, 2, 1, 1]  # row 1 at u = 3.0 is just outside [0, 3)

@@ -7,8 +7,8 @@ from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr import pipeline
 from dfxcorr.align import build_observations, resolve_reference, subsample_columns
-from dfxcorr.baselines import fit_alternating, fit_correlation, robust_polyfit
 from dfxcorr.analysis.evaluate import frames_lighting, gauge_median, vibration_rmse
+from dfxcorr.baselines import fit_alternating, fit_correlation, robust_polyfit
 from dfxcorr.fit import fit_vibrations, initial_weights
 
 
@@ -23,6 +23,7 @@ def reduced_cost(obs, params, weights):
     return float(np.sum(weights * (obs.counts - M.expected(obs, dsg, M.solve_images(obs, dsg, weights))) ** 2))
 
 
+@pytest.mark.slow
 def test_alternating_converges_to_the_ml_optimum(small_scan):
     scan, _ = small_scan()
     obs = fit_data(scan, 3)
@@ -44,6 +45,7 @@ def test_alternating_converges_to_the_ml_optimum(small_scan):
     np.testing.assert_allclose(alt.uncertainty["tilt"][good], ml.uncertainty["tilt"][good], rtol=0.02)
 
 
+@pytest.mark.slow
 def test_alternating_updates_global_effects_as_one_block(small_scan):
     scan, truth = small_scan(**{"effects.harmonic": 0.05})
     obs = fit_data(scan, 4)

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dfxcorr.cli import main
 from dfxcorr.analysis.compare import fringe_frequency, radial_nps
+from dfxcorr.cli import main
 from dfxcorr.export import read_result_h5
 
 SMALL = ["--set", "simulate.pixel_mm=5", "--set", "simulate.step_mm=5"]

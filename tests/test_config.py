@@ -60,3 +60,11 @@ def test_bad_file_is_named(tmp_path):
     f.write_text("fit: [1, 2\n")
     with pytest.raises(C.ConfigError, match="not valid YAML"):
         C.load([f])
+
+
+def test_one_list_of_estimators():
+    from dfxcorr import pipeline
+    from dfxcorr.analysis import compare
+
+    assert C.SCHEMA["fit"]["method"].choices == C.METHODS
+    assert set(pipeline.FIT_METHODS) | {"none"} == set(C.METHODS) == set(compare.METHODS)

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from dfxcorr import config as C
-from dfxcorr.sim import simulate as S
 from dfxcorr.analysis.diagnose import diagnose, write_report
+from dfxcorr.sim import simulate as S
 
 from conftest import shared_path, sim_config
 
@@ -18,14 +18,29 @@ def concealed(effect, *, seed=11, amplitude=None):
     return scan, truth, C.load([], conceal)
 
 
-@pytest.mark.parametrize("effect", list(S.CONCEALED))
+def chi2_tolerance(diag, cfg) -> float:
+    """How far the final reduced chi-square may lie from 1 when the model is right.
+
+    The fit runs on every n-th column (``diagnose.subsample``) and the chi-square is read on all of
+    them: each fitted parameter's noise, worth 1 on the fitted columns, adds about n to the chi-square
+    sum, a mean excess of n * n_params / dof. Around it the statistic scatters by sqrt(2 / dof): five
+    of those.
+    """
+    last = diag.rounds[-1]
+    dof = last["chi2_before"] / last["reduced_chi2_before"]
+    n_params = sum(np.size(p) for p in diag.params.values())
+    return cfg["diagnose"]["subsample"] * n_params / dof + 5 * np.sqrt(2 / dof)
+
+
+# one concealed effect stays in the fast tier; the rest take 2-8 s each
+@pytest.mark.parametrize("effect", [e if e == "phase_offset" else pytest.param(e, marks=pytest.mark.slow)
+                                    for e in S.CONCEALED])
 def test_concealed_effect_is_named_first_and_the_fit_recovers(effect):
     scan, truth, cfg = concealed(effect)
     diag = diagnose(scan, cfg)
     found = [e.name for e in diag.effects if e.detected]
     assert found and found[0] == effect, [(e.name, e.statistic, e.dof) for e in diag.effects]
-    # a few percent above 1 remain: the parameter noise of a fit on every 4th column
-    assert diag.final_chi2 == pytest.approx(1.0, abs=0.05)
+    assert diag.final_chi2 == pytest.approx(1.0, abs=chi2_tolerance(diag, cfg))
     assert diag.initial_chi2 > diag.final_chi2
     if effect == "detector_gain":
         assert diag.effects[0].extra["gain"] == pytest.approx(2.0, rel=0.03)
@@ -83,6 +98,7 @@ def test_report_files_follow_the_contract(tmp_path):
 
 
 @pytest.mark.shared
+@pytest.mark.slow
 def test_real_recording_is_diagnosed(tmp_path):
     from dfxcorr.importer import import_stepping
 

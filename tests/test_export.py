@@ -9,9 +9,8 @@ import yaml
 
 from dfxcorr import export
 from dfxcorr.errors import OutputExistsError
+from dfxcorr.export import check_output, read_result_h5, write_result_h5, write_tiffs
 from dfxcorr.plots import write_fit_plot, write_preview
-from dfxcorr.export import (check_output, read_result_h5,
-                            write_result_h5, write_tiffs)
 from dfxcorr.result import Result
 
 H, W, J = 12, 10, 7
@@ -256,7 +255,7 @@ def test_refuses_existing_output(tmp_path, result):
 
 def test_failure_leaves_nothing_behind(tmp_path, result):
     result.dark_field = np.array([object()] * (H * W), dtype=object).reshape(H, W)
-    with pytest.raises(Exception):
+    with pytest.raises(TypeError):  # h5py cannot store Python objects
         write_result_h5(tmp_path / "out.h5", result)
     assert list(tmp_path.iterdir()) == []
 

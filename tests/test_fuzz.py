@@ -9,13 +9,12 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from capped import cli_capped, invoke, one_error_line
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from dfxcorr.export import read_result_h5
 from dfxcorr.io import write_scan
-
-from capped import cli_capped, invoke, one_error_line
 
 DET = "entry/instrument/detector"
 DATASETS = [f"{DET}/data", "entry/scan/position", "entry/scan/phase_step", "entry/scan/exposure_time",
@@ -32,8 +31,9 @@ FAST = ["--set", "fit.subsample=4", "--set", "fit.maxiter=3", "--set", "fit.rewe
 @pytest.fixture(scope="module")
 def template(tmp_path_factory):
     """A valid scan of 25 frames of 22 x 26 pixels (20 mm pixels), with every optional dataset present."""
-    from conftest import sim_config
     from dfxcorr.sim import simulate as S
+
+    from conftest import sim_config
 
     scan, _ = S.simulate(sim_config(**{"simulate.pixel_mm": 20, "simulate.step_mm": 20}))
     scan.dark = np.full(scan.shape[1:], 0.5)
@@ -78,14 +78,15 @@ def mutate(f, op, path, k, rng):
     elif op == "dtype" and isinstance(old, h5py.Dataset) and old.shape is not None:
         kind = DTYPES[k % len(DTYPES)]
         shape = old.shape
-        if kind == "string":
-            make = lambda f, p: f.create_dataset(p, data=np.full(shape, "x", dtype=object), dtype=h5py.string_dtype())
-        elif kind == "compound":
-            make = lambda f, p: f.create_dataset(p, data=np.zeros(shape, dtype=[("a", "f8"), ("b", "i2")]))
-        else:
-            values = np.asarray(old[()])
-            make = lambda f, p: f.create_dataset(p, data=np.real(values).astype(kind) if kind != "int64"
-                                                 else -np.abs(values).astype(kind))
+        values = None if kind in ("string", "compound") else np.asarray(old[()])
+
+        def make(f, p):
+            if kind == "string":
+                return f.create_dataset(p, data=np.full(shape, "x", dtype=object), dtype=h5py.string_dtype())
+            if kind == "compound":
+                return f.create_dataset(p, data=np.zeros(shape, dtype=[("a", "f8"), ("b", "i2")]))
+            return f.create_dataset(p, data=np.real(values).astype(kind) if kind != "int64"
+                                    else -np.abs(values).astype(kind))
         _replace(f, path, make)
     elif op == "values" and isinstance(old, h5py.Dataset) and old.shape is not None and old.dtype.kind == "f":
         values = np.array(old[()], dtype=np.float64)

@@ -3,13 +3,12 @@ dataset, with exit code 2 on the command line and no output left behind."""
 import h5py
 import numpy as np
 import pytest
+from capped import cli_capped, one_error_line
 from click.testing import CliRunner
 
 from dfxcorr.cli import main
 from dfxcorr.export import read_result_h5
 from dfxcorr.io import Reference, Scan, ScanFormatError, read_scan, write_scan
-
-from capped import cli_capped, one_error_line
 
 DET = "entry/instrument/detector"
 
@@ -95,7 +94,8 @@ CASES = [
      "entry/scan/position.*group"),
     ("null dataspace", put(f"{DET}/dark", h5py.Empty("f8")), f"{DET}/dark.*empty"),
     ("reference map declared, not stored",
-     lambda f: (f.__delitem__("entry/reference/phase"), f.create_dataset("entry/reference/phase", shape=(3, 5), dtype="f8")),
+     lambda f: (f.__delitem__("entry/reference/phase"),
+                f.create_dataset("entry/reference/phase", shape=(3, 5), dtype="f8")),
      "entry/reference/phase.*not in the file"),
     ("exposure_time in a system file", put("entry/scan/exposure_time", shape=(6,), dtype="f8",
                                             external=[("/etc/passwd", 0, 48)]), "exposure_time.*external raw"),
@@ -155,7 +155,8 @@ def test_storage_outside_the_file_is_refused_unless_allowed(tmp_path, kind, matc
         read_scan(path)
     back = read_scan(path, allow_external=True)
     np.testing.assert_array_equal(back.data, scan.data)
-    assert [p.rsplit("/", 1)[1] for p in back.external_files] == ["frames.raw" if kind == "external raw" else "other.h5"]
+    expected = "frames.raw" if kind == "external raw" else "other.h5"
+    assert [p.rsplit("/", 1)[1] for p in back.external_files] == [expected]
 
 
 def test_external_raw_too_short_is_refused(tmp_path):

@@ -5,6 +5,7 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
+from capped import one_error_line, run_capped
 from click.testing import CliRunner
 
 from dfxcorr import pipeline
@@ -12,8 +13,6 @@ from dfxcorr.cli import main
 from dfxcorr.export import read_result_h5
 from dfxcorr.importer import StackImportError, active_area, import_scanning, read_positions, read_stack
 from dfxcorr.io import SteppingReference, read_scan, write_scan
-
-from capped import one_error_line, run_capped
 
 
 def run(*args):
@@ -23,8 +22,9 @@ def run(*args):
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory):
     """A small simulated scan, its frames as one TIFF per frame and a .npy stack, and position logs."""
-    from conftest import sim_config
     from dfxcorr.sim import simulate as S
+
+    from conftest import sim_config
 
     d = tmp_path_factory.mktemp("scanning")
     scan, _ = S.simulate(sim_config())

@@ -7,8 +7,7 @@ import pytest
 import tifffile
 
 from dfxcorr.errors import DfxcorrError, OutputExistsError
-from dfxcorr.importer import (StackImportError, frame_dtype, import_stepping,
-                              nominal_steps, read_stack)
+from dfxcorr.importer import StackImportError, frame_dtype, import_stepping, nominal_steps, read_stack
 from dfxcorr.io import SteppingReference, read_scan
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "tum-ipp-stepping"

@@ -112,7 +112,7 @@ def test_slab_constant_and_blank_neutral():
     soft = ph.slab(shape=(20, 30))
     assert np.ptp(soft["transmission"]) == 0 and (soft["dark_field"] == 1).all()
     blank = ph.blank(shape=(7, 9))
-    for key, value in zip(KEYS, (1.0, 1.0, 0.0)):
+    for key, value in zip(KEYS, (1.0, 1.0, 0.0), strict=True):
         assert blank[key].shape == (7, 9) and (blank[key] == value).all()
 
 

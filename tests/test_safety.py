@@ -14,13 +14,14 @@ import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import sim_config
 
 from dfxcorr import check, io
 from dfxcorr import config as C
 from dfxcorr.cli import main
 from dfxcorr.errors import OutputExistsError
 from dfxcorr.sim import simulate as S
+
+from conftest import sim_config
 
 SMALL = ["--set", "simulate.pixel_mm=5", "--set", "simulate.step_mm=5", "--set", "simulate.seed=3"]
 
@@ -193,7 +194,8 @@ def test_an_unwritable_folder_is_refused_before_the_run(scan_file, tmp_path):
     ro = tmp_path / "ro"
     ro.mkdir()
     chattr = shutil.which("chattr")
-    immutable = bool(chattr) and subprocess.run([chattr, "+i", str(ro)], capture_output=True, check=False).returncode == 0
+    immutable = bool(chattr) and subprocess.run([chattr, "+i", str(ro)], capture_output=True,
+                                                 check=False).returncode == 0
     if not immutable:
         if os.geteuid() == 0:
             pytest.skip("root without chattr: every folder is writable")

@@ -5,10 +5,10 @@ import tifffile
 
 from dfxcorr import config as C
 from dfxcorr import pipeline
-from dfxcorr.sim import simulate as S
 from dfxcorr.align import fit_reference
 from dfxcorr.importer import import_stepping
 from dfxcorr.io import read_scan
+from dfxcorr.sim import simulate as S
 
 from conftest import shared_path, sim_config
 
@@ -121,7 +121,8 @@ def test_visibility_cannot_be_fitted_on_a_stepping_reference(stepping):
 
 
 def test_region_without_fringes_is_left_out_and_nan(stepping):
-    result = pipeline.reconstruct(without_fringes(*stepping[:1], stepping[1]["vib_dose"]), C.load([], ["fit.subsample=2"]))
+    result = pipeline.reconstruct(without_fringes(*stepping[:1], stepping[1]["vib_dose"]),
+                                  C.load([], ["fit.subsample=2"]))
     assert np.all(np.isnan(result.dark_field[:, :10]))
     assert np.isfinite(result.dark_field[:, 12:]).mean() > 0.99
 

@@ -22,17 +22,16 @@ import numpy as np
 
 from .. import config as C
 from .. import export, pipeline, plots
-from .. import model as M
 from ..align import resolve_reference
-from .evaluate import frames_lighting, image_rmse, vibration_rmse
 from ..errors import DfxcorrError
 from ..io import Scan, atomic_path, read_scan
-from ..result import Result
+from ..result import Result, paper_params
+from .evaluate import frames_lighting, image_rmse, vibration_rmse
 
-log = logging.getLogger("dfxcorr")
+log = logging.getLogger(__name__)
 
-#: Estimators in the order they are compared (``fit.method`` values).
-METHODS = ("none", "correlation", "alternating", "ml")
+#: Estimators in the order they are compared: every ``fit.method``, from no correction to this paper's.
+METHODS = tuple(reversed(C.METHODS))
 #: Estimators of the noise power spectra by default (the paper's Fig. 11).
 NPS_METHODS = ("none", "correlation", "ml")
 
@@ -145,11 +144,6 @@ def load_truth(path: str | Path, shape: tuple) -> dict:
     return truth
 
 
-def completed_params(params: dict, n_frames: int) -> dict:
-    """The paper's parameters (eq. 19) with those a method does not estimate at their neutral values."""
-    return {**M.neutral_params(M.PAPER_MODEL, n_frames), **params}
-
-
 def comparison_table(results: dict[str, Result], runtimes: dict[str, float], *, scan: Scan,
                      truth: dict | None = None) -> list[dict]:
     """One row per method: reduced chi-square, runtime and, with a truth, RMSE of parameters and images.
@@ -177,7 +171,7 @@ def comparison_table(results: dict[str, Result], runtimes: dict[str, float], *, 
         row = {"method": method, "reduced_chi2": float(res.reduced_chi2), "runtime_s": float(runtimes[method]),
                "fit_s": float(res.timings.get("fit", 0.0)), "iterations": int(np.size(res.cost))}
         if truth is not None:
-            vib = vibration_rmse(completed_params(res.params, scan.shape[0]), truth, good)
+            vib = vibration_rmse(paper_params(res.params, scan.shape[0]), truth, good)
             row.update({f"rmse_{k}": v for k, v in vib.items()})
             row.update({f"rmse_{k}": v for k, v in image_rmse({k: res.image(k) for k in Result.IMAGES},
                                                                truth).items()})
@@ -372,9 +366,11 @@ def nps_study(scans, cfg: dict, *, methods=NPS_METHODS, method_sets: dict | None
         'scans' (names); 'runtime_s' method -> total seconds.
     """
     cfg = C.merge(cfg, {"retrieve": {"uncorrected": False}})
-    spectra = {m: [] for m in methods}
+    spectra: dict[str, list] = {m: [] for m in methods}
     runtime = {m: 0.0 for m in methods}
-    fringes, names, freq = [], [], None
+    fringes: list = []
+    names: list[str] = []
+    freq = None
     for item in scans:
         scan = item if isinstance(item, Scan) else read_scan(item)
         names.append(str(item) if not isinstance(item, Scan) else f"scan {len(names)}")
@@ -412,7 +408,7 @@ def write_nps(out_dir: str | Path, study: dict, *, title: str = "", overwrite: b
     plots.plot_nps(paths["png"], study, title=title, overwrite=overwrite)
     head = ["frequency_cycles_per_pixel"] + [f"{m}_{s}" for m in study["mean"] for s in ("mean", "std")]
     cols = [f] + [study[s][m] for m in study["mean"] for s in ("mean", "std")]
-    lines = [",".join(head)] + [",".join(f"{v:.6g}" for v in row) for row in zip(*cols)]
+    lines = [",".join(head)] + [",".join(f"{v:.6g}" for v in row) for row in zip(*cols, strict=True)]
     export_text(paths["csv"], "\n".join(lines) + "\n", overwrite=overwrite)
     doc = {"scans": study["scans"], "fringe_frequency": ff, "first_harmonic": 2 * ff, "machine": machine(),
            "runtime_s": study["runtime_s"], "frequency": f.tolist(),

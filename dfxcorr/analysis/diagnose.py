@@ -29,17 +29,17 @@ import numpy as np
 from scipy import ndimage, stats
 
 from .. import config as C
-from .. import plots
-from . import identify
 from .. import model as M
+from .. import plots
 from ..align import build_observations, resolve_reference, subsample_columns
-from ..fit import fit_vibrations
+from ..fit import fit_vibrations, well_determined
 from ..io import Scan, atomic_path, read_scan
 from ..mask import motion_score
 from ..pipeline import resolve_effects, stage, visibility_unidentifiable
-from ..retrieve import retrieve
+from ..retrieve import Retrieval, retrieve
+from . import identify
 
-log = logging.getLogger("dfxcorr")
+log = logging.getLogger(__name__)
 
 #: Effects tested, in catalogue order.
 CANDIDATES = tuple(M.CATALOGUE)
@@ -194,7 +194,8 @@ def score_tests(obs: M.Observations, params: dict, weights: np.ndarray, model, c
     resid = obs.counts - M.expected(obs, dsg, images)
     inf = identify.information(obs, dsg, images, weights, names)
     grad = M.gradient(obs, dsg, images, weights, resid, names)
-    U = -0.5 * np.array([grad[n][(j, m) if j >= 0 else m] for n, j, m in zip(inf.owner, inf.frame, inf.component)])
+    U = -0.5 * np.array([grad[n][(j, m) if j >= 0 else m]
+                         for n, j, m in zip(inf.owner, inf.frame, inf.component, strict=True)])
     out = {}
     for name in candidates:
         cond = identify.conditional(inf, name, model)
@@ -285,7 +286,7 @@ def gain_test(obs: M.Observations, ibar: np.ndarray, images, dsg, weights) -> di
 # --------------------------------------------------------------------------------------------------
 
 
-def _chi2(obs: M.Observations, params: dict, *, n_params: int) -> tuple[float, float, object]:
+def _chi2(obs: M.Observations, params: dict, *, n_params: int) -> tuple[float, float, Retrieval]:
     rec = retrieve(obs, params, n_frame_params=n_params)
     sel = rec.images.valid[obs.pixel] & obs.use
     return float(M.pearson(obs, rec.expected)[sel].sum()), rec.reduced_chi2, rec
@@ -323,10 +324,10 @@ def _estimate(name: str, params: dict, good: np.ndarray, extra: dict) -> str:
         unit = " %" if name in ("dose", "visibility_loss") else (" rad" if e.channel == "phase" else "")
         factor = 100.0 if unit == " %" else 1.0
         return ", ".join(f"std {factor * s:.3g}{unit}" + (f" ({c})" if e.size > 1 else "")
-                         for s, c in zip(sd, e.components))
+                         for s, c in zip(sd, e.components, strict=True))
     if name == "harmonic":
         return f"a2 = {np.hypot(*p):.4g}, beta = {np.arctan2(p[1], p[0]):.3f} rad"
-    return ", ".join(f"{c}: {v:.4g}" for c, v in zip(e.components, p)) + " counts"
+    return ", ".join(f"{c}: {v:.4g}" for c, v in zip(e.components, p, strict=True)) + " counts"
 
 
 def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "configured") -> Diagnosis:
@@ -361,15 +362,15 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
         fit_obs = obs.subset(subsample_columns(scan.shape[2], d["subsample"]))
         model = list(resolve_effects(cfg, scan, reference, fit_obs)) if base == "configured" else []
     base_model = list(model)
-    good_frames = np.bincount(fit_obs.frame, minlength=scan.shape[0]) >= 0.5 * np.bincount(fit_obs.frame).max()
+    good_frames = well_determined(fit_obs, cfg["fit"]["gauge_fraction"])
     params: dict = {}
     motion = np.zeros(scan.shape[1:], bool)
     modelled_noise = False
     reports: dict[str, EffectReport] = {}
     detected: list[str] = []
-    rounds = []
+    rounds: list[dict] = []
     last_tests: dict[str, dict] = {}
-    initial = None
+    initial = float("nan")
     paper_why = visibility_unidentifiable(scan, reference)
     for rnd in range(d["max_rounds"] + 1):
         for o in (obs, fit_obs):
@@ -382,11 +383,12 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
                                         staged=not warm, circmean_iterations=0 if warm else
                                         cfg["fit"]["circmean_iterations"], reweight=0 if warm else 1,
                                         visibility_gauge=cfg["fit"]["visibility_gauge"],
-                                        visibility_quantile=cfg["fit"]["visibility_quantile"])
+                                        visibility_quantile=cfg["fit"]["visibility_quantile"],
+                                        gauge_fraction=cfg["fit"]["gauge_fraction"])
                 params = {k: v for k, v in fitted.params.items() if k in model}
             n_par = sum(np.size(p) for p in params.values())
             chi2_sum, chi2_red, rec = _chi2(obs, params, n_params=n_par)
-        if initial is None:
+        if rnd == 0:
             initial = chi2_red
             before = locate(obs, M.design(obs, params), rec.images, rec.expected)
         if rounds:
@@ -496,16 +498,19 @@ def _markdown(diag: Diagnosis) -> str:
              "![where the model and the data disagree](residuals.png)", "",
              "Top row: mean squared standardized residual per pixel before and after (1 = photon noise). "
              "Below: the same by frame, lateral position, fringe phase and expected count.", "",
-             "| effect | detected | identifiable | statistic | dof | p-value | delta chi2 | reduced chi2 after | where | "
-             "estimate |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "| effect | detected | identifiable | statistic | dof | p-value | delta chi2 | reduced chi2 after "
+             "| where | estimate |", "|---|---|---|---|---|---|---|---|---|---|"]
+
+    def fmt(v, f):
+        return "" if v is None else format(v, f)
+
     for e in diag.effects:
-        fmt = (lambda v, f: "" if v is None else format(v, f))
         lines.append(f"| {e.name} | {'yes' if e.detected else 'no'} | {'yes' if e.identifiable else 'no'} | "
                      f"{e.statistic:.4g} | {e.dof} | {e.p_value:.3g} | {fmt(e.delta_chi2, '.4g')} | "
                      f"{fmt(e.reduced_chi2_after, '.4f')} | {e.where or ''} | {e.estimate or ''} |")
     lines += ["", f"Criterion: {diag.criterion}.", "",
-              "delta chi2 is the change of the Pearson chi-square sum when the effect was added; for detector_gain it "
-              "is negative when the noise is below Poisson (the reduced chi-square then rises towards 1).", "",
+              "delta chi2 is the change of the Pearson chi-square sum when the effect was added; for detector_gain "
+              "it is negative when the noise is below Poisson (the reduced chi-square then rises towards 1).", "",
               "Not identifiable means the Fisher information has directions of that effect's parameters without "
               "information beyond its gauge: the acquisition cannot tell it from the images or the model's other "
               "effects (paper Sec. II-F), so it is never reported as detected.", ""]

@@ -154,7 +154,8 @@ def select(obs: M.Observations, weights: np.ndarray, names, *, max_columns: int 
     params = M.neutral_params(names, obs.n_frames)
     dsg = M.design(obs, params)
     inf = information(obs, dsg, M.solve_images(obs, dsg, weights, keep_inverse=True), weights, names)
-    chosen, out = [], []
+    chosen: list[str] = []
+    out = []
     for name in names:
         verdict = conditional(inf, name, chosen).verdict
         out.append(verdict)

@@ -8,11 +8,11 @@ import numpy as np
 
 from .. import config as C
 from .. import export, pipeline, plots
-from . import simulate as S
 from ..analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
 from ..io import atomic_path, write_scan
+from . import simulate as S
 
-log = logging.getLogger("dfxcorr")
+log = logging.getLogger(__name__)
 
 #: The paper's simulation study at 2.5 mm pixels (180 x 204 detector, 209 frames, 30 per pixel).
 DEMO_SIMULATION = {"simulate": {"pixel_mm": 2.5, "step_mm": 2.5, "seed": 7}}
@@ -54,6 +54,7 @@ def run_demo(out_dir: Path, *, overwrite: bool = False, command_line: str = "dfx
     good = frames_lighting(scan.position, scan.active_rows, scan.shape[1])
     vib = vibration_rmse(result.params, truth, good)
     img = image_rmse({k: result.image(k) for k in result.IMAGES}, truth)
+    assert result.uncorrected is not None  # retrieve.uncorrected is on by default
     img0 = image_rmse(result.uncorrected, truth)
     lines = ["# dfxcorr demo", "",
              f"Simulated {scan.shape[0]} frames of {scan.shape[1]} x {scan.shape[2]} pixels (seed "

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import json
 import logging
+from typing import Any
 
 import numpy as np
 
 from .. import model as M
-from ..align import build_observations
+from ..align import build_observations, stepping_observations
 from ..config import Option, _fraction, _nonneg, _positive
 from ..io import Reference, Scan, SteppingReference
 
@@ -202,7 +203,8 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
         ibar = np.where(moving[obs.row][:, obs.columns], (ibar - dsg.offset) * swing + dsg.offset, ibar)
     counts = _detect(ibar - obs.dark, cfg, rng) + obs.dark
     frames[obs.frame[:, None], obs.row[:, None], obs.columns[None, :]] = counts
-    reference, reference_steps = ref, np.zeros(0)
+    reference: Reference | SteppingReference = ref
+    reference_steps = np.zeros(0)
     if s["reference_steps"]:
         reference, reference_steps = _reference_series(ref, s, rng)
     data = _store(frames, s["dtype"])
@@ -210,7 +212,7 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
     scan = Scan(data=data, position=g["position"], reference=reference, phase_step=g["phase_step"],
                 gain=gain_file, exposure_time=np.full(J, 0.033),
                 pixel_size=(s["pixel_mm"] * 1e-3, s["pixel_mm"] * 1e-3))
-    truth = {f"image_{k}": img[k] for k in ("transmission", "dark_field", "differential_phase")}
+    truth: dict[str, Any] = {f"image_{k}": img[k] for k in ("transmission", "dark_field", "differential_phase")}
     truth.update(vib_phase_offset=params["phase_offset"][:, 0], vib_tilt=params["tilt"][:, 0],
                  vib_visibility=params["visibility_loss"][:, 0],
                  vib_curvature=params.get("curvature", np.zeros((J, 1)))[:, 0],
@@ -242,7 +244,11 @@ def _reference_series(ref: Reference, s: dict, rng: np.random.Generator) -> tupl
     S = s["reference_steps"]
     steps = 2 * np.pi * np.arange(S) / S
     actual = steps + rng.normal(0, s["reference_step_errors"], S)
-    mean = ref.transmission * (1 + ref.visibility * np.cos(ref.phase[None] + actual[:, None, None]))
+    obs = stepping_observations(np.zeros((S, *ref.transmission.shape)), actual)
+    t, v, phi = (m[obs.rows] for m in (ref.transmission, ref.visibility, ref.phase))
+    images = M.Images(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], axis=-1), np.ones(t.shape, bool))
+    mean = np.zeros((S, *ref.transmission.shape))
+    mean[obs.frame[:, None], obs.row[:, None], obs.columns[None, :]] = M.expected(obs, M.design(obs, {}), images)
     n = s["reference_frames"]
     data = rng.poisson(mean * n) / n if s["noise"] else mean
     return SteppingReference(data=data.astype(np.float64), phase_step=steps), actual
