@@ -252,7 +252,7 @@ def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chun
 
 def fringe(obs, *, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
     """cos and sin of the flat-field phase of every sample (fixed during the fit), each (K, C)."""
-    return np.cos(obs.phif).astype(dtype, copy=False), np.sin(obs.phif).astype(dtype, copy=False)
+    return np.cos(obs.phif, dtype=dtype), np.sin(obs.phif, dtype=dtype)
 
 
 def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: np.ndarray, *,
