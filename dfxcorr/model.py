@@ -367,6 +367,13 @@ def component_table(names) -> tuple[np.ndarray, np.ndarray, int, list[tuple[str,
     return channel, power, sum(effect(n).size for n in names if effect(n).per_frame), comps
 
 
+def fisher_index(names, n_frames: int) -> list[tuple[str, int, int]]:
+    """(name, frame, component) of each axis entry of the Fisher matrix; frame is -1 for global effects."""
+    _, _, n_per_frame, comps = component_table(names)
+    return [(n, j, m) for j in range(n_frames) for n, m in comps[:n_per_frame]] + \
+        [(n, -1, m) for n, m in comps[n_per_frame:]]
+
+
 @dataclass
 class Design:
     """Per-sample coefficients of the linear per-pixel model Ibar = t A + c Bc + s Bs + offset.
@@ -654,7 +661,7 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
     glob = [(n, m, F) for n in names if not effect(n).per_frame
             for m, F in enumerate(sample_derivatives(obs, dsg, images, n))]
     Pf, Pg = len(per_frame), len(glob)
-    index = [(n, j, m) for j in range(J) for n, m, _ in per_frame] + [(n, -1, m) for n, m, _ in glob]
+    index = fisher_index(names, J)
     info = np.zeros((J * Pf + Pg, J * Pf + Pg))
     Ff = np.stack([F for *_, F in per_frame], axis=-1) if Pf else np.zeros(obs.counts.shape + (0,))
     Fg = np.stack([F for *_, F in glob], axis=-1) if Pg else np.zeros(obs.counts.shape + (0,))
