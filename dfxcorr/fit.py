@@ -89,7 +89,8 @@ class _Problem:
     def _channel_sums(self, params, *, square):
         """Reduced cost and the per-parameter sums of the kernel (gradient, or sum w F^2 if ``square``)."""
         ch = M.channels(params, x=self.obs.x, n_frames=self.obs.n_frames)
-        cost, g = K.reduced_cost(self.obs, ch, self.weights, *self.fringe, phase=self.phase, square=square)
+        cost, g = K.reduced_cost(self.obs, ch, self.weights, *self.fringe, phase=self.phase, square=square,
+                                 channels={M.effect(n).channel for n in self.names})
         sums = M.channel_adjoint(self.names, M.Channels(*g), x=self.obs.x, square=square)
         return cost, np.concatenate([sums[n].ravel() for n in self.names])
 

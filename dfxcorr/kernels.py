@@ -32,11 +32,18 @@ TILE = 64
 def set_threads() -> int:
     """Set numba's thread count from SLURM_CPUS_PER_TASK, else OMP_NUM_THREADS, else the usable cores.
 
+    Unless NUMBA_THREADING_LAYER chooses otherwise, the kernels run on numba's own 'workqueue' pool:
+    OpenMP's spin-waiting threads made every call about ten times slower on cores shared with other
+    processes (measured: 23 ms instead of 1.6 ms per small evaluation), and its spinning slows the
+    optimiser between calls. This takes effect if no parallel kernel has run yet in the process.
+
     Returns
     -------
     int
         The number of threads set (at most numba's pool size).
     """
+    if "NUMBA_THREADING_LAYER" not in os.environ:
+        numba.config.THREADING_LAYER = "workqueue"
     n = 0
     for var in ("SLURM_CPUS_PER_TASK", "OMP_NUM_THREADS"):
         first = os.environ.get(var, "").split(",")[0].strip()
@@ -154,21 +161,56 @@ def _solve(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used, out, inv):
 # --------------------------------------------------------------------------------------------------
 
 
+@njit(cache=True, inline="always")
+def _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis, dose, k, c, j, hc, hs):
+    """Fringe phase by angle addition (no trigonometric call per sample), then :func:`_design`.
+
+    Returns (cos θ, sin θ, D tf, h, cos 2θ, sin 2θ, A, Bc, Bs) of sample (k, c) in frame j.
+    """
+    ct = cphi[k, c] * cos_p[j, c] - sphi[k, c] * sin_p[j, c]
+    st = sphi[k, c] * cos_p[j, c] + cphi[k, c] * sin_p[j, c]
+    amp = dose[j] * tf[k, c]
+    h, c2, s2, a, bc, bs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
+    return ct, st, amp, h, c2, s2, a, bc, bs
+
+
+@njit(cache=True, inline="always")
+def _accumulate(N, rhs, used, i, wk, a, x1, x2, target):
+    """Add one sample to column i of the tile's normal equations."""
+    N[0, i] += wk * a * a
+    N[1, i] += wk * a * x1
+    N[2, i] += wk * a * x2
+    N[3, i] += wk * x1 * x1
+    N[4, i] += wk * x1 * x2
+    N[5, i] += wk * x2 * x2
+    rhs[0, i] += wk * a * target
+    rhs[1, i] += wk * x1 * target
+    rhs[2, i] += wk * x2 * target
+    used[i] += 1.0 if wk > 0 else 0.0
+
+
 @njit(cache=True, parallel=True)
 def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose,
-                  bg, harm, hold, square, tile):
+                  bg, harm, hold, square, need, tile):
     C = counts.shape[1]
     J = vis.shape[0]
     n = chunks.size - 1
-    cost = np.zeros((n, C))
-    g_phase = np.zeros((n, J, C))
-    g_vis = np.zeros((n, J, C))
-    g_dose = np.zeros((n, J, C))
-    g_bg = np.zeros((n, 3, C))
-    g_harm = np.zeros((n, 2, C))
+    # np.empty, zeroed by each chunk: np.zeros here would be a parallel region of its own
+    cost = np.empty((n, C))
+    g_phase = np.empty((n, J, C))
+    g_vis = np.empty((n, J, C))
+    g_dose = np.empty((n, J, C))
+    g_bg = np.empty((n, 3, C))
+    g_harm = np.empty((n, 2, C))
     hc, hs = harm[0], harm[1]
     m00, m01, m10, m11 = hold[0, 0], hold[0, 1], hold[1, 0], hold[1, 1]
     for t in prange(n):
+        cost[t, :] = 0.0
+        g_phase[t, :, :] = 0.0
+        g_vis[t, :, :] = 0.0
+        g_dose[t, :, :] = 0.0
+        g_bg[t, :, :] = 0.0
+        g_harm[t, :, :] = 0.0
         N = np.empty((6, tile))
         rhs = np.empty((3, tile))
         used = np.empty(tile)
@@ -187,25 +229,10 @@ def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chun
                     off = bg[0] + bg[2] * y[k]
                     for i in range(T):
                         c = c0 + i
-                        # fringe phase by angle addition: no trigonometric call per sample
-                        ct = cphi[k, c] * cos_p[j, c] - sphi[k, c] * sin_p[j, c]
-                        st = sphi[k, c] * cos_p[j, c] + cphi[k, c] * sin_p[j, c]
-                        amp = dose[j] * tf[k, c]
-                        h, c2, s2, a, bc, bs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
-                        x1 = m00 * bc + m01 * bs
-                        x2 = m10 * bc + m11 * bs
-                        wk = w[k, c]
-                        target = counts[k, c] - dark[k, c] - off - bg[1] * x[c]
-                        N[0, i] += wk * a * a
-                        N[1, i] += wk * a * x1
-                        N[2, i] += wk * a * x2
-                        N[3, i] += wk * x1 * x1
-                        N[4, i] += wk * x1 * x2
-                        N[5, i] += wk * x2 * x2
-                        rhs[0, i] += wk * a * target
-                        rhs[1, i] += wk * x1 * target
-                        rhs[2, i] += wk * x2 * target
-                        used[i] += 1.0 if wk > 0 else 0.0
+                        _, _, _, _, _, _, a, bc, bs = _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis, dose, k, c,
+                                                                    j, hc, hs)
+                        _accumulate(N, rhs, used, i, w[k, c], a, m00 * bc + m01 * bs, m10 * bc + m11 * bs,
+                                    counts[k, c] - dark[k, c] - off - bg[1] * x[c])
                 for i in range(T):
                     _solve(N[0, i], N[1, i], N[2, i], N[3, i], N[4, i], N[5, i], rhs[0, i], rhs[1, i], rhs[2, i],
                            used[i], u, inv)
@@ -218,35 +245,29 @@ def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chun
                     off = bg[0] + bg[2] * y[k]
                     for i in range(T):
                         c = c0 + i
-                        ct = cphi[k, c] * cos_p[j, c] - sphi[k, c] * sin_p[j, c]
-                        st = sphi[k, c] * cos_p[j, c] + cphi[k, c] * sin_p[j, c]
-                        amp = dose[j] * tf[k, c]
-                        h, c2, s2, a, bc, bs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
+                        ct, st, amp, h, c2, s2, a, bc, bs = _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis,
+                                                                          dose, k, c, j, hc, hs)
                         tt, cs, ss = coef[0, i], coef[1, i], coef[2, i]
                         f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs, ss, ct, st, c2, s2, h, tf[k, c], vf[k, c],
                                                                 amp, bc, bs, vis[j, c], hc, hs)
                         wk = w[k, c]
                         res = counts[k, c] - dark[k, c] - off - bg[1] * x[c] - (tt * a + cs * bc + ss * bs)
                         cost[t, c] += wk * res * res
-                        if square:
-                            g_phase[t, j, c] += wk * f_p * f_p
-                            g_vis[t, j, c] += wk * f_v * f_v
-                            g_dose[t, j, c] += wk * f_d * f_d
-                            g_bg[t, 0, c] += wk
-                            g_bg[t, 1, c] += wk * x[c] * x[c]
-                            g_bg[t, 2, c] += wk * y[k] * y[k]
-                            g_harm[t, 0, c] += wk * f_c * f_c
-                            g_harm[t, 1, c] += wk * f_s * f_s
-                        else:
-                            g = -2.0 * wk * res
-                            g_phase[t, j, c] += g * f_p
-                            g_vis[t, j, c] += g * f_v
-                            g_dose[t, j, c] += g * f_d
-                            g_bg[t, 0, c] += g
-                            g_bg[t, 1, c] += g * x[c]
-                            g_bg[t, 2, c] += g * y[k]
-                            g_harm[t, 0, c] += g * f_c
-                            g_harm[t, 1, c] += g * f_s
+                        # gradient: sum (-2 w r) F; Gauss-Newton diagonal: sum (w F) F
+                        g = -2.0 * wk * res
+                        if need[0]:
+                            g_phase[t, j, c] += (wk * f_p if square else g) * f_p
+                        if need[1]:
+                            g_vis[t, j, c] += (wk * f_v if square else g) * f_v
+                        if need[2]:
+                            g_dose[t, j, c] += (wk * f_d if square else g) * f_d
+                        if need[3]:
+                            g_bg[t, 0, c] += wk if square else g
+                            g_bg[t, 1, c] += (wk * x[c] if square else g) * x[c]
+                            g_bg[t, 2, c] += (wk * y[k] if square else g) * y[k]
+                        if need[4]:
+                            g_harm[t, 0, c] += (wk * f_c if square else g) * f_c
+                            g_harm[t, 1, c] += (wk * f_s if square else g) * f_s
     return cost, g_phase, g_vis, g_dose, g_bg, g_harm
 
 
@@ -256,7 +277,8 @@ def fringe(obs, *, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
 
 
 def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: np.ndarray, *,
-                 phase: float | None = None, square: bool = False) -> tuple[float, tuple[np.ndarray, ...]]:
+                 phase: float | None = None, square: bool = False,
+                 channels=tuple(CHANNEL_IDS)) -> tuple[float, tuple[np.ndarray, ...]]:
     """Reduced cost sum w (I - Ibar)^2 at the closed-form images and its channel gradients.
 
     Parameters
@@ -272,6 +294,8 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
     square : bool
         Instead of the gradient sum -2 w r F, return the Gauss-Newton sums sum w F^2 (the Fisher
         diagonal, per channel value).
+    channels : sequence of str
+        Channels whose sums are wanted (the others are returned as zeros, at no cost per sample).
 
     Returns
     -------
@@ -281,10 +305,11 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
         Per channel value: phase (J, C), visibility (J, C), dose (J,), background (3,), harmonic (2,).
     """
     hold = np.eye(2) if phase is None else np.array([[np.cos(phase), np.sin(phase)], [0.0, 0.0]])
+    need = np.isin(list(CHANNEL_IDS), list(channels))
     bounds = _bounds(obs)
     out = _reduced_cost(obs.counts, obs.tf, obs.vf, cos_phif, sin_phif, obs.dark, weights, obs.frame, obs.y, obs.x,
                         bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase), np.sin(ch.phase),
-                        ch.vis, ch.dose, ch.background, ch.harmonic, hold, square, TILE)
+                        ch.vis, ch.dose, ch.background, ch.harmonic, hold, square, need, TILE)
     cost, g_phase, g_vis, g_dose, g_bg, g_harm = (a.sum(axis=0) for a in out)
     return float(cost.sum()), (g_phase, g_vis, g_dose.sum(axis=1), g_bg.sum(axis=1), g_harm.sum(axis=1))
 
@@ -300,15 +325,18 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
     K, C = counts.shape
     R = bounds.size - 1
     n = chunks.size - 1
-    coef = np.zeros((R, C, 3))
-    valid = np.zeros((R, C), dtype=np.bool_)
-    inverse = np.zeros((R if keep_inverse else 0, C, 3, 3))
+    # every entry is written by its chunk: np.empty (np.zeros would be a parallel region of its own)
+    coef = np.empty((R, C, 3))
+    valid = np.empty((R, C), dtype=np.bool_)
+    inverse = np.empty((R if keep_inverse else 0, C, 3, 3))
     ibar = np.empty((K, C))
     w_out = np.empty((K, C))
-    chi2 = np.zeros(n)
-    n_sel = np.zeros(n)
+    chi2 = np.empty(n)
+    n_sel = np.empty(n)
     hc, hs = harm[0], harm[1]
     for t in prange(n):
+        chi2[t] = 0.0
+        n_sel[t] = 0.0
         N = np.empty((6, tile))
         rhs = np.empty((3, tile))
         used = np.empty(tile)
@@ -356,20 +384,8 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                     for b in range(nb):
                         k = lo + b
                         for i in range(T):
-                            c = c0 + i
-                            wk = w[b, i]
-                            a, x1, x2 = A[b, i], Bc[b, i], Bs[b, i]
-                            target = counts[k, c] - off[b, i]
-                            N[0, i] += wk * a * a
-                            N[1, i] += wk * a * x1
-                            N[2, i] += wk * a * x2
-                            N[3, i] += wk * x1 * x1
-                            N[4, i] += wk * x1 * x2
-                            N[5, i] += wk * x2 * x2
-                            rhs[0, i] += wk * a * target
-                            rhs[1, i] += wk * x1 * target
-                            rhs[2, i] += wk * x2 * target
-                            used[i] += 1.0 if wk > 0 else 0.0
+                            _accumulate(N, rhs, used, i, w[b, i], A[b, i], Bc[b, i], Bs[b, i],
+                                        counts[k, c0 + i] - off[b, i])
                     for i in range(T):
                         c = c0 + i
                         valid[r, c] = _solve(N[0, i], N[1, i], N[2, i], N[3, i], N[4, i], N[5, i], rhs[0, i],
@@ -388,7 +404,7 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                             # Pearson residual with the variance floor of model.pearson
                             chi2[t] += (counts[k, c] - m) ** 2 / (gain * max(m - dark[k, c], 1e-3) + electronic)
                             n_sel[t] += 1.0
-    return coef, valid, inverse, ibar, w_out, chi2.sum(), n_sel.sum()
+    return coef, valid, inverse, ibar, w_out, chi2, n_sel
 
 
 def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1, gain: float | None = None,
@@ -426,7 +442,7 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         row_chunks(bounds[:-1], obs.frame.size), ch.phase, ch.vis, ch.dose, ch.background, ch.harmonic,
         float(g), float(obs.electronic), int(iterations), weights is None, keep_inverse, TILE)
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
-            "weights": w, "chi2": float(chi2), "samples": int(n_sel)}
+            "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -442,10 +458,12 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
     Pf, Pg = n_per_frame, Q - n_per_frame
     P = n_frames * Pf + Pg
     n = chunks.size - 1
-    plain = np.zeros((n, P, P))
-    corr = np.zeros((n, P, P))
+    plain = np.empty((n, P, P))
+    corr = np.empty((n, P, P))
     hc, hs = harm[0], harm[1]
     for t in prange(n):
+        plain[t, :, :] = 0.0
+        corr[t, :, :] = 0.0
         F = np.empty(Q)
         basis = np.empty(5)
         for r in range(chunks[t], chunks[t + 1]):
@@ -507,7 +525,7 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
                 for a1 in range(m):
                     for a2 in range(m):
                         corr[t, idx[a1], idx[a2]] += rc[a1, a2]
-    return plain.sum(axis=0), corr.sum(axis=0)
+    return plain, corr
 
 
 def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray | None, table: tuple, *,
@@ -541,7 +559,8 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray |
     bounds = _bounds(obs)
     inv = np.zeros((0, 0, 3, 3)) if inverse is None else inverse
     # one chunk per thread: the accumulators are (P, P) each
-    return _fisher(obs.tf, obs.vf, obs.phif, weights, obs.frame, obs.y, obs.x, bounds,
+    plain, corr = _fisher(obs.tf, obs.vf, obs.phif, weights, obs.frame, obs.y, obs.x, bounds,
                    row_chunks(bounds[:-1], obs.frame.size, per_thread=1), ch.phase, ch.vis, ch.dose, ch.harmonic,
                    coef, inv, np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64),
                    int(n_per_frame), int(obs.n_frames), bool(profiled and inverse is not None))
+    return plain.sum(axis=0), corr.sum(axis=0)

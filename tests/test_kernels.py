@@ -165,3 +165,15 @@ def test_threads_follow_the_environment(monkeypatch):
     monkeypatch.delenv("SLURM_CPUS_PER_TASK")
     monkeypatch.delenv("OMP_NUM_THREADS")
     K.set_threads()
+
+
+def test_only_the_requested_channels_are_summed(rng):
+    obs = prepared(rng)
+    params = random_params(rng, obs.n_frames, ALL)
+    ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
+    w = M.noise_weights(obs, obs.counts)
+    cost, full = K.reduced_cost(obs, ch, w, *K.fringe(obs))
+    part_cost, part = K.reduced_cost(obs, ch, w, *K.fringe(obs), channels=("phase", "background"))
+    assert part_cost == cost
+    for name, a, b in zip(K.CHANNEL_IDS, full, part):
+        np.testing.assert_array_equal(b, a if name in ("phase", "background") else 0.0)
