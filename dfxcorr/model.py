@@ -1,7 +1,9 @@
 """The forward model: paper eq. 19 extended by the effect catalogue of ``spec/diagnosis.md``.
 
 This module is the only definition of the expected count, its derivatives and the per-frame effects;
-the fit, the retrieval, the simulator, the baselines and the diagnosis all call it.
+the simulator, the baselines and the diagnosis call it. The fit and the retrieval run the compiled
+loops of :mod:`dfxcorr.kernels`, which evaluate the same model from the channel values of
+:func:`channels`; the numpy expressions here are their definition and the tests' oracle.
 
 For detector pixel i (row r, column c) in frame j the expected count is
 
@@ -635,6 +637,8 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
     the Schur complement sum_i D_i^T (W - W X (X^T W X)^-1 X^T W) D_i over pixels i, where D_i holds
     the derivatives of the pixel's samples with respect to the effect parameters and X_i its image
     design. Per-frame parameters of different frames are coupled through the pixels they share.
+    The information at known images is computed here; the correction for the profiled images, a
+    loop over pixels, by :func:`dfxcorr.kernels.fisher`.
 
     Parameters
     ----------

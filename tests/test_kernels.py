@@ -177,3 +177,24 @@ def test_only_the_requested_channels_are_summed(rng):
     assert part_cost == cost
     for name, a, b in zip(K.CHANNEL_IDS, full, part):
         np.testing.assert_array_equal(b, a if name in ("phase", "background") else 0.0)
+
+
+def test_frame_grid_cost_is_the_direct_cost(rng):
+    """The trigonometric-polynomial grid of fit.rescue_frames against the model evaluated at each grid point."""
+    from dfxcorr.fit import frame_grid_cost
+    obs = prepared(rng, masked=True)
+    params = random_params(rng, obs.n_frames, ALL)
+    w = M.noise_weights(obs, obs.counts)
+    dsg = M.design(obs, params)
+    images = M.solve_images(obs, dsg, w)
+    j = obs.frame[obs.starts[2]]
+    blocks = np.flatnonzero(obs.frame == j)
+    offsets, tilts = np.linspace(-np.pi, np.pi, 5, endpoint=False), np.array([-0.3, 0.1])
+    held = params["phase_offset"][j, 0] + params["tilt"][j, 0] * obs.x
+    grid = frame_grid_cost(obs, dsg.channels, images.coef, w, blocks, offsets, tilts, held=held)
+    for a, g0 in enumerate(offsets):
+        for b, g1 in enumerate(tilts):
+            trial = {k: v.copy() for k, v in params.items()}
+            trial["phase_offset"][j, 0], trial["tilt"][j, 0] = g0, g1
+            r = (obs.counts - M.expected(obs, M.design(obs, trial), images))[blocks]
+            assert grid[a, b] == pytest.approx(float(np.sum(w[blocks] * r ** 2)), rel=1e-10)
