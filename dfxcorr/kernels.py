@@ -461,6 +461,12 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
     plain = np.empty((n, P, P))
     corr = np.empty((n, P, P))
     hc, hs = harm[0], harm[1]
+    # the column factor of each component: x^power (phase, visibility), the basis (background), else 1
+    xq = np.ones((Q, C))
+    for q in range(Q):
+        if channel[q] <= 1 or (channel[q] == 3 and power[q] == 1):
+            for c in range(C):
+                xq[q, c] = x[c] ** (power[q] if channel[q] <= 1 else 1)
     for t in prange(n):
         plain[t, :, :] = 0.0
         corr[t, :, :] = 0.0
@@ -476,14 +482,18 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
                     idx[b * Pf + q] = frame[lo + b] * Pf + q
             for g in range(Pg):
                 idx[nb * Pf + g] = n_frames * Pf + g
-            # Y = X^T W D of each pixel (3 rows per column) and T = N^-1 Y
+            # the row's information at known images, on its own slots (frames of the row, then globals)
+            local = np.zeros((m, m))
+            # Y = X^T W D of each pixel (3 rows per column)
             Y = np.zeros((3 * C, m))
-            Tm = np.zeros((3 * C, m))
-            for c in range(C):
-                tt, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
-                for b in range(nb):
-                    k = lo + b
-                    j = frame[k]
+            for b in range(nb):
+                k = lo + b
+                j = frame[k]
+                for c in range(C):
+                    wk = w[k, c]
+                    if wk == 0:
+                        continue
+                    tt, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
                     th = phif[k, c] + phase[j, c]
                     ct, st = np.cos(th), np.sin(th)
                     amp = dose[j] * tf[k, c]
@@ -492,39 +502,57 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
                         tt, cs, ss, ct, st, c2, s2, h, tf[k, c], vf[k, c], amp, bc, bs, vis[j, c], hc, hs)
                     for q in range(Q):
                         ch = channel[q]
-                        if ch <= 1:
-                            F[q] = basis[ch] * x[c] ** power[q]
-                        elif ch == 2:
-                            F[q] = basis[2]
+                        if ch <= 2:
+                            F[q] = basis[ch] * xq[q, c]
                         elif ch == 3:
-                            F[q] = 1.0 if power[q] == 0 else (x[c] if power[q] == 1 else y[k])
+                            F[q] = y[k] if power[q] == 2 else xq[q, c]
                         else:
                             F[q] = basis[3 + power[q]]
-                    wk = w[k, c]
-                    if wk == 0:
-                        continue
                     for q1 in range(Q):
-                        i1 = j * Pf + q1 if q1 < Pf else n_frames * Pf + q1 - Pf
+                        s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
+                        wf = wk * F[q1]
                         for q2 in range(Q):
-                            i2 = j * Pf + q2 if q2 < Pf else n_frames * Pf + q2 - Pf
-                            plain[t, i1, i2] += wk * F[q1] * F[q2]
-                    if profiled:
-                        for q in range(Q):
-                            col = b * Pf + q if q < Pf else nb * Pf + q - Pf
-                            Y[3 * c, col] += wk * a * F[q]
-                            Y[3 * c + 1, col] += wk * bc * F[q]
-                            Y[3 * c + 2, col] += wk * bs * F[q]
-                if profiled:
-                    for i in range(3):
-                        for col in range(m):
-                            Tm[3 * c + i, col] = inverse[r, c, i, 0] * Y[3 * c, col] \
-                                + inverse[r, c, i, 1] * Y[3 * c + 1, col] + inverse[r, c, i, 2] * Y[3 * c + 2, col]
+                            s2_ = b * Pf + q2 if q2 < Pf else nb * Pf + q2 - Pf
+                            local[s1, s2_] += wf * F[q2]
+                        if profiled:
+                            Y[3 * c, s1] += wf * a
+                            Y[3 * c + 1, s1] += wf * bc
+                            Y[3 * c + 2, s1] += wf * bs
             if profiled:
-                # sum over the row's columns of Y^T N^-1 Y: one matrix product per row
-                rc = np.dot(Y.T, Tm)
+                # sum over the row's columns of Y^T N^-1 Y = Z^T Z, Z = L^T Y with N^-1 = L L^T (upper triangle)
+                rc = np.zeros((m, m))
+                z = np.empty((3, m))
+                for c in range(C):
+                    i00, i01, i02 = inverse[r, c, 0, 0], inverse[r, c, 0, 1], inverse[r, c, 0, 2]
+                    i11, i12, i22 = inverse[r, c, 1, 1], inverse[r, c, 1, 2], inverse[r, c, 2, 2]
+                    if i00 <= 0:
+                        continue  # not solvable: the images are not profiled there
+                    l00 = np.sqrt(i00)
+                    l10, l20 = i01 / l00, i02 / l00
+                    d11 = i11 - l10 * l10
+                    l11 = np.sqrt(d11) if d11 > 0 else 0.0
+                    l21 = (i12 - l20 * l10) / l11 if l11 > 0 else 0.0
+                    d22 = i22 - l20 * l20 - l21 * l21
+                    l22 = np.sqrt(d22) if d22 > 0 else 0.0
+                    for col in range(m):
+                        y0, y1, y2 = Y[3 * c, col], Y[3 * c + 1, col], Y[3 * c + 2, col]
+                        z[0, col] = l00 * y0 + l10 * y1 + l20 * y2
+                        z[1, col] = l11 * y1 + l21 * y2
+                        z[2, col] = l22 * y2
+                    for i in range(3):
+                        for a1 in range(m):
+                            za = z[i, a1]
+                            if za != 0:
+                                for a2 in range(a1, m):
+                                    rc[a1, a2] += za * z[i, a2]
                 for a1 in range(m):
-                    for a2 in range(m):
+                    corr[t, idx[a1], idx[a1]] += rc[a1, a1]
+                    for a2 in range(a1 + 1, m):
                         corr[t, idx[a1], idx[a2]] += rc[a1, a2]
+                        corr[t, idx[a2], idx[a1]] += rc[a1, a2]
+            for a1 in range(m):
+                for a2 in range(m):
+                    plain[t, idx[a1], idx[a2]] += local[a1, a2]
     return plain, corr
 
 
