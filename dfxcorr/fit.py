@@ -88,8 +88,7 @@ class _Problem:
 
     def _channel_sums(self, params, *, square):
         """Reduced cost and the per-parameter sums of the kernel (gradient, or sum w F^2 if ``square``)."""
-        ch = M.channels(params, x=self.obs.x, n_frames=self.obs.n_frames)
-        cost, g = K.reduced_cost(self.obs, ch, self.weights, *self.fringe, phase=self.phase, square=square,
+        cost, g = K.reduced_cost(self.obs, _channels(self.obs, params), self.weights, *self.fringe, phase=self.phase, square=square,
                                  channels={M.effect(n).channel for n in self.names})
         sums = M.channel_adjoint(self.names, M.Channels(*g), x=self.obs.x, square=square)
         return cost, np.concatenate([sums[n].ravel() for n in self.names])
@@ -276,6 +275,7 @@ def initial_weights(obs: M.Observations, params: dict) -> np.ndarray:
 
 
 def _channels(obs: M.Observations, params: dict) -> M.Channels:
+    """Channel values of ``params`` on the observations' (frame, column) grid."""
     return M.channels(params, x=obs.x, n_frames=obs.n_frames)
 
 
