@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import minimize
 
+from . import kernels as K
 from . import model as M
 
 log = logging.getLogger(__name__)
@@ -60,8 +61,10 @@ class FitResult:
 class _Problem:
     """Packs effect parameters into one preconditioned vector for scipy."""
 
-    def __init__(self, obs, names, params, weights, *, phase=None, precondition=True, prior=None):
+    def __init__(self, obs, names, params, weights, *, phase=None, precondition=True, prior=None, fringe=None):
         self.obs, self.names, self.weights, self.phase = obs, list(names), weights, phase
+        # cos and sin of the flat-field phase: fixed for the fit, so the kernels need no trigonometry per sample
+        self.fringe = K.fringe(obs) if fringe is None else fringe
         self.fixed = {k: v for k, v in params.items() if k not in self.names}
         self.shapes = [params[n].shape for n in self.names]
         self.theta0 = np.concatenate([params[n].ravel() for n in self.names])
@@ -83,31 +86,25 @@ class _Problem:
             i += size
         return out
 
+    def _channel_sums(self, params, *, square):
+        """Reduced cost and the per-parameter sums of the kernel (gradient, or sum w F^2 if ``square``)."""
+        cost, g = K.reduced_cost(self.obs, _channels(self.obs, params), self.weights, *self.fringe, phase=self.phase, square=square,
+                                 channels={M.effect(n).channel for n in self.names})
+        sums = M.channel_adjoint(self.names, M.Channels(*g), x=self.obs.x, square=square)
+        return cost, np.concatenate([sums[n].ravel() for n in self.names])
+
     def _curvature(self, params):
         """Diagonal of the cost's Gauss-Newton Hessian (2 x Fisher information, paper eq. 27) plus the prior."""
-        dsg = M.design(self.obs, params)
-        images = M.solve_images(self.obs, dsg, self.weights, phase=self.phase)
-        h = []
-        for n in self.names:
-            comps = [M.reduce_component(self.obs, n, self.weights * F ** 2)
-                     for F in M.sample_derivatives(self.obs, dsg, images, n)]
-            h.append(2.0 * np.stack(comps, axis=-1).ravel())
-        h = np.concatenate(h) + 2.0 * self.prior_w
+        h = 2.0 * self._channel_sums(params, square=True)[1] + 2.0 * self.prior_w
         positive = h[h > 0]
         floor = 1e-12 * (positive.max() if positive.size else 1.0)
         return np.maximum(h, max(floor, 1e-300))
 
     def evaluate(self, z):
         theta = z / self.scale
-        params = self.unpack(theta)
-        dsg = M.design(self.obs, params)
-        images = M.solve_images(self.obs, dsg, self.weights, phase=self.phase)
-        resid = self.obs.counts - M.expected(self.obs, dsg, images)
+        cost, grad = self._channel_sums(self.unpack(theta), square=False)
         dev = theta - self.centre
-        cost = float(np.sum(self.weights * resid ** 2) + np.sum(self.prior_w * dev ** 2))
-        g = M.gradient(self.obs, dsg, images, self.weights, resid, self.names)
-        grad = np.concatenate([g[n].ravel() for n in self.names]) + 2.0 * self.prior_w * dev
-        return cost, grad / self.scale
+        return cost + float(np.sum(self.prior_w * dev ** 2)), (grad + 2.0 * self.prior_w * dev) / self.scale
 
     def bounds(self):
         """Physical lower bounds (visibility and dose stay positive), in the rescaled variables."""
@@ -117,7 +114,7 @@ class _Problem:
 
 
 def minimise(obs, names, params, weights, *, phase=None, maxiter=200, gtol=1e-3, precondition=True,
-             prior=None, on_iteration=None) -> tuple[dict[str, np.ndarray], list[float], str, bool]:
+             prior=None, on_iteration=None, fringe=None) -> tuple[dict[str, np.ndarray], list[float], str, bool]:
     """Minimise the reduced cost over the parameters of ``names``, the others held fixed.
 
     Parameters
@@ -142,6 +139,8 @@ def minimise(obs, names, params, weights, *, phase=None, maxiter=200, gtol=1e-3,
         broadcastable to the parameters (see :func:`catalogue_prior`, :func:`empirical_prior`).
     on_iteration : callable, optional
         Called with the cost after every iteration.
+    fringe : tuple of ndarray, optional
+        :func:`dfxcorr.kernels.fringe` of ``obs`` (computed here if not given).
 
     Returns
     -------
@@ -150,7 +149,7 @@ def minimise(obs, names, params, weights, *, phase=None, maxiter=200, gtol=1e-3,
     message : str
     converged : bool
     """
-    prob = _Problem(obs, names, params, weights, phase=phase, precondition=precondition, prior=prior)
+    prob = _Problem(obs, names, params, weights, phase=phase, precondition=precondition, prior=prior, fringe=fringe)
     costs: list[float] = []
 
     def callback(intermediate_result):
@@ -212,6 +211,8 @@ def fit_vibrations(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | 
     """
     names = [n for n in effects if M.effect(n).channel is not None]
     J = obs.n_frames
+    K.set_threads()
+    fringe = K.fringe(obs)
     params = M.neutral_params(names, J)
     if start:
         params.update({k: np.array(v, dtype=np.float64) for k, v in start.items() if k in params})
@@ -232,15 +233,14 @@ def fit_vibrations(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | 
             continue
         phase = None
         if label == "circmean":
-            images = M.solve_images(obs, M.design(obs, params), weights)
+            images = _solve(obs, params, weights)
             amp = np.where(images.valid, np.hypot(images.coef[..., 1], images.coef[..., 2]), 0.0)
             phase = M.circular_mean(images.phi, amp)
         if label == "reweight":
-            dsg = M.design(obs, params)
-            weights = M.noise_weights(obs, M.expected(obs, dsg, M.solve_images(obs, dsg, weights)))
+            weights = _model_weights(obs, params, weights)
         cb = None if on_iteration is None else (lambda c, _l=label: on_iteration(_l, c))
         params, c, msg, ok = minimise(obs, free, params, weights, phase=phase, maxiter=iters, gtol=gtol,
-                                      precondition=precondition, prior=wide, on_iteration=cb)
+                                      precondition=precondition, prior=wide, on_iteration=cb, fringe=fringe)
         log.debug("stage %s: %d iterations, %s", label, len(c), msg)
         costs += c
         stage_of += [label] * len(c)
@@ -257,7 +257,7 @@ def fit_vibrations(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | 
             log.info("%d of %d weakly determined frames moved by the global search", moved, weak.size)
         cb = None if on_iteration is None else (lambda c: on_iteration("prior", c))
         params, c, msg, ok = minimise(obs, names, params, weights, maxiter=maxiter, gtol=gtol,
-                                      precondition=precondition, prior=narrow, on_iteration=cb)
+                                      precondition=precondition, prior=narrow, on_iteration=cb, fringe=fringe)
         costs += c
         stage_of += ["prior"] * len(c)
         messages.append(f"prior: {msg}")
@@ -270,9 +270,24 @@ def fit_vibrations(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | 
 
 def initial_weights(obs: M.Observations, params: dict) -> np.ndarray:
     """Inverse shot-noise variances from the model at ``params`` after one data-weighted solve (eq. 6)."""
-    dsg = M.design(obs, params)
-    w0 = M.noise_weights(obs, np.maximum(obs.counts, 1.0))
-    return M.noise_weights(obs, M.expected(obs, dsg, M.solve_images(obs, dsg, w0)))
+    K.set_threads()
+    return _model_weights(obs, params, M.noise_weights(obs, np.maximum(obs.counts, 1.0)))
+
+
+def _channels(obs: M.Observations, params: dict) -> M.Channels:
+    """Channel values of ``params`` on the observations' (frame, column) grid."""
+    return M.channels(params, x=obs.x, n_frames=obs.n_frames)
+
+
+def _model_weights(obs: M.Observations, params: dict, weights: np.ndarray) -> np.ndarray:
+    """Inverse noise variances of the model solved with ``weights`` (the weights of a second solve)."""
+    return K.retrieve(obs, _channels(obs, params), weights=weights, iterations=2)["weights"]
+
+
+def _solve(obs: M.Observations, params: dict, weights: np.ndarray, *, keep_inverse: bool = False) -> M.Images:
+    """Closed-form images for fixed parameters and weights."""
+    out = K.retrieve(obs, _channels(obs, params), weights=weights, keep_inverse=keep_inverse)
+    return M.Images(out["coef"], out["valid"], out["inverse"])
 
 
 def wrap_phases(params: dict, obs: M.Observations) -> dict:
@@ -333,36 +348,25 @@ def rescue_frames(obs: M.Observations, params: dict, weights: np.ndarray, frames
         Number of frames moved.
     """
     params = {k: v.copy() for k, v in params.items()}
-    dsg = M.design(obs, params)
-    images = M.solve_images(obs, dsg, weights)
-    resid2 = weights * (obs.counts - M.expected(obs, dsg, images)) ** 2
+    ch = _channels(obs, params)
+    now = K.retrieve(obs, ch, weights=weights)
     c1, w1 = (float(np.ravel(prior["tilt"][0])[0]), float(np.ravel(prior["tilt"][1])[0])) if "tilt" in prior else (0, 1)
-    g0, g1 = np.meshgrid(np.linspace(-np.pi, np.pi, n_offset, endpoint=False),
-                         c1 + np.linspace(-4 * w1, 4 * w1, n_tilt) if "tilt" in params else [0.0], indexing="ij")
-    g0, g1 = g0.ravel(), g1.ravel()
+    offsets = np.linspace(-np.pi, np.pi, n_offset, endpoint=False)
+    tilts = c1 + np.linspace(-4 * w1, 4 * w1, n_tilt) if "tilt" in params else np.zeros(1)
+    g0, g1 = (g.ravel() for g in np.meshgrid(offsets, tilts, indexing="ij"))
     c0, w0 = (float(np.ravel(prior["phase_offset"][0])[0]), float(np.ravel(prior["phase_offset"][1])[0])) \
         if "phase_offset" in prior else (0.0, np.inf)
     penalty = (np.angle(np.exp(1j * (g0 - c0))) / w0) ** 2 + ((g1 - c1) / w1) ** 2
-    G = g0.size
     moved = 0
     for j in frames:
         sel = np.flatnonzero(obs.frame == j)
-        nb = sel.size
-        # the frame's blocks, repeated once per grid point, each repetition posing as its own frame
-        rep = M.Observations(*(np.tile(a[sel], (G, 1)) for a in (obs.counts, obs.tf, obs.vf, obs.phif, obs.dark,
-                                                                  obs.use)),
-                             row=np.arange(G * nb), frame=np.repeat(np.arange(G), nb), columns=obs.columns,
-                             shape=(G, G * nb, obs.shape[2]), gain=obs.gain)
-        trial = {k: (np.repeat(v[j:j + 1], G, axis=0) if M.effect(k).per_frame else v) for k, v in params.items()}
-        trial.setdefault("phase_offset", np.zeros((G, 1)))[:, 0] = g0
-        if "tilt" in trial:
-            trial["tilt"][:, 0] = g1
-        coef = M.Images(np.tile(images.coef[obs.pixel[sel]], (G, 1, 1)), np.ones((G * nb, obs.columns.size), bool))
-        r = rep.counts - M.expected(rep, M.design(rep, trial), coef)
-        cost = (np.tile(weights[sel], (G, 1)) * r ** 2).reshape(G, -1).sum(axis=1) + penalty
         now0 = params["phase_offset"][j, 0] if "phase_offset" in params else 0.0
         now1 = params["tilt"][j, 0] if "tilt" in params else c1
-        current = float(resid2[sel].sum()) + (np.angle(np.exp(1j * (now0 - c0))) / w0) ** 2 + ((now1 - c1) / w1) ** 2
+        cost = frame_grid_cost(obs, ch, now["coef"], weights, sel, offsets, tilts,
+                               held=now0 + (now1 if "tilt" in params else 0.0) * obs.x).ravel() + penalty
+        r = obs.counts[sel] - now["expected"][sel]
+        current = float(np.sum(weights[sel] * r ** 2)) + (np.angle(np.exp(1j * (now0 - c0))) / w0) ** 2 \
+            + ((now1 - c1) / w1) ** 2
         best = int(np.argmin(cost))
         if cost[best] < current - 1.0:
             params.setdefault("phase_offset", np.zeros((obs.n_frames, 1)))[j, 0] = g0[best]
@@ -370,6 +374,52 @@ def rescue_frames(obs: M.Observations, params: dict, weights: np.ndarray, frames
                 params["tilt"][j, 0] = g1[best]
             moved += 1
     return params, moved
+
+
+def frame_grid_cost(obs: M.Observations, ch: M.Channels, coef: np.ndarray, weights: np.ndarray, blocks: np.ndarray,
+                    offsets: np.ndarray, tilts: np.ndarray, *, held: np.ndarray) -> np.ndarray:
+    """Cost sum w (I - Ibar)^2 of some blocks of one frame, at fixed images, over a grid of phase offset and tilt.
+
+    The frame's phase channel has its current offset + tilt (``held``, per column) replaced by
+    psi = offset + tilt x. With E = exp(i psi) the model is a trigonometric polynomial,
+    Ibar - offset - t A0 = Re(P E) + Re(Q E^2) (P: the fringe, Q: the second harmonic), so the cost
+    is S0 + Re(sum_n E^n S_n) with per-column sums S_n over the blocks (n = 1..4): the grid costs
+    O(samples + grid x columns) instead of O(samples x grid).
+
+    Parameters
+    ----------
+    obs : Observations
+    ch : Channels
+        Current channel values.
+    coef : ndarray, shape (R, C, 3)
+        Images held fixed.
+    weights : ndarray, shape (K, C)
+    blocks : ndarray of int
+        Blocks, all of one frame.
+    offsets, tilts : ndarray, shapes (n0,), (n1,)
+        Grid of the trial offset (rad) and tilt (rad per unit x).
+    held : ndarray, shape (C,)
+        The frame's current offset + tilt x, which the trial replaces (rad).
+
+    Returns
+    -------
+    ndarray, shape (n0, n1)
+    """
+    j = obs.frame[blocks[0]]
+    x = obs.x
+    cf = coef[obs.pixel[blocks]]
+    theta = obs.phif[blocks] + ch.phase[j] - held
+    amp = ch.dose[j] * obs.tf[blocks]
+    P = amp * obs.vf[blocks] * ch.vis[j] * (cf[..., 1] + 1j * cf[..., 2]) * np.exp(1j * theta)
+    Q = cf[..., 0] * amp * (ch.harmonic[0] + 1j * ch.harmonic[1]) * np.exp(2j * theta)
+    background = ch.background[0] + ch.background[1] * x[None, :] + ch.background[2] * obs.y[blocks, None]
+    y = obs.counts[blocks] - obs.dark[blocks] - background - cf[..., 0] * amp
+    w = weights[blocks]
+    # r^2 = (y - Re PE - Re QE^2)^2, expanded with Re a Re b = (Re ab + Re a b*) / 2
+    S0 = float(np.sum(w * (y ** 2 + 0.5 * np.abs(P) ** 2 + 0.5 * np.abs(Q) ** 2)))
+    S = [np.sum(w * s, axis=0) for s in (-2 * y * P + np.conj(P) * Q, -2 * y * Q + 0.5 * P ** 2, P * Q, 0.5 * Q ** 2)]
+    return S0 + sum(np.real(np.exp(1j * n * offsets)[:, None] * (np.exp(1j * n * np.outer(tilts, x)) @ Sn)[None, :])
+                    for n, Sn in enumerate(S, start=1))
 
 
 def well_determined(obs: M.Observations, fraction: float) -> np.ndarray:
@@ -405,13 +455,15 @@ def uncertainty(obs: M.Observations, params: dict, weights: np.ndarray) -> dict[
     The pseudo-inverse leaves out the gauge directions (a common shift or scale that the images take
     up), so the uncertainties are those of the gauge-fixed parameters. Frames without data get inf.
     """
-    dsg = M.design(obs, params)
-    images = M.solve_images(obs, dsg, weights, keep_inverse=True)
     names = list(params)
     out = {n: np.full_like(params[n], np.inf) for n in names}
     if not names:
         return out
-    info, index = M.fisher_matrix(obs, dsg, images, weights, names)
+    K.set_threads()
+    images = _solve(obs, params, weights, keep_inverse=True)
+    plain, corr = K.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
+                           M.component_table(names)[:3])
+    info, index = plain - corr, M.fisher_index(names, obs.n_frames)
     d = np.diag(info).copy()
     has = d > 1e-12 * max(d.max(), 1e-300)
     s = np.sqrt(d[has])

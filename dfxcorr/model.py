@@ -1,7 +1,9 @@
 """The forward model: paper eq. 19 extended by the effect catalogue of ``spec/diagnosis.md``.
 
 This module is the only definition of the expected count, its derivatives and the per-frame effects;
-the fit, the retrieval, the simulator, the baselines and the diagnosis all call it.
+the simulator, the baselines and the diagnosis call it. The fit and the retrieval run the compiled
+loops of :mod:`dfxcorr.kernels`, which evaluate the same model from the channel values of
+:func:`channels`; the numpy expressions here are their definition and the tests' oracle.
 
 For detector pixel i (row r, column c) in frame j the expected count is
 
@@ -35,6 +37,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from . import kernels
 
 # --------------------------------------------------------------------------------------------------
 # The effect catalogue
@@ -232,7 +236,7 @@ class Observations:
         out[np.ix_(self.rows, self.columns)] = values
         return out
 
-    def subset(self, columns: np.ndarray) -> "Observations":
+    def subset(self, columns: np.ndarray) -> Observations:
         """The same blocks restricted to the given positions of ``self.columns``."""
         idx = np.asarray(columns)
         return Observations(self.counts[:, idx], self.tf[:, idx], self.vf[:, idx], self.phif[:, idx],
@@ -246,10 +250,138 @@ class Observations:
 
 
 @dataclass
+class Channels:
+    """Values of the model's channels on the (frame, column) grid.
+
+    Attributes
+    ----------
+    phase : ndarray, shape (J, C)
+        Φ, added to the fringe phase (rad).
+    vis : ndarray, shape (J, C)
+        V, multiplies the flat-field visibility.
+    dose : ndarray, shape (J,)
+        D, multiplies the expected count without background.
+    background : ndarray, shape (3,)
+        Coefficients of (1, x, y) of the additive background (counts).
+    harmonic : ndarray, shape (2,)
+        (hc, hs) of the stepping curve's second harmonic.
+    """
+
+    phase: np.ndarray
+    vis: np.ndarray
+    dose: np.ndarray
+    background: np.ndarray
+    harmonic: np.ndarray
+
+
+def channels(params: dict[str, np.ndarray], *, x: np.ndarray, n_frames: int) -> Channels:
+    """Map effect parameters to channel values: the catalogue's parameterisation, written once.
+
+    Parameters
+    ----------
+    params : dict
+        Effect name -> parameters (see :func:`neutral_params`); effects not listed are absent.
+    x : ndarray, shape (C,)
+        Lateral coordinate of the columns.
+    n_frames : int
+        J.
+
+    Returns
+    -------
+    Channels
+        Φ = sum of p_j x^k over phase effects; V = 1 + sum over visibility effects of (their field -
+        their neutral value), so visibility_loss replaces the 1 and visibility_tilt adds x-dependent
+        terms; D likewise (1 + sum of p_j - neutral over dose effects); background and harmonic are
+        their parameters. Every channel is linear in the parameters.
+    """
+    C = x.size
+    out = Channels(np.zeros((n_frames, C)), np.ones((n_frames, C)), np.ones(n_frames), np.zeros(3), np.zeros(2))
+    for name, p in params.items():
+        e = effect(name)
+        if e.channel in ("phase", "visibility"):
+            field_ = sum(p[:, m, None] * x[None, :] ** k for m, k in enumerate(e.powers))
+            if e.channel == "phase":
+                out.phase = out.phase + field_
+            else:
+                out.vis = out.vis + field_ - e.neutral
+        elif e.channel == "dose":
+            out.dose = out.dose + p[:, 0] - e.neutral
+        elif e.channel == "background":
+            out.background = out.background + p
+        elif e.channel == "harmonic":
+            out.harmonic = out.harmonic + p
+    return out
+
+
+def channel_adjoint(names, grad: Channels, *, x: np.ndarray, square: bool = False) -> dict[str, np.ndarray]:
+    """Pull channel gradients back to effect parameters (the adjoint of :func:`channels`).
+
+    Parameters
+    ----------
+    names : sequence of str
+        Effects whose gradients are wanted.
+    grad : Channels
+        d(cost)/d(channel value) for every channel value.
+    x : ndarray, shape (C,)
+    square : bool
+        ``grad`` holds Gauss-Newton sums sum w F^2 per channel value: apply the squared Jacobian,
+        giving the diagonal of the information of the parameters.
+
+    Returns
+    -------
+    dict
+        name -> array shaped like that effect's parameters, e.g. dcost/dp_{j,k} = sum_c gΦ[j, c] x_c^k.
+    """
+    power = 2 if square else 1
+    out = {}
+    for name in names:
+        e = effect(name)
+        if e.channel in ("phase", "visibility"):
+            g = grad.phase if e.channel == "phase" else grad.vis
+            out[name] = np.stack([g @ x ** (power * k) for k in e.powers], axis=-1)
+        elif e.channel == "dose":
+            out[name] = np.asarray(grad.dose, dtype=np.float64)[:, None].copy()
+        elif e.channel == "background":
+            out[name] = np.asarray(grad.background, dtype=np.float64).copy()
+        elif e.channel == "harmonic":
+            out[name] = np.asarray(grad.harmonic, dtype=np.float64).copy()
+        else:
+            raise ValueError(f"effect {name!r} does not enter the expected count")
+    return out
+
+
+def component_table(names) -> tuple[np.ndarray, np.ndarray, int, list[tuple[str, int]]]:
+    """The parameter components of ``names`` as the Fisher kernel reads them.
+
+    Returns
+    -------
+    channel : ndarray of int, shape (Q,)
+        :data:`dfxcorr.kernels.CHANNEL_IDS` of each component, per-frame components first.
+    power : ndarray of int, shape (Q,)
+        Power of x (per-frame components) or index into the effect's basis (global ones).
+    n_per_frame : int
+    components : list of (name, component)
+    """
+    order = [n for n in names if effect(n).per_frame] + [n for n in names if not effect(n).per_frame]
+    comps = [(n, m) for n in order for m in range(effect(n).size)]
+    channel = np.array([kernels.CHANNEL_IDS[effect(n).channel] for n, _ in comps], dtype=np.int64)
+    power = np.array([effect(n).powers[m] if effect(n).per_frame else m for n, m in comps], dtype=np.int64)
+    return channel, power, sum(effect(n).size for n in names if effect(n).per_frame), comps
+
+
+def fisher_index(names, n_frames: int) -> list[tuple[str, int, int]]:
+    """(name, frame, component) of each axis entry of the Fisher matrix; frame is -1 for global effects."""
+    _, _, n_per_frame, comps = component_table(names)
+    return [(n, j, m) for j in range(n_frames) for n, m in comps[:n_per_frame]] + \
+        [(n, -1, m) for n, m in comps[n_per_frame:]]
+
+
+@dataclass
 class Design:
     """Per-sample coefficients of the linear per-pixel model Ibar = t A + c Bc + s Bs + offset.
 
     All arrays have shape (K, C) (``dose`` (K, 1)); ``theta`` is the fringe phase without the sample.
+    ``channels`` holds the channel values they were made from.
     """
 
     A: np.ndarray
@@ -260,6 +392,7 @@ class Design:
     dose: np.ndarray
     vis: np.ndarray
     harmonic: tuple[float, float]
+    channels: Channels
 
 
 def design(obs: Observations, params: dict[str, np.ndarray]) -> Design:
@@ -275,34 +408,18 @@ def design(obs: Observations, params: dict[str, np.ndarray]) -> Design:
     -------
     Design
     """
-    x = obs.x
-    K, C = obs.counts.shape
-    phase = np.zeros((K, C))
-    vis = np.ones((K, C))
-    dose = np.ones((K, 1))
-    background = np.zeros((K, C))
-    hc = hs = 0.0
-    for name, p in params.items():
-        e = effect(name)
-        if e.channel in ("phase", "visibility", "dose"):
-            field_ = sum(p[obs.frame, m][:, None] * x[None, :] ** k for m, k in enumerate(e.powers))
-            if e.channel == "phase":
-                phase = phase + field_
-            elif e.channel == "visibility":
-                # visibility_loss replaces the neutral 1; visibility_tilt adds x-dependent terms
-                vis = vis + field_ - (1.0 if e.neutral == 1.0 else 0.0)
-            else:
-                dose = dose * field_[:, :1]
-        elif e.channel == "background":
-            background = background + sum(p[m] * b for m, b in enumerate(background_basis(obs)))
-        elif e.channel == "harmonic":
-            hc, hs = float(p[0]), float(p[1])
-    theta = obs.phif + phase
+    ch = channels(params, x=obs.x, n_frames=obs.n_frames)
+    dose = ch.dose[obs.frame][:, None]
+    vis = ch.vis[obs.frame]
+    background = sum(ch.background[m] * b for m, b in enumerate(background_basis(obs))) if np.any(ch.background) \
+        else np.zeros(obs.counts.shape)
+    hc, hs = float(ch.harmonic[0]), float(ch.harmonic[1])
+    theta = obs.phif + ch.phase[obs.frame]
     amp = dose * obs.tf
     A = amp * (1.0 + hc * np.cos(2 * theta) - hs * np.sin(2 * theta)) if (hc or hs) else amp * np.ones_like(theta)
     Bv = amp * obs.vf * vis
     return Design(A=A, Bc=Bv * np.cos(theta), Bs=-Bv * np.sin(theta), offset=background + obs.dark,
-                  theta=theta, dose=dose, vis=vis, harmonic=(hc, hs))
+                  theta=theta, dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
 
 
 def background_basis(obs: Observations) -> list[np.ndarray]:
@@ -520,6 +637,8 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
     the Schur complement sum_i D_i^T (W - W X (X^T W X)^-1 X^T W) D_i over pixels i, where D_i holds
     the derivatives of the pixel's samples with respect to the effect parameters and X_i its image
     design. Per-frame parameters of different frames are coupled through the pixels they share.
+    The information at known images is computed here; the correction for the profiled images, a
+    loop over pixels, by :func:`dfxcorr.kernels.fisher`.
 
     Parameters
     ----------
@@ -546,7 +665,7 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
     glob = [(n, m, F) for n in names if not effect(n).per_frame
             for m, F in enumerate(sample_derivatives(obs, dsg, images, n))]
     Pf, Pg = len(per_frame), len(glob)
-    index = [(n, j, m) for j in range(J) for n, m, _ in per_frame] + [(n, -1, m) for n, m, _ in glob]
+    index = fisher_index(names, J)
     info = np.zeros((J * Pf + Pg, J * Pf + Pg))
     Ff = np.stack([F for *_, F in per_frame], axis=-1) if Pf else np.zeros(obs.counts.shape + (0,))
     Fg = np.stack([F for *_, F in glob], axis=-1) if Pg else np.zeros(obs.counts.shape + (0,))
@@ -563,19 +682,10 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
     info[J * Pf:, :J * Pf] = info[:J * Pf, J * Pf:].T
     if not profiled:
         return info, index
-    X = np.stack([dsg.A, dsg.Bc, dsg.Bs], axis=-1)
-    for r in range(obs.rows.size):
-        lo, hi = obs.starts[r], (obs.starts[r + 1] if r + 1 < obs.rows.size else obs.frame.size)
-        frames = obs.frame[lo:hi]
-        # Y = X^T W D per column: per-frame columns (frame, component) and the global columns
-        Yf = np.einsum("kci,kca->cika", X[lo:hi], wFf[lo:hi]).reshape(X.shape[1], 3, -1)
-        Yg = np.einsum("kci,kca->cia", X[lo:hi], wFg[lo:hi])
-        Y = np.concatenate([Yf, Yg], axis=-1)
-        T = np.einsum("cij,cjl->cil", images.inverse[r], Y)
-        corr = np.einsum("cil,cim->lm", Y, T)
-        idx = np.concatenate([fidx[frames].ravel(), J * Pf + np.arange(Pg)])
-        info[np.ix_(idx, idx)] -= corr
-    return info, index
+    # the correction sum_i Y_i^T N_i^-1 Y_i (Y = X^T W D per pixel) couples the frames of each row
+    kernels.set_threads()
+    _, corr = kernels.fisher(obs, dsg.channels, weights, images.coef, images.inverse, component_table(names)[:3])
+    return info - corr, index
 
 
 def variance(obs: Observations, ibar: np.ndarray, *, gain: float | None = None, floor: float = 1e-3) -> np.ndarray:

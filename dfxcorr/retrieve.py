@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import kernels as K
 from . import model as M
 
 
@@ -56,17 +57,12 @@ def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_
     -------
     Retrieval
     """
-    dsg = M.design(obs, params)
-    g = obs.gain if gain is None else gain
-    weights = M.noise_weights(obs, obs.counts, gain=g)
-    for it in range(iterations):
-        images = M.solve_images(obs, dsg, weights)
-        ibar = M.expected(obs, dsg, images)
-        if it + 1 < iterations:
-            weights = M.noise_weights(obs, ibar, gain=g)
+    K.set_threads()
+    out = K.retrieve(obs, M.channels(params, x=obs.x, n_frames=obs.n_frames), iterations=iterations, gain=gain)
+    images = M.Images(out["coef"], out["valid"])
     n_par = sum(np.size(p) for p in params.values()) if n_frame_params is None else n_frame_params
-    chi2 = reduced_chi2(obs, ibar, images.valid, n_params=n_par, gain=g)
-    return Retrieval(images=images, expected=ibar, weights=weights, reduced_chi2=chi2)
+    chi2 = _per_dof(out["chi2"], out["samples"], int(images.valid.sum()), n_par, 3)
+    return Retrieval(images=images, expected=out["expected"], weights=out["weights"], reduced_chi2=chi2)
 
 
 def reduced_chi2(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *, n_params: int = 0,
@@ -76,9 +72,13 @@ def reduced_chi2(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *, n_
     dof = samples - per_pixel_unknowns * pixels - n_params.
     """
     sel = valid[obs.pixel] & obs.use
-    chi2 = float(M.pearson(obs, ibar, gain=gain)[sel].sum())
-    dof = int(sel.sum()) - per_pixel_unknowns * int(valid.sum()) - n_params
-    return chi2 / max(dof, 1)
+    return _per_dof(float(M.pearson(obs, ibar, gain=gain)[sel].sum()), int(sel.sum()), int(valid.sum()), n_params,
+                    per_pixel_unknowns)
+
+
+def _per_dof(chi2: float, samples: int, pixels: int, n_params: int, per_pixel_unknowns: int) -> float:
+    """Chi-square per degree of freedom, dof = samples - per_pixel_unknowns * pixels - n_params (at least 1)."""
+    return chi2 / max(samples - per_pixel_unknowns * pixels - n_params, 1)
 
 
 def image_maps(obs: M.Observations, images: M.Images) -> dict[str, np.ndarray]:

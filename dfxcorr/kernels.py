@@ -1,0 +1,594 @@
+"""Compiled per-sample loops of the fit and the retrieval (numba).
+
+The forward model of :mod:`dfxcorr.model` is evaluated here from its *channel values* on the
+(frame, column) grid: the phase Φ (J, C), the visibility factor V (J, C), the dose D (J,), the
+background coefficients of (1, x, y) (3,) and the harmonic (hc, hs) (2,). Every catalogue effect
+enters through one of these channels (:func:`dfxcorr.model.channels` maps effect parameters to
+them, :func:`dfxcorr.model.channel_adjoint` maps channel gradients back), so a new effect that
+enters through an existing channel needs no change here. The numpy expressions of
+:mod:`dfxcorr.model` are the definition; the tests hold these kernels to them.
+
+Layout: a pixel is (row, column); its samples are the blocks ``starts[r]:starts[r + 1]`` of one row
+(:class:`dfxcorr.model.Observations`). The kernels run over chunks of rows in parallel; every chunk
+owns its accumulators (summed afterwards), so no two threads write the same memory. Within a row
+the columns are handled in tiles small enough that the second pass over a tile finds its samples
+in cache. Sums are accumulated in float64 whatever the sample dtype.
+"""
+from __future__ import annotations
+
+import os
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+#: Channel ids of the component tables (see :func:`dfxcorr.model.component_table`).
+CHANNEL_IDS = {"phase": 0, "visibility": 1, "dose": 2, "background": 3, "harmonic": 4}
+
+#: Columns per tile: a tile's samples of one row (up to a few hundred frames) stay in the L2 cache.
+TILE = 64
+
+
+def set_threads() -> int:
+    """Set numba's thread count from SLURM_CPUS_PER_TASK, else OMP_NUM_THREADS, else the usable cores.
+
+    Unless NUMBA_THREADING_LAYER chooses otherwise, the kernels run on numba's own 'workqueue' pool:
+    OpenMP's spin-waiting threads made every call about ten times slower on cores shared with other
+    processes (measured: 23 ms instead of 1.6 ms per small evaluation), and its spinning slows the
+    optimiser between calls. This takes effect if no parallel kernel has run yet in the process.
+
+    Returns
+    -------
+    int
+        The number of threads set (at most numba's pool size).
+    """
+    if "NUMBA_THREADING_LAYER" not in os.environ:
+        numba.config.THREADING_LAYER = "workqueue"
+    n = 0
+    for var in ("SLURM_CPUS_PER_TASK", "OMP_NUM_THREADS"):
+        first = os.environ.get(var, "").split(",")[0].strip()
+        if first.isdigit() and int(first) > 0:
+            n = int(first)
+            break
+    if n == 0:
+        n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    n = max(1, min(n, numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(n)
+    return n
+
+
+def row_chunks(starts: np.ndarray, n_blocks: int, *, per_thread: int = 4) -> np.ndarray:
+    """Row boundaries of chunks holding about equal numbers of blocks.
+
+    Parameters
+    ----------
+    starts : ndarray of int, shape (R,)
+        First block of each row.
+    n_blocks : int
+        K.
+    per_thread : int
+        Chunks per thread (more chunks balance uneven rows, fewer keep the per-chunk accumulators small).
+
+    Returns
+    -------
+    ndarray of int64, shape (n + 1,)
+        Chunk i holds rows ``bounds[i]:bounds[i + 1]``.
+    """
+    R = starts.size
+    n = max(1, min(R, per_thread * numba.get_num_threads()))
+    rows = np.searchsorted(starts, np.linspace(0, n_blocks, n + 1), side="left")
+    rows[0], rows[-1] = 0, R
+    return np.unique(rows).astype(np.int64)
+
+
+def _bounds(obs) -> np.ndarray:
+    """Block boundaries of the rows, shape (R + 1,)."""
+    return np.append(obs.starts, obs.frame.size).astype(np.int64)
+
+
+# --------------------------------------------------------------------------------------------------
+# Per-sample helpers (inlined into the kernels)
+# --------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _design(ct, st, amp, bv, hc, hs):
+    """Harmonic factor h, cos 2θ, sin 2θ and the design columns A, Bc, Bs of one sample."""
+    c2 = ct * ct - st * st
+    s2 = 2.0 * st * ct
+    h = 1.0 + hc * c2 - hs * s2
+    return h, c2, s2, amp * h, bv * ct, -bv * st
+
+
+@njit(cache=True, inline="always")
+def _derivatives(tt, cs, ss, ct, st, c2, s2, h, tf, vf, amp, bc, bs, vis, hc, hs):
+    """dIbar/d(channel) of one sample at images (t, c, s): phase, visibility, dose, hc, hs."""
+    q = cs * ct - ss * st
+    f_phase = tt * amp * (-2.0 * hc * s2 - 2.0 * hs * c2) + cs * bs - ss * bc
+    return f_phase, amp * vf * q, tf * (tt * h + vf * vis * q), tt * amp * c2, -tt * amp * s2
+
+
+@njit(cache=True, inline="always")
+def _solve(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used, out, inv):
+    """Closed-form solve of one pixel's 3x3 normal equations with the rules of ``model.solve_pixels``.
+
+    A column with zero diagonal is not an unknown; valid needs the first column, as many used
+    samples as unknowns and |det| > 1e-10 of the unit-diagonal matrix. Writes the coefficients to
+    ``out`` (3,) and the inverse normal matrix to ``inv`` (3, 3) (zeros where invalid).
+
+    Returns
+    -------
+    bool
+        valid.
+    """
+    p0, p1, p2 = n00 > 0, n11 > 0, n22 > 0
+    s0 = np.sqrt(n00) if p0 else 1.0
+    s1 = np.sqrt(n11) if p1 else 1.0
+    s2 = np.sqrt(n22) if p2 else 1.0
+    a00 = n00 / (s0 * s0) if p0 else 1.0
+    a11 = n11 / (s1 * s1) if p1 else 1.0
+    a22 = n22 / (s2 * s2) if p2 else 1.0
+    a01 = n01 / (s0 * s1) if (p0 and p1) else 0.0
+    a02 = n02 / (s0 * s2) if (p0 and p2) else 0.0
+    a12 = n12 / (s1 * s2) if (p1 and p2) else 0.0
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    valid = p0 and n_used >= (1.0 * p0 + p1 + p2) and abs(det) > 1e-10
+    if not valid:
+        out[:] = 0.0
+        inv[:, :] = 0.0
+        return False
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    b0, b1, b2 = r0 / s0, r1 / s1, r2 / s2
+    out[0] = (c00 * b0 + c01 * b1 + c02 * b2) / det / s0
+    out[1] = (c01 * b0 + c11 * b1 + c12 * b2) / det / s1
+    out[2] = (c02 * b0 + c12 * b1 + c22 * b2) / det / s2
+    inv[0, 0] = c00 / det / (s0 * s0)
+    inv[1, 1] = c11 / det / (s1 * s1)
+    inv[2, 2] = c22 / det / (s2 * s2)
+    inv[0, 1] = inv[1, 0] = c01 / det / (s0 * s1)
+    inv[0, 2] = inv[2, 0] = c02 / det / (s0 * s2)
+    inv[1, 2] = inv[2, 1] = c12 / det / (s1 * s2)
+    return True
+
+
+# --------------------------------------------------------------------------------------------------
+# The fit: reduced cost and its gradient (or the Gauss-Newton diagonal) in one pass per pixel
+# --------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis, dose, k, c, j, hc, hs):
+    """Fringe phase by angle addition (no trigonometric call per sample), then :func:`_design`.
+
+    Returns (cos θ, sin θ, D tf, h, cos 2θ, sin 2θ, A, Bc, Bs) of sample (k, c) in frame j.
+    """
+    ct = cphi[k, c] * cos_p[j, c] - sphi[k, c] * sin_p[j, c]
+    st = sphi[k, c] * cos_p[j, c] + cphi[k, c] * sin_p[j, c]
+    amp = dose[j] * tf[k, c]
+    h, c2, s2, a, bc, bs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
+    return ct, st, amp, h, c2, s2, a, bc, bs
+
+
+@njit(cache=True, inline="always")
+def _accumulate(N, rhs, used, i, wk, a, x1, x2, target):
+    """Add one sample to column i of the tile's normal equations."""
+    N[0, i] += wk * a * a
+    N[1, i] += wk * a * x1
+    N[2, i] += wk * a * x2
+    N[3, i] += wk * x1 * x1
+    N[4, i] += wk * x1 * x2
+    N[5, i] += wk * x2 * x2
+    rhs[0, i] += wk * a * target
+    rhs[1, i] += wk * x1 * target
+    rhs[2, i] += wk * x2 * target
+    used[i] += 1.0 if wk > 0 else 0.0
+
+
+@njit(cache=True, parallel=True)
+def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose,
+                  bg, harm, hold, square, need, tile):
+    C = counts.shape[1]
+    J = vis.shape[0]
+    n = chunks.size - 1
+    # np.empty, zeroed by each chunk: np.zeros here would be a parallel region of its own
+    cost = np.empty((n, C))
+    g_phase = np.empty((n, J, C))
+    g_vis = np.empty((n, J, C))
+    g_dose = np.empty((n, J, C))
+    g_bg = np.empty((n, 3, C))
+    g_harm = np.empty((n, 2, C))
+    hc, hs = harm[0], harm[1]
+    m00, m01, m10, m11 = hold[0, 0], hold[0, 1], hold[1, 0], hold[1, 1]
+    for t in prange(n):
+        cost[t, :] = 0.0
+        g_phase[t, :, :] = 0.0
+        g_vis[t, :, :] = 0.0
+        g_dose[t, :, :] = 0.0
+        g_bg[t, :, :] = 0.0
+        g_harm[t, :, :] = 0.0
+        N = np.empty((6, tile))
+        rhs = np.empty((3, tile))
+        used = np.empty(tile)
+        coef = np.empty((3, tile))
+        u = np.empty(3)
+        inv = np.empty((3, 3))
+        for r in range(chunks[t], chunks[t + 1]):
+            lo, hi = bounds[r], bounds[r + 1]
+            for c0 in range(0, C, tile):
+                T = min(tile, C - c0)
+                N[:, :T] = 0.0
+                rhs[:, :T] = 0.0
+                used[:T] = 0.0
+                for k in range(lo, hi):
+                    j = frame[k]
+                    off = bg[0] + bg[2] * y[k]
+                    for i in range(T):
+                        c = c0 + i
+                        _, _, _, _, _, _, a, bc, bs = _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis, dose, k, c,
+                                                                    j, hc, hs)
+                        _accumulate(N, rhs, used, i, w[k, c], a, m00 * bc + m01 * bs, m10 * bc + m11 * bs,
+                                    counts[k, c] - dark[k, c] - off - bg[1] * x[c])
+                for i in range(T):
+                    _solve(N[0, i], N[1, i], N[2, i], N[3, i], N[4, i], N[5, i], rhs[0, i], rhs[1, i], rhs[2, i],
+                           used[i], u, inv)
+                    # back from the solved columns (x1, x2) to (t, c, s)
+                    coef[0, i] = u[0]
+                    coef[1, i] = m00 * u[1] + m10 * u[2]
+                    coef[2, i] = m01 * u[1] + m11 * u[2]
+                for k in range(lo, hi):
+                    j = frame[k]
+                    off = bg[0] + bg[2] * y[k]
+                    for i in range(T):
+                        c = c0 + i
+                        ct, st, amp, h, c2, s2, a, bc, bs = _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis,
+                                                                          dose, k, c, j, hc, hs)
+                        tt, cs, ss = coef[0, i], coef[1, i], coef[2, i]
+                        f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs, ss, ct, st, c2, s2, h, tf[k, c], vf[k, c],
+                                                                amp, bc, bs, vis[j, c], hc, hs)
+                        wk = w[k, c]
+                        res = counts[k, c] - dark[k, c] - off - bg[1] * x[c] - (tt * a + cs * bc + ss * bs)
+                        cost[t, c] += wk * res * res
+                        # gradient: sum (-2 w r) F; Gauss-Newton diagonal: sum (w F) F
+                        g = -2.0 * wk * res
+                        if need[0]:
+                            g_phase[t, j, c] += (wk * f_p if square else g) * f_p
+                        if need[1]:
+                            g_vis[t, j, c] += (wk * f_v if square else g) * f_v
+                        if need[2]:
+                            g_dose[t, j, c] += (wk * f_d if square else g) * f_d
+                        if need[3]:
+                            g_bg[t, 0, c] += wk if square else g
+                            g_bg[t, 1, c] += (wk * x[c] if square else g) * x[c]
+                            g_bg[t, 2, c] += (wk * y[k] if square else g) * y[k]
+                        if need[4]:
+                            g_harm[t, 0, c] += (wk * f_c if square else g) * f_c
+                            g_harm[t, 1, c] += (wk * f_s if square else g) * f_s
+    return cost, g_phase, g_vis, g_dose, g_bg, g_harm
+
+
+def fringe(obs, *, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of the flat-field phase of every sample (fixed during the fit), each (K, C)."""
+    return np.cos(obs.phif, dtype=dtype), np.sin(obs.phif, dtype=dtype)
+
+
+def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: np.ndarray, *,
+                 phase: float | None = None, square: bool = False,
+                 channels=tuple(CHANNEL_IDS)) -> tuple[float, tuple[np.ndarray, ...]]:
+    """Reduced cost sum w (I - Ibar)^2 at the closed-form images and its channel gradients.
+
+    Parameters
+    ----------
+    obs : Observations
+    ch : Channels
+        Channel values (:func:`dfxcorr.model.channels`).
+    weights : ndarray, shape (K, C)
+    cos_phif, sin_phif : ndarray, shape (K, C)
+        :func:`fringe` of the observations.
+    phase : float, optional
+        Hold the phase image at this constant (the circular-mean stage): 2 unknowns per pixel.
+    square : bool
+        Instead of the gradient sum -2 w r F, return the Gauss-Newton sums sum w F^2 (the Fisher
+        diagonal, per channel value).
+    channels : sequence of str
+        Channels whose sums are wanted (the others are returned as zeros, at no cost per sample).
+
+    Returns
+    -------
+    cost : float
+        Counts^2 / variance (dimensionless).
+    grads : tuple
+        Per channel value: phase (J, C), visibility (J, C), dose (J,), background (3,), harmonic (2,).
+    """
+    hold = np.eye(2) if phase is None else np.array([[np.cos(phase), np.sin(phase)], [0.0, 0.0]])
+    need = np.isin(list(CHANNEL_IDS), list(channels))
+    bounds = _bounds(obs)
+    out = _reduced_cost(obs.counts, obs.tf, obs.vf, cos_phif, sin_phif, obs.dark, weights, obs.frame, obs.y, obs.x,
+                        bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase), np.sin(ch.phase),
+                        ch.vis, ch.dose, ch.background, ch.harmonic, hold, square, need, TILE)
+    cost, g_phase, g_vis, g_dose, g_bg, g_harm = (a.sum(axis=0) for a in out)
+    return float(cost.sum()), (g_phase, g_vis, g_dose.sum(axis=1), g_bg.sum(axis=1), g_harm.sum(axis=1))
+
+
+# --------------------------------------------------------------------------------------------------
+# The retrieval: images, expected counts, noise weights and Pearson chi-square
+# --------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, parallel=True)
+def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunks, phase, vis, dose, bg, harm,
+              gain, electronic, iterations, from_data, keep_inverse, tile):
+    K, C = counts.shape
+    R = bounds.size - 1
+    n = chunks.size - 1
+    # every entry is written by its chunk: np.empty (np.zeros would be a parallel region of its own)
+    coef = np.empty((R, C, 3))
+    valid = np.empty((R, C), dtype=np.bool_)
+    inverse = np.empty((R if keep_inverse else 0, C, 3, 3))
+    ibar = np.empty((K, C))
+    w_out = np.empty((K, C))
+    chi2 = np.empty(n)
+    n_sel = np.empty(n)
+    hc, hs = harm[0], harm[1]
+    for t in prange(n):
+        chi2[t] = 0.0
+        n_sel[t] = 0.0
+        N = np.empty((6, tile))
+        rhs = np.empty((3, tile))
+        used = np.empty(tile)
+        u = np.empty(3)
+        inv = np.empty((3, 3))
+        for r in range(chunks[t], chunks[t + 1]):
+            lo, hi = bounds[r], bounds[r + 1]
+            nb = hi - lo
+            # the tile's design, offsets and weights, computed once (one sin/cos per sample)
+            A = np.empty((nb, tile))
+            Bc = np.empty((nb, tile))
+            Bs = np.empty((nb, tile))
+            off = np.empty((nb, tile))
+            w = np.empty((nb, tile))
+            for c0 in range(0, C, tile):
+                T = min(tile, C - c0)
+                for b in range(nb):
+                    k = lo + b
+                    j = frame[k]
+                    for i in range(T):
+                        c = c0 + i
+                        th = phif[k, c] + phase[j, c]
+                        amp = dose[j] * tf[k, c]
+                        _, _, _, a, bc, bs = _design(np.cos(th), np.sin(th), amp, amp * vf[k, c] * vis[j, c], hc, hs)
+                        A[b, i], Bc[b, i], Bs[b, i] = a, bc, bs
+                        off[b, i] = dark[k, c] + bg[0] + bg[1] * x[c] + bg[2] * y[k]
+                        if from_data:
+                            w[b, i] = 1.0 / (gain * max(counts[k, c] - dark[k, c], 1.0) + electronic) \
+                                if use[k, c] else 0.0
+                        else:
+                            w[b, i] = start[k, c]
+                for it in range(iterations):
+                    if it > 0:
+                        # weights from the previous model (noise_weights with its floor of 1 count)
+                        for b in range(nb):
+                            k = lo + b
+                            for i in range(T):
+                                c = c0 + i
+                                m = off[b, i] + coef[r, c, 0] * A[b, i] + coef[r, c, 1] * Bc[b, i] \
+                                    + coef[r, c, 2] * Bs[b, i]
+                                w[b, i] = 1.0 / (gain * max(m - dark[k, c], 1.0) + electronic) if use[k, c] else 0.0
+                    N[:, :T] = 0.0
+                    rhs[:, :T] = 0.0
+                    used[:T] = 0.0
+                    for b in range(nb):
+                        k = lo + b
+                        for i in range(T):
+                            _accumulate(N, rhs, used, i, w[b, i], A[b, i], Bc[b, i], Bs[b, i],
+                                        counts[k, c0 + i] - off[b, i])
+                    for i in range(T):
+                        c = c0 + i
+                        valid[r, c] = _solve(N[0, i], N[1, i], N[2, i], N[3, i], N[4, i], N[5, i], rhs[0, i],
+                                             rhs[1, i], rhs[2, i], used[i], u, inv)
+                        coef[r, c, 0], coef[r, c, 1], coef[r, c, 2] = u[0], u[1], u[2]
+                        if keep_inverse:
+                            inverse[r, c] = inv
+                for b in range(nb):
+                    k = lo + b
+                    for i in range(T):
+                        c = c0 + i
+                        m = off[b, i] + coef[r, c, 0] * A[b, i] + coef[r, c, 1] * Bc[b, i] + coef[r, c, 2] * Bs[b, i]
+                        ibar[k, c] = m
+                        w_out[k, c] = w[b, i]
+                        if valid[r, c] and use[k, c]:
+                            # Pearson residual with the variance floor of model.pearson
+                            chi2[t] += (counts[k, c] - m) ** 2 / (gain * max(m - dark[k, c], 1e-3) + electronic)
+                            n_sel[t] += 1.0
+    return coef, valid, inverse, ibar, w_out, chi2, n_sel
+
+
+def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1, gain: float | None = None,
+             keep_inverse: bool = False) -> dict:
+    """Closed-form images of every pixel, the expected counts and the Pearson chi-square.
+
+    Parameters
+    ----------
+    obs : Observations
+    ch : Channels
+        Channel values (:func:`dfxcorr.model.channels`).
+    weights : ndarray, shape (K, C), optional
+        Weights of the first solve; default the data's inverse noise variances (paper eq. 6).
+    iterations : int
+        Solves; each after the first takes the weights from the previous model.
+    gain : float, optional
+        Overrides ``obs.gain`` in the noise weights and the chi-square.
+    keep_inverse : bool
+        Also return the inverse normal matrices.
+
+    Returns
+    -------
+    dict
+        'coef' (R, C, 3), 'valid' (R, C), 'inverse' (R, C, 3, 3) or None, 'expected' (K, C) counts,
+        'weights' (K, C) of the last solve, 'chi2' (Pearson chi-square over the used samples of
+        valid pixels), 'samples' (their number).
+    """
+    if iterations < 1:
+        raise ValueError("iterations must be at least 1")
+    g = obs.gain if gain is None else gain
+    bounds = _bounds(obs)
+    start = np.zeros((0, 0)) if weights is None else weights
+    coef, valid, inverse, ibar, w, chi2, n_sel = _retrieve(
+        obs.counts, obs.tf, obs.vf, obs.phif, obs.dark, obs.use, start, obs.frame, obs.y, obs.x, bounds,
+        row_chunks(bounds[:-1], obs.frame.size), ch.phase, ch.vis, ch.dose, ch.background, ch.harmonic,
+        float(g), float(obs.electronic), int(iterations), weights is None, keep_inverse, TILE)
+    return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
+            "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
+
+
+# --------------------------------------------------------------------------------------------------
+# Fisher information: plain and the profiled correction, driven by a component table
+# --------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, parallel=True)
+def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm, coef, inverse, channel, power,
+            n_per_frame, n_frames, profiled):
+    C = tf.shape[1]
+    Q = channel.size
+    Pf, Pg = n_per_frame, Q - n_per_frame
+    P = n_frames * Pf + Pg
+    n = chunks.size - 1
+    plain = np.empty((n, P, P))
+    corr = np.empty((n, P, P))
+    hc, hs = harm[0], harm[1]
+    # the column factor of each component: x^power (phase, visibility), the basis (background), else 1
+    xq = np.ones((Q, C))
+    for q in range(Q):
+        if channel[q] <= 1 or (channel[q] == 3 and power[q] == 1):
+            for c in range(C):
+                xq[q, c] = x[c] ** (power[q] if channel[q] <= 1 else 1)
+    for t in prange(n):
+        plain[t, :, :] = 0.0
+        corr[t, :, :] = 0.0
+        F = np.empty(Q)
+        basis = np.empty(5)
+        for r in range(chunks[t], chunks[t + 1]):
+            lo, hi = bounds[r], bounds[r + 1]
+            nb = hi - lo
+            m = nb * Pf + Pg
+            idx = np.empty(m, dtype=np.int64)
+            for b in range(nb):
+                for q in range(Pf):
+                    idx[b * Pf + q] = frame[lo + b] * Pf + q
+            for g in range(Pg):
+                idx[nb * Pf + g] = n_frames * Pf + g
+            # the row's information at known images, on its own slots (frames of the row, then globals)
+            local = np.zeros((m, m))
+            # Y = X^T W D of each pixel (3 rows per column)
+            Y = np.zeros((3 * C, m))
+            for b in range(nb):
+                k = lo + b
+                j = frame[k]
+                for c in range(C):
+                    wk = w[k, c]
+                    if wk == 0:
+                        continue
+                    tt, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
+                    th = phif[k, c] + phase[j, c]
+                    ct, st = np.cos(th), np.sin(th)
+                    amp = dose[j] * tf[k, c]
+                    h, c2, s2, a, bc, bs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
+                    basis[0], basis[1], basis[2], basis[3], basis[4] = _derivatives(
+                        tt, cs, ss, ct, st, c2, s2, h, tf[k, c], vf[k, c], amp, bc, bs, vis[j, c], hc, hs)
+                    for q in range(Q):
+                        ch = channel[q]
+                        if ch <= 2:
+                            F[q] = basis[ch] * xq[q, c]
+                        elif ch == 3:
+                            F[q] = y[k] if power[q] == 2 else xq[q, c]
+                        else:
+                            F[q] = basis[3 + power[q]]
+                    for q1 in range(Q):
+                        s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
+                        wf = wk * F[q1]
+                        for q2 in range(Q):
+                            s2_ = b * Pf + q2 if q2 < Pf else nb * Pf + q2 - Pf
+                            local[s1, s2_] += wf * F[q2]
+                        if profiled:
+                            Y[3 * c, s1] += wf * a
+                            Y[3 * c + 1, s1] += wf * bc
+                            Y[3 * c + 2, s1] += wf * bs
+            if profiled:
+                # sum over the row's columns of Y^T N^-1 Y = Z^T Z, Z = L^T Y with N^-1 = L L^T (upper triangle)
+                rc = np.zeros((m, m))
+                z = np.empty((3, m))
+                for c in range(C):
+                    i00, i01, i02 = inverse[r, c, 0, 0], inverse[r, c, 0, 1], inverse[r, c, 0, 2]
+                    i11, i12, i22 = inverse[r, c, 1, 1], inverse[r, c, 1, 2], inverse[r, c, 2, 2]
+                    if i00 <= 0:
+                        continue  # not solvable: the images are not profiled there
+                    l00 = np.sqrt(i00)
+                    l10, l20 = i01 / l00, i02 / l00
+                    d11 = i11 - l10 * l10
+                    l11 = np.sqrt(d11) if d11 > 0 else 0.0
+                    l21 = (i12 - l20 * l10) / l11 if l11 > 0 else 0.0
+                    d22 = i22 - l20 * l20 - l21 * l21
+                    l22 = np.sqrt(d22) if d22 > 0 else 0.0
+                    for col in range(m):
+                        y0, y1, y2 = Y[3 * c, col], Y[3 * c + 1, col], Y[3 * c + 2, col]
+                        z[0, col] = l00 * y0 + l10 * y1 + l20 * y2
+                        z[1, col] = l11 * y1 + l21 * y2
+                        z[2, col] = l22 * y2
+                    for i in range(3):
+                        for a1 in range(m):
+                            za = z[i, a1]
+                            if za != 0:
+                                for a2 in range(a1, m):
+                                    rc[a1, a2] += za * z[i, a2]
+                for a1 in range(m):
+                    corr[t, idx[a1], idx[a1]] += rc[a1, a1]
+                    for a2 in range(a1 + 1, m):
+                        corr[t, idx[a1], idx[a2]] += rc[a1, a2]
+                        corr[t, idx[a2], idx[a1]] += rc[a1, a2]
+            for a1 in range(m):
+                for a2 in range(m):
+                    plain[t, idx[a1], idx[a2]] += local[a1, a2]
+    return plain, corr
+
+
+def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray | None, table: tuple, *,
+           profiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Fisher information of channel components and its correction for profiled images.
+
+    Parameters
+    ----------
+    obs : Observations
+    ch : Channels
+    weights : ndarray, shape (K, C)
+    coef : ndarray, shape (R, C, 3)
+        Images (t, c, s).
+    inverse : ndarray, shape (R, C, 3, 3) or None
+        Inverse normal matrices (needed when ``profiled``).
+    table : tuple
+        (channel ids (Q,), power or basis index (Q,), number of per-frame components; the per-frame
+        ones come first), see :func:`dfxcorr.model.component_table`.
+    profiled : bool
+        Also compute the correction (otherwise zeros).
+
+    Returns
+    -------
+    plain : ndarray, shape (P, P)
+        sum w F F^T over samples, P = J * (per-frame components) + (global components), per-frame
+        entries ordered (frame, component).
+    correction : ndarray, shape (P, P)
+        sum over pixels of Y^T N^-1 Y (Y = X^T W F): the profiled information is plain - correction.
+    """
+    channel, power, n_per_frame = table
+    bounds = _bounds(obs)
+    inv = np.zeros((0, 0, 3, 3)) if inverse is None else inverse
+    # one chunk per thread: the accumulators are (P, P) each
+    plain, corr = _fisher(obs.tf, obs.vf, obs.phif, weights, obs.frame, obs.y, obs.x, bounds,
+                   row_chunks(bounds[:-1], obs.frame.size, per_thread=1), ch.phase, ch.vis, ch.dose, ch.harmonic,
+                   coef, inv, np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64),
+                   int(n_per_frame), int(obs.n_frames), bool(profiled and inverse is not None))
+    return plain.sum(axis=0), corr.sum(axis=0)

@@ -1,0 +1,192 @@
+#!/usr/bin/env python3
+"""Speed of the compiled kernels (dfxcorr.kernels) against the memory-bandwidth floor, measured in one run.
+
+Reports, for the paper study's observations (209 frames of 450 x 510, every column) and the fit
+columns of a clinical detector (195 frames, active area 440 rows, every 20th of 2880 columns,
+synthetic samples):
+- ns per (pixel, frame) sample of one cost+gradient evaluation (the paper model's channels) and of
+  one retrieval pass (solve + expected counts + Pearson chi-square), wall time and process CPU time
+  (the CPU time is what counts on cores shared with other work),
+- the floor of each pass: the bytes it must stream / the np.copyto bandwidth measured here,
+then the wall time of the whole vibration fit stage of ``reconstruct`` on the paper study with
+``fit.subsample=1`` and the default 20, and the first-call compile cost of the kernels (fresh
+numba cache, in a subprocess) against a cached start. Writes docs/bench-kernels.json.
+
+Usage: python scripts/bench_kernels.py [--repeat 5] [--skip-fit] [--out docs/]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+
+from dfxcorr import config as C
+from dfxcorr import kernels as K
+from dfxcorr import model as M
+from dfxcorr import pipeline
+from dfxcorr import simulate as S
+from dfxcorr.align import build_observations, resolve_reference
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def copy_bandwidth(*, nbytes: int = 1 << 28, repeat: int = 5) -> float:
+    """Bytes per second that np.copyto moves (read + write) on this machine, best of ``repeat``."""
+    src = np.ones(nbytes // 8)
+    dst = np.empty_like(src)
+    best = min(_seconds(lambda: np.copyto(dst, src)) for _ in range(repeat))
+    return 2 * src.nbytes / best
+
+
+def _seconds(f) -> float:
+    t0 = time.perf_counter()
+    f()
+    return time.perf_counter() - t0
+
+
+def _timed(f, repeat: int) -> tuple[float, float]:
+    """Best wall and best process CPU seconds (all threads) of ``repeat`` calls."""
+    walls, cpus = [], []
+    for _ in range(repeat):
+        t0, c0 = time.perf_counter(), time.process_time()
+        f()
+        walls.append(time.perf_counter() - t0)
+        cpus.append(time.process_time() - c0)
+    return min(walls), min(cpus)
+
+
+def clinical_observations(rng, *, frames: int = 195, height: int = 2880, width: int = 2880, active: int = 440,
+                          every: int = 20) -> M.Observations:
+    """Synthetic fit observations of a clinical detector: each frame lights ``active`` rows, every n-th column."""
+    start = np.round(np.linspace(0, height - active, frames)).astype(int)
+    row = (start[:, None] + np.arange(active)[None, :]).ravel()
+    frame = np.repeat(np.arange(frames), active)
+    order = np.argsort(row, kind="stable")
+    row, frame = row[order], frame[order]
+    columns = np.arange(0, width, every)
+    Kb, Cc = row.size, columns.size
+    tf = rng.uniform(1.5e4, 2.5e4, (Kb, Cc))
+    vf = rng.uniform(0.25, 0.35, (Kb, Cc))
+    phif = 2 * np.pi * 2.0 * (row[:, None] / active + columns[None, :] / width) + frame[:, None] * 0.3
+    counts = rng.poisson(tf * (1 + 0.8 * vf * np.cos(phif))).astype(np.float64)
+    return M.Observations(counts, tf, vf, phif, np.zeros((Kb, Cc)), np.ones((Kb, Cc), bool), row, frame, columns,
+                          (frames, height, width))
+
+
+def paper_observations() -> tuple:
+    """The paper study's scan (configs/paper-simulation.yaml) and its observations on every column."""
+    scan, _ = S.simulate(C.load([ROOT / "configs" / "paper-simulation.yaml"], [], schema=S.SCHEMA))
+    return scan, build_observations(scan, resolve_reference(scan))
+
+
+def pass_numbers(obs: M.Observations, bandwidth: float, *, repeat: int) -> dict:
+    """ns per sample of a cost+gradient evaluation and a retrieval pass, and their bandwidth floors."""
+    params = M.neutral_params(M.PAPER_MODEL, obs.n_frames)
+    rng = np.random.default_rng(0)
+    params["phase_offset"] += rng.normal(0, 0.1, params["phase_offset"].shape)
+    ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
+    weights = M.noise_weights(obs, obs.counts)
+    fringe = K.fringe(obs)
+    n = obs.counts.size
+    K.reduced_cost(obs, ch, weights, *fringe)
+    K.retrieve(obs, ch)
+    cost, cost_cpu = _timed(lambda: K.reduced_cost(obs, ch, weights, *fringe, channels=("phase", "visibility")),
+                            repeat)
+    ret, ret_cpu = _timed(lambda: K.retrieve(obs, ch), repeat)
+    # bytes each pass must stream once: samples read (and for the retrieval the expected counts and weights written)
+    read_cost = sum(a.itemsize for a in (obs.counts, obs.tf, obs.vf, fringe[0], fringe[1], obs.dark, weights))
+    read_ret = sum(a.itemsize for a in (obs.counts, obs.tf, obs.vf, obs.phif, obs.dark, obs.use)) + 2 * 8
+    return {"samples": int(n), "blocks": int(obs.frame.size), "columns": int(obs.columns.size),
+            "frames": int(obs.n_frames), "rows": int(obs.rows.size),
+            "cost_gradient": {"ns_per_sample": round(cost / n * 1e9, 2), "seconds": round(cost, 4),
+                              "cpu_ns_per_sample": round(cost_cpu / n * 1e9, 2),
+                              "bytes_per_sample": read_cost,
+                              "floor_ns_per_sample": round(read_cost / bandwidth * 1e9, 2)},
+            "retrieval": {"ns_per_sample": round(ret / n * 1e9, 2), "seconds": round(ret, 4),
+                          "cpu_ns_per_sample": round(ret_cpu / n * 1e9, 2),
+                          "bytes_per_sample": read_ret,
+                          "floor_ns_per_sample": round(read_ret / bandwidth * 1e9, 2)}}
+
+
+def fit_times(scan) -> dict:
+    """Wall time of reconstruct's stages with every column and every 20th column in the fit."""
+    out = {}
+    for name, sets in (("subsample=1", ["fit.subsample=1"]), ("subsample=20", [])):
+        t0, c0 = time.perf_counter(), time.process_time()
+        result = pipeline.reconstruct(scan, C.load([], sets), progress=False)
+        out[name] = {"seconds": round(time.perf_counter() - t0, 2), "cpu_seconds": round(time.process_time() - c0, 2),
+                     "stages": {k: round(v, 2) for k, v in result.timings.items()},
+                     "iterations": int(result.cost.size), "reduced_chi2": round(result.reduced_chi2, 4)}
+        print(name, json.dumps(out[name]), flush=True)
+    return out
+
+
+COMPILE_PROBE = """
+import time, numpy as np
+t0 = time.perf_counter()
+from dfxcorr import kernels as K, model as M
+rng = np.random.default_rng(0)
+row = np.repeat(np.arange(8), 4); frame = np.tile(np.arange(4), 8); shape = (8, 4, 6)
+a = lambda lo, hi: rng.uniform(lo, hi, (32, 6))
+obs = M.Observations(a(500, 900), a(900, 1100), a(0.2, 0.4), a(-3, 3), np.zeros((32, 6)), np.ones((32, 6), bool),
+                     row, frame, np.arange(6), (4, 8, 6))
+K.set_threads()
+ch = M.channels({}, x=obs.x, n_frames=4)
+w = M.noise_weights(obs, obs.counts)
+K.reduced_cost(obs, ch, w, *K.fringe(obs))
+r = K.retrieve(obs, ch, weights=w, keep_inverse=True)
+K.fisher(obs, ch, w, r["coef"], r["inverse"], M.component_table(M.PAPER_MODEL)[:3])
+print(time.perf_counter() - t0)
+"""
+
+
+def compile_cost() -> dict:
+    """Seconds from import to the first result of each kernel: fresh numba cache, then cached."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache, "PYTHONPATH": str(ROOT)}
+        runs = [float(subprocess.run([sys.executable, "-c", COMPILE_PROBE], env=env, check=True, capture_output=True,
+                                     text=True).stdout.split()[-1]) for _ in range(2)]
+    return {"first_run_seconds": round(runs[0], 1), "cached_run_seconds": round(runs[1], 1)}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--skip-fit", action="store_true", help="leave out the reconstruct timings")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs")
+    args = ap.parse_args()
+    threads = K.set_threads()
+    out = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.system()}, "
+                      f"python {platform.python_version()}, numba {numba.__version__} ({threads} threads)",
+           "load_average_at_start": [round(v, 2) for v in os.getloadavg()]}
+    bandwidth = copy_bandwidth()
+    out["copy_bandwidth_GB_per_s"] = round(bandwidth / 1e9, 2)
+    print(json.dumps(out), flush=True)
+    out["compile"] = compile_cost()
+    print("compile", json.dumps(out["compile"]), flush=True)
+    scan, obs = paper_observations()
+    out["paper_every_column"] = pass_numbers(obs, bandwidth, repeat=args.repeat)
+    print("paper", json.dumps(out["paper_every_column"]), flush=True)
+    del obs
+    clinical = clinical_observations(np.random.default_rng(1))
+    out["clinical_fit_columns"] = pass_numbers(clinical, bandwidth, repeat=args.repeat)
+    print("clinical", json.dumps(out["clinical_fit_columns"]), flush=True)
+    del clinical
+    if not args.skip_fit:
+        out["reconstruct_paper_study"] = fit_times(scan)
+    out["load_average_at_end"] = [round(v, 2) for v in os.getloadavg()]
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "bench-kernels.json").write_text(json.dumps(out, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
