@@ -80,7 +80,7 @@ class _Problem:
 
     def unpack(self, theta):
         out, i = dict(self.fixed), 0
-        for n, shp in zip(self.names, self.shapes):
+        for n, shp in zip(self.names, self.shapes, strict=True):
             size = int(np.prod(shp))
             out[n] = theta[i:i + size].reshape(shp)
             i += size
@@ -88,7 +88,8 @@ class _Problem:
 
     def _channel_sums(self, params, *, square):
         """Reduced cost and the per-parameter sums of the kernel (gradient, or sum w F^2 if ``square``)."""
-        cost, g = K.reduced_cost(self.obs, _channels(self.obs, params), self.weights, *self.fringe, phase=self.phase, square=square,
+        cost, g = K.reduced_cost(self.obs, _channels(self.obs, params), self.weights, *self.fringe, phase=self.phase,
+                                 square=square,
                                  channels={M.effect(n).channel for n in self.names})
         sums = M.channel_adjoint(self.names, M.Channels(*g), x=self.obs.x, square=square)
         return cost, np.concatenate([sums[n].ravel() for n in self.names])
@@ -109,7 +110,7 @@ class _Problem:
     def bounds(self):
         """Physical lower bounds (visibility and dose stay positive), in the rescaled variables."""
         lows = np.concatenate([np.full(int(np.prod(shp)), -np.inf if M.effect(n).lower is None else M.effect(n).lower)
-                               for n, shp in zip(self.names, self.shapes)]) * self.scale
+                               for n, shp in zip(self.names, self.shapes, strict=True)]) * self.scale
         return [(lo if np.isfinite(lo) else None, None) for lo in lows]
 
 
@@ -469,6 +470,6 @@ def uncertainty(obs: M.Observations, params: dict, weights: np.ndarray) -> dict[
     s = np.sqrt(d[has])
     sub = info[np.ix_(has, has)] / np.outer(s, s)
     var = np.diag(np.linalg.pinv(sub, rcond=1e-9, hermitian=True)) / s ** 2
-    for (n, j, m), v in zip([ix for ix, h in zip(index, has) if h], var):
+    for (n, j, m), v in zip([ix for ix, h in zip(index, has, strict=True) if h], var, strict=True):
         out[n][(j, m) if j >= 0 else m] = np.sqrt(v) if v > 0 else np.inf
     return out

@@ -33,8 +33,8 @@ from dfxcorr import config as C
 from dfxcorr import kernels as K
 from dfxcorr import model as M
 from dfxcorr import pipeline
-from dfxcorr import simulate as S
 from dfxcorr.align import build_observations, resolve_reference
+from dfxcorr.sim import simulate as S
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -175,7 +175,7 @@ def test_only_the_requested_channels_are_summed(rng):
     cost, full = K.reduced_cost(obs, ch, w, *K.fringe(obs))
     part_cost, part = K.reduced_cost(obs, ch, w, *K.fringe(obs), channels=("phase", "background"))
     assert part_cost == cost
-    for name, a, b in zip(K.CHANNEL_IDS, full, part):
+    for name, a, b in zip(K.CHANNEL_IDS, full, part, strict=True):
         np.testing.assert_array_equal(b, a if name in ("phase", "background") else 0.0)
 
 
