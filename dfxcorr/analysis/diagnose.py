@@ -29,15 +29,15 @@ import numpy as np
 from scipy import ndimage, stats
 
 from .. import config as C
-from .. import plots
-from . import identify
 from .. import model as M
+from .. import plots
 from ..align import build_observations, resolve_reference, subsample_columns
 from ..fit import fit_vibrations
 from ..io import Scan, atomic_path, read_scan
 from ..mask import motion_score
 from ..pipeline import resolve_effects, stage, visibility_unidentifiable
 from ..retrieve import retrieve
+from . import identify
 
 log = logging.getLogger("dfxcorr")
 
@@ -114,6 +114,7 @@ class Diagnosis:
     rounds: list
     unexplained: list
     signatures: list
+    shape: tuple
 
     def to_json(self) -> dict:
         """The ``diagnosis.json`` document of ``spec/diagnosis.md`` (version 2)."""
@@ -285,6 +286,8 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
         out.append({"axis": axis, "kind": kind, "statistic": stat, "dof": dof,
                     "p_value": float(stats.chi2.sf(stat, dof)), "log_p": float(stats.chi2.logsf(stat, dof)),
                     "bins": std, "bin_value": value, "relative": rel})
+        if axis == "frame_row":
+            out[-1].update(frame=obs.frame, row=obs.row)
     # the global level against the stated noise model: detector_gain's signature (a count signature
     # that is flat in the count)
     level = float(np.sum(z ** 2 - keep))
@@ -442,7 +445,7 @@ def motion_test(obs: M.Observations, params: dict, *, p_pixel: float = 1e-6, min
 
 
 def noise_model(obs: M.Observations, ibar: np.ndarray, images: M.Images, dsg: M.Design,
-                weights: np.ndarray) -> dict:
+                weights: np.ndarray, *, exclude: np.ndarray | None = None) -> dict:
     """Gain and electronic variance from the residuals: E[r^2 / (1 - h)] = g (Ibar - dark) + sigma_e^2.
 
     Squared residuals are divided by 1 - h (h the leverage of the sample in its pixel's image fit):
@@ -457,6 +460,8 @@ def noise_model(obs: M.Observations, ibar: np.ndarray, images: M.Images, dsg: M.
     """
     h = M.leverage(obs, dsg, images, weights)
     sel = obs.use & (h < 0.99)
+    if exclude is not None:
+        sel &= ~exclude
     r2 = ((obs.counts - ibar) ** 2 / (1 - h))[sel]
     mu = np.maximum(ibar - obs.dark, 1e-3)[sel]
     v0 = M.variance(obs, ibar)[sel]
@@ -468,9 +473,14 @@ def noise_model(obs: M.Observations, ibar: np.ndarray, images: M.Images, dsg: M.
     return {"gain": float(g), "electronic": float(e), "r2": r2, "mean": mu, "variance": v0}
 
 
-def gain_test(obs: M.Observations, ibar: np.ndarray, images, dsg, weights) -> dict:
-    """Likelihood-ratio test of the estimated noise model against the current one (Gaussian, 2 dof)."""
-    fit = noise_model(obs, ibar, images, dsg, weights)
+def gain_test(obs: M.Observations, ibar: np.ndarray, images, dsg, weights, *,
+              exclude: np.ndarray | None = None) -> dict:
+    """Likelihood-ratio test of the estimated noise model against the current one (Gaussian, 2 dof).
+
+    ``exclude`` (K, C) bool: samples left out (pixels whose frames disagree: a localised misfit must not
+    pose as a global variance excess).
+    """
+    fit = noise_model(obs, ibar, images, dsg, weights, exclude=exclude)
     r2, v0 = fit["r2"], fit["variance"]
     v1 = fit["gain"] * fit["mean"] + fit["electronic"]
     stat = max(float(np.sum(np.log(v0 / v1) + r2 / v0 - r2 / v1)), 0.0)
@@ -586,9 +596,11 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
                 tests["sample_motion"] = motion_test(obs, params, p_pixel=d["motion_p"], min_pixels=d["min_pixels"])
             if not modelled_noise:
                 dsg = M.design(obs, params)
+                outliers = tests["sample_motion"]["mask"] if "sample_motion" in tests else motion
                 tests["detector_gain"] = gain_test(obs, rec.expected, M.solve_images(obs, dsg, rec.weights,
                                                                                        keep_inverse=True),
-                                                   dsg, rec.weights)
+                                                   dsg, rec.weights,
+                                                   exclude=ndimage.binary_dilation(outliers)[obs.row][:, obs.columns])
         last_tests.update(tests)
         log.info("round %d: reduced chi-square %.4f; %s", rnd, state["reduced_chi2"],
                  ", ".join(f"{k} S={t['statistic']:.4g} (dof {t['dof']}{'' if t['identifiable'] else ', n.i.'})"
@@ -663,7 +675,7 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
                      + [n for n in detected if n not in model],
                      before=before, after=after, params=params, gain=obs.gain, electronic=obs.electronic,
                      motion_mask=motion, criterion=criterion, rounds=rounds, unexplained=unexplained,
-                     signatures=state["signatures"])
+                     signatures=state["signatures"], shape=scan.shape)
 
 
 def _set_noise(obs: M.Observations, fit_obs: M.Observations, noise: tuple[float, float]) -> None:
@@ -744,19 +756,21 @@ def _unexplained(sigs: list[dict], motion: dict | None, modelled_motion: bool, *
 
 
 def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
-    """Write ``diagnosis.json``, ``report.md``, ``residuals.png`` and (if detected) ``motion_mask.tif``."""
+    """Write ``diagnosis.json``, ``report.md``, ``residuals.png``, ``signatures.png`` and (if detected)
+    ``motion_mask.tif``."""
     import tifffile
 
     from ..export import check_output
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {k: out_dir / k for k in ("diagnosis.json", "report.md", "residuals.png")}
+    paths = {k: out_dir / k for k in ("diagnosis.json", "report.md", "residuals.png", "signatures.png")}
     for p in paths.values():
         check_output(p, overwrite=overwrite)
     with atomic_path(paths["diagnosis.json"]) as tmp:
         tmp.write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
     plots.plot_diagnosis(diag, paths["residuals.png"])
+    plots.plot_signatures(diag.signatures, paths["signatures.png"], n_frames=diag.shape[0], n_rows=diag.shape[1])
     written = list(paths.values())
     if diag.motion_mask.any():
         with atomic_path(out_dir / "motion_mask.tif") as tmp:
@@ -769,31 +783,53 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
 
 def _markdown(diag: Diagnosis) -> str:
     lines = [f"# dfxcorr diagnose: {diag.scan}", "",
-             f"Base model: {', '.join(diag.base_model) or 'none (plain retrieval)'}. "
-             f"Final model: {', '.join(diag.final_model) or 'none'}.", "",
+             (f"Base model: {', '.join(diag.base_model) or 'none (plain retrieval)'}. "
+              f"Final model: {', '.join(diag.final_model) or 'none'}."), "",
              f"Reduced chi-square: {diag.initial_chi2:.4f} initially, {diag.final_chi2:.4f} at the end.", "",
              "![where the model and the data disagree](residuals.png)", "",
-             "Top row: mean squared standardized residual per pixel before and after (1 = photon noise). "
-             "Below: the same by frame, lateral position, fringe phase and expected count.", "",
-             "| effect | detected | identifiable | statistic | dof | p-value | delta chi2 | reduced chi2 after | where | "
-             "estimate |", "|---|---|---|---|---|---|---|---|---|---|"]
+             ("Top row: mean squared standardized residual per pixel before and after (1 = photon noise). "
+              "Below: the same by frame, lateral position, fringe phase and expected count."), "",
+             ("| effect | detected | identifiable | statistic | dof | p-value | delta chi2 | reduced chi2 after | where | "
+              "estimate |"), "|---|---|---|---|---|---|---|---|---|---|"]
     for e in diag.effects:
         fmt = (lambda v, f: "" if v is None else format(v, f))
         lines.append(f"| {e.name} | {'yes' if e.detected else 'no'} | {'yes' if e.identifiable else 'no'} | "
                      f"{e.statistic:.4g} | {e.dof} | {e.p_value:.3g} | {fmt(e.delta_chi2, '.4g')} | "
-                     f"{fmt(e.reduced_chi2_after, '.4f')} | {e.where or ''} | {e.estimate or ''} |")
+                     f"{fmt(e.reduced_chi2_after, '.4f')} | {_verdict_where(e)} | {e.estimate or ''} |")
     lines += ["", f"Criterion: {diag.criterion}.", "",
-              "delta chi2 is the change of the Pearson chi-square sum when the effect was added; for detector_gain it "
-              "is negative when the noise is below Poisson (the reduced chi-square then rises towards 1).", "",
-              "Not identifiable means the Fisher information has directions of that effect's parameters without "
-              "information beyond its gauge: the acquisition cannot tell it from the images or the model's other "
-              "effects (paper Sec. II-F), so it is never reported as detected.", ""]
+              ("delta chi2 is the change of the Pearson chi-square sum when the effect was added; for detector_gain "
+               "it is negative when the noise is below Poisson (the reduced chi-square then rises towards 1)."), "",
+              ("Not identifiable means the Fisher information has directions of that effect's parameters without "
+               "information beyond its gauge: the acquisition cannot tell it from the images or the model's other "
+               "effects (paper Sec. II-F), so it is never reported as detected."), "",
+              "## Unexplained", ""]
+    if diag.unexplained:
+        lines += [(f"The final model still leaves {len(diag.unexplained)} significant residual signature(s) that no "
+                   "catalogue effect explains (significant after Holm's correction over the signatures tested; the "
+                   "model is not complete here, whatever the reduced chi-square says):"), "",
+                  "| axis | statistic | dof | p-value | where | description |", "|---|---|---|---|---|---|"]
+        lines += [f"| {u['axis']} | {u['statistic']:.4g} | {u['dof']} | {u['p_value']:.3g} | {u['where']} | "
+                  f"{u['description']} |" for u in diag.unexplained]
+    else:
+        lines += ["None: no residual signature of the final fit is significant."]
+    lines += ["", "![residual signatures of the final fit](signatures.png)", "",
+              ("Residual signatures of the final fit on its own columns: per bin, the excess of the squared "
+               "(variance) or plain (mean) standardized residual over what noise leaves after the fit took its "
+               "share (3 image unknowns per pixel, the per-frame parameters' leverage), in units of its standard "
+               "deviation; bins beyond 3 sigma in red, panel titles in red where the signature is significant."), ""]
     if diag.motion_mask.any():
         lines += [f"The pixels taken as moving are in motion_mask.tif ({int(diag.motion_mask.sum())} pixels).", ""]
     sets = reconstruct_settings(diag)
     lines += ["To reconstruct with the final model:", "",
               f"    dfxcorr reconstruct {diag.scan} -o result.h5" + "".join(f" --set {s}" for s in sets), ""]
     return "\n".join(lines)
+
+
+def _verdict_where(e: EffectReport) -> str:
+    if "explained_share" in e.extra:
+        return (f"significant, but a trial refit removes only {100 * e.extra['explained_share']:.0f} % of the "
+                f"signatures' excess: not added")
+    return e.where or ""
 
 
 def reconstruct_settings(diag: Diagnosis) -> list[str]:
