@@ -170,7 +170,8 @@ def _binned(value, z2, edges):
 SIGNATURE_AXES = ("frame", "row", "column", "frame_row", "phase", "count", "pixel")
 
 
-def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float) -> list[dict]:
+def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float,
+               min_photons: float = 25.0) -> list[dict]:
     """Residual signatures of a fit, each tested against noise.
 
     On the fit's own samples (its columns: there the share of the residual that the per-frame
@@ -186,7 +187,8 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
       not a signature;
     - mean signatures by frame and by (frame, row) block: per bin S = sum z with variance
       c sum (1 - h); chi-square with bins - P dof, P what the fit's per-frame parameters took of the
-      bins' sums (their leverage on them);
+      bins' sums (their leverage on them; for the blocks, whatever a change of their frame's parameters
+      could explain is regressed out, frame by frame, so an incompletely converged fit does not alarm);
     - the level: sum (z^2 - (1 - h)) against the stated noise model, 1 dof (kind 'level', axis
       'count': a variance misfit flat in the count, what detector_gain explains).
 
@@ -204,6 +206,8 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
     alpha : float
         Family-wise false-alarm probability: each signature's ``significant`` is Holm's verdict over
         all of them.
+    min_photons : float
+        The mean signatures use only samples expecting at least this many photons.
 
     Returns
     -------
@@ -236,6 +240,9 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
     g_true = c * obs.gain
     kurt = g_true ** 3 * np.maximum(ibar - obs.dark, 1e-3) / (c * var) ** 2
     e = np.where(sel, z ** 2 - c * keep, 0.0)
+    # at a few photons the weighted fit's mean is biased towards low counts: dim samples would give the
+    # mean signatures a sign they do not have
+    bright = sel & (np.maximum(ibar - obs.dark, 0.0) >= min_photons * g_true)
     kappa = np.where(sel, c ** 2 * keep ** 2 * (2.0 + kurt), 0.0)
     # the tails of z^2 are heavier than those of noise alone where the fit is slightly off sample by sample
     kappa *= max(float(np.sum(e ** 2) / np.sum(kappa)), 1.0)
@@ -259,22 +266,26 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
         lab, value = labels[axis]
         nb = value.size
         lab = lab[sel]
+        use = sel if kind == "variance" else bright
         if kind == "variance":
             S = np.bincount(lab, weights=e[sel], minlength=nb)
             V = np.bincount(lab, weights=kappa[sel], minlength=nb)
             expect = c * np.bincount(lab, weights=keep[sel], minlength=nb)
             lost = 1
         else:
-            S = np.bincount(lab, weights=z[sel], minlength=nb)
-            V = c * np.bincount(lab, weights=keep[sel], minlength=nb)
-            expect = np.bincount(lab, minlength=nb).astype(float)
+            S = np.bincount(lab, weights=np.where(use, z, 0.0)[sel], minlength=nb)
+            V = c * np.bincount(lab, weights=np.where(use, keep, 0.0)[sel], minlength=nb)
+            expect = np.bincount(lab, weights=use[sel].astype(float), minlength=nb)
             # what the per-frame parameters took of each bin's sum: g^T I^-1 g with g = sum of the bin's
             # standardized derivatives (a bin lies within one frame on these axes)
-            g = np.stack([np.bincount(lab, weights=Dn[..., a][sel], minlength=nb) for a in range(Dn.shape[-1])], -1)
+            g = np.stack([np.bincount(lab, weights=np.where(use, Dn[..., a], 0.0)[sel], minlength=nb)
+                          for a in range(Dn.shape[-1])], -1)
             first = np.zeros(nb, int)
             first[lab] = frame[sel]
             with np.errstate(divide="ignore", invalid="ignore"):
                 lost = float(np.nansum(np.einsum("ba,bac,bc->b", g, info_inv[first], g) * c / V))
+            if axis == "frame_row" and g.shape[1]:
+                S, lost = _without_frame_terms(S, V, g, first)
         ok = V > 0
         stat = float(np.sum(S[ok] ** 2 / V[ok]))
         dof = round(float(ok.sum()) - lost)
@@ -300,6 +311,32 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
     for sig in out:
         sig["where"], sig["description"] = _describe(sig, obs)
     return out
+
+
+def _without_frame_terms(S: np.ndarray, V: np.ndarray, g: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, int]:
+    """Block sums with what a change of their frame's parameters could explain taken out.
+
+    Per frame, the standardized block sums S / sqrt(V) are regressed on the blocks' standardized
+    parameter derivatives g / sqrt(V); the residual is noise with (blocks - rank) degrees of freedom
+    whether or not the fit stopped exactly at its optimum.
+
+    Returns
+    -------
+    S : ndarray
+        Residual block sums (same scale as the input).
+    lost : int
+        Sum over frames of the regression's rank.
+    """
+    out = np.zeros_like(S)
+    lost = 0
+    root = np.sqrt(np.where(V > 0, V, np.inf))
+    for j in np.unique(frame[V > 0]):
+        b = np.flatnonzero((frame == j) & (V > 0))
+        G = g[b] / root[b, None]
+        coef, _, rank, _ = np.linalg.lstsq(G, S[b] / root[b], rcond=1e-8)
+        out[b] = (S[b] / root[b] - G @ coef) * root[b]
+        lost += int(rank)
+    return out, lost
 
 
 def _holm(tests: list[dict], alpha: float) -> None:
