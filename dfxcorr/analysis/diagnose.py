@@ -278,8 +278,9 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
             expect = np.bincount(lab, weights=use[sel].astype(float), minlength=nb)
             # what the per-frame parameters took of each bin's sum: g^T I^-1 g with g = sum of the bin's
             # standardized derivatives (a bin lies within one frame on these axes)
-            g = np.stack([np.bincount(lab, weights=np.where(use, Dn[..., a], 0.0)[sel], minlength=nb)
-                          for a in range(Dn.shape[-1])], -1)
+            g = np.zeros((nb, Dn.shape[-1]))
+            for a in range(Dn.shape[-1]):
+                g[:, a] = np.bincount(lab, weights=np.where(use, Dn[..., a], 0.0)[sel], minlength=nb)
             first = np.zeros(nb, int)
             first[lab] = frame[sel]
             with np.errstate(divide="ignore", invalid="ignore"):
