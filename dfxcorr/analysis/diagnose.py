@@ -14,9 +14,13 @@ Each round fits the current model, then tests every catalogue effect the model l
   against the current one, considered only when no structured effect is left.
 
 Whether an effect can be identified at all comes from the null space of the Fisher information
-(:mod:`dfxcorr.analysis.identify`). The significant structured effect that explains the most chi-square is
-added (Holm's correction over the effects tried in the round), the model refitted, and the loop
-repeats until nothing significant is left.
+(:mod:`dfxcorr.analysis.identify`). The significant candidates (Holm's correction over the effects tried
+in the round) are tried in turn: structured effects by the chi-square they explain, then detector_gain,
+then sample_motion. A candidate is added only if it explains the misfit's signature: the residual
+signatures of the fit (:func:`signatures`: by frame, row, column, (frame, row) block, fringe phase and
+expected count, each tested against noise) that were significant must lose a set share of their excess
+in a trial refit with it. The loop repeats until no candidate qualifies; signatures still significant
+then are the report's ``unexplained`` entries (with pixel clusters that masking did not explain).
 """
 from __future__ import annotations
 
