@@ -13,7 +13,7 @@ q_i that sensitivity and gamma fitted robustly over all pixels, for what the pil
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, stats
 
 from . import model as M
 
@@ -80,9 +80,10 @@ def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4
     Gauss-Newton steps (at most ``iterations``, until the rms step is below ``tol``) on every
     ``every``-th held column with the images profiled out (the Fisher
     information of :func:`dfxcorr.model.fisher_matrix`; its gauge directions get the minimum-norm
-    step). Samples more than 4 sigma off are left out of each step so that a moving region does not
-    steer its frames (sigma from the median residual: early on, the vibrations themselves are far
-    beyond photon noise). Unmodelled vibrations would otherwise dominate the residual of bright, modulated
+    step). Pixels whose mean squared residual exceeds 4 times the median pixel's are left out of each
+    step so that a moving region does not steer its frames (relative to the median: early on, the
+    vibrations themselves are far beyond photon noise); whole pixels, not samples, so that no frame
+    loses its information (a frame that lights one row has no other). Unmodelled vibrations would otherwise dominate the residual of bright, modulated
     pixels and hide the motion among them.
 
     Returns
@@ -98,8 +99,9 @@ def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4
         dsg = M.design(sub, params)
         images = M.solve_images(sub, dsg, weights, keep_inverse=True)
         resid = sub.counts - M.expected(sub, dsg, images)
-        z2 = weights * resid ** 2
-        w = np.where(z2 < 16.0 * np.median(z2[weights > 0]) / 0.455, weights, 0.0) * images.valid[sub.pixel]
+        z2 = sub.segment_sum(weights * resid ** 2) / np.maximum(sub.segment_sum((weights > 0) * 1.0), 1)
+        outlier = z2 > 4.0 * np.median(z2[images.valid])
+        w = np.where(outlier | ~images.valid, 0.0, 1.0)[sub.pixel] * weights
         images = M.solve_images(sub, dsg, w, keep_inverse=True)
         resid = sub.counts - M.expected(sub, dsg, images)
         info, index = M.fisher_matrix(sub, dsg, images, w, names)
@@ -146,8 +148,15 @@ def motion_mask(obs: M.Observations, *, threshold: float | None = None, sigma: f
     """
     score = motion_score(obs)
     thr = robust_threshold(score, sigma=sigma) if threshold is None else float(threshold)
+    # rows lit in few frames have few degrees of freedom and a long tail: there a pixel must be as
+    # improbable as the threshold is at the typical number of degrees of freedom
+    dof = obs.segment_sum(obs.use.astype(float)) - 3
+    typical = float(np.median(dof[np.isfinite(score)])) if np.isfinite(score).any() else 1.0
+    with np.errstate(invalid="ignore"):
+        improbable = stats.chi2.logsf(np.nan_to_num(score) * dof, np.maximum(dof, 1)) <= \
+            stats.chi2.logsf(thr * typical, typical)
     image = obs.to_image(score)
-    moving = np.nan_to_num(image, nan=0.0) > thr
+    moving = obs.to_image(improbable & (np.nan_to_num(score) > thr), fill=False).astype(bool)
     if dilate > 0 and moving.any():
         moving = ndimage.binary_dilation(moving, iterations=dilate)
     return moving, image, thr

@@ -657,7 +657,8 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
             trial = _fit_state(obs, fit_obs, model + [candidate] if M.effect(candidate).channel is not None else model,
                                params, mask, cfg, timings, f"round {rnd}: trial {candidate}", noise=noise)
             share = _explained_share(state["signatures"], trial["signatures"])
-            if share is None or share >= d["explain_share"]:
+            if share is None or share >= d["explain_share"] or (share >= 0 and _silences(state["signatures"],
+                                                                                          trial["signatures"])):
                 choice = candidate
                 break
             log.info("round %d: %s removes %.0f %% of the significant residual signatures' excess: rejected",
@@ -709,7 +710,8 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
                  f"clusters of 3 whose per-pixel deviance has p < {d['motion_p']}). A candidate is added only if it "
                  f"explains the misfit's signature: after a trial refit with it, the excess (statistic - dof) of "
                  f"the residual signatures that were significant (Holm, alpha = {d['alpha']}) must shrink by "
-                 f"{100 * d['explain_share']:.0f} % or more; otherwise it stays out of the model (its explained "
+                 f"{100 * d['explain_share']:.0f} % or more, or one of them must become insignificant while the "
+                 f"excess does not grow; otherwise it stays out of the model (its explained "
                  f"share is reported) and the next candidate is tried. What stays significant is listed as "
                  f"unexplained")
     return Diagnosis(scan=name, base_model=base_model, initial_chi2=initial, final_chi2=state["reduced_chi2"],
@@ -759,18 +761,19 @@ def _fit_state(obs: M.Observations, fit_obs: M.Observations, model: list, start:
 def _ranked(tests: dict, *, alpha: float, min_gain_change: float, gain: float) -> list[str]:
     """Significant identifiable candidates in the order they are tried.
 
-    Holm over the m effects tested; structured mean effects by the chi-square they explain, then
-    detector_gain (a global variance excess is modelled before localised outliers are judged against
-    it), then sample_motion.
+    Holm over the m effects tested; structured effects (sample_motion included) by the chi-square they
+    explain, detector_gain at the end but before sample_motion (a global variance excess is modelled
+    before localised outliers are judged against it).
     """
     if not tests:
         return []
     threshold = np.log(alpha / len(tests))
     sig = {k for k, t in tests.items() if t["identifiable"] and t["log_p"] < threshold}
-    mean = sorted((k for k in sig if k not in ("detector_gain", "sample_motion")), key=lambda k: -tests[k]["explains"])
-    if "detector_gain" in sig and abs(tests["detector_gain"]["gain"] / gain - 1) <= min_gain_change:
-        sig.discard("detector_gain")
-    return mean + [k for k in ("detector_gain", "sample_motion") if k in sig]
+    order = sorted((k for k in sig if k != "detector_gain"), key=lambda k: -tests[k]["explains"])
+    if "detector_gain" in sig and abs(tests["detector_gain"]["gain"] / gain - 1) > min_gain_change:
+        at = order.index("sample_motion") if "sample_motion" in order else len(order)
+        order.insert(at, "detector_gain")
+    return order
 
 
 def _excess(sigs: list[dict], keys: set) -> float:
@@ -783,6 +786,12 @@ def _explained_share(before: list[dict], after: list[dict]) -> float | None:
     if not keys:
         return None
     return 1.0 - _excess(after, keys) / _excess(before, keys)
+
+
+def _silences(before: list[dict], after: list[dict]) -> bool:
+    """Whether a significant signature became insignificant (the candidate explains that signature)."""
+    now = {(s["axis"], s["kind"]): s["significant"] for s in after}
+    return any(s["significant"] and not now.get((s["axis"], s["kind"]), False) for s in before)
 
 
 def _unexplained(sigs: list[dict], motion: dict | None, modelled_motion: bool, *, alpha: float) -> list[dict]:
