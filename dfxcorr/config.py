@@ -145,6 +145,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "max_rounds": Option(8, "at most this many effects are added", int, check=_positive),
         "motion_p": Option(1e-6, "per-pixel p-value below which a pixel's frames disagree", _NUM, check=_fraction),
         "min_pixels": Option(5, "sample_motion needs at least this many flagged pixels", int, check=_positive),
+        "explain_share": Option(0.25, "a significant candidate is added only if a trial refit with it removes at least "
+                                      "this share of the excess chi-square of the residual signatures that were "
+                                      "significant (it must explain the misfit's signature, not merely some of its "
+                                      "chi-square)", _NUM, check=_fraction),
         "min_gain_change": Option(0.01, "detector_gain is reported only when the gain also moves by more than this "
                                         "fraction (a practical floor: with millions of samples smaller changes are "
                                         "significant but immaterial)", _NUM, check=_nonneg),

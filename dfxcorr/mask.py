@@ -2,17 +2,18 @@
 
 Where part of the sample moves during the scan, its pixels' frames disagree with any static image and
 the fit would blame the gratings. Such pixels are found before the vibration fit from the per-pixel
-residual of a retrieval without per-frame terms (eq. 35) and left out of the vibration fit only.
+residual of a retrieval (eq. 35) and left out of the vibration fit only.
 
 Vibrations raise that residual too, in proportion to how strongly a pixel's fringe responds to a phase
-change (t v vf tf)^2 / Ibar. The score therefore divides the per-pixel reduced residual by
-1 + gamma q_i, with q_i that sensitivity and gamma fitted robustly over all pixels, so that bright,
-strongly modulated pixels are not masked merely for showing the vibrations the fit is meant to find.
+change (t v vf tf)^2 / Ibar; unmodelled, they dominate it in bright, modulated pixels, where they would
+hide what moved and mask what did not. The retrieval therefore uses a quick pilot estimate of the
+paper's per-frame terms, and the score divides the per-pixel reduced residual by 1 + gamma q_i, with
+q_i that sensitivity and gamma fitted robustly over all pixels, for what the pilot leaves.
 """
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, stats
 
 from . import model as M
 
@@ -20,11 +21,19 @@ from . import model as M
 def motion_score(obs: M.Observations, params: dict | None = None, weights: np.ndarray | None = None) -> np.ndarray:
     """Per-pixel residual relative to what noise and (unmodelled) vibrations explain.
 
+    The residual is the Poisson deviance of the pixel's samples in photon units (scaled by the photon
+    share of the variance where there is electronic noise), not the Pearson chi-square: at a few
+    photons per sample the Pearson sum is biased up (the fitted mean is low exactly where the counts
+    are) and heavy-tailed, so dim pixels (spine, heart) read as inconsistent; the deviance keeps
+    about the chi-square mean and tail down to a few photons.
+
     Parameters
     ----------
     obs : Observations
     params : dict, optional
-        Effect parameters of the model to compare with (default: none, paper eq. 35).
+        Effect parameters of the model to compare with. Default: a pilot estimate of the paper's
+        vibration model (:func:`pilot_vibrations`); ``{}`` compares with a model without per-frame terms
+        (paper eq. 35).
     weights : ndarray, shape (K, C), optional
         Inverse noise variances; default from a retrieval with ``params``.
 
@@ -34,20 +43,78 @@ def motion_score(obs: M.Observations, params: dict | None = None, weights: np.nd
         About 1 for consistent pixels (a reduced chi-square with n - 3 degrees of freedom), NaN where
         the pixel could not be solved.
     """
-    dsg = M.design(obs, params or {})
+    if params is None:
+        params = pilot_vibrations(obs)
+    dsg = M.design(obs, params)
     if weights is None:
         w0 = M.noise_weights(obs, np.maximum(obs.counts, 1.0))
         weights = M.noise_weights(obs, M.expected(obs, dsg, M.solve_images(obs, dsg, w0)))
     images = M.solve_images(obs, dsg, weights)
-    resid = obs.counts - M.expected(obs, dsg, images)
+    ibar = M.expected(obs, dsg, images)
     n = obs.segment_sum((weights > 0).astype(float))
     with np.errstate(divide="ignore", invalid="ignore"):
-        eps = obs.segment_sum(weights * resid ** 2) / (n - 3)
+        eps = obs.segment_sum(np.where(weights > 0, deviance(obs, ibar), 0.0)) / (n - 3)
         amp = np.hypot(images.coef[..., 1], images.coef[..., 2])[obs.pixel]
         q = obs.segment_sum(weights * (amp * np.hypot(dsg.Bc, dsg.Bs)) ** 2) / n
     ok = images.valid & (n > 3) & np.isfinite(eps) & np.isfinite(q)
     gamma = max(float(np.median((eps[ok] - 1.0) / np.maximum(q[ok], 1e-12))), 0.0) if np.any(ok) else 0.0
     return np.where(ok, eps / (1.0 + gamma * q), np.nan)
+
+
+def deviance(obs: M.Observations, ibar: np.ndarray) -> np.ndarray:
+    """Poisson deviance of each sample in photon units, shape (K, C); about chi-square(1) per sample.
+
+    With electronic noise it is scaled by g mu / (g mu + sigma_e^2), the photon share of the variance.
+    """
+    g = obs.gain
+    mu = np.maximum(ibar - obs.dark, 1e-6) / g
+    y = np.maximum(obs.counts - obs.dark, 0.0) / g
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = 2.0 * (np.where(y > 0, y * np.log(np.where(y > 0, y, 1.0) / mu), 0.0) - (y - mu))
+    return d * (g * mu / (g * mu + obs.electronic))
+
+
+def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4, tol: float = 3e-3) -> dict:
+    """A quick estimate of the paper's per-frame phase offset, tilt and visibility for the motion score.
+
+    Gauss-Newton steps (at most ``iterations``, until the rms step is below ``tol``) on every
+    ``every``-th held column with the images profiled out (the Fisher
+    information of :func:`dfxcorr.model.fisher_matrix`; its gauge directions get the minimum-norm
+    step). Pixels whose mean squared residual exceeds 4 times the median pixel's are left out of each
+    step so that a moving region does not steer its frames (relative to the median: early on, the
+    vibrations themselves are far beyond photon noise); whole pixels, not samples, so that no frame
+    loses its information (a frame that lights one row has no other). Unmodelled vibrations would
+    otherwise dominate the residual of bright, modulated pixels and hide the motion among them.
+
+    Returns
+    -------
+    dict
+        'phase_offset', 'tilt', 'visibility_loss', each (J, 1).
+    """
+    names = M.PAPER_MODEL
+    sub = obs.subset(np.arange(0, obs.columns.size, every))
+    params = M.neutral_params(names, obs.n_frames)
+    weights = M.noise_weights(sub, np.maximum(sub.counts, 1.0))
+    for _ in range(iterations):
+        dsg = M.design(sub, params)
+        images = M.solve_images(sub, dsg, weights, keep_inverse=True)
+        resid = sub.counts - M.expected(sub, dsg, images)
+        z2 = sub.segment_sum(weights * resid ** 2) / np.maximum(sub.segment_sum((weights > 0) * 1.0), 1)
+        outlier = z2 > 4.0 * np.median(z2[images.valid])
+        w = np.where(outlier | ~images.valid, 0.0, 1.0)[sub.pixel] * weights
+        images = M.solve_images(sub, dsg, w, keep_inverse=True)
+        resid = sub.counts - M.expected(sub, dsg, images)
+        info, index = M.fisher_matrix(sub, dsg, images, w, names)
+        grad = M.gradient(sub, dsg, images, w, resid, names)
+        rhs = -0.5 * np.array([grad[n][j, m] for n, j, m in index])
+        step = np.linalg.lstsq(info, rhs, rcond=1e-8)[0]
+        for (n, j, m), d in zip(index, step, strict=True):
+            params[n][j, m] += d
+        if np.sqrt(np.mean(step ** 2)) < tol:
+            break
+        dsg = M.design(sub, params)
+        weights = M.noise_weights(sub, M.expected(sub, dsg, M.solve_images(sub, dsg, weights)))
+    return params
 
 
 def robust_threshold(score: np.ndarray, *, sigma: float) -> float:
@@ -81,8 +148,15 @@ def motion_mask(obs: M.Observations, *, threshold: float | None = None, sigma: f
     """
     score = motion_score(obs)
     thr = robust_threshold(score, sigma=sigma) if threshold is None else float(threshold)
+    # rows lit in few frames have few degrees of freedom and a long tail: there a pixel must be as
+    # improbable as the threshold is at the typical number of degrees of freedom
+    dof = obs.segment_sum(obs.use.astype(float)) - 3
+    typical = float(np.median(dof[np.isfinite(score)])) if np.isfinite(score).any() else 1.0
+    with np.errstate(invalid="ignore"):
+        improbable = stats.chi2.logsf(np.nan_to_num(score) * dof, np.maximum(dof, 1)) <= \
+            stats.chi2.logsf(thr * typical, typical)
     image = obs.to_image(score)
-    moving = np.nan_to_num(image, nan=0.0) > thr
+    moving = obs.to_image(improbable & (np.nan_to_num(score) > thr), fill=False).astype(bool)
     if dilate > 0 and moving.any():
         moving = ndimage.binary_dilation(moving, iterations=dilate)
     return moving, image, thr

@@ -374,6 +374,56 @@ def plot_diagnosis(diag, path: Path, *, overwrite: bool = False) -> None:
     save_figure(fig, path, overwrite=overwrite)
 
 
+def plot_signatures(signatures: list, path: Path, *, n_frames: int, n_rows: int) -> Path:
+    """The residual signatures of the final fit, significant bins marked (``dfxcorr diagnose``).
+
+    Parameters
+    ----------
+    signatures : list of dict
+        As returned by :func:`dfxcorr.analysis.diagnose.signatures`.
+    path : Path
+        Output PNG (checked by the caller).
+    n_frames, n_rows : int
+        Size of the (frame, row) map.
+    """
+    plt = pyplot()
+    panels = [s for s in signatures if s["kind"] != "level"]
+    cols = 4
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.0 * rows), layout="constrained", squeeze=False)
+    for ax, sig in zip(axes.ravel(), panels, strict=False):
+        std = sig["bins"]
+        flag = "UNEXPLAINED" if sig["significant"] else "noise"
+        ax.set_title(f"{sig['axis']} ({sig['kind']}): chi2 {sig['statistic']:.4g} / {sig['dof']} dof,\n"
+                     f"p = {sig['p_value']:.2g}, {flag}", fontsize=8, color="C3" if sig["significant"] else "k")
+        if sig["axis"] == "frame_row":
+            image = np.full((n_frames, n_rows), np.nan)
+            image[sig["frame"], sig["row"]] = std
+            lim = max(3.0, float(np.nanpercentile(np.abs(std), 99.5)))
+            im = ax.imshow(image.T, cmap="RdBu_r", vmin=-lim, vmax=lim, aspect="auto", interpolation="nearest")
+            ax.set_xlabel("frame")
+            ax.set_ylabel("detector row")
+            fig.colorbar(im, ax=ax, shrink=0.8, label="standardized bin sum")
+            continue
+        x = sig["bin_value"]
+        strong = np.abs(std) > 3
+        ax.plot(x, std, ".-", ms=3, lw=0.8, color="0.3")
+        ax.plot(x[strong], std[strong], "o", ms=4, color="C3", label="|bin| > 3 sigma")
+        for level in (-3, 3):
+            ax.axhline(level, color="k", lw=0.6, ls=":")
+        ax.axhline(0, color="k", lw=0.6)
+        if sig["axis"] == "count":
+            ax.set_xscale("log")
+        ax.set_xlabel({"frame": "frame", "row": "detector row", "column": "detector column",
+                       "phase": "fringe phase theta + phi (rad)", "count": "expected count"}[sig["axis"]])
+        ax.set_ylabel("standardized bin excess")
+        if strong.any():
+            ax.legend(fontsize=7)
+    for ax in axes.ravel()[len(panels):]:
+        ax.set_visible(False)
+    return save_figure(fig, path)
+
+
 def plot_nps(path, study: dict, *, title: str = "", overwrite: bool = False) -> Path:
     """Binned radial NPS per method (mean ± std over scans), fringe frequency and first harmonic marked.
 

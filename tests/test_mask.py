@@ -10,7 +10,7 @@ from dfxcorr.mask import motion_mask
 def test_moving_region_is_flagged_and_little_else(small_scan):
     scan, truth = small_scan(**{"effects.sample_motion": 0.3})
     obs = build_observations(scan, resolve_reference(scan))
-    moving, score, thr = motion_mask(obs, dilate=0)
+    moving, _, _ = motion_mask(obs, dilate=0)
     region = truth["motion_mask"]
     lit_region = region & (truth["image_transmission"] > 0.01)
     assert moving[lit_region].mean() > 0.8
@@ -32,3 +32,20 @@ def test_mask_keeps_moving_pixels_out_of_the_fit_only(small_scan):
     assert result.fit_mask[region].sum() == 0
     assert np.isfinite(result.transmission[region]).mean() > 0.9  # retrieved all the same
     assert result.motion_mask[region].mean() > 0.8
+
+
+def test_a_heart_that_moves_half_way_is_masked_where_its_data_disagree(small_scan):
+    # the heart shifts 8 mm from the middle frame on: only pixels lit both before and after saw two samples
+    scan, truth = small_scan(**{"effects.heart_step_mm": 8.0, "simulate.seed": 5})
+    obs = build_observations(scan, resolve_reference(scan))
+    moving, score, _ = motion_mask(obs, dilate=0)
+    J, H, _ = scan.shape
+    rows_before = np.isin(np.arange(H), obs.row[obs.frame < J // 2])
+    rows_after = np.isin(np.arange(H), obs.row[obs.frame >= J // 2])
+    both = (rows_before & rows_after)[:, None] & np.isfinite(score)
+    change = np.abs(truth["image_transmission_after"] / truth["image_transmission"] - 1)
+    inconsistent = both & (change > 0.1)
+    still = ~(both & (change > 0.02))
+    assert inconsistent.sum() > 100
+    assert moving[inconsistent].mean() > 0.5
+    assert moving[still].sum() <= 0.1 * moving.sum()

@@ -14,9 +14,13 @@ Each round fits the current model, then tests every catalogue effect the model l
   against the current one, considered only when no structured effect is left.
 
 Whether an effect can be identified at all comes from the null space of the Fisher information
-(:mod:`dfxcorr.analysis.identify`). The significant structured effect that explains the most chi-square is
-added (Holm's correction over the effects tried in the round), the model refitted, and the loop
-repeats until nothing significant is left.
+(:mod:`dfxcorr.analysis.identify`). The significant candidates (Holm's correction over the effects tried
+in the round) are tried in turn: structured effects by the chi-square they explain, then detector_gain,
+then sample_motion. A candidate is added only if it explains the misfit's signature: the residual
+signatures of the fit (:func:`signatures`: by frame, row, column, (frame, row) block, fringe phase and
+expected count, each tested against noise) that were significant must lose a set share of their excess
+in a trial refit with it. The loop repeats until no candidate qualifies; signatures still significant
+then are the report's ``unexplained`` entries (with pixel clusters that masking did not explain).
 """
 from __future__ import annotations
 
@@ -112,13 +116,16 @@ class Diagnosis:
     motion_mask: np.ndarray
     criterion: str
     rounds: list
+    unexplained: list
+    signatures: list
+    shape: tuple
 
     def to_json(self) -> dict:
-        """The ``diagnosis.json`` document of ``spec/diagnosis.md``."""
-        return {"format": "dfxcorr-diagnosis", "format_version": 1, "scan": self.scan, "base_model": self.base_model,
+        """The ``diagnosis.json`` document of ``spec/diagnosis.md`` (version 2)."""
+        return {"format": "dfxcorr-diagnosis", "format_version": 2, "scan": self.scan, "base_model": self.base_model,
                 "reduced_chi2": {"initial": self.initial_chi2, "final": self.final_chi2},
                 "effects": [e.to_json() for e in self.effects], "final_model": self.final_model,
-                "criterion": self.criterion, "rounds": self.rounds}
+                "unexplained": self.unexplained, "criterion": self.criterion, "rounds": self.rounds}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -161,6 +168,243 @@ def _binned(value, z2, edges):
 # --------------------------------------------------------------------------------------------------
 # Statistics
 # --------------------------------------------------------------------------------------------------
+
+
+#: Axes of the residual signatures (``unexplained`` in ``spec/diagnosis.md``, version 2).
+SIGNATURE_AXES = ("frame", "row", "column", "frame_row", "phase", "count", "pixel")
+
+
+def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float,
+               min_photons: float = 25.0) -> list[dict]:
+    """Residual signatures of a fit, each tested against noise.
+
+    On the fit's own samples (its columns: there the share of the residual that the per-frame
+    parameters took is known), with z = (I - Ibar) / sd the standardized residual, h the sample's
+    leverage in its pixel's image fit (3 unknowns per pixel) and c = sum z^2 / sum (1 - h) the
+    dispersion:
+
+    - variance signatures by frame, detector row, column, fringe phase (16 bins of theta + phi) and
+      expected count (12 bins of equal size): per bin S = sum (z^2 - c (1 - h)), with variance
+      sum c^2 (1 - h)^2 (2 + k), k the excess kurtosis of scaled Poisson noise (scaled up to the
+      observed spread of z^2 where that is larger); sum S^2 / var is
+      chi-square with (bins - 1) dof (c is estimated). A global variance excess is detector_gain's,
+      not a signature;
+    - mean signatures by frame and by (frame, row) block: per bin S = sum z with variance
+      c sum (1 - h); chi-square with bins - P dof, P what the fit's per-frame parameters took of the
+      bins' sums (their leverage on them; for the blocks, whatever a change of their frame's parameters
+      could explain is regressed out, frame by frame, so an incompletely converged fit does not alarm);
+    - the level: sum (z^2 - (1 - h)) against the stated noise model, 1 dof (kind 'level', axis
+      'count': a variance misfit flat in the count, what detector_gain explains).
+
+    h includes the leverage of the per-frame parameters (per frame, at fixed images), so the share of
+    the residual variance that the fit on these columns took is accounted for sample by sample.
+
+    Parameters
+    ----------
+    obs : Observations
+        The fit's samples.
+    params : dict
+        The fitted effect parameters.
+    n_params : int
+        Number of fitted per-frame and global parameters.
+    alpha : float
+        Family-wise false-alarm probability: each signature's ``significant`` is Holm's verdict over
+        all of them.
+    min_photons : float
+        The mean signatures use only samples expecting at least this many photons.
+
+    Returns
+    -------
+    list of dict
+        'axis', 'kind' ('variance' or 'mean'), 'statistic', 'dof', 'p_value', 'log_p', 'significant',
+        'bins' (per-bin standardized S / sqrt(var)), 'bin_value' (bin centres: frame, row, column, block,
+        phase in rad, count), 'relative' (per-bin S / expectation: relative variance excess, or mean z),
+        'where', 'description'.
+    """
+    rec = retrieve(obs, params)
+    dsg = M.design(obs, params)
+    images = M.solve_images(obs, dsg, rec.weights, keep_inverse=True)
+    ibar = M.expected(obs, dsg, images)
+    sel = obs.use & images.valid[obs.pixel] & (rec.weights > 0)
+    w = np.where(sel, rec.weights, 0.0)
+    # the fit's per-frame parameters take their share too, largest where a frame's information is
+    # (edge columns for the tilt, bright modulated samples for the phase)
+    D = [d for n in params if M.effect(n).per_frame for d in M.sample_derivatives(obs, dsg, images, n)]
+    info_inv = np.zeros((obs.n_frames, len(D), len(D)))
+    if D:
+        info = np.stack([np.stack([obs.frame_sum(np.sum(w * Da * Db, axis=1)) for Db in D], -1) for Da in D], -2)
+        info_inv = np.linalg.pinv(info, rcond=1e-10, hermitian=True)
+    Dn = np.stack(D, axis=-1) * np.sqrt(w)[..., None] if D else np.zeros(w.shape + (0,))
+    h_par = np.einsum("kca,kab,kcb->kc", Dn, info_inv[obs.frame], Dn)
+    h = np.where(sel, M.leverage(obs, dsg, images, rec.weights) + h_par, 0.0)
+    keep = np.where(sel, np.clip(1.0 - h, 0.0, 1.0), 0.0)
+    var = M.variance(obs, ibar)
+    z = np.where(sel, (obs.counts - ibar) / np.sqrt(var), 0.0)
+    c = float(np.sum(z ** 2) / np.sum(keep))
+    g_true = c * obs.gain
+    kurt = g_true ** 3 * np.maximum(ibar - obs.dark, 1e-3) / (c * var) ** 2
+    e = np.where(sel, z ** 2 - c * keep, 0.0)
+    # at a few photons the weighted fit's mean is biased towards low counts: dim samples would give the
+    # mean signatures a sign they do not have
+    bright = sel & (np.maximum(ibar - obs.dark, 0.0) >= min_photons * g_true)
+    kappa = np.where(sel, c ** 2 * keep ** 2 * (2.0 + kurt), 0.0)
+    # the tails of z^2 are heavier than those of noise alone where the fit is slightly off sample by sample
+    kappa *= max(float(np.sum(e ** 2) / np.sum(kappa)), 1.0)
+    K, C_ = obs.counts.shape
+    frame = np.broadcast_to(obs.frame[:, None], (K, C_))
+    psi = np.angle(np.exp(1j * (dsg.theta + images.phi[obs.pixel])))
+    pedges = np.linspace(-np.pi, np.pi, 17)
+    cedges = np.quantile(ibar[sel], np.linspace(0, 1, 13)) if sel.any() else np.arange(13.0)
+    labels = {
+        "frame": (frame, np.arange(obs.n_frames)),
+        "row": (np.broadcast_to(obs.row[:, None], (K, C_)), np.arange(obs.shape[1])),
+        "column": (np.broadcast_to(np.arange(C_)[None, :], (K, C_)), obs.columns),
+        "frame_row": (np.broadcast_to(np.arange(K)[:, None], (K, C_)), np.arange(K)),
+        "phase": (np.clip(np.digitize(psi, pedges) - 1, 0, 15), 0.5 * (pedges[1:] + pedges[:-1])),
+        "count": (np.clip(np.digitize(ibar, cedges[1:-1]), 0, 11), np.sqrt(np.abs(cedges[1:] * cedges[:-1]))),
+    }
+    kinds = [(a, "variance") for a in ("frame", "row", "column", "phase", "count")] + \
+        [(a, "mean") for a in ("frame", "frame_row")]
+    out = []
+    for axis, kind in kinds:
+        lab, value = labels[axis]
+        nb = value.size
+        lab = lab[sel]
+        use = sel if kind == "variance" else bright
+        if kind == "variance":
+            S = np.bincount(lab, weights=e[sel], minlength=nb)
+            V = np.bincount(lab, weights=kappa[sel], minlength=nb)
+            expect = c * np.bincount(lab, weights=keep[sel], minlength=nb)
+            lost = 1
+        else:
+            S = np.bincount(lab, weights=np.where(use, z, 0.0)[sel], minlength=nb)
+            V = c * np.bincount(lab, weights=np.where(use, keep, 0.0)[sel], minlength=nb)
+            expect = np.bincount(lab, weights=use[sel].astype(float), minlength=nb)
+            # what the per-frame parameters took of each bin's sum: g^T I^-1 g with g = sum of the bin's
+            # standardized derivatives (a bin lies within one frame on these axes)
+            g = np.zeros((nb, Dn.shape[-1]))
+            for a in range(Dn.shape[-1]):
+                g[:, a] = np.bincount(lab, weights=np.where(use, Dn[..., a], 0.0)[sel], minlength=nb)
+            first = np.zeros(nb, int)
+            first[lab] = frame[sel]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                lost = float(np.nansum(np.einsum("ba,bac,bc->b", g, info_inv[first], g) * c / V))
+            if axis == "frame_row" and g.shape[1]:
+                S, lost = _without_frame_terms(S, V, g, first)
+        ok = V > 0
+        stat = float(np.sum(S[ok] ** 2 / V[ok]))
+        dof = round(float(ok.sum()) - lost)
+        if dof < 1:
+            continue
+        with np.errstate(divide="ignore", invalid="ignore"):
+            std = np.where(ok, S / np.sqrt(V), np.nan)
+            rel = np.where(ok & (expect > 0), S / expect, np.nan)
+        out.append({"axis": axis, "kind": kind, "statistic": stat, "dof": dof,
+                    "p_value": float(stats.chi2.sf(stat, dof)), "log_p": float(stats.chi2.logsf(stat, dof)),
+                    "bins": std, "bin_value": value, "relative": rel})
+        if axis == "frame_row":
+            out[-1].update(frame=obs.frame, row=obs.row)
+    # the global level against the stated noise model: detector_gain's signature (a count signature
+    # that is flat in the count)
+    level = float(np.sum(z ** 2 - keep))
+    out.append({"axis": "count", "kind": "level", "statistic": level ** 2 / float(np.sum(kappa)), "dof": 1,
+                "bins": np.array([level / np.sqrt(np.sum(kappa))]), "bin_value": np.array([np.nan]),
+                "relative": np.array([level / np.sum(keep)])})
+    out[-1].update(p_value=float(stats.chi2.sf(out[-1]["statistic"], 1)),
+                   log_p=float(stats.chi2.logsf(out[-1]["statistic"], 1)))
+    _holm(out, alpha)
+    for sig in out:
+        sig["where"], sig["description"] = _describe(sig, obs)
+    return out
+
+
+def _without_frame_terms(S: np.ndarray, V: np.ndarray, g: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, int]:
+    """Block sums with what a change of their frame's parameters could explain taken out.
+
+    Per frame, the standardized block sums S / sqrt(V) are regressed on the blocks' standardized
+    parameter derivatives g / sqrt(V); the residual is noise with (blocks - rank) degrees of freedom
+    whether or not the fit stopped exactly at its optimum.
+
+    Returns
+    -------
+    S : ndarray
+        Residual block sums (same scale as the input).
+    lost : int
+        Sum over frames of the regression's rank.
+    """
+    out = np.zeros_like(S)
+    lost = 0
+    root = np.sqrt(np.where(V > 0, V, np.inf))
+    for j in np.unique(frame[V > 0]):
+        b = np.flatnonzero((frame == j) & (V > 0))
+        G = g[b] / root[b, None]
+        coef, _, rank, _ = np.linalg.lstsq(G, S[b] / root[b], rcond=1e-8)
+        out[b] = (S[b] / root[b] - G @ coef) * root[b]
+        lost += int(rank)
+    return out, lost
+
+
+def _holm(tests: list[dict], alpha: float) -> None:
+    """Mark each test's 'significant' by Holm's step-down procedure at family-wise level alpha."""
+    order = sorted(range(len(tests)), key=lambda i: tests[i]["log_p"])
+    going = True
+    for rank, i in enumerate(order):
+        going = going and tests[i]["log_p"] < np.log(alpha / (len(tests) - rank))
+        tests[i]["significant"] = going
+
+
+def _ranges(values: np.ndarray, limit: int = 4) -> str:
+    """'3-7, 12, 40-60' for sorted integers (at most ``limit`` runs, then '...')."""
+    runs, start = [], None
+    for a, b in zip(values, [*list(values[1:]), None], strict=True):
+        start = a if start is None else start
+        if b is None or b != a + 1:
+            runs.append(f"{start}-{a}" if a != start else f"{a}")
+            start = None
+    return ", ".join(runs[:limit]) + (", ..." if len(runs) > limit else "")
+
+
+def _describe(sig: dict, obs: M.Observations) -> tuple[str, str]:
+    """Where a signature sits (the bins that carry it) and a one-line description."""
+    std, rel, value, axis = sig["bins"], sig["relative"], sig["bin_value"], sig["axis"]
+    finite = np.isfinite(std)
+    strong = finite & (np.abs(std) > 3.0)
+    if not strong.any():
+        order = np.argsort(-np.where(finite, std ** 2, -1.0))
+        share = np.cumsum(std[order] ** 2) / max(np.nansum(std ** 2), 1e-300)
+        strong = np.zeros(std.size, bool)
+        strong[order[: int(np.searchsorted(share, 0.5)) + 1]] = True
+    idx = np.flatnonzero(strong)
+    if sig["kind"] == "level":
+        return "all pixels and frames", (f"residual variance {100 * abs(rel[0]):.3g} % "
+                                         f"{'above' if rel[0] > 0 else 'below'} the stated noise model everywhere")
+    up, down = idx[std[idx] > 0], idx[std[idx] < 0]
+    if axis == "frame":
+        where = f"frames {_ranges(value[idx])}"
+    elif axis == "row":
+        where = f"detector rows {_ranges(value[idx])}"
+    elif axis == "column":
+        where = f"columns {_ranges(value[idx])}"
+    elif axis == "frame_row":
+        frames, rows = obs.frame[value[idx]], obs.row[value[idx]]
+        where = (f"{idx.size} (frame, row) blocks in frames {frames.min()}-{frames.max()}, "
+                 f"rows {rows.min()}-{rows.max()}")
+    elif axis == "phase":
+        where = "all frames; fringe phase " + ", ".join(f"{v:+.2f}" for v in value[idx][:6]) + " rad" \
+            + (" (near the fringe maximum)" if np.all(np.abs(value[idx]) < np.pi / 2) else
+               " (near the fringe minimum)" if np.all(np.abs(value[idx]) > np.pi / 2) else "")
+    else:
+        where = f"expected counts near {', '.join(f'{v:.3g}' for v in value[idx][:6])}"
+    parts = []
+    for side, name in ((up, "above"), (down, "below")):
+        if side.size:
+            size = float(np.nanmedian(np.abs(rel[side])))
+            parts.append(f"{100 * size:.3g} % {name} noise in {side.size}" if sig["kind"] == "variance" else
+                         f"{'+' if name == 'above' else '-'}{size:.3g} in {side.size}")
+    total = f" of {int(finite.sum())} bins"
+    if sig["kind"] == "variance":
+        return where, "residual variance " + " and ".join(parts) + total
+    return where, "mean standardized residual per sample " + " and ".join(parts) + total + ": the mean model is off"
 
 
 def score_tests(obs: M.Observations, params: dict, weights: np.ndarray, model, candidates, *,
@@ -244,7 +488,7 @@ def motion_test(obs: M.Observations, params: dict, *, p_pixel: float = 1e-6, min
 
 
 def noise_model(obs: M.Observations, ibar: np.ndarray, images: M.Images, dsg: M.Design,
-                weights: np.ndarray) -> dict:
+                weights: np.ndarray, *, exclude: np.ndarray | None = None) -> dict:
     """Gain and electronic variance from the residuals: E[r^2 / (1 - h)] = g (Ibar - dark) + sigma_e^2.
 
     Squared residuals are divided by 1 - h (h the leverage of the sample in its pixel's image fit):
@@ -259,6 +503,8 @@ def noise_model(obs: M.Observations, ibar: np.ndarray, images: M.Images, dsg: M.
     """
     h = M.leverage(obs, dsg, images, weights)
     sel = obs.use & (h < 0.99)
+    if exclude is not None:
+        sel &= ~exclude
     r2 = ((obs.counts - ibar) ** 2 / (1 - h))[sel]
     mu = np.maximum(ibar - obs.dark, 1e-3)[sel]
     v0 = M.variance(obs, ibar)[sel]
@@ -270,9 +516,14 @@ def noise_model(obs: M.Observations, ibar: np.ndarray, images: M.Images, dsg: M.
     return {"gain": float(g), "electronic": float(e), "r2": r2, "mean": mu, "variance": v0}
 
 
-def gain_test(obs: M.Observations, ibar: np.ndarray, images, dsg, weights) -> dict:
-    """Likelihood-ratio test of the estimated noise model against the current one (Gaussian, 2 dof)."""
-    fit = noise_model(obs, ibar, images, dsg, weights)
+def gain_test(obs: M.Observations, ibar: np.ndarray, images, dsg, weights, *,
+              exclude: np.ndarray | None = None) -> dict:
+    """Likelihood-ratio test of the estimated noise model against the current one (Gaussian, 2 dof).
+
+    ``exclude`` (K, C) bool: samples left out (pixels whose frames disagree: a localised misfit must not
+    pose as a global variance excess).
+    """
+    fit = noise_model(obs, ibar, images, dsg, weights, exclude=exclude)
     r2, v0 = fit["r2"], fit["variance"]
     v1 = fit["gain"] * fit["mean"] + fit["electronic"]
     stat = max(float(np.sum(np.log(v0 / v1) + r2 / v0 - r2 / v1)), 0.0)
@@ -363,44 +614,21 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
         model = list(resolve_effects(cfg, scan, reference, fit_obs)) if base == "configured" else []
     base_model = list(model)
     good_frames = well_determined(fit_obs, cfg["fit"]["gauge_fraction"])
-    params: dict = {}
     motion = np.zeros(scan.shape[1:], bool)
     modelled_noise = False
     reports: dict[str, EffectReport] = {}
     detected: list[str] = []
     rounds: list[dict] = []
     last_tests: dict[str, dict] = {}
-    initial = float("nan")
+    rejected: dict[str, float] = {}
     paper_why = visibility_unidentifiable(scan, reference)
-    for rnd in range(d["max_rounds"] + 1):
-        for o in (obs, fit_obs):
-            o.use = ~motion[o.row][:, o.columns]
-        with stage(f"round {rnd}: fit {'+'.join(model) or 'images only'}", timings):
-            if model:
-                # after the first round the fit starts next to its optimum: no staging against local minima
-                warm = bool(params)
-                fitted = fit_vibrations(fit_obs, effects=model, start=params, gtol=cfg["fit"]["gtol"],
-                                        staged=not warm, circmean_iterations=0 if warm else
-                                        cfg["fit"]["circmean_iterations"], reweight=0 if warm else 1,
-                                        visibility_gauge=cfg["fit"]["visibility_gauge"],
-                                        visibility_quantile=cfg["fit"]["visibility_quantile"],
-                                        gauge_fraction=cfg["fit"]["gauge_fraction"])
-                params = {k: v for k, v in fitted.params.items() if k in model}
-            n_par = sum(np.size(p) for p in params.values())
-            chi2_sum, chi2_red, rec = _chi2(obs, params, n_params=n_par)
-        if rnd == 0:
-            initial = chi2_red
-            before = locate(obs, M.design(obs, params), rec.images, rec.expected)
-        if rounds:
-            rounds[-1].update(reduced_chi2_after=chi2_red, delta_chi2=rounds[-1]["chi2_before"] - chi2_sum)
-            added = rounds[-1]["added"]
-            reports[added].delta_chi2 = rounds[-1]["delta_chi2"]
-            reports[added].reduced_chi2_after = chi2_red
-            reports[added].estimate = _estimate(added, params, good_frames, reports[added].extra)
-        if rnd == d["max_rounds"]:
-            break
+    state = _fit_state(obs, fit_obs, model, {}, motion, cfg, timings, "round 0")
+    initial = state["reduced_chi2"]
+    before = locate(obs, M.design(obs, state["params"]), state["rec"].images, state["rec"].expected)
+    for rnd in range(d["max_rounds"]):
+        params, rec = state["params"], state["rec"]
         with stage(f"round {rnd}: tests", timings):
-            dispersion = max(chi2_red, 1e-6)
+            dispersion = max(state["reduced_chi2"], 1e-6)
             weights = M.noise_weights(fit_obs, retrieve(fit_obs, params).expected)
             mean_candidates = [c for c in CANDIDATES if M.effect(c).channel is not None and c not in model]
             tests = score_tests(fit_obs, params, weights, model, mean_candidates, dispersion=dispersion)
@@ -411,75 +639,192 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
                 tests["sample_motion"] = motion_test(obs, params, p_pixel=d["motion_p"], min_pixels=d["min_pixels"])
             if not modelled_noise:
                 dsg = M.design(obs, params)
+                outliers = tests["sample_motion"]["mask"] if "sample_motion" in tests else motion
                 tests["detector_gain"] = gain_test(obs, rec.expected, M.solve_images(obs, dsg, rec.weights,
                                                                                        keep_inverse=True),
-                                                   dsg, rec.weights)
+                                                   dsg, rec.weights,
+                                                   exclude=ndimage.binary_dilation(outliers)[obs.row][:, obs.columns])
         last_tests.update(tests)
-        m = len(tests)
-        structured = {k: t for k, t in tests.items() if k != "detector_gain"}
-        # Holm: the most significant of m tests at alpha / m
-        threshold = np.log(d["alpha"] / m)
-        winners = [k for k, t in structured.items() if t["identifiable"] and t["log_p"] < threshold]
-        choice = max(winners, key=lambda k: structured[k]["explains"]) if winners else None
-        if choice is None and "detector_gain" in tests:
-            t = tests["detector_gain"]
-            if t["log_p"] < threshold and abs(t["gain"] / obs.gain - 1) > d["min_gain_change"]:
-                choice = "detector_gain"
-        log.info("round %d: reduced chi-square %.4f; %s", rnd, chi2_red,
+        log.info("round %d: reduced chi-square %.4f; %s", rnd, state["reduced_chi2"],
                  ", ".join(f"{k} S={t['statistic']:.4g} (dof {t['dof']}{'' if t['identifiable'] else ', n.i.'})"
                            for k, t in sorted(tests.items(), key=lambda kv: -kv[1]["statistic"])))
+        choice = trial = None
+        for candidate in _ranked(tests, alpha=d["alpha"], min_gain_change=d["min_gain_change"], gain=obs.gain):
+            if candidate in rejected:
+                continue
+            t = tests[candidate]
+            mask = ndimage.binary_dilation(t["mask"], iterations=1) if candidate == "sample_motion" else motion
+            noise = (t["gain"], t["electronic"]) if candidate == "detector_gain" else (obs.gain, obs.electronic)
+            trial = _fit_state(obs, fit_obs, model + [candidate] if M.effect(candidate).channel is not None else model,
+                               params, mask, cfg, timings, f"round {rnd}: trial {candidate}", noise=noise)
+            share = _explained_share(state["signatures"], trial["signatures"])
+            if share is None or share >= d["explain_share"] or (share >= 0 and _silences(state["signatures"],
+                                                                                          trial["signatures"])):
+                choice = candidate
+                break
+            log.info("round %d: %s removes %.0f %% of the significant residual signatures' excess: rejected",
+                     rnd, candidate, 100 * share)
+            rejected[candidate] = share
+            _restore(obs, fit_obs, state)
         if choice is None:
             break
         t = tests[choice]
         extra = {}
         if choice == "sample_motion":
-            motion = ndimage.binary_dilation(t["mask"], iterations=1)
+            motion = trial["motion"]
             extra["pixels"] = int(motion.sum())
         elif choice == "detector_gain":
-            for o in (obs, fit_obs):
-                o.gain, o.electronic = t["gain"], t["electronic"]
             modelled_noise = True
             extra = {"gain": t["gain"], "electronic": t["electronic"]}
         else:
             model.append(choice)
+        rejected.clear()  # a candidate that did not explain the misfit then may, now that the model changed
         detected.append(choice)
         reports[choice] = EffectReport(choice, True, True, t["statistic"], int(t["dof"]), t["p_value"],
                                        where=_where(choice, t, fit_obs), extra=extra)
-        rounds.append({"round": rnd, "added": choice, "chi2_before": chi2_sum, "reduced_chi2_before": chi2_red})
+        rounds.append({"round": rnd, "added": choice, "chi2_before": state["chi2"],
+                       "reduced_chi2_before": state["reduced_chi2"], "reduced_chi2_after": trial["reduced_chi2"],
+                       "delta_chi2": state["chi2"] - trial["chi2"], "explained_share": _explained_share(
+                           state["signatures"], trial["signatures"])})
+        reports[choice].delta_chi2 = rounds[-1]["delta_chi2"]
+        reports[choice].reduced_chi2_after = trial["reduced_chi2"]
+        reports[choice].estimate = _estimate(choice, trial["params"], good_frames, extra)
         log.info("round %d: adding %s", rnd, choice)
+        state = trial
+    params, rec = state["params"], state["rec"]
     after = locate(obs, M.design(obs, params), rec.images, rec.expected)
     effects = [reports[n] for n in detected]
     for n, t in sorted(last_tests.items(), key=lambda kv: -kv[1]["statistic"]):
         if n in reports:
             continue
+        extra = {"excess_null_directions": t["excess"]} if t["excess"] else {}
+        if n in rejected:
+            extra["explained_share"] = rejected[n]
         effects.append(EffectReport(n, False, bool(t["identifiable"]), t["statistic"], int(t["dof"]), t["p_value"],
-                                    extra={"excess_null_directions": t["excess"]} if t["excess"] else {}))
+                                    extra=extra))
+    unexplained = _unexplained(state["signatures"], last_tests.get("sample_motion"), "sample_motion" in detected,
+                               alpha=d["alpha"])
     criterion = (f"an effect is detected when its p-value beats Holm's threshold alpha / m (alpha = {d['alpha']}, "
-                 f"m = effects tested in the round), it is identifiable, and it explains the most chi-square among "
-                 f"those; detector_gain only when no structured effect is left and the gain moves by more than "
-                 f"{100 * d['min_gain_change']:.0f} %; sample_motion needs {d['min_pixels']} or more pixels in "
-                 f"clusters of 3 whose per-pixel chi-square has p < {d['motion_p']}")
-    return Diagnosis(scan=name, base_model=base_model, initial_chi2=initial, final_chi2=chi2_red, effects=effects,
+                 f"m = effects tested in the round), it is identifiable, and, among those, it explains the most "
+                 f"chi-square; structured effects first, then detector_gain (when the gain moves by more than "
+                 f"{100 * d['min_gain_change']:.0f} %), then sample_motion ({d['min_pixels']} or more pixels in "
+                 f"clusters of 3 whose per-pixel deviance has p < {d['motion_p']}). A candidate is added only if it "
+                 f"explains the misfit's signature: after a trial refit with it, the excess (statistic - dof) of "
+                 f"the residual signatures that were significant (Holm, alpha = {d['alpha']}) must shrink by "
+                 f"{100 * d['explain_share']:.0f} % or more, or one of them must become insignificant while the "
+                 f"excess does not grow; otherwise it stays out of the model (its explained "
+                 f"share is reported) and the next candidate is tried. What stays significant is listed as "
+                 f"unexplained")
+    return Diagnosis(scan=name, base_model=base_model, initial_chi2=initial, final_chi2=state["reduced_chi2"],
+                     effects=effects,
                      final_model=base_model + [n for n in detected if n in model and n not in base_model]
                      + [n for n in detected if n not in model],
                      before=before, after=after, params=params, gain=obs.gain, electronic=obs.electronic,
-                     motion_mask=motion, criterion=criterion, rounds=[{k: v for k, v in r.items()} for r in rounds])
+                     motion_mask=motion, criterion=criterion, rounds=rounds, unexplained=unexplained,
+                     signatures=state["signatures"], shape=scan.shape)
+
+
+def _set_noise(obs: M.Observations, fit_obs: M.Observations, noise: tuple[float, float]) -> None:
+    for o in (obs, fit_obs):
+        o.gain, o.electronic = noise
+
+
+def _restore(obs: M.Observations, fit_obs: M.Observations, state: dict) -> None:
+    """Undo a rejected trial: the noise model and the masked pixels of ``state``."""
+    _set_noise(obs, fit_obs, (state["gain"], state["electronic"]))
+    for o in (obs, fit_obs):
+        o.use = ~state["motion"][o.row][:, o.columns]
+
+
+def _fit_state(obs: M.Observations, fit_obs: M.Observations, model: list, start: dict, motion: np.ndarray,
+               cfg: dict, timings: dict, label: str, *, noise: tuple[float, float] | None = None) -> dict:
+    """Fit ``model`` with ``motion`` pixels left out (and the noise model ``noise``); chi-square and signatures."""
+    if noise is not None:
+        _set_noise(obs, fit_obs, noise)
+    for o in (obs, fit_obs):
+        o.use = ~motion[o.row][:, o.columns]
+    params = {}
+    with stage(f"{label}: fit {'+'.join(model) or 'images only'}", timings):
+        if model:
+            # after the first round the fit starts next to its optimum: no staging against local minima
+            warm = bool(start)
+            fitted = fit_vibrations(fit_obs, effects=model, start=start, gtol=cfg["fit"]["gtol"], staged=not warm,
+                                    circmean_iterations=0 if warm else cfg["fit"]["circmean_iterations"],
+                                    reweight=0 if warm else 1, visibility_gauge=cfg["fit"]["visibility_gauge"],
+                                    visibility_quantile=cfg["fit"]["visibility_quantile"],
+                                    gauge_fraction=cfg["fit"]["gauge_fraction"])
+            params = {k: v for k, v in fitted.params.items() if k in model}
+        n_par = sum(np.size(p) for p in params.values())
+        chi2_sum, chi2_red, rec = _chi2(obs, params, n_params=n_par)
+        sigs = signatures(fit_obs, params, n_params=n_par, alpha=cfg["diagnose"]["alpha"])
+    return {"params": params, "chi2": chi2_sum, "reduced_chi2": chi2_red, "rec": rec, "signatures": sigs,
+            "motion": motion, "gain": obs.gain, "electronic": obs.electronic}
+
+
+def _ranked(tests: dict, *, alpha: float, min_gain_change: float, gain: float) -> list[str]:
+    """Significant identifiable candidates in the order they are tried.
+
+    Holm over the m effects tested; structured effects (sample_motion included) by the chi-square they
+    explain, detector_gain at the end but before sample_motion (a global variance excess is modelled
+    before localised outliers are judged against it).
+    """
+    if not tests:
+        return []
+    threshold = np.log(alpha / len(tests))
+    sig = {k for k, t in tests.items() if t["identifiable"] and t["log_p"] < threshold}
+    order = sorted((k for k in sig if k != "detector_gain"), key=lambda k: -tests[k]["explains"])
+    if "detector_gain" in sig and abs(tests["detector_gain"]["gain"] / gain - 1) > min_gain_change:
+        at = order.index("sample_motion") if "sample_motion" in order else len(order)
+        order.insert(at, "detector_gain")
+    return order
+
+
+def _excess(sigs: list[dict], keys: set) -> float:
+    return sum(max(s["statistic"] - s["dof"], 0.0) for s in sigs if (s["axis"], s["kind"]) in keys)
+
+
+def _explained_share(before: list[dict], after: list[dict]) -> float | None:
+    """Share of the significant signatures' excess chi-square that a change removed (None: none significant)."""
+    keys = {(s["axis"], s["kind"]) for s in before if s["significant"]}
+    if not keys:
+        return None
+    return 1.0 - _excess(after, keys) / _excess(before, keys)
+
+
+def _silences(before: list[dict], after: list[dict]) -> bool:
+    """Whether a significant signature became insignificant (the candidate explains that signature)."""
+    now = {(s["axis"], s["kind"]): s["significant"] for s in after}
+    return any(s["significant"] and not now.get((s["axis"], s["kind"]), False) for s in before)
+
+
+def _unexplained(sigs: list[dict], motion: dict | None, modelled_motion: bool, *, alpha: float) -> list[dict]:
+    """The ``unexplained`` entries of diagnosis.json: significant signatures of the final fit."""
+    out = [{"axis": s["axis"], "statistic": s["statistic"], "dof": s["dof"], "p_value": s["p_value"],
+            "where": s["where"], "description": s["description"]} for s in sigs if s["significant"]]
+    if motion is not None and not modelled_motion and motion["dof"] and motion["log_p"] < np.log(alpha):
+        out.append({"axis": "pixel", "statistic": motion["statistic"], "dof": motion["dof"],
+                    "p_value": motion["p_value"], "where": _where("sample_motion", motion, None),
+                    "description": f"{int(motion['mask'].sum())} pixels whose frames disagree beyond noise, in "
+                                   f"clusters; masking them does not explain the misfit"})
+    return sorted(out, key=lambda u: u["p_value"])
 
 
 def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
-    """Write ``diagnosis.json``, ``report.md``, ``residuals.png`` and (if detected) ``motion_mask.tif``."""
+    """Write ``diagnosis.json``, ``report.md``, ``residuals.png``, ``signatures.png`` and (if detected)
+    ``motion_mask.tif``."""
     import tifffile
 
     from ..export import check_output
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {k: out_dir / k for k in ("diagnosis.json", "report.md", "residuals.png")}
+    paths = {k: out_dir / k for k in ("diagnosis.json", "report.md", "residuals.png", "signatures.png")}
     for p in paths.values():
         check_output(p, overwrite=overwrite)
     with atomic_path(paths["diagnosis.json"], overwrite=overwrite) as tmp:
         tmp.write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
-    plots.plot_diagnosis(diag, paths["residuals.png"], overwrite=overwrite)
+    plots.plot_diagnosis(diag, paths["residuals.png"])
+    plots.plot_signatures(diag.signatures, paths["signatures.png"], n_frames=diag.shape[0], n_rows=diag.shape[1])
     written = list(paths.values())
     if diag.motion_mask.any():
         with atomic_path(out_dir / "motion_mask.tif", overwrite=overwrite) as tmp:
@@ -492,14 +837,14 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
 
 def _markdown(diag: Diagnosis) -> str:
     lines = [f"# dfxcorr diagnose: {diag.scan}", "",
-             f"Base model: {', '.join(diag.base_model) or 'none (plain retrieval)'}. "
-             f"Final model: {', '.join(diag.final_model) or 'none'}.", "",
+             (f"Base model: {', '.join(diag.base_model) or 'none (plain retrieval)'}. "
+              f"Final model: {', '.join(diag.final_model) or 'none'}."), "",
              f"Reduced chi-square: {diag.initial_chi2:.4f} initially, {diag.final_chi2:.4f} at the end.", "",
              "![where the model and the data disagree](residuals.png)", "",
-             "Top row: mean squared standardized residual per pixel before and after (1 = photon noise). "
-             "Below: the same by frame, lateral position, fringe phase and expected count.", "",
-             "| effect | detected | identifiable | statistic | dof | p-value | delta chi2 | reduced chi2 after "
-             "| where | estimate |", "|---|---|---|---|---|---|---|---|---|---|"]
+             ("Top row: mean squared standardized residual per pixel before and after (1 = photon noise). "
+              "Below: the same by frame, lateral position, fringe phase and expected count."), "",
+             ("| effect | detected | identifiable | statistic | dof | p-value | delta chi2 | reduced chi2 after "
+              "| where | estimate |"), "|---|---|---|---|---|---|---|---|---|---|"]
 
     def fmt(v, f):
         return "" if v is None else format(v, f)
@@ -507,19 +852,41 @@ def _markdown(diag: Diagnosis) -> str:
     for e in diag.effects:
         lines.append(f"| {e.name} | {'yes' if e.detected else 'no'} | {'yes' if e.identifiable else 'no'} | "
                      f"{e.statistic:.4g} | {e.dof} | {e.p_value:.3g} | {fmt(e.delta_chi2, '.4g')} | "
-                     f"{fmt(e.reduced_chi2_after, '.4f')} | {e.where or ''} | {e.estimate or ''} |")
+                     f"{fmt(e.reduced_chi2_after, '.4f')} | {_verdict_where(e)} | {e.estimate or ''} |")
     lines += ["", f"Criterion: {diag.criterion}.", "",
-              "delta chi2 is the change of the Pearson chi-square sum when the effect was added; for detector_gain "
-              "it is negative when the noise is below Poisson (the reduced chi-square then rises towards 1).", "",
-              "Not identifiable means the Fisher information has directions of that effect's parameters without "
-              "information beyond its gauge: the acquisition cannot tell it from the images or the model's other "
-              "effects (paper Sec. II-F), so it is never reported as detected.", ""]
+              ("delta chi2 is the change of the Pearson chi-square sum when the effect was added; for detector_gain "
+               "it is negative when the noise is below Poisson (the reduced chi-square then rises towards 1)."), "",
+              ("Not identifiable means the Fisher information has directions of that effect's parameters without "
+               "information beyond its gauge: the acquisition cannot tell it from the images or the model's other "
+               "effects (paper Sec. II-F), so it is never reported as detected."), "",
+              "## Unexplained", ""]
+    if diag.unexplained:
+        lines += [(f"The final model still leaves {len(diag.unexplained)} significant residual signature(s) that no "
+                   "catalogue effect explains (significant after Holm's correction over the signatures tested; the "
+                   "model is not complete here, whatever the reduced chi-square says):"), "",
+                  "| axis | statistic | dof | p-value | where | description |", "|---|---|---|---|---|---|"]
+        lines += [f"| {u['axis']} | {u['statistic']:.4g} | {u['dof']} | {u['p_value']:.3g} | {u['where']} | "
+                  f"{u['description']} |" for u in diag.unexplained]
+    else:
+        lines += ["None: no residual signature of the final fit is significant."]
+    lines += ["", "![residual signatures of the final fit](signatures.png)", "",
+              ("Residual signatures of the final fit on its own columns: per bin, the excess of the squared "
+               "(variance) or plain (mean) standardized residual over what noise leaves after the fit took its "
+               "share (3 image unknowns per pixel, the per-frame parameters' leverage), in units of its standard "
+               "deviation; bins beyond 3 sigma in red, panel titles in red where the signature is significant."), ""]
     if diag.motion_mask.any():
         lines += [f"The pixels taken as moving are in motion_mask.tif ({int(diag.motion_mask.sum())} pixels).", ""]
     sets = reconstruct_settings(diag)
     lines += ["To reconstruct with the final model:", "",
               f"    dfxcorr reconstruct {diag.scan} -o result.h5" + "".join(f" --set {s}" for s in sets), ""]
     return "\n".join(lines)
+
+
+def _verdict_where(e: EffectReport) -> str:
+    if "explained_share" in e.extra:
+        return (f"significant, but a trial refit removes only {100 * e.extra['explained_share']:.0f} % of the "
+                f"signatures' excess: not added")
+    return e.where or ""
 
 
 def reconstruct_settings(diag: Diagnosis) -> list[str]:

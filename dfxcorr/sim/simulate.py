@@ -69,6 +69,8 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "harmonic_phase": Option(0.5, "phase beta of the second harmonic (rad)", _NUM),
         "sample_motion": Option(0.0, "relative transmission change of a moving region (heart-like disc)", _NUM,
                                 check=_nonneg),
+        "heart_step_mm": Option(0.0, "the heart moves this far (mm at the sample plane, along the rows) half-way "
+                                     "through the scan and stays there; 0: it does not move", _NUM, check=_nonneg),
         "detector_gain": Option(1.0, "true detector units per photon (noise variance g * mean)", _NUM,
                                 check=_positive),
         "declare_gain": Option(True, "write the true gain into the file (false conceals it: readers assume 1)",
@@ -201,6 +203,12 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
         # the region's transmission beats about 7 times over the scan, like a heart during a 7 s scan
         swing = 1 + e["sample_motion"] * np.sin(2 * np.pi * 7 * obs.frame / J)[:, None]
         ibar = np.where(moving[obs.row][:, obs.columns], (ibar - dsg.offset) * swing + dsg.offset, ibar)
+    if e["heart_step_mm"]:
+        after = _heart_step(img, cfg)
+        t2, v2, phi2 = (after[k][obs.rows] for k in ("transmission", "dark_field", "differential_phase"))
+        moved = M.Images(np.stack([t2, t2 * v2 * np.cos(phi2), t2 * v2 * np.sin(phi2)], axis=-1), images.valid)
+        ibar = np.where((obs.frame >= J // 2)[:, None], M.expected(obs, dsg, moved), ibar)
+        moving = after["region"]
     counts = _detect(ibar - obs.dark, cfg, rng) + obs.dark
     frames[obs.frame[:, None], obs.row[:, None], obs.columns[None, :]] = counts
     reference: Reference | SteppingReference = ref
@@ -213,6 +221,8 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
                 gain=gain_file, exposure_time=np.full(J, 0.033),
                 pixel_size=(s["pixel_mm"] * 1e-3, s["pixel_mm"] * 1e-3))
     truth: dict[str, Any] = {f"image_{k}": img[k] for k in ("transmission", "dark_field", "differential_phase")}
+    if e["heart_step_mm"]:
+        truth["image_transmission_after"] = after["transmission"]
     truth.update(vib_phase_offset=params["phase_offset"][:, 0], vib_tilt=params["tilt"][:, 0],
                  vib_visibility=params["visibility_loss"][:, 0],
                  vib_curvature=params.get("curvature", np.zeros((J, 1)))[:, 0],
@@ -223,6 +233,29 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
                  reference_transmission=ref.transmission, reference_visibility=ref.visibility,
                  reference_phase=ref.phase, config=json.dumps(cfg))
     return scan, truth
+
+
+def _heart_step(img: dict, cfg: dict) -> dict[str, np.ndarray]:
+    """The images after the heart moved by ``heart_step_mm`` along the rows (from the middle frame on).
+
+    Approximation: inside the heart's ellipse (grown by the shift) the images are those of the whole
+    phantom shifted by the step; outside it they stay. Also returns that ``region`` (H, W) bool.
+    """
+    from scipy import ndimage
+
+    from .phantom import _HEART
+
+    s, e = cfg["simulate"], cfg["effects"]
+    H, W = img["transmission"].shape
+    p = s["pixel_mm"] / s["magnification"]  # pixel size at the sample plane (mm)
+    shift = e["heart_step_mm"] / p
+    x0, y0, _, a, b, _ = _HEART
+    r, c = np.mgrid[:H, :W]
+    region = (((c + 0.5 - W / 2) * p - x0) / (a + e["heart_step_mm"])) ** 2 \
+        + (((r + 0.5 - H / 2) * p - y0) / (b + e["heart_step_mm"])) ** 2 < 1
+    out = {k: np.where(region, ndimage.shift(v, (shift, 0), order=1, mode="nearest"), v) for k, v in img.items()}
+    out["region"] = region
+    return out
 
 
 def _detect(mean: np.ndarray, cfg: dict, rng: np.random.Generator) -> np.ndarray:
