@@ -136,15 +136,14 @@ def simulate(config_file, output, sets, truth, overwrite):
     """Simulate a scan (the paper's simulation study by default) and write it with its truth."""
     from . import export
     from .sim import simulate as S
-    from .io import atomic_path, write_scan
+    from .io import atomic_path
 
     cfg = C.load([config_file] if config_file else [], sets, schema=S.SCHEMA)
     out = Path(output)
     truth_path = Path(truth) if truth else out.with_name(f"{out.stem}.truth.npz")
     for p in (out, truth_path):
         export.check_output(p, overwrite=overwrite)
-    scan, true = S.simulate(cfg)
-    write_scan(out, scan)
+    scan, true = S.simulate_file(cfg, out)
     with atomic_path(truth_path) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **true)
     click.echo(f"{out}: {scan.shape[0]} frames of {scan.shape[1]} x {scan.shape[2]}; truth in {truth_path}")

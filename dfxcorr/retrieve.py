@@ -75,15 +75,28 @@ def reduced_chi2(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *, n_
 
     dof = samples - per_pixel_unknowns * pixels - n_params.
     """
-    sel = valid[obs.pixel] & obs.use
-    chi2 = float(M.pearson(obs, ibar, gain=gain)[sel].sum())
-    dof = int(sel.sum()) - per_pixel_unknowns * int(valid.sum()) - n_params
+    chi2, samples, pixels = chi2_sums(obs, ibar, valid, gain=gain)
+    dof = samples - per_pixel_unknowns * pixels - n_params
     return chi2 / max(dof, 1)
+
+
+def chi2_sums(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *,
+              gain: float | None = None) -> tuple[float, int, int]:
+    """Pearson chi-square over the used samples of valid pixels, the number of those samples and pixels.
+
+    Each is a sum over pixels, so the sums of row blocks give :func:`reduced_chi2` of the whole scan.
+    """
+    sel = valid[obs.pixel] & obs.use
+    return float(M.pearson(obs, ibar, gain=gain)[sel].sum()), int(sel.sum()), int(valid.sum())
+
+
+def image_values(images: M.Images) -> dict[str, np.ndarray]:
+    """t, v, phi per held pixel (R, C), NaN where not solvable."""
+    nan = np.where(images.valid, 1.0, np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return {"transmission": images.t * nan, "dark_field": images.v * nan, "differential_phase": images.phi * nan}
 
 
 def image_maps(obs: M.Observations, images: M.Images) -> dict[str, np.ndarray]:
     """Detector images t, v, phi (H, W), NaN where a pixel was not lit or not solvable."""
-    nan = np.where(images.valid, 1.0, np.nan)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        maps = {"transmission": images.t * nan, "dark_field": images.v * nan, "differential_phase": images.phi * nan}
-    return {k: obs.to_image(v) for k, v in maps.items()}
+    return {k: obs.to_image(v) for k, v in image_values(images).items()}

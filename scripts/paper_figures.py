@@ -32,7 +32,8 @@ from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr import pipeline, plots
 from dfxcorr.sim import simulate as S
-from dfxcorr.align import build_observations, resolve_reference
+from dfxcorr.align import build_observations
+from dfxcorr.reference import resolve_reference
 from dfxcorr.baselines import fit_alternating
 from dfxcorr.analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
 from dfxcorr.fit import fit_vibrations, initial_weights

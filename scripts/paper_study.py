@@ -25,7 +25,8 @@ import numpy as np
 from dfxcorr import config as C
 from dfxcorr import pipeline, plots
 from dfxcorr.sim import simulate as S
-from dfxcorr.align import build_observations, resolve_reference
+from dfxcorr.align import build_observations
+from dfxcorr.reference import resolve_reference
 from dfxcorr.analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
 from dfxcorr.retrieve import image_maps, retrieve
 

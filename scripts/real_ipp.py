@@ -18,7 +18,7 @@ import numpy as np
 
 from dfxcorr import config as C
 from dfxcorr import pipeline, plots
-from dfxcorr.align import fit_reference
+from dfxcorr.reference import fit_reference
 from dfxcorr.analysis.diagnose import diagnose, write_report
 from dfxcorr.importer import import_stepping
 

@@ -1,7 +1,8 @@
 """Flat-field alignment against analytic references."""
 import numpy as np
 
-from dfxcorr.align import build_observations, fit_reference, interpolate_rows, lit_blocks
+from dfxcorr.align import build_observations, interpolate_rows, lit_blocks
+from dfxcorr.reference import fit_reference
 from dfxcorr.io import Reference, Scan, SteppingReference
 
 

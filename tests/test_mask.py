@@ -3,7 +3,8 @@ import numpy as np
 
 from dfxcorr import config as C
 from dfxcorr import pipeline
-from dfxcorr.align import build_observations, resolve_reference
+from dfxcorr.align import build_observations
+from dfxcorr.reference import resolve_reference
 from dfxcorr.mask import motion_mask
 
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -32,11 +32,12 @@ from .. import config as C
 from .. import plots
 from . import identify
 from .. import model as M
-from ..align import build_observations, resolve_reference, subsample_columns
+from ..align import subsample_columns
 from ..fit import fit_vibrations
-from ..io import Scan, atomic_path, read_scan
+from ..io import Scan, atomic_path
 from ..mask import motion_score
-from ..pipeline import resolve_effects, stage, visibility_unidentifiable
+from ..pipeline import Prepared, prepare, stage
+from .identify import resolve_effects, visibility_unidentifiable
 from ..retrieve import retrieve
 
 log = logging.getLogger("dfxcorr")
@@ -329,12 +330,14 @@ def _estimate(name: str, params: dict, good: np.ndarray, extra: dict) -> str:
     return ", ".join(f"{c}: {v:.4g}" for c, v in zip(e.components, p)) + " counts"
 
 
-def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "configured") -> Diagnosis:
+def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, base: str = "configured") -> Diagnosis:
     """Locate model-data mismatch, name the missing effects, add them and refit until nothing is left.
 
     Parameters
     ----------
-    scan : Scan or path
+    scan : Scan, path or Prepared
+        Prepared by :func:`dfxcorr.pipeline.prepare` (reference options, region of interest), as for
+        a reconstruction.
     cfg : dict, optional
         Resolved configuration; its vibration section is the base model, its diagnose section the
         test settings.
@@ -348,18 +351,14 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
     cfg = C.defaults() if cfg is None else cfg
     d = cfg["diagnose"]
     timings: dict = {}
-    name = str(scan) if not isinstance(scan, Scan) else "scan"
-    if not isinstance(scan, Scan):
-        with stage("load", timings):
-            scan = read_scan(scan)
-    with stage("align", timings):
-        reference = resolve_reference(scan)
-        obs = build_observations(scan, reference, min_frames=cfg["align"]["min_frames"],
-                                 gain=cfg["load"]["gain"] or scan.gain)
-        obs.electronic = cfg["load"]["electronic"]
-        # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit
-        fit_obs = obs.subset(subsample_columns(scan.shape[2], d["subsample"]))
-        model = list(resolve_effects(cfg, scan, reference, fit_obs)) if base == "configured" else []
+    prep = scan if isinstance(scan, Prepared) else prepare(scan, cfg, timings=timings)
+    name = str(prep.path) if prep.path else prep.name
+    scan, reference = prep.scan, prep.reference
+    # the tests need every pixel: the diagnosis holds the whole scan (the reconstruction streams it)
+    obs, roi = prep.observations()
+    # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit
+    fit_obs = obs.subset(subsample_columns(scan.shape[2], d["subsample"]))
+    model = list(resolve_effects(cfg, scan, reference, fit_obs)) if base == "configured" else []
     base_model = list(model)
     good_frames = np.bincount(fit_obs.frame, minlength=scan.shape[0]) >= 0.5 * np.bincount(fit_obs.frame).max()
     params: dict = {}
@@ -372,8 +371,10 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
     initial = None
     paper_why = visibility_unidentifiable(scan, reference)
     for rnd in range(d["max_rounds"] + 1):
-        for o in (obs, fit_obs):
-            o.use = ~motion[o.row][:, o.columns]
+        # as in reconstruct: the tests see the region of interest, the fit also the samples without fringe
+        # (they monitor dose and background)
+        obs = replace(obs, use=roi & ~motion[obs.row][:, obs.columns])
+        fit_obs = replace(fit_obs, use=~motion[fit_obs.row][:, fit_obs.columns])
         with stage(f"round {rnd}: fit {'+'.join(model) or 'images only'}", timings):
             if model:
                 # after the first round the fit starts next to its optimum: no staging against local minima
@@ -434,8 +435,7 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
             motion = ndimage.binary_dilation(t["mask"], iterations=1)
             extra["pixels"] = int(motion.sum())
         elif choice == "detector_gain":
-            for o in (obs, fit_obs):
-                o.gain, o.electronic = t["gain"], t["electronic"]
+            obs, fit_obs = (replace(o, gain=t["gain"], electronic=t["electronic"]) for o in (obs, fit_obs))
             modelled_noise = True
             extra = {"gain": t["gain"], "electronic": t["electronic"]}
         else:
