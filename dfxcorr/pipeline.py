@@ -151,9 +151,9 @@ def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) 
                     min_visibility=vmin, gain=cfg["load"]["gain"] or scan.gain, electronic=cfg["load"]["electronic"])
 
 
-#: Bytes per (pixel, frame) sample at the peak of a retrieval or motion score in float64 (measured with
-#: tracemalloc on the numpy model: observations, design, weights, expected counts and their temporaries).
-BYTES_PER_SAMPLE = 240
+#: Bytes per (pixel, frame) sample at the peak of a block's retrieval or motion statistics in float64: 153
+#: measured with tracemalloc on the numpy model (observations, design, weights, expected counts, temporaries).
+BYTES_PER_SAMPLE = 160
 
 
 def row_blocks(store: LitStore, budget_mb: float) -> list[tuple[int, int]]:
