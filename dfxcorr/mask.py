@@ -64,13 +64,7 @@ def score_from_statistics(eps: np.ndarray, q: np.ndarray) -> np.ndarray:
 def motion_score(obs: M.Observations, params: dict | None = None, weights: np.ndarray | None = None) -> np.ndarray:
     """Per-pixel residual relative to what noise and (unmodelled) vibrations explain.
 
-    Parameters
-    ----------
-    obs : Observations
-    params : dict, optional
-        Effect parameters of the model to compare with (default: none, paper eq. 35).
-    weights : ndarray, shape (K, C), optional
-        Inverse noise variances; default from a retrieval with ``params``.
+    Parameters as :func:`motion_statistics`.
 
     Returns
     -------

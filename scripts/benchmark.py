@@ -37,10 +37,10 @@ import numpy as np
 
 from dfxcorr import config as C
 from dfxcorr import pipeline
+from dfxcorr.analysis.evaluate import frames_lighting, vibration_rmse
 from dfxcorr.export import read_result_h5
 from dfxcorr.io import read_scan
 from dfxcorr.sim import simulate as S
-from dfxcorr.analysis.evaluate import frames_lighting, vibration_rmse
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -67,14 +67,14 @@ def measured(cmd: list[str]) -> tuple[float, float]:
     """Run a command; its wall time (s) and peak resident memory (MB), from /usr/bin/time -v if present."""
     t0 = time.perf_counter()
     if shutil.which("time") or Path("/usr/bin/time").exists():
-        proc = subprocess.run(["/usr/bin/time", "-v", *cmd], capture_output=True, text=True)
+        proc = subprocess.run(["/usr/bin/time", "-v", *cmd], capture_output=True, text=True, check=False)
         wall = time.perf_counter() - t0
         if proc.returncode:
             sys.exit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
         rss_kb = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", proc.stderr).group(1))
         return wall, rss_kb / 1024
     import resource
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - t0
     if proc.returncode:
         sys.exit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")

@@ -4,8 +4,8 @@ import pytest
 
 from dfxcorr import config as C
 from dfxcorr import pipeline
-from dfxcorr.analysis.identify import IdentifiabilityError
 from dfxcorr.analysis.evaluate import frames_lighting, gauge_median
+from dfxcorr.analysis.identify import IdentifiabilityError
 
 
 def standardized_errors(result, truth, scan):

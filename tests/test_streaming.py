@@ -1,4 +1,5 @@
 """Streaming: frames read lazily, row blocks, one preparation for every analysis, subsample auto, frame-by-frame simulation."""
+import itertools
 import json
 import subprocess
 import sys
@@ -8,6 +9,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from conftest import sim_config
 
 from dfxcorr import align, pipeline
 from dfxcorr import config as C
@@ -17,8 +19,6 @@ from dfxcorr.fit import fit_vibrations
 from dfxcorr.io import H5Frames, Reference, Scan, read_scan, write_scan
 from dfxcorr.retrieve import retrieve
 from dfxcorr.sim import simulate as S
-
-from conftest import sim_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -104,7 +104,7 @@ def test_row_blocks_follow_the_memory_budget(prepared_scan):
     for mb in (1e-6, 0.05, 0.3, 1e5):
         blocks = pipeline.row_blocks(store, mb)
         assert blocks[0][0] == store.row.min() and blocks[-1][1] == store.row.max() + 1
-        assert all(a[1] == b[0] for a, b in zip(blocks, blocks[1:]))
+        assert all(a[1] == b[0] for a, b in itertools.pairwise(blocks))
         per_row = np.bincount(store.row)
         cap = mb * 1e6 / (pipeline.BYTES_PER_SAMPLE * scan.shape[2])
         # a block exceeds the budget only when it is a single row
@@ -181,7 +181,7 @@ def test_subsample_auto_fits_every_column_of_a_small_scan(small_scan):
 def test_simulated_file_holds_the_in_memory_frames(tmp_path):
     cfg = sim_config(**{"simulate.seed": 5, "effects.sample_motion": 0.2})
     scan, truth = S.simulate(cfg)
-    shell, truth_file = S.simulate_file(cfg, tmp_path / "s.h5")
+    _, truth_file = S.simulate_file(cfg, tmp_path / "s.h5")
     back = read_scan(tmp_path / "s.h5")
     with back.data.open() as dset:
         np.testing.assert_array_equal(dset[()], scan.data)

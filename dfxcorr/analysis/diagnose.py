@@ -29,16 +29,16 @@ import numpy as np
 from scipy import ndimage, stats
 
 from .. import config as C
-from .. import plots
-from . import identify
 from .. import model as M
+from .. import plots
 from ..align import subsample_columns
 from ..fit import fit_vibrations
 from ..io import Scan, atomic_path
 from ..mask import motion_score
 from ..pipeline import Prepared, prepare, stage
-from .identify import resolve_effects, visibility_unidentifiable
 from ..retrieve import retrieve
+from . import identify
+from .identify import resolve_effects, visibility_unidentifiable
 
 log = logging.getLogger("dfxcorr")
 
