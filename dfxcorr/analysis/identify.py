@@ -8,6 +8,10 @@ recording (paper Sec. II-F, eqs. 42-47: four extra null directions); per-step do
 series whose every pixel is modulated (the per-step vector d_j (1, cos psi_j, sin psi_j) lies on a
 cone whose Lorentz boosts the images absorb: two extra); an additive background when the flat field
 does not vary (absorbed by the transmission image).
+
+The policy built on it (:func:`resolve_effects`) decides which configured effects a reconstruction
+fits: those the acquisition determines; the others are dropped with a log line, or refused with an
+:class:`IdentifiabilityError` where the configuration asks for them explicitly.
 """
 from __future__ import annotations
 
