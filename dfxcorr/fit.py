@@ -348,18 +348,24 @@ def rescue_frames(obs: M.Observations, params: dict, weights: np.ndarray, frames
     for j in frames:
         sel = np.flatnonzero(obs.frame == j)
         nb = sel.size
-        # the frame's blocks, repeated once per grid point, each repetition posing as its own frame
-        rep = M.Observations(*(np.tile(a[sel], (G, 1)) for a in (obs.counts, obs.tf, obs.vf, obs.phif, obs.dark,
-                                                                  obs.use)),
-                             row=np.arange(G * nb), frame=np.repeat(np.arange(G), nb), columns=obs.columns,
-                             shape=(G, G * nb, obs.shape[2]), gain=obs.gain)
-        trial = {k: (np.repeat(v[j:j + 1], G, axis=0) if M.effect(k).per_frame else v) for k, v in params.items()}
-        trial.setdefault("phase_offset", np.zeros((G, 1)))[:, 0] = g0
-        if "tilt" in trial:
-            trial["tilt"][:, 0] = g1
-        coef = M.Images(np.tile(images.coef[obs.pixel[sel]], (G, 1, 1)), np.ones((G * nb, obs.columns.size), bool))
-        r = rep.counts - M.expected(rep, M.design(rep, trial), coef)
-        cost = (np.tile(weights[sel], (G, 1)) * r ** 2).reshape(G, -1).sum(axis=1) + penalty
+        # grid points per pass: the repeated samples stay near 2^20 (memory), whatever the frame's size
+        step = max(1, (1 << 20) // max(nb * obs.columns.size, 1))
+        cost = np.empty(G)
+        for lo in range(0, G, step):
+            g = np.arange(lo, min(lo + step, G))
+            n = g.size
+            # the frame's blocks, repeated once per grid point, each repetition posing as its own frame
+            rep = M.Observations(*(np.tile(a[sel], (n, 1)) for a in (obs.counts, obs.tf, obs.vf, obs.phif, obs.dark,
+                                                                      obs.use)),
+                                 row=np.arange(n * nb), frame=np.repeat(np.arange(n), nb), columns=obs.columns,
+                                 shape=(n, n * nb, obs.shape[2]), gain=obs.gain)
+            trial = {k: (np.repeat(v[j:j + 1], n, axis=0) if M.effect(k).per_frame else v) for k, v in params.items()}
+            trial.setdefault("phase_offset", np.zeros((n, 1)))[:, 0] = g0[g]
+            if "tilt" in trial:
+                trial["tilt"][:, 0] = g1[g]
+            coef = M.Images(np.tile(images.coef[obs.pixel[sel]], (n, 1, 1)), np.ones((n * nb, obs.columns.size), bool))
+            r = rep.counts - M.expected(rep, M.design(rep, trial), coef)
+            cost[g] = (np.tile(weights[sel], (n, 1)) * r ** 2).reshape(n, -1).sum(axis=1) + penalty[g]
         now0 = params["phase_offset"][j, 0] if "phase_offset" in params else 0.0
         now1 = params["tilt"][j, 0] if "tilt" in params else c1
         current = float(resid2[sel].sum()) + (np.angle(np.exp(1j * (now0 - c0))) / w0) ** 2 + ((now1 - c1) / w1) ** 2
