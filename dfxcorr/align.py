@@ -8,13 +8,13 @@ interpolation of wrapped values would put a wrong phase into every sample near a
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import DfxcorrError
-from .io import Reference, Scan, SteppingReference
+from .io import Reference, Scan, frame_rows
 from .model import Observations, lateral_coordinate
 
 log = logging.getLogger(__name__)
@@ -61,29 +61,104 @@ def lit_blocks(position: np.ndarray, active_rows: int, height: int) -> tuple[np.
     return row, frame, u[row, frame]
 
 
-def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray | None = None,
-                       min_frames: int = 3, pixel_mask: np.ndarray | None = None,
-                       gain: float | None = None) -> Observations:
-    """Align the flat field to every lit sample and collect the data as :class:`Observations`.
+@dataclass
+class LitStore:
+    """Every lit sample of a scan in the frames' own dtype, as (row, frame) blocks sorted by row.
+
+    What the pipeline keeps of a scan: the rows of each frame that the active area lights (about
+    A / H of the frames), read once. Observations of any columns or rows follow from it
+    (:meth:`observations`) without touching the file again.
+
+    Attributes
+    ----------
+    counts : ndarray, shape (K, W)
+        Counts as stored (e.g. uint16).
+    row, frame : ndarray of int, shape (K,)
+        Detector row and frame of each block, sorted by row (frames ascending within a row).
+    u : ndarray, shape (K,)
+        Local interferometer row of each block.
+    shape : tuple
+        (J, H, W) of the scan.
+    phase_step : ndarray, shape (J,)
+    dark : ndarray, shape (H, W)
+    gain : float
+    """
+
+    counts: np.ndarray
+    row: np.ndarray
+    frame: np.ndarray
+    u: np.ndarray
+    shape: tuple
+    phase_step: np.ndarray
+    dark: np.ndarray
+    gain: float
+
+    @property
+    def rows(self) -> np.ndarray:
+        """Detector rows held, ascending."""
+        return np.unique(self.row)
+
+    def samples_per_column(self) -> int:
+        """Lit samples in one detector column (K)."""
+        return int(self.row.size)
+
+    def observations(self, reference: Reference, *, columns: np.ndarray | None = None,
+                     rows: tuple[int, int] | None = None, pixel_mask: np.ndarray | None = None,
+                     gain: float | None = None, electronic: float = 0.0, dtype=np.float64) -> Observations:
+        """Align the flat field to the held samples of some columns and rows.
+
+        Parameters
+        ----------
+        reference : Reference
+            Flat-field maps (A, W); the phase may be wrapped.
+        columns : ndarray of int, optional
+            Detector columns (default all).
+        rows : (int, int), optional
+            Detector rows r0 <= r < r1 (default all held).
+        pixel_mask : ndarray of bool, shape (H, W), optional
+            False for pixels that must not enter (their samples get ``use = False``).
+        gain : float, optional
+            Overrides the file's detector gain.
+        electronic : float
+            Electronic noise variance (counts^2).
+        dtype : numpy dtype
+            Of the sample arrays: float64, or float32 to halve them (counts up to 2^24 stay exact;
+            the flat field is interpolated in float64 first).
+
+        Returns
+        -------
+        Observations
+        """
+        J, H, W = self.shape
+        cols = np.arange(W) if columns is None else np.asarray(columns, dtype=np.int64)
+        lo, hi = (0, self.row.size) if rows is None else np.searchsorted(self.row, rows)
+        row, frame, u = self.row[lo:hi], self.frame[lo:hi], self.u[lo:hi]
+        phase = np.unwrap(reference.phase[:, cols], axis=0)
+        tf = interpolate_rows(reference.transmission[:, cols], u).astype(dtype, copy=False)
+        vf = interpolate_rows(reference.visibility[:, cols], u).astype(dtype, copy=False)
+        phif = interpolate_rows(phase, u)
+        phif += self.phase_step[frame][:, None]
+        counts = (self.counts[lo:hi] if columns is None else self.counts[lo:hi, cols]).astype(dtype)
+        dark = self.dark[row[:, None], cols[None, :]].astype(dtype, copy=False)
+        use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
+        return Observations(counts=counts, tf=tf, vf=vf, phif=phif.astype(dtype, copy=False), dark=dark, use=use,
+                            row=row, frame=frame, columns=cols, shape=(J, H, W),
+                            gain=self.gain if gain is None else gain, electronic=electronic)
+
+
+def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: int = 3) -> LitStore:
+    """Read the lit rows of every frame once, frame by frame, into a :class:`LitStore`.
 
     Parameters
     ----------
     scan : Scan
-    reference : Reference
-        Flat-field maps (A, W); the phase may be wrapped.
-    columns : ndarray of int, optional
-        Detector columns to hold (default all).
+        Its ``data`` may be an array or frames left in the file (:class:`dfxcorr.io.H5Frames`): only
+        rows ``r0:r1`` lit in frame j are read, one hyperslab per frame.
+    active_rows : int, optional
+        A (default the scan's).
     min_frames : int
         Rows lit in fewer frames than this (the number of per-pixel unknowns) are left out with a
         warning.
-    pixel_mask : ndarray of bool, shape (H, W), optional
-        False for pixels that must not enter (their samples get ``use = False``).
-    gain : float, optional
-        Overrides the file's detector gain.
-
-    Returns
-    -------
-    Observations
 
     Raises
     ------
@@ -91,8 +166,7 @@ def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray 
         If no row is lit in at least ``min_frames`` frames.
     """
     J, H, W = scan.shape
-    A = reference.transmission.shape[0]
-    cols = np.arange(W) if columns is None else np.asarray(columns, dtype=np.int64)
+    A = scan.active_rows if active_rows is None else active_rows
     row, frame, u = lit_blocks(scan.position, A, H)
     n_lit = np.bincount(row, minlength=H)
     short = (n_lit > 0) & (n_lit < min_frames)
@@ -104,177 +178,35 @@ def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray 
     if row.size == 0:
         raise AlignmentError(f"no detector row is lit in at least {min_frames} frames: nothing to fit "
                              f"(dataset /entry/scan/position)")
-    assert scan.phase_step is not None and scan.dark is not None  # filled in by Scan.__post_init__
-    phase = np.unwrap(reference.phase, axis=0)
-    tf = interpolate_rows(reference.transmission[:, cols], u)
-    vf = interpolate_rows(reference.visibility[:, cols], u)
-    phif = interpolate_rows(phase[:, cols], u) + scan.phase_step[frame][:, None]
-    counts = scan.data[frame[:, None], row[:, None], cols[None, :]].astype(np.float64)
-    dark = scan.dark[row[:, None], cols[None, :]]
-    use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
-    return Observations(counts=counts, tf=tf, vf=vf, phif=phif, dark=dark, use=use, row=row, frame=frame,
-                        columns=cols, shape=(J, H, W), gain=scan.gain if gain is None else gain)
+    counts = np.empty((row.size, W), dtype=scan.data.dtype)
+    by_frame = np.argsort(frame, kind="stable")  # within a frame, rows stay ascending
+    bounds = np.searchsorted(frame[by_frame], np.arange(J + 1))
+    opener = scan.data.open() if hasattr(scan.data, "open") else nullcontext(scan.data)
+    with opener as data:
+        for j in range(J):
+            idx = by_frame[bounds[j]:bounds[j + 1]]
+            if idx.size:
+                r0, r1 = int(row[idx[0]]), int(row[idx[-1]]) + 1
+                counts[idx] = frame_rows(data, j, r0, r1)[row[idx] - r0]
+    return LitStore(counts=counts, row=row, frame=frame, u=u, shape=(J, H, W),
+                    phase_step=np.asarray(scan.phase_step, dtype=np.float64), dark=scan.dark, gain=scan.gain)
 
 
-def stepping_observations(data: np.ndarray, phase_step: np.ndarray, *, dark: np.ndarray | None = None,
-                          gain: float = 1.0) -> Observations:
-    """Observations of a phase-stepping series of the unloaded interferometer (flat field 1, 1, 0).
+def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray | None = None,
+                       min_frames: int = 3, pixel_mask: np.ndarray | None = None,
+                       gain: float | None = None) -> Observations:
+    """Align the flat field to every lit sample and collect the data as :class:`Observations` (float64).
 
-    Parameters
-    ----------
-    data : ndarray, shape (S, A, W)
-    phase_step : ndarray, shape (S,)
-    dark : ndarray, shape (A, W), optional
-
-    Returns
-    -------
-    Observations
-        Fitting images to it gives t^f, v^f and phi^f of the series.
-    """
-    S, A, W = data.shape
-    flat = Reference(np.ones((A, W)), np.ones((A, W)), np.zeros((A, W)))
-    series = Scan(data=data, position=np.zeros(S), reference=flat, phase_step=np.asarray(phase_step, float),
-                  dark=dark, gain=gain)
-    return build_observations(series, flat)
-
-
-@dataclass
-class ReferenceFit:
-    """Flat-field maps retrieved from a stepping series, with what the fit said about the steps.
-
-    Attributes
-    ----------
-    reference : Reference
-    params : dict
-        Estimated per-step effects (phase_offset: step phase errors in rad, dose), empty when the
-        nominal steps were taken as exact.
-    reduced_chi2 : dict
-        'nominal': Pearson chi-square per degree of freedom with the nominal steps; 'fitted': with the
-        estimated step errors and dose (absent when not estimated). Over the modulated pixels.
-    """
-
-    reference: Reference
-    params: dict
-    reduced_chi2: dict
-
-
-def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects: Sequence[str] = ("phase_offset", "dose"),
-                  optional: Sequence[str] = ("dose",), min_visibility: float | str = "auto",
-                  subsample: int = 4) -> ReferenceFit:
-    """Flat-field maps from a stepping series, with per-step phase errors and dose estimated.
-
-    The series is a phase-stepping recording of the unloaded interferometer: flat field 1, 1, 0 and the
-    images are the maps. Step phase errors and dose fluctuations are per-frame effects of the same
-    model, so the maximum-likelihood vibration fit estimates them. Per-step visibility loss is never
-    identifiable here (paper Sec. II-F). Per-step dose is identifiable only where some pixels carry
-    no fringe (outside the gratings): where every pixel is modulated, a dose modulation in step with
-    the phase trades off exactly against the maps (see :mod:`dfxcorr.analysis.identify`). Unmodulated pixels
-    therefore enter the step fit as dose monitors; the reduced chi-square is reported over the
-    modulated ones.
-
-    Parameters
-    ----------
-    ref : SteppingReference
-    gain : float
-    effects : sequence of str
-        Per-step effects to estimate (phase_offset, tilt, dose); empty: nominal steps.
-    optional : sequence of str
-        Effects of ``effects`` to leave out (with a log line) where not identifiable; the others are
-        refused with an error.
-    min_visibility : float or 'auto'
-        Pixels below this visibility carry no fringe (chi-square region).
-    subsample : int
-        Every n-th column enters the step fit.
-
-    Returns
-    -------
-    ReferenceFit
-        Visibility is clipped into (0, 1] (a noisy estimate can exceed 1).
+    :func:`collect_lit_rows` then :meth:`LitStore.observations`; for scans that fit in memory many
+    times over. The pipeline keeps the store and builds observations of column subsets and row blocks.
 
     Raises
     ------
     AlignmentError
-        If fewer than 3 steps are given, the steps do not determine a sinusoid, or a required effect is
-        not identifiable.
+        If no row is lit in at least ``min_frames`` frames.
     """
-    from .analysis import identify
-    from .fit import fit_vibrations, initial_weights
-    from .retrieve import retrieve
-
-    S = ref.data.shape[0]
-    if S < 3:
-        raise AlignmentError(f"/entry/reference/stepping/data has {S} steps; at least 3 are needed")
-    unknown = [e for e in effects if e not in ("phase_offset", "tilt", "dose")]
-    if unknown:
-        raise AlignmentError(f"{', '.join(unknown)} cannot be estimated from a reference stepping series "
-                             f"(not identifiable there, paper Sec. II-F)")
-    obs = stepping_observations(ref.data, ref.phase_step, dark=ref.dark, gain=gain)
-    nominal = retrieve(obs, {})
-    if not np.any(nominal.images.valid):
-        raise AlignmentError("/entry/reference/stepping/phase_step does not determine a sinusoid")
-    vis = obs.to_image(nominal.images.v, fill=0.0)
-    thr = auto_visibility_threshold(vis) if min_visibility == "auto" else float(min_visibility)
-    roi = obs.subset(np.arange(obs.columns.size))
-    roi.use = (np.nan_to_num(vis) >= thr)[obs.row][:, obs.columns]
-    chi2 = {"nominal": retrieve(roi, {}).reduced_chi2}
-    params, rec = {}, nominal
-    fit_obs = obs.subset(subsample_columns(obs.columns.size, subsample))
-    # unmodulated pixels (outside the gratings) have transmission as their only unknown: dose monitors
-    fit_obs.vf = np.where(roi.use[:, fit_obs.columns], fit_obs.vf, 0.0)
-    chosen: list[str] = []
-    for verdict in identify.select(fit_obs, initial_weights(fit_obs, {}), effects if S > 3 else ()):
-        if verdict.identifiable:
-            chosen.append(verdict.name)
-            continue
-        why = (f"per-step {verdict.name} is not identifiable in this reference series ({verdict.excess} "
-               f"direction(s) without information: every pixel is modulated, so it trades off against the maps)")
-        if verdict.name not in optional:
-            raise AlignmentError(why)
-        log.info("%s; not fitted", why)
-    if chosen:
-        params = fit_vibrations(fit_obs, effects=chosen, staged=False, circmean_iterations=0).params
-        rec = retrieve(obs, params)
-        chi2["fitted"] = retrieve(roi, params).reduced_chi2
-    images = rec.images
-    t = np.where(images.valid, images.t, np.nan)
-    v = images.v
-    phase = images.phi
-    bad = ~np.isfinite(t) | (t <= 0)
-    if np.any(bad):
-        log.warning("reference stepping series: %d pixels without usable signal", int(bad.sum()))
-        t = np.where(bad, np.nanmedian(t[~bad]) if np.any(~bad) else 1.0, t)
-    v = np.clip(np.nan_to_num(v, nan=1e-3), 1e-3, 1.0)
-    return ReferenceFit(Reference(transmission=t, visibility=v, phase=phase), params, chi2)
-
-
-def auto_visibility_threshold(visibility: np.ndarray) -> float:
-    """A quarter of the 95th percentile of the reference visibility: splits fringe from no fringe.
-
-    Outside the gratings and in detector gaps the visibility is noise (about 0.01); on the gratings it
-    is tens of percent, so the split is wide and the factor uncritical.
-    """
-    v = np.asarray(visibility)[np.isfinite(visibility)]
-    return 0.25 * float(np.percentile(v, 95)) if v.size else 0.0
-
-
-def resolve_reference(scan: Scan, *, effects: Sequence[str] = ("phase_offset", "dose"),
-                      optional: Sequence[str] = ("dose",)) -> Reference:
-    """The scan's flat-field maps, retrieved from its stepping series if that is what it holds.
-
-    Parameters
-    ----------
-    effects, optional : sequence of str
-        Per-step effects of a reference stepping series to estimate (see :func:`fit_reference`).
-    """
-    if isinstance(scan.reference, SteppingReference):
-        fitted = fit_reference(scan.reference, gain=scan.gain, effects=effects, optional=optional)
-        log.info("flat field from the reference stepping series (%d steps): reduced chi-square %s",
-                 scan.reference.data.shape[0], ", ".join(f"{k} {v:.4f}" for k, v in fitted.reduced_chi2.items()))
-        if "phase_offset" in fitted.params:
-            log.info("reference step phase errors (rad): %s",
-                     np.array2string(fitted.params["phase_offset"][:, 0], precision=3))
-        return fitted.reference
-    return scan.reference
+    store = collect_lit_rows(scan, active_rows=reference.transmission.shape[0], min_frames=min_frames)
+    return store.observations(reference, columns=columns, pixel_mask=pixel_mask, gain=gain)
 
 
 def subsample_columns(width: int, n: int, *, offset: int | None = None) -> np.ndarray:
@@ -303,6 +235,5 @@ def _ranges(idx: np.ndarray) -> str:
     return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends, strict=True))
 
 
-__all__ = ["AlignmentError", "ReferenceFit", "auto_visibility_threshold", "build_observations", "fit_reference",
-           "interpolate_rows", "lit_blocks", "resolve_reference", "stepping_observations", "subsample_columns",
-           "tilt_alias_period", "lateral_coordinate"]
+__all__ = ["AlignmentError", "LitStore", "build_observations", "collect_lit_rows", "interpolate_rows", "lit_blocks",
+           "subsample_columns", "tilt_alias_period", "lateral_coordinate"]

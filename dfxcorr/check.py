@@ -259,11 +259,11 @@ def read_header(path, *, allow_external: bool = False) -> io.Scan:
     return io.Scan(data=np.broadcast_to(np.zeros((), dtype), (J, H, W)), position=position, reference=reference)
 
 
-def _columns(width: int, cfg: dict) -> np.ndarray:
+def _columns(width: int, cfg: dict, samples_per_column: int) -> np.ndarray:
     from .pipeline import fit_columns
 
     try:
-        return fit_columns(width, cfg)
+        return fit_columns(width, cfg, samples_per_column, report=False)
     except ValueError as exc:
         if isinstance(exc, DfxcorrError):
             raise
@@ -271,14 +271,14 @@ def _columns(width: int, cfg: dict) -> np.ndarray:
         if offset is not None:
             raise C.ConfigError(f"fit.column_offset={offset} is outside the detector's columns 0..{width - 1}") \
                 from None
-        raise C.ConfigError(f"fit.subsample={n} leaves no column of {width} (its first column would be {n // 2}); "
-                            f"use at most {width // 4}") from None
+        first = f" (its first column would be {n // 2})" if isinstance(n, int) else ""
+        raise C.ConfigError(f"fit.subsample={n} leaves no column of {width}{first}; use at most {width // 4}") from None
 
 
 def _visibility_reasons(scan: io.Scan) -> str | None:
     """Why visibility effects cannot be determined by this acquisition (paper Sec. II-F), or None."""
-    from .align import resolve_reference
-    from .pipeline import visibility_unidentifiable
+    from .analysis.identify import visibility_unidentifiable
+    from .reference import resolve_reference
 
     reference = scan.reference
     if isinstance(reference, io.SteppingReference) and not scan.is_stepping:
@@ -310,7 +310,7 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     IdentifiabilityError
         A visibility effect set to true that this acquisition cannot determine.
     """
-    from .pipeline import IdentifiabilityError
+    from .analysis.identify import IdentifiabilityError
 
     J, H, W = scan.shape
     method = cfg["fit"]["method"]
@@ -321,10 +321,10 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
         n = cfg["diagnose"]["subsample"]
         raise C.ConfigError(f"diagnose.subsample={n} leaves no column of {W} (its first column would be {n // 2}); "
                             f"use at most {2 * W - 1}")
-    columns = np.zeros(0, int) if method == "none" else _columns(W, cfg)
     count = np.bincount(lit_blocks(scan.position, scan.active_rows, H)[0], minlength=H)
     used = count >= cfg["align"]["min_frames"]
     lit = int(count[used].sum()) * W
+    columns = np.zeros(0, int) if method == "none" else _columns(W, cfg, lit // W)
     effects = C.effects_of(cfg) if method != "none" else ()
     dropped = {}
     why = _visibility_reasons(scan) if {"visibility_loss", "visibility_tilt"} & set(effects) else None

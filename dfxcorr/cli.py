@@ -216,15 +216,14 @@ def _compression(cfg: dict):
 @friendly
 def simulate(config_file, output, sets, truth, overwrite):
     """Simulate a scan (the paper's simulation study by default) and write it with its truth."""
-    from .io import atomic_path, write_scan
+    from .io import atomic_path
     from .sim import simulate as S
 
     out = Path(output)
     truth_path = Path(truth) if truth else out.with_name(f"{out.stem}.truth.npz")
     _guard([out, truth_path], inputs=[config_file] if config_file else [], overwrite=overwrite)
     cfg = C.load([config_file] if config_file else [], sets, schema=S.SCHEMA)
-    scan, true = S.simulate(cfg)
-    write_scan(out, scan, overwrite=overwrite)
+    scan, true = S.simulate_file(cfg, out, overwrite=overwrite)
     with atomic_path(truth_path, overwrite=overwrite) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **true)
     click.echo(f"{out}: {scan.shape[0]} frames of {scan.shape[1]} x {scan.shape[2]}; truth in {truth_path}")

@@ -115,7 +115,16 @@ SCHEMA: dict[str, dict[str, Option]] = {
     "fit": {
         "method": Option("ml", "vibration estimator: ml (this paper), alternating, correlation, none", str,
                          choices=METHODS),
-        "subsample": Option(20, "fit on every n-th detector column (paper Sec. II-D.1)", int, check=_positive),
+        "subsample": Option("auto", "fit on every n-th detector column (paper Sec. II-D.1); auto: every column "
+                                    "unless that exceeds fit.max_samples, then the smallest n that stays within it "
+                                    "(never beyond the alias limit W / 4)", (int, str),
+                            check=lambda v: None if v == "auto" or (not isinstance(v, str) and v > 0)
+                            else "must be auto or a positive integer"),
+        "max_samples": Option(10_000_000, "subsample auto: most lit samples (rows x frames x columns) the fit may "
+                                          "hold; 1e7 keeps the fit's arrays within a few hundred MB and its "
+                                          "evaluations well under a second, while the vibration estimates stop "
+                                          "improving long before (a few hundred columns of a clinical scan)",
+                              int, check=_positive),
         "column_offset": Option(None, "first column of the subsampled grid; null: subsample // 2", int,
                                 check=_nonneg, nullable=True),
         "maxiter": Option(300, "L-BFGS iterations per stage", int, check=_positive),
@@ -136,6 +145,9 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "iterations": Option(2, "solves with noise weights from the previous model (1: data weights, eq. 6)",
                              int, check=_positive),
         "uncorrected": Option(True, "also retrieve the images without vibration correction (previews)", bool),
+        "block_mb": Option(256, "memory for one block of detector rows in the retrieval and the motion mask (MB): "
+                                "pixels are independent there, so the scan is processed in blocks that fit",
+                           _NUM, check=_positive),
     },
     "diagnose": {
         "alpha": Option(0.01, "family-wise false-alarm probability per round (Holm over the effects tried)", _NUM,

@@ -18,8 +18,13 @@ from scipy import ndimage, stats
 from . import model as M
 
 
-def motion_score(obs: M.Observations, params: dict | None = None, weights: np.ndarray | None = None) -> np.ndarray:
-    """Per-pixel residual relative to what noise and (unmodelled) vibrations explain.
+def motion_statistics(obs: M.Observations, params: dict | None = None,
+                      weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pixel reduced residual, fringe sensitivity and degrees of freedom: what :func:`motion_score` and
+    :func:`mask_from_score` need.
+
+    Pixels are independent here, so row blocks of a scan can be evaluated separately and their
+    statistics combined by :func:`score_from_statistics`.
 
     The residual is the Poisson deviance of the pixel's samples in photon units (scaled by the photon
     share of the variance where there is electronic noise), not the Pearson chi-square: at a few
@@ -39,9 +44,11 @@ def motion_score(obs: M.Observations, params: dict | None = None, weights: np.nd
 
     Returns
     -------
-    ndarray, shape (R, C)
-        About 1 for consistent pixels (a reduced chi-square with n - 3 degrees of freedom), NaN where
-        the pixel could not be solved.
+    eps, q : ndarray, shape (R, C)
+        Reduced weighted residual (n - 3 degrees of freedom) and the phase sensitivity
+        (t v vf tf)^2 / Ibar per sample averaged over the pixel; NaN where the pixel could not be solved.
+    dof : ndarray, shape (R, C)
+        n - 3, the degrees of freedom of ``eps``.
     """
     if params is None:
         params = pilot_vibrations(obs)
@@ -57,8 +64,30 @@ def motion_score(obs: M.Observations, params: dict | None = None, weights: np.nd
         amp = np.hypot(images.coef[..., 1], images.coef[..., 2])[obs.pixel]
         q = obs.segment_sum(weights * (amp * np.hypot(dsg.Bc, dsg.Bs)) ** 2) / n
     ok = images.valid & (n > 3) & np.isfinite(eps) & np.isfinite(q)
+    return np.where(ok, eps, np.nan), np.where(ok, q, np.nan), n - 3
+
+
+def score_from_statistics(eps: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Motion score eps / (1 + gamma q), gamma fitted robustly over all finite pixels (any array shape)."""
+    ok = np.isfinite(eps) & np.isfinite(q)
     gamma = max(float(np.median((eps[ok] - 1.0) / np.maximum(q[ok], 1e-12))), 0.0) if np.any(ok) else 0.0
-    return np.where(ok, eps / (1.0 + gamma * q), np.nan)
+    with np.errstate(invalid="ignore"):
+        return np.where(ok, eps / (1.0 + gamma * q), np.nan)
+
+
+def motion_score(obs: M.Observations, params: dict | None = None, weights: np.ndarray | None = None) -> np.ndarray:
+    """Per-pixel residual relative to what noise and (unmodelled) vibrations explain.
+
+    Parameters as :func:`motion_statistics`.
+
+    Returns
+    -------
+    ndarray, shape (R, C)
+        About 1 for consistent pixels (a reduced chi-square with n - 3 degrees of freedom), NaN where
+        the pixel could not be solved.
+    """
+    eps, q, _ = motion_statistics(obs, params, weights)
+    return score_from_statistics(eps, q)
 
 
 def deviance(obs: M.Observations, ibar: np.ndarray) -> np.ndarray:
@@ -124,6 +153,26 @@ def robust_threshold(score: np.ndarray, *, sigma: float) -> float:
     return float(med + sigma * 1.4826 * np.median(np.abs(s - med)))
 
 
+def mask_from_score(image: np.ndarray, *, dof: np.ndarray | None = None, threshold: float | None = None,
+                    sigma: float = 6.0, dilate: int = 1) -> tuple[np.ndarray, float]:
+    """Pixels of a motion-score image (H, W) above the threshold, grown by ``dilate``; and the threshold.
+
+    With ``dof`` (H, W), the degrees of freedom of each pixel's score, a pixel must also be as improbable
+    as the threshold is at the typical number of degrees of freedom: rows lit in few frames have a long
+    tail, and a score above the threshold there is no evidence of motion.
+    """
+    thr = robust_threshold(image, sigma=sigma) if threshold is None else float(threshold)
+    score = np.nan_to_num(image, nan=0.0)
+    moving = score > thr
+    if dof is not None and np.isfinite(image).any():
+        typical = float(np.median(dof[np.isfinite(image)]))
+        with np.errstate(invalid="ignore"):
+            moving &= stats.chi2.logsf(score * dof, np.maximum(dof, 1)) <= stats.chi2.logsf(thr * typical, typical)
+    if dilate > 0 and moving.any():
+        moving = ndimage.binary_dilation(moving, iterations=dilate)
+    return moving, thr
+
+
 def motion_mask(obs: M.Observations, *, threshold: float | None = None, sigma: float = 6.0,
                 dilate: int = 1) -> tuple[np.ndarray, np.ndarray, float]:
     """Pixels whose frames disagree beyond noise and vibrations.
@@ -146,17 +195,7 @@ def motion_mask(obs: M.Observations, *, threshold: float | None = None, sigma: f
     threshold : float
         The threshold used.
     """
-    score = motion_score(obs)
-    thr = robust_threshold(score, sigma=sigma) if threshold is None else float(threshold)
-    # rows lit in few frames have few degrees of freedom and a long tail: there a pixel must be as
-    # improbable as the threshold is at the typical number of degrees of freedom
-    dof = obs.segment_sum(obs.use.astype(float)) - 3
-    typical = float(np.median(dof[np.isfinite(score)])) if np.isfinite(score).any() else 1.0
-    with np.errstate(invalid="ignore"):
-        improbable = stats.chi2.logsf(np.nan_to_num(score) * dof, np.maximum(dof, 1)) <= \
-            stats.chi2.logsf(thr * typical, typical)
-    image = obs.to_image(score)
-    moving = obs.to_image(improbable & (np.nan_to_num(score) > thr), fill=False).astype(bool)
-    if dilate > 0 and moving.any():
-        moving = ndimage.binary_dilation(moving, iterations=dilate)
+    eps, q, dof = motion_statistics(obs)
+    image = obs.to_image(score_from_statistics(eps, q))
+    moving, thr = mask_from_score(image, dof=obs.to_image(dof), threshold=threshold, sigma=sigma, dilate=dilate)
     return moving, image, thr

@@ -5,6 +5,11 @@ Python::
 
     from dfxcorr import config, pipeline
     result = pipeline.reconstruct("scan.h5", config.load(["my.yaml"]))
+
+Memory: the frames stay in the file; :func:`prepare` reads the lit rows of each frame once into a
+:class:`~dfxcorr.align.LitStore` (counts in their stored dtype). The fit holds observations of its
+columns only; the motion mask and the retrieval, where pixels are independent, go through the
+detector in blocks of rows sized by ``retrieve.block_mb``.
 """
 from __future__ import annotations
 
@@ -13,6 +18,7 @@ import hashlib
 import logging
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,28 +26,18 @@ import numpy as np
 from . import __version__
 from . import config as C
 from . import model as M
-from .align import (
-    auto_visibility_threshold,
-    build_observations,
-    resolve_reference,
-    subsample_columns,
-    tilt_alias_period,
-)
-from .analysis import identify
+from .align import LitStore, collect_lit_rows, subsample_columns, tilt_alias_period
+from .analysis.identify import resolve_effects
 from .baselines import fit_alternating, fit_correlation
-from .errors import DfxcorrError
-from .fit import FitResult, fit_vibrations, initial_weights
-from .io import Scan, read_scan
-from .mask import motion_mask
+from .fit import FitResult, fit_vibrations
+from .io import Reference, Scan, read_scan
+from .mask import mask_from_score, motion_statistics, pilot_vibrations, score_from_statistics
 from .progress import Progress
+from .reference import auto_visibility_threshold, resolve_reference
 from .result import Result, paper_params
-from .retrieve import image_maps, retrieve
+from .retrieve import chi2_sums, image_values, retrieve
 
 log = logging.getLogger(__name__)
-
-
-class IdentifiabilityError(DfxcorrError, ValueError):
-    """An effect was asked for that the acquisition cannot determine."""
 
 
 @contextmanager
@@ -63,78 +59,146 @@ def sha256(path: str | Path) -> str:
     return h.hexdigest()
 
 
-def separable_flat_field(reference, *, tol: float = 1e-3) -> bool:
-    """True if the flat field cannot tell per-frame visibility loss from the images (paper eq. 48).
+@dataclass(frozen=True)
+class Prepared:
+    """A scan made ready for any analysis: flat field resolved and aligned, lit samples held, region of interest.
 
-    That is the case when t^f and v^f do not change along the scan direction and the flat-field phase is
-    f(column) + a * row with one slope a for all columns.
+    Every consumer (reconstruct, diagnose, compare) gets its observations from here, so that they see
+    the same data for the same scan and configuration.
+
+    Attributes
+    ----------
+    scan : Scan
+        The acquisition (its frames may stay in the file; the store holds what is needed).
+    name : str
+        File name, or 'scan' for an in-memory scan.
+    path : Path or None
+    reference : Reference
+        Flat-field maps (retrieved from the scan's stepping series with the ``reference.*`` options).
+    store : LitStore
+    min_visibility : float
+        Samples whose aligned reference visibility is below this carry no fringe (region of interest).
+    gain, electronic : float
+        Noise model of the configuration (``load.*``).
     """
-    A = reference.transmission.shape[0]
-    if A < 2:
-        return True
-    phase = np.unwrap(reference.phase, axis=0)
-    u = np.arange(A) - (A - 1) / 2
-    slope = np.sum(u[:, None] * (phase - phase.mean(axis=0))) / (np.sum(u ** 2) * phase.shape[1])
-    resid = phase - phase.mean(axis=0) - slope * u[:, None]
-    flat = [np.std(m, axis=0).max() / np.abs(m).mean() for m in (reference.transmission, reference.visibility)]
-    return bool(np.sqrt(np.mean(resid ** 2)) < tol and max(flat) < tol)
+
+    scan: Scan
+    name: str
+    path: Path | None
+    reference: Reference
+    store: LitStore
+    min_visibility: float
+    gain: float
+    electronic: float
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return self.scan.shape
+
+    def observations(self, *, columns: np.ndarray | None = None, rows: tuple[int, int] | None = None,
+                     dtype=np.float64) -> tuple[M.Observations, np.ndarray]:
+        """Observations of some columns and detector rows, and the region of interest of their samples.
+
+        Samples without fringe (outside the region of interest) get v^f = 0: they yield no images, but
+        in the fit they still monitor dose and background. ``use`` is True everywhere.
+
+        Returns
+        -------
+        obs : Observations
+        roi : ndarray of bool, shape (K, C)
+        """
+        obs = self.store.observations(self.reference, columns=columns, rows=rows, gain=self.gain,
+                                      electronic=self.electronic, dtype=dtype)
+        roi = obs.vf >= self.min_visibility
+        return replace(obs, vf=np.where(roi, obs.vf, 0).astype(obs.vf.dtype, copy=False)), roi
 
 
-def visibility_unidentifiable(scan: Scan, reference) -> str | None:
-    """Why per-frame visibility loss cannot be told apart from the images here, or None (paper Sec. II-F)."""
-    if scan.is_stepping:
-        why = ("in a phase-stepping recording the flat field is the same in every frame, so a per-frame "
-               "visibility loss trades off exactly against the transmission and dark-field images (paper Sec. II-F)")
-    elif separable_flat_field(reference):
-        why = ("the flat-field phase of this scan is separable (paper eq. 48) and t^f, v^f do not vary along the "
-               "scan, so per-frame visibility loss cannot be told apart from the images")
-    else:
-        why = None
-    return why
+def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) -> Prepared:
+    """Load, resolve the reference, align and collect the lit samples: the one preparation of every analysis.
 
+    Parameters
+    ----------
+    scan : Scan or path
+    cfg : dict
+        Resolved configuration: ``load``, ``reference`` and ``align`` sections.
+    timings : dict, optional
+        Receives the seconds of the load and align stages.
 
-def resolve_effects(cfg: dict, scan: Scan, reference, fit_obs: M.Observations) -> tuple[str, ...]:
-    """The effects to fit: the configured ones that this acquisition can determine.
-
-    Every enabled effect is checked in turn against the Fisher information of the fit's samples
-    (:mod:`dfxcorr.analysis.identify`); visibility effects in a stepping recording or over a separable flat
-    field are refused with the paper's reason. An effect set to ``auto`` is dropped with a log line.
-
-    Raises
-    ------
-    IdentifiabilityError
-        If the configuration explicitly asks for an effect the acquisition cannot determine.
+    Returns
+    -------
+    Prepared
     """
-    keys = {e: k for k, e in C.VIBRATION_EFFECTS.items()}
-
-    def refuse_or_drop(name, why):
-        if cfg["vibration"][keys[name]] is True:
-            raise IdentifiabilityError(f"{name} is not identifiable here: {why}; set vibration.{keys[name]}=false"
-                                       + (" (or auto)" if name == "visibility_loss" else ""))
-        log.info("%s is not fitted: %s", name, why)
-
-    paper_why = visibility_unidentifiable(scan, reference)
-    names = []
-    for name in C.effects_of(cfg):
-        if paper_why and name in ("visibility_loss", "visibility_tilt"):
-            refuse_or_drop(name, paper_why)
-        else:
-            names.append(name)
-    chosen: list[str] = []
-    for verdict in identify.select(fit_obs, initial_weights(fit_obs, {}), names):
-        if verdict.identifiable:
-            chosen.append(verdict.name)
-        else:
-            refuse_or_drop(verdict.name, f"the Fisher information of this acquisition has {verdict.excess} "
-                                         f"direction(s) of its parameters without information beyond its gauge "
-                                         f"(they trade off exactly against the images"
-                                         f"{' or ' + ', '.join(chosen) if chosen else ''})")
-    return tuple(chosen)
+    timings = {} if timings is None else timings
+    path = None
+    if not isinstance(scan, Scan):
+        path = Path(scan)
+        with stage("load", timings):
+            scan = read_scan(path, allow_external=cfg["load"]["allow_external"])
+            log.info("scan %s: %d frames of %d x %d, active area %d rows%s", path.name, *scan.shape,
+                     scan.active_rows, ", phase stepping" if scan.is_stepping else "")
+    with stage("align", timings):
+        step_effects = tuple(e for e, on in (("phase_offset", cfg["reference"]["step_errors"]),
+                                             ("dose", cfg["reference"]["dose"])) if on is not False)
+        reference = resolve_reference(scan, effects=step_effects,
+                                      optional=("dose",) if cfg["reference"]["dose"] == "auto" else ())
+        store = collect_lit_rows(scan, active_rows=reference.transmission.shape[0],
+                                 min_frames=cfg["align"]["min_frames"])
+        log.info("lit samples: %d rows x frames of %d columns (%.0f MB as %s)", store.row.size, scan.shape[2],
+                 store.counts.nbytes / 1e6, store.counts.dtype)
+        vmin = cfg["align"]["min_visibility"]
+        vmin = auto_visibility_threshold(reference.visibility) if vmin == "auto" else float(vmin)
+    return Prepared(scan=scan, name=path.name if path else "scan", path=path, reference=reference, store=store,
+                    min_visibility=vmin, gain=cfg["load"]["gain"] or scan.gain, electronic=cfg["load"]["electronic"])
 
 
-def fit_columns(width: int, cfg: dict) -> np.ndarray:
-    """Columns entering the vibration fit, with the aliasing limit of paper Sec. II-D.1 checked."""
+#: Bytes per (pixel, frame) sample at the peak of a block's retrieval or motion statistics in float64: 153
+#: measured with tracemalloc on the numpy model (observations, design, weights, expected counts, temporaries).
+BYTES_PER_SAMPLE = 160
+
+
+def row_blocks(store: LitStore, budget_mb: float) -> list[tuple[int, int]]:
+    """Detector-row ranges [r0, r1) whose samples fit the memory budget, covering every held row.
+
+    Each block holds at least one row; rows are lit in different numbers of frames, so blocks are cut
+    on the cumulative sample count.
+    """
+    rows, per_row = np.unique(store.row, return_counts=True)
+    width = store.shape[2]
+    cap = max(int(budget_mb * 1e6 / (BYTES_PER_SAMPLE * width)), 1)  # blocks (row, frame) per block
+    blocks, start, filled = [], 0, 0
+    for i, n in enumerate(per_row):
+        if filled and filled + n > cap:
+            blocks.append((int(rows[start]), int(rows[i])))
+            start, filled = i, 0
+        filled += n
+    blocks.append((int(rows[start]), int(rows[-1]) + 1))
+    return blocks
+
+
+def _place(image: np.ndarray, obs: M.Observations, values: np.ndarray) -> None:
+    """Write per-pixel values (R, C) of a row block into a detector image (H, W) in place."""
+    image[np.ix_(obs.rows, obs.columns)] = values
+
+
+
+def fit_columns(width: int, cfg: dict, samples_per_column: int, *, report: bool = True) -> np.ndarray:
+    """Columns entering the vibration fit, with the aliasing limit of paper Sec. II-D.1 checked.
+
+    ``fit.subsample: auto`` takes every column unless the fit would then hold more than
+    ``fit.max_samples`` lit samples; then the smallest n that stays within it, at most W / 4 (logged
+    when ``report``).
+    """
     n = cfg["fit"]["subsample"]
+    limit = max(width // 4, 1)
+    if n == "auto":
+        budget = cfg["fit"]["max_samples"]
+        n = min(max(int(np.ceil(samples_per_column * width / budget)), 1), limit)
+        why = ("every column fits within fit.max_samples" if n == 1 else
+               f"{samples_per_column} samples per column x {width} columns exceed fit.max_samples={budget}")
+        if n == limit and samples_per_column * width / n > budget:
+            why += f"; held at the alias limit W / 4 = {limit}"
+        if report:
+            log.info("fit.subsample auto: every %d-th column (%s)", n, why)
     cols = subsample_columns(width, n, offset=cfg["fit"]["column_offset"])
     if cols.size < 4:
         raise C.ConfigError(f"fit.subsample={n} leaves {cols.size} of {width} columns; use at most {width // 4}")
@@ -145,14 +209,15 @@ def fit_columns(width: int, cfg: dict) -> np.ndarray:
     return cols
 
 
-def reconstruct(scan: Scan | str | Path, cfg: dict | None = None, *, command_line: str = "",
+def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, command_line: str = "",
                 progress: bool | None = None) -> Result:
     """Vibration-corrected transmission, dark-field and differential-phase images of a scan.
 
     Parameters
     ----------
-    scan : Scan or path
-        The acquisition, or the path of a scan file.
+    scan : Scan, path or Prepared
+        The acquisition, the path of a scan file, or a scan already prepared with the same configuration's
+        ``load``, ``reference`` and ``align`` sections (:func:`prepare`).
     cfg : dict, optional
         Resolved configuration (:func:`dfxcorr.config.load`); default: the defaults.
     command_line : str
@@ -166,69 +231,108 @@ def reconstruct(scan: Scan | str | Path, cfg: dict | None = None, *, command_lin
     """
     cfg = C.defaults() if cfg is None else cfg
     timings: dict[str, float] = {}
-    path = None
-    if not isinstance(scan, Scan):
-        path = Path(scan)
-        with stage("load", timings):
-            scan = read_scan(path, allow_external=cfg["load"]["allow_external"])
-            log.info("scan %s: %d frames of %d x %d, active area %d rows%s", path.name, *scan.shape,
-                     scan.active_rows, ", phase stepping" if scan.is_stepping else "")
+    prep = scan if isinstance(scan, Prepared) else prepare(scan, cfg, timings=timings)
+    J, H, W = prep.shape
     method = cfg["fit"]["method"]
-    gain = cfg["load"]["gain"] or scan.gain
-    with stage("align", timings):
-        step_effects = tuple(e for e, on in (("phase_offset", cfg["reference"]["step_errors"]),
-                                             ("dose", cfg["reference"]["dose"])) if on is not False)
-        reference = resolve_reference(scan, effects=step_effects,
-                                      optional=("dose",) if cfg["reference"]["dose"] == "auto" else ())
-        obs = build_observations(scan, reference, min_frames=cfg["align"]["min_frames"], gain=gain)
-        obs.electronic = cfg["load"]["electronic"]
-        vmin = cfg["align"]["min_visibility"]
-        vmin = auto_visibility_threshold(reference.visibility) if vmin == "auto" else vmin
-        # samples without fringe carry transmission only (v^f = 0 there): no images (NaN), but in the fit
-        # they monitor dose and background
-        roi = obs.vf >= vmin
-        obs.vf = np.where(roi, obs.vf, 0.0)
-        left_out = obs.segment_sum(roi.astype(float)) == 0
-        if left_out.any():
-            log.info("region of interest: %d pixels see no fringe (reference visibility < %.3g) and are left out "
-                     "of the images", int(left_out.sum()), vmin)
-    moving = np.zeros(scan.shape[1:], bool)
+    blocks = row_blocks(prep.store, cfg["retrieve"]["block_mb"])
+    log.info("retrieval and motion mask in %d block(s) of detector rows (retrieve.block_mb=%g)", len(blocks),
+             cfg["retrieve"]["block_mb"])
+    moving = np.zeros((H, W), bool)
     with stage("mask", timings):
         if cfg["mask"]["enabled"] and method != "none":
-            moving, _, thr = motion_mask(obs, threshold=cfg["mask"]["threshold"], sigma=cfg["mask"]["sigma"],
-                                         dilate=cfg["mask"]["dilate"])
-            # the score assumes a fringe; pixels without one only monitor dose and background
-            moving &= obs.to_image(obs.segment_sum(roi.astype(float)), fill=0.0) > 0
+            m = cfg["mask"]
+            columns = fit_columns(W, cfg, prep.store.samples_per_column(), report=False)
+            moving, thr = blocked_motion_mask(prep, blocks, columns=columns,
+                                              threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
             log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
     with stage("fit", timings):
-        fitted, fit_mask, effects = run_fit(obs, scan, reference, cfg, moving, progress=progress)
-    obs.use = roi
+        fitted, fit_mask, effects = run_fit(prep, cfg, moving, progress=progress)
     with stage("retrieve", timings):
-        rec = retrieve(obs, fitted.params, iterations=cfg["retrieve"]["iterations"])
-        maps = image_maps(obs, rec.images)
+        iterations = cfg["retrieve"]["iterations"]
+        n_par = sum(np.size(p) for p in fitted.params.values())
+        maps, chi2 = blocked_retrieval(prep, blocks, fitted.params, iterations=iterations, n_params=n_par)
         uncorrected = None
         if cfg["retrieve"]["uncorrected"] and method != "none":
-            uncorrected = image_maps(obs, retrieve(obs, {}, iterations=cfg["retrieve"]["iterations"]).images)
-        log.info("reduced chi-square of the final model: %.4f", rec.reduced_chi2)
+            uncorrected, _ = blocked_retrieval(prep, blocks, {}, iterations=iterations, n_params=0)
+        log.info("reduced chi-square of the final model: %.4f", chi2)
     # the paper's three parameters are always reported, at their neutral value where not estimated
-    params = paper_params(fitted.params, scan.shape[0])
+    params = paper_params(fitted.params, J)
     uncertainty = {**{n: np.full_like(p, np.inf) for n, p in params.items()}, **fitted.uncertainty}
     estimated = {n: (n in effects and n in fitted.params and method != "none") for n in params}
+    path = prep.path
     provenance = {"program": "dfxcorr", "version": __version__,
                   "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                   "command_line": command_line, "input_file": str(path) if path else "",
                   "input_sha256": sha256(path) if path else "",
-                  "external_files": "\n".join(f"{sha256(p)}  {p}" for p in scan.external_files)}
+                  "external_files": "\n".join(f"{sha256(p)}  {p}" for p in prep.scan.external_files)}
     return Result(transmission=maps["transmission"], dark_field=maps["dark_field"],
                   differential_phase=maps["differential_phase"], params=params, estimated=estimated,
                   uncertainty=uncertainty, fit_mask=fit_mask, motion_mask=moving.astype(np.uint8),
-                  cost=fitted.cost, cost_stage=fitted.stage, reduced_chi2=rec.reduced_chi2, method=method,
+                  cost=fitted.cost, cost_stage=fitted.stage, reduced_chi2=chi2, method=method,
                   config=cfg, provenance=provenance, uncorrected=uncorrected, timings=timings)
 
 
-def run_fit(obs: M.Observations, scan: Scan, reference, cfg: dict, moving: np.ndarray, *,
+def blocked_motion_mask(prep: Prepared, blocks: list[tuple[int, int]], *, columns: np.ndarray,
+                        threshold: float | None, sigma: float, dilate: int) -> tuple[np.ndarray, float]:
+    """The motion mask (paper Sec. II-E) computed block by block; identical to one pass over all pixels.
+
+    The pilot vibration estimate that the score compares with is per frame, so it comes once from the
+    fit's ``columns`` (:func:`dfxcorr.mask.pilot_vibrations`); the per-pixel statistics then come
+    block by block.
+
+    Returns
+    -------
+    moving : ndarray of bool, shape (H, W)
+    threshold : float
+    """
+    H, W = prep.shape[1:]
+    pilot = pilot_vibrations(prep.observations(columns=columns)[0])
+    eps, q, dof = np.full((H, W), np.nan), np.full((H, W), np.nan), np.zeros((H, W))
+    fringe = np.zeros((H, W), bool)
+    for rows in blocks:
+        obs, roi = prep.observations(rows=rows)
+        e, qq, d = motion_statistics(obs, pilot)
+        _place(eps, obs, e)
+        _place(q, obs, qq)
+        _place(dof, obs, d)
+        _place(fringe, obs, obs.segment_sum(roi.astype(np.float64)) > 0)
+    moving, thr = mask_from_score(score_from_statistics(eps, q), dof=dof, threshold=threshold, sigma=sigma,
+                                  dilate=dilate)
+    # the score assumes a fringe; pixels without one only monitor dose and background
+    return moving & fringe, thr
+
+
+def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: dict, *, iterations: int,
+                      n_params: int) -> tuple[dict[str, np.ndarray], float]:
+    """Images (H, W) of every pixel in its region of interest, block by block, and the reduced chi-square.
+
+    The chi-square and its degrees of freedom are summed over blocks, so the result equals
+    :func:`dfxcorr.retrieve.reduced_chi2` over the whole scan with ``n_params`` per-frame parameters.
+    """
+    H, W = prep.shape[1:]
+    maps = {k: np.full((H, W), np.nan) for k in ("transmission", "dark_field", "differential_phase")}
+    chi2 = samples = pixels = 0
+    left_out = 0
+    for rows in blocks:
+        obs, roi = prep.observations(rows=rows)
+        obs = replace(obs, use=roi)
+        rec = retrieve(obs, params, iterations=iterations, n_frame_params=0)
+        for k, v in image_values(rec.images).items():
+            _place(maps[k], obs, v)
+        c, n, p = chi2_sums(obs, rec.expected, rec.images.valid)
+        chi2, samples, pixels = chi2 + c, samples + n, pixels + p
+        left_out += int(np.count_nonzero(obs.segment_sum(roi.astype(np.float64)) == 0))
+    if left_out:
+        log.info("region of interest: %d pixels see no fringe (reference visibility < %.3g) and are left out "
+                 "of the images", left_out, prep.min_visibility)
+    return maps, chi2 / max(samples - 3 * pixels - n_params, 1)
+
+
+def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *,
             progress: bool | None = None) -> tuple[FitResult, np.ndarray, tuple[str, ...]]:
     """Estimate the per-frame parameters with the configured method.
+
+    The fit holds observations of its columns only (:func:`fit_columns`), in float32.
 
     Returns
     -------
@@ -239,8 +343,8 @@ def run_fit(obs: M.Observations, scan: Scan, reference, cfg: dict, moving: np.nd
         The effects fitted (the configured ones this acquisition can determine).
     """
     method = cfg["fit"]["method"]
-    J = scan.shape[0]
-    fit_mask = np.zeros(scan.shape[1:], np.uint8)
+    J, H, W = prep.shape
+    fit_mask = np.zeros((H, W), np.uint8)
     if method == "none":
         params = paper_params({}, J)
         unc = {k: np.full_like(v, np.inf) for k, v in params.items()}
@@ -248,10 +352,10 @@ def run_fit(obs: M.Observations, scan: Scan, reference, cfg: dict, moving: np.nd
                          converged=True), fit_mask, ()
     if method not in FIT_METHODS:
         raise C.ConfigError(f"fit.method={method!r} is not available; available: {', '.join(FIT_METHODS)}, none")
-    cols = np.searchsorted(obs.columns, fit_columns(scan.shape[2], cfg))
-    fit_obs = obs.subset(cols)
-    fit_obs.use = fit_obs.use & ~moving[fit_obs.row][:, fit_obs.columns]
-    effects = resolve_effects(cfg, scan, reference, fit_obs)
+    cols = fit_columns(W, cfg, prep.store.samples_per_column())
+    fit_obs, _ = prep.observations(columns=cols, dtype=np.float32)
+    fit_obs = replace(fit_obs, use=~moving[fit_obs.row][:, fit_obs.columns])
+    effects = resolve_effects(cfg, prep.scan, prep.reference, fit_obs)
     used = fit_obs.segment_sum(fit_obs.use.astype(np.float64)) > 0
     fit_mask[np.ix_(fit_obs.rows, fit_obs.columns)] = used
     log.info("vibration fit (%s): %s on %d columns, %d pixels, %d frames", method, ", ".join(effects),
@@ -267,11 +371,12 @@ def run_fit(obs: M.Observations, scan: Scan, reference, cfg: dict, moving: np.nd
                                      visibility_quantile=f["visibility_quantile"],
                                      gauge_fraction=f["gauge_fraction"], on_iteration=tick)
     if "tilt" in result.params and result.well_determined is not None:
-        period = tilt_alias_period(scan.shape[2], f["subsample"])
+        step = int(cols[1] - cols[0]) if cols.size > 1 else 1
+        period = tilt_alias_period(W, step)
         worst = float(np.abs(result.params["tilt"][result.well_determined]).max())
         if worst > period / 4:
-            log.warning("fitted tilts reach %.2f rad, a quarter of the alias period %.2f rad of fit.subsample=%d: "
-                        "reduce fit.subsample", worst, period, f["subsample"])
+            log.warning("fitted tilts reach %.2f rad, a quarter of the alias period %.2f rad of every %d-th "
+                        "column: reduce fit.subsample", worst, period, step)
     if not result.converged:
         log.warning("the vibration fit stopped before converging (%s)", "; ".join(result.messages))
     for name in result.params:

@@ -71,9 +71,8 @@ def reduced_chi2(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *, n_
 
     dof = samples - per_pixel_unknowns * pixels - n_params.
     """
-    sel = valid[obs.pixel] & obs.use
-    return _per_dof(float(M.pearson(obs, ibar, gain=gain)[sel].sum()), int(sel.sum()), int(valid.sum()), n_params,
-                    per_pixel_unknowns)
+    chi2, samples, pixels = chi2_sums(obs, ibar, valid, gain=gain)
+    return _per_dof(chi2, samples, pixels, n_params, per_pixel_unknowns)
 
 
 def _per_dof(chi2: float, samples: int, pixels: int, n_params: int, per_pixel_unknowns: int) -> float:
@@ -81,9 +80,23 @@ def _per_dof(chi2: float, samples: int, pixels: int, n_params: int, per_pixel_un
     return chi2 / max(samples - per_pixel_unknowns * pixels - n_params, 1)
 
 
-def image_maps(obs: M.Observations, images: M.Images) -> dict[str, np.ndarray]:
-    """Detector images t, v, phi (H, W), NaN where a pixel was not lit or not solvable."""
+def chi2_sums(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *,
+              gain: float | None = None) -> tuple[float, int, int]:
+    """Pearson chi-square over the used samples of valid pixels, the number of those samples and pixels.
+
+    Each is a sum over pixels, so the sums of row blocks give :func:`reduced_chi2` of the whole scan.
+    """
+    sel = valid[obs.pixel] & obs.use
+    return float(M.pearson(obs, ibar, gain=gain)[sel].sum()), int(sel.sum()), int(valid.sum())
+
+
+def image_values(images: M.Images) -> dict[str, np.ndarray]:
+    """t, v, phi per held pixel (R, C), NaN where not solvable."""
     nan = np.where(images.valid, 1.0, np.nan)
     with np.errstate(divide="ignore", invalid="ignore"):
-        maps = {"transmission": images.t * nan, "dark_field": images.v * nan, "differential_phase": images.phi * nan}
-    return {k: obs.to_image(v) for k, v in maps.items()}
+        return {"transmission": images.t * nan, "dark_field": images.v * nan, "differential_phase": images.phi * nan}
+
+
+def image_maps(obs: M.Observations, images: M.Images) -> dict[str, np.ndarray]:
+    """Detector images t, v, phi (H, W), NaN where a pixel was not lit or not solvable."""
+    return {k: obs.to_image(v) for k, v in image_values(images).items()}

@@ -30,11 +30,12 @@ import numpy as np
 from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr import pipeline, plots
-from dfxcorr.align import build_observations, resolve_reference
+from dfxcorr.align import build_observations
 from dfxcorr.analysis import compare as CMP
 from dfxcorr.analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
 from dfxcorr.baselines import fit_alternating
 from dfxcorr.fit import fit_vibrations, initial_weights
+from dfxcorr.reference import resolve_reference
 from dfxcorr.result import Result
 from dfxcorr.sim import simulate as S
 

@@ -24,8 +24,9 @@ import numpy as np
 
 from dfxcorr import config as C
 from dfxcorr import pipeline, plots
-from dfxcorr.align import build_observations, resolve_reference
+from dfxcorr.align import build_observations
 from dfxcorr.analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
+from dfxcorr.reference import resolve_reference
 from dfxcorr.retrieve import image_maps, retrieve
 from dfxcorr.sim import simulate as S
 

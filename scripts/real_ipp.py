@@ -18,9 +18,9 @@ import numpy as np
 
 from dfxcorr import config as C
 from dfxcorr import pipeline, plots
-from dfxcorr.align import fit_reference
 from dfxcorr.analysis.diagnose import diagnose, write_report
 from dfxcorr.importer import import_stepping
+from dfxcorr.reference import fit_reference
 
 ROOT = Path(__file__).resolve().parents[1]
 

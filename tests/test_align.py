@@ -1,8 +1,9 @@
 """Flat-field alignment against analytic references."""
 import numpy as np
 
-from dfxcorr.align import build_observations, fit_reference, interpolate_rows, lit_blocks
+from dfxcorr.align import build_observations, interpolate_rows, lit_blocks
 from dfxcorr.io import Reference, Scan, SteppingReference
+from dfxcorr.reference import fit_reference
 
 
 def test_linear_maps_are_reproduced_exactly_including_outer_half_rows():

@@ -6,10 +6,11 @@ import pytest
 from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr import pipeline
-from dfxcorr.align import build_observations, resolve_reference, subsample_columns
+from dfxcorr.align import build_observations, subsample_columns
 from dfxcorr.analysis.evaluate import frames_lighting, gauge_median, vibration_rmse
 from dfxcorr.baselines import fit_alternating, fit_correlation, robust_polyfit
 from dfxcorr.fit import fit_vibrations, initial_weights
+from dfxcorr.reference import resolve_reference
 
 
 def fit_data(scan, every):

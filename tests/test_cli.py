@@ -116,7 +116,7 @@ def test_stepping_scan_with_visibility_is_refused(tmp_path):
 
 def test_config_defaults_and_check(tmp_path):
     res = run("config", "--defaults")
-    assert res.exit_code == 0 and "subsample: 20" in res.output
+    assert res.exit_code == 0 and "subsample: auto" in res.output
     f = tmp_path / "my.yaml"
     f.write_text("fit:\n  subsample: 7\n")
     res = run("config", "--check", f)

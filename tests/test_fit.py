@@ -5,6 +5,7 @@ import pytest
 from dfxcorr import config as C
 from dfxcorr import pipeline
 from dfxcorr.analysis.evaluate import frames_lighting, gauge_median
+from dfxcorr.analysis.identify import IdentifiabilityError
 
 
 def standardized_errors(result, truth, scan, frames=None):
@@ -80,7 +81,7 @@ def test_method_none_has_neutral_parameters_and_no_fit(small_scan):
 
 def test_visibility_loss_is_refused_for_a_stepping_recording(small_scan):
     scan, _ = small_scan(**{"simulate.geometry": "stepping", "effects.visibility_loss": 0.0})
-    with pytest.raises(pipeline.IdentifiabilityError, match="not identifiable.*stepping"):
+    with pytest.raises(IdentifiabilityError, match="not identifiable.*stepping"):
         pipeline.reconstruct(scan, C.load([], ["vibration.visibility=true"]))
     result = pipeline.reconstruct(scan, C.load([], ["fit.subsample=3"]))  # auto leaves it out
     assert not result.estimated["visibility_loss"] and result.estimated["phase_offset"]
@@ -88,7 +89,7 @@ def test_visibility_loss_is_refused_for_a_stepping_recording(small_scan):
 
 def test_separable_flat_field_refuses_visibility(small_scan):
     scan, _ = small_scan(**{"simulate.fringes_edge": 2.0})  # equal fringe counts: phase = f(c) + a u
-    with pytest.raises(pipeline.IdentifiabilityError, match="separable"):
+    with pytest.raises(IdentifiabilityError, match="separable"):
         pipeline.reconstruct(scan, C.load([], ["vibration.visibility=true"]))
 
 

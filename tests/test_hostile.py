@@ -44,6 +44,9 @@ def huge_declaration(f):
     f.create_dataset(f"{DET}/data", shape=(20000, 180, 204), dtype=np.uint16, chunks=(1, 180, 204),
                      compression="gzip")
     f.create_dataset("entry/scan/position", data=np.zeros(20000))
+    for m, value in (("transmission", 1e4), ("visibility", 0.3), ("phase", 0.0)):  # consistent but for storage
+        del f[f"entry/reference/{m}"]
+        f.create_dataset(f"entry/reference/{m}", data=np.full((3, 204), value))
 
 
 def contiguous_unwritten(f):

@@ -3,8 +3,9 @@ import numpy as np
 
 from dfxcorr import config as C
 from dfxcorr import pipeline
-from dfxcorr.align import build_observations, resolve_reference
+from dfxcorr.align import build_observations
 from dfxcorr.mask import motion_mask
+from dfxcorr.reference import resolve_reference
 
 
 def test_moving_region_is_flagged_and_little_else(small_scan):

@@ -5,9 +5,10 @@ import tifffile
 
 from dfxcorr import config as C
 from dfxcorr import pipeline
-from dfxcorr.align import fit_reference
+from dfxcorr.analysis.identify import IdentifiabilityError
 from dfxcorr.importer import import_stepping
 from dfxcorr.io import read_scan
+from dfxcorr.reference import fit_reference
 from dfxcorr.sim import simulate as S
 
 from conftest import shared_path, sim_config
@@ -73,7 +74,7 @@ def without_fringes(scan, dose, columns=10):
 
 def test_dose_needs_pixels_without_fringes(stepping):
     scan, _ = stepping
-    with pytest.raises(pipeline.IdentifiabilityError, match="dose is not identifiable"):
+    with pytest.raises(IdentifiabilityError, match="dose is not identifiable"):
         pipeline.reconstruct(scan, C.load([], ["fit.subsample=2", "vibration.dose=true"]))
 
 

@@ -22,9 +22,8 @@ import numpy as np
 
 from .. import config as C
 from .. import export, pipeline, plots
-from ..align import resolve_reference
 from ..errors import DfxcorrError
-from ..io import Scan, atomic_path, read_scan
+from ..io import Scan, atomic_path
 from ..result import Result, paper_params
 from .evaluate import frames_lighting, image_rmse, vibration_rmse
 
@@ -68,14 +67,20 @@ def machine() -> str:
 # --------------------------------------------------------------------------------------------------
 
 
-def run_methods(scan: Scan | str | Path, cfg: dict, *, methods=METHODS, method_sets: dict | None = None,
+#: Configuration sections that :func:`dfxcorr.pipeline.prepare` reads.
+PREPARATION_SECTIONS = ("load", "reference", "align")
+
+
+def run_methods(scan: Scan | str | Path | pipeline.Prepared, cfg: dict, *, methods=METHODS,
+                method_sets: dict | None = None,
                 command_line: str = "") -> tuple[dict[str, Result], dict[str, float]]:
     """Reconstruct one scan with each estimator.
 
     Parameters
     ----------
-    scan : Scan or path
-        A path is read by each reconstruction, which records it (and its checksum) in the provenance.
+    scan : Scan, path or Prepared
+        Prepared once for all methods that share the ``load``, ``reference`` and ``align`` options; a
+        path is recorded (with its checksum) in each result's provenance.
     cfg : dict
         Resolved configuration shared by all methods (``fit.method`` is set per method).
     methods : sequence of str
@@ -92,14 +97,22 @@ def run_methods(scan: Scan | str | Path, cfg: dict, *, methods=METHODS, method_s
         Method -> wall-clock seconds of the reconstruction (s).
     """
     results, runtimes = {}, {}
+    prepared: dict[str, tuple[pipeline.Prepared, float]] = {}
     for method in methods:
         cfg_m = C.merge(cfg, {"fit": {"method": method}})
         for item in (method_sets or {}).get(method, []):
             cfg_m = C.merge(cfg_m, C.parse_set(item), origin=f"{method}: {item}")
         log.info("method %s ...", method)
+        # methods that share the preparation options share the prepared scan; each is charged its time
+        key = json.dumps({k: cfg_m[k] for k in PREPARATION_SECTIONS}, sort_keys=True)
+        if key not in prepared:
+            t0 = time.perf_counter()
+            prep = scan if isinstance(scan, pipeline.Prepared) else pipeline.prepare(scan, cfg_m)
+            prepared[key] = prep, time.perf_counter() - t0
+        prep, prep_seconds = prepared[key]
         t0 = time.perf_counter()
-        results[method] = pipeline.reconstruct(scan, cfg_m, command_line=command_line)
-        runtimes[method] = time.perf_counter() - t0
+        results[method] = pipeline.reconstruct(prep, cfg_m, command_line=command_line)
+        runtimes[method] = time.perf_counter() - t0 + prep_seconds
         log.info("method %s: %.1f s, reduced chi-square %.4f", method, runtimes[method],
                  results[method].reduced_chi2)
     return results, runtimes
@@ -372,11 +385,11 @@ def nps_study(scans, cfg: dict, *, methods=NPS_METHODS, method_sets: dict | None
     names: list[str] = []
     freq = None
     for item in scans:
-        scan = item if isinstance(item, Scan) else read_scan(item)
+        prep = pipeline.prepare(item, cfg)
         names.append(str(item) if not isinstance(item, Scan) else f"scan {len(names)}")
-        fringes.append(fringe_frequency(resolve_reference(scan).phase))
+        fringes.append(fringe_frequency(prep.reference.phase))
         bins = bins or int(round(2 / fringes[0]))
-        results, runtimes = run_methods(scan, cfg, methods=methods, method_sets=method_sets,
+        results, runtimes = run_methods(prep, cfg, methods=methods, method_sets=method_sets,
                                         command_line=command_line)
         for m, res in results.items():
             freq, p = radial_nps(res.dark_field, bins=bins)

@@ -35,13 +35,14 @@ from scipy import ndimage, stats
 from .. import config as C
 from .. import model as M
 from .. import plots
-from ..align import build_observations, resolve_reference, subsample_columns
+from ..align import subsample_columns
 from ..fit import fit_vibrations, well_determined
-from ..io import Scan, atomic_path, read_scan
+from ..io import Scan, atomic_path
 from ..mask import motion_score
-from ..pipeline import resolve_effects, stage, visibility_unidentifiable
+from ..pipeline import Prepared, prepare, stage
 from ..retrieve import Retrieval, retrieve
 from . import identify
+from .identify import resolve_effects, visibility_unidentifiable
 
 log = logging.getLogger(__name__)
 
@@ -581,12 +582,14 @@ def _estimate(name: str, params: dict, good: np.ndarray, extra: dict) -> str:
     return ", ".join(f"{c}: {v:.4g}" for c, v in zip(e.components, p, strict=True)) + " counts"
 
 
-def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "configured") -> Diagnosis:
+def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, base: str = "configured") -> Diagnosis:
     """Locate model-data mismatch, name the missing effects, add them and refit until nothing is left.
 
     Parameters
     ----------
-    scan : Scan or path
+    scan : Scan, path or Prepared
+        Prepared by :func:`dfxcorr.pipeline.prepare` (reference options, region of interest), as for
+        a reconstruction.
     cfg : dict, optional
         Resolved configuration; its vibration section is the base model, its diagnose section the
         test settings.
@@ -600,18 +603,14 @@ def diagnose(scan: Scan | str | Path, cfg: dict | None = None, *, base: str = "c
     cfg = C.defaults() if cfg is None else cfg
     d = cfg["diagnose"]
     timings: dict = {}
-    name = str(scan) if not isinstance(scan, Scan) else "scan"
-    if not isinstance(scan, Scan):
-        with stage("load", timings):
-            scan = read_scan(scan)
-    with stage("align", timings):
-        reference = resolve_reference(scan)
-        obs = build_observations(scan, reference, min_frames=cfg["align"]["min_frames"],
-                                 gain=cfg["load"]["gain"] or scan.gain)
-        obs.electronic = cfg["load"]["electronic"]
-        # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit
-        fit_obs = obs.subset(subsample_columns(scan.shape[2], d["subsample"]))
-        model = list(resolve_effects(cfg, scan, reference, fit_obs)) if base == "configured" else []
+    prep = scan if isinstance(scan, Prepared) else prepare(scan, cfg, timings=timings)
+    name = str(prep.path) if prep.path else prep.name
+    scan, reference = prep.scan, prep.reference
+    # the tests need every pixel: the diagnosis holds the whole scan (the reconstruction streams it)
+    obs, roi = prep.observations()
+    # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit
+    fit_obs = obs.subset(subsample_columns(scan.shape[2], d["subsample"]))
+    model = list(resolve_effects(cfg, scan, reference, fit_obs)) if base == "configured" else []
     base_model = list(model)
     good_frames = well_determined(fit_obs, cfg["fit"]["gauge_fraction"])
     motion = np.zeros(scan.shape[1:], bool)
@@ -732,8 +731,15 @@ def _set_noise(obs: M.Observations, fit_obs: M.Observations, noise: tuple[float,
 def _restore(obs: M.Observations, fit_obs: M.Observations, state: dict) -> None:
     """Undo a rejected trial: the noise model and the masked pixels of ``state``."""
     _set_noise(obs, fit_obs, (state["gain"], state["electronic"]))
-    for o in (obs, fit_obs):
-        o.use = ~state["motion"][o.row][:, o.columns]
+    _set_use(obs, fit_obs, state["motion"])
+
+
+def _set_use(obs: M.Observations, fit_obs: M.Observations, motion: np.ndarray) -> None:
+    """As in reconstruct: the tests count the region of interest, the fit also the samples without fringe
+    (they monitor dose and background); ``motion`` pixels count in neither. The preparation zeroes v^f
+    outside the region of interest, and the reference visibility is positive everywhere else."""
+    obs.use = (obs.vf > 0) & ~motion[obs.row][:, obs.columns]
+    fit_obs.use = ~motion[fit_obs.row][:, fit_obs.columns]
 
 
 def _fit_state(obs: M.Observations, fit_obs: M.Observations, model: list, start: dict, motion: np.ndarray,
@@ -741,8 +747,7 @@ def _fit_state(obs: M.Observations, fit_obs: M.Observations, model: list, start:
     """Fit ``model`` with ``motion`` pixels left out (and the noise model ``noise``); chi-square and signatures."""
     if noise is not None:
         _set_noise(obs, fit_obs, noise)
-    for o in (obs, fit_obs):
-        o.use = ~motion[o.row][:, o.columns]
+    _set_use(obs, fit_obs, motion)
     params = {}
     with stage(f"{label}: fit {'+'.join(model) or 'images only'}", timings):
         if model:

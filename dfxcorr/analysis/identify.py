@@ -8,14 +8,25 @@ recording (paper Sec. II-F, eqs. 42-47: four extra null directions); per-step do
 series whose every pixel is modulated (the per-step vector d_j (1, cos psi_j, sin psi_j) lies on a
 cone whose Lorentz boosts the images absorb: two extra); an additive background when the flat field
 does not vary (absorbed by the transmission image).
+
+The policy built on it (:func:`resolve_effects`) decides which configured effects a reconstruction
+fits: those the acquisition determines; the others are dropped with a log line, or refused with an
+:class:`IdentifiabilityError` where the configuration asks for them explicitly.
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import config as C
 from .. import model as M
+from ..errors import DfxcorrError
+from ..fit import initial_weights
+from ..io import Scan
+
+log = logging.getLogger("dfxcorr")
 
 #: Exact gauge directions an effect brings (its per-frame parameters' common shift or scale).
 GAUGE_DIMENSIONS = {"phase_offset": 1, "tilt": 1, "curvature": 1, "visibility_loss": 1, "dose": 1,
@@ -162,3 +173,81 @@ def select(obs: M.Observations, weights: np.ndarray, names, *, max_columns: int 
         if verdict.identifiable:
             chosen.append(name)
     return out
+
+
+# --------------------------------------------------------------------------------------------------
+# The policy: which configured effects a reconstruction fits
+# --------------------------------------------------------------------------------------------------
+
+
+class IdentifiabilityError(DfxcorrError, ValueError):
+    """An effect was asked for that the acquisition cannot determine."""
+
+
+def separable_flat_field(reference, *, tol: float = 1e-3) -> bool:
+    """True if the flat field cannot tell per-frame visibility loss from the images (paper eq. 48).
+
+    That is the case when t^f and v^f do not change along the scan direction and the flat-field phase is
+    f(column) + a * row with one slope a for all columns.
+    """
+    A = reference.transmission.shape[0]
+    if A < 2:
+        return True
+    phase = np.unwrap(reference.phase, axis=0)
+    u = np.arange(A) - (A - 1) / 2
+    slope = np.sum(u[:, None] * (phase - phase.mean(axis=0))) / (np.sum(u ** 2) * phase.shape[1])
+    resid = phase - phase.mean(axis=0) - slope * u[:, None]
+    flat = [np.std(m, axis=0).max() / np.abs(m).mean() for m in (reference.transmission, reference.visibility)]
+    return bool(np.sqrt(np.mean(resid ** 2)) < tol and max(flat) < tol)
+
+
+def visibility_unidentifiable(scan: Scan, reference) -> str | None:
+    """Why per-frame visibility loss cannot be told apart from the images here, or None (paper Sec. II-F)."""
+    if scan.is_stepping:
+        why = ("in a phase-stepping recording the flat field is the same in every frame, so a per-frame "
+               "visibility loss trades off exactly against the transmission and dark-field images (paper Sec. II-F)")
+    elif separable_flat_field(reference):
+        why = ("the flat-field phase of this scan is separable (paper eq. 48) and t^f, v^f do not vary along the "
+               "scan, so per-frame visibility loss cannot be told apart from the images")
+    else:
+        why = None
+    return why
+
+
+def resolve_effects(cfg: dict, scan: Scan, reference, fit_obs: M.Observations) -> tuple[str, ...]:
+    """The effects to fit: the configured ones that this acquisition can determine.
+
+    Every enabled effect is checked in turn against the Fisher information of the fit's samples
+    (:mod:`dfxcorr.analysis.identify`); visibility effects in a stepping recording or over a separable flat
+    field are refused with the paper's reason. An effect set to ``auto`` is dropped with a log line.
+
+    Raises
+    ------
+    IdentifiabilityError
+        If the configuration explicitly asks for an effect the acquisition cannot determine.
+    """
+    keys = {e: k for k, e in C.VIBRATION_EFFECTS.items()}
+
+    def refuse_or_drop(name, why):
+        if cfg["vibration"][keys[name]] is True:
+            raise IdentifiabilityError(f"{name} is not identifiable here: {why}; set vibration.{keys[name]}=false"
+                                       + (" (or auto)" if name == "visibility_loss" else ""))
+        log.info("%s is not fitted: %s", name, why)
+
+    paper_why = visibility_unidentifiable(scan, reference)
+    names = []
+    for name in C.effects_of(cfg):
+        if paper_why and name in ("visibility_loss", "visibility_tilt"):
+            refuse_or_drop(name, paper_why)
+        else:
+            names.append(name)
+    chosen: list[str] = []
+    for verdict in select(fit_obs, initial_weights(fit_obs, {}), names):
+        if verdict.identifiable:
+            chosen.append(verdict.name)
+        else:
+            refuse_or_drop(verdict.name, f"the Fisher information of this acquisition has {verdict.excess} "
+                                         f"direction(s) of its parameters without information beyond its gauge "
+                                         f"(they trade off exactly against the images"
+                                         f"{' or ' + ', '.join(chosen) if chosen else ''})")
+    return tuple(chosen)

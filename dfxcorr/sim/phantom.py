@@ -196,8 +196,17 @@ def path_lengths(*, shape, pixel_mm: float = 1.0, magnification: float = 1.2,
     s = int(supersample)
     if s < 1:
         raise ValueError("supersample must be >= 1")
-    fine = path_lengths_at(x_mm=_axis(w, p, s), y_mm=_axis(h, p, s))
-    return {m: v.reshape(h, s, w, s).mean(axis=(1, 3)) for m, v in fine.items()}
+    return _pixel_average(path_lengths_at(x_mm=_axis(w, p, s), y_mm=_axis(h, p, s)), s)
+
+
+def _pixel_average(fine: dict[str, np.ndarray], s: int) -> dict[str, np.ndarray]:
+    """Mean over the s x s sub-pixel samples of each pixel: [n s, w s] -> [n, w]."""
+    return {m: v.reshape(v.shape[0] // s, s, v.shape[1] // s, s).mean(axis=(1, 3)) for m, v in fine.items()}
+
+
+#: Detector rows of the thorax computed at a time: the supersampled path lengths of a whole
+#: 2880 x 2880 detector would take 1 GB.
+_STRIP_ROWS = 256
 
 
 def _images(lengths, c_v, phi):
@@ -243,13 +252,21 @@ def thorax(*, shape, pixel_mm: float = 1.0, magnification: float = 1.2, c_v: flo
     h, w = _check_shape(shape)
     p = _sample_pixel(pixel_mm, magnification)
     s = int(supersample)
-    lengths = path_lengths(shape=shape, pixel_mm=pixel_mm, magnification=magnification,
-                           supersample=s)
+    if s < 1:
+        raise ValueError("supersample must be >= 1")
+    x, y = _axis(w, p, s), _axis(h, p, s)
     edges = (np.arange(h + 1) - h / 2.0) * p
-    at_edges = path_lengths_at(x_mm=_axis(w, p, s), y_mm=edges)
-    proj = sum(MATERIALS[m]["delta"] * v for m, v in at_edges.items())
-    phi = (c_phi_mm / p) * np.diff(proj, axis=0).reshape(h, w, s).mean(axis=2)
-    return _images(lengths, c_v, phi)
+    out = {k: np.empty((h, w)) for k in ("transmission", "dark_field", "differential_phase")}
+    # strips of rows: every solid's chord depends on (x, y) only, so strips give the same pixels
+    for r0 in range(0, h, _STRIP_ROWS):
+        r1 = min(r0 + _STRIP_ROWS, h)
+        lengths = _pixel_average(path_lengths_at(x_mm=x, y_mm=y[r0 * s:r1 * s]), s)
+        at_edges = path_lengths_at(x_mm=x, y_mm=edges[r0:r1 + 1])
+        proj = sum(MATERIALS[m]["delta"] * v for m, v in at_edges.items())
+        phi = (c_phi_mm / p) * np.diff(proj, axis=0).reshape(r1 - r0, w, s).mean(axis=2)
+        for k, v in _images(lengths, c_v, phi).items():
+            out[k][r0:r1] = v
+    return out
 
 
 def slab(*, shape, pixel_mm: float = 1.0, magnification: float = 1.2,
