@@ -241,7 +241,9 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
     with stage("mask", timings):
         if cfg["mask"]["enabled"] and method != "none":
             m = cfg["mask"]
-            columns = fit_columns(W, cfg, prep.store.samples_per_column(), report=False)
+            # the pilot estimate needs columns enough whatever fit.subsample the fit itself uses
+            auto = {**cfg, "fit": {**cfg["fit"], "subsample": "auto", "column_offset": None}}
+            columns = fit_columns(W, auto, prep.store.samples_per_column(), report=False)
             moving, thr = blocked_motion_mask(prep, blocks, columns=columns,
                                               threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
             log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
@@ -276,9 +278,9 @@ def blocked_motion_mask(prep: Prepared, blocks: list[tuple[int, int]], *, column
                         threshold: float | None, sigma: float, dilate: int) -> tuple[np.ndarray, float]:
     """The motion mask (paper Sec. II-E) computed block by block; identical to one pass over all pixels.
 
-    The pilot vibration estimate that the score compares with is per frame, so it comes once from the
-    fit's ``columns`` (:func:`dfxcorr.mask.pilot_vibrations`); the per-pixel statistics then come
-    block by block.
+    The pilot vibration estimate that the score compares with is per frame, so it comes once from
+    ``columns`` (:func:`dfxcorr.mask.pilot_vibrations`); the per-pixel statistics then come block by
+    block.
 
     Returns
     -------
