@@ -120,10 +120,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                     "(never beyond the alias limit W / 4)", (int, str),
                             check=lambda v: None if v == "auto" or (not isinstance(v, str) and v > 0)
                             else "must be auto or a positive integer"),
-        "max_samples": Option(10_000_000, "subsample auto: most lit samples (rows x frames x columns) the fit may "
-                                          "hold; 1e7 keeps the fit's arrays within a few hundred MB and its "
-                                          "evaluations well under a second, while the vibration estimates stop "
-                                          "improving long before (a few hundred columns of a clinical scan)",
+        "max_samples": Option(2_000_000, "subsample auto: most lit samples (rows x frames x columns) the fit may "
+                                         "hold; the fit's time grows with them (about 12 s per million samples "
+                                         "on 2 cores) and 2e6 keeps phi0 and phi1 within the paper's 0.004 rad "
+                                         "on a clinical scan (measured: scripts/benchmark.py clinical)",
                               int, check=_positive),
         "column_offset": Option(None, "first column of the subsampled grid; null: subsample // 2", int,
                                 check=_nonneg, nullable=True),

@@ -238,17 +238,18 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
     log.info("retrieval and motion mask in %d block(s) of detector rows (retrieve.block_mb=%g)", len(blocks),
              cfg["retrieve"]["block_mb"])
     moving = np.zeros((H, W), bool)
+    columns = fit_columns(W, cfg, prep.store.samples_per_column()) if method != "none" else np.zeros(0, int)
     with stage("mask", timings):
         if cfg["mask"]["enabled"] and method != "none":
             m = cfg["mask"]
             # the pilot estimate needs columns enough whatever fit.subsample the fit itself uses
             auto = {**cfg, "fit": {**cfg["fit"], "subsample": "auto", "column_offset": None}}
-            columns = fit_columns(W, auto, prep.store.samples_per_column(), report=False)
-            moving, thr = blocked_motion_mask(prep, blocks, columns=columns,
+            pilot = fit_columns(W, auto, prep.store.samples_per_column(), report=False)
+            moving, thr = blocked_motion_mask(prep, blocks, columns=columns, pilot_columns=pilot,
                                               threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
             log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
     with stage("fit", timings):
-        fitted, fit_mask, effects = run_fit(prep, cfg, moving, progress=progress)
+        fitted, fit_mask, effects = run_fit(prep, cfg, moving, columns=columns, progress=progress)
     with stage("retrieve", timings):
         iterations = cfg["retrieve"]["iterations"]
         n_par = sum(np.size(p) for p in fitted.params.values())
@@ -275,12 +276,14 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
 
 
 def blocked_motion_mask(prep: Prepared, blocks: list[tuple[int, int]], *, columns: np.ndarray,
-                        threshold: float | None, sigma: float, dilate: int) -> tuple[np.ndarray, float]:
-    """The motion mask (paper Sec. II-E) computed block by block; identical to one pass over all pixels.
+                        pilot_columns: np.ndarray, threshold: float | None, sigma: float,
+                        dilate: int) -> tuple[np.ndarray, float]:
+    """The motion mask (paper Sec. II-E) of the fit's ``columns``, block by block; equal to one pass.
 
-    The pilot vibration estimate that the score compares with is per frame, so it comes once from
-    ``columns`` (:func:`dfxcorr.mask.pilot_vibrations`); the per-pixel statistics then come block by
-    block.
+    The mask only decides which pixels the vibration fit leaves out, so only the fit's columns are
+    scored (the other columns never enter the fit). The pilot vibration estimate that the score
+    compares with is per frame, so it comes once from ``pilot_columns``
+    (:func:`dfxcorr.mask.pilot_vibrations`); the per-pixel statistics then come block by block.
 
     Returns
     -------
@@ -288,11 +291,11 @@ def blocked_motion_mask(prep: Prepared, blocks: list[tuple[int, int]], *, column
     threshold : float
     """
     H, W = prep.shape[1:]
-    pilot = pilot_vibrations(prep.observations(columns=columns)[0])
+    pilot = pilot_vibrations(prep.observations(columns=pilot_columns)[0])
     eps, q, dof = np.full((H, W), np.nan), np.full((H, W), np.nan), np.zeros((H, W))
     fringe = np.zeros((H, W), bool)
     for rows in blocks:
-        obs, roi = prep.observations(rows=rows)
+        obs, roi = prep.observations(columns=columns, rows=rows)
         e, qq, d = motion_statistics(obs, pilot)
         _place(eps, obs, e)
         _place(q, obs, qq)
@@ -330,11 +333,11 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: dic
     return maps, chi2 / max(samples - 3 * pixels - n_params, 1)
 
 
-def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *,
+def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarray,
             progress: bool | None = None) -> tuple[FitResult, np.ndarray, tuple[str, ...]]:
     """Estimate the per-frame parameters with the configured method.
 
-    The fit holds observations of its columns only (:func:`fit_columns`), in float32.
+    The fit holds observations of ``columns`` only (:func:`fit_columns`), in float32.
 
     Returns
     -------
@@ -354,7 +357,7 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *,
                          converged=True), fit_mask, ()
     if method not in FIT_METHODS:
         raise C.ConfigError(f"fit.method={method!r} is not available; available: {', '.join(FIT_METHODS)}, none")
-    cols = fit_columns(W, cfg, prep.store.samples_per_column())
+    cols = columns
     fit_obs, _ = prep.observations(columns=cols, dtype=np.float32)
     fit_obs = replace(fit_obs, use=~moving[fit_obs.row][:, fit_obs.columns])
     effects = resolve_effects(cfg, prep.scan, prep.reference, fit_obs)

@@ -44,7 +44,8 @@ from dfxcorr.sim import simulate as S
 
 ROOT = Path(__file__).resolve().parents[1]
 
-CASES = {"default": [], "every 20th column": ["fit.subsample=20"], "no preconditioning": ["fit.precondition=false"]}
+CASES = {"default": [], "every column": ["fit.subsample=1"], "every 20th column": ["fit.subsample=20"],
+         "no preconditioning": ["fit.precondition=false"]}
 CLINICAL = {"binned": ROOT / "configs" / "clinical-binned.yaml", "full": ROOT / "configs" / "clinical.yaml"}
 
 
