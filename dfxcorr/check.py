@@ -23,14 +23,16 @@ from .errors import DfxcorrError, OutputExistsError
 
 #: Name length limit where the file system does not tell (bytes; ext4, XFS, Lustre, GPFS).
 NAME_MAX = 255
-#: Memory model of a reconstruction (bytes per lit sample): the observations hold counts, t^f, v^f,
-#: phi^f and dark as float64 and a bool mask (41 bytes); alignment, noise weights, the fit's and the
-#: retrieval's temporaries add the rest. Peak resident set minus frames and BASE_BYTES, per lit sample,
-#: measured (/usr/bin/time -v, 2-core machine): 254 (104 frames of 90 x 102), 203 (209 frames of
-#: 180 x 204), 162 (209 frames of 450 x 510, the README's clinical size).
-BYTES_PER_SAMPLE = 200
-#: Resident memory of the interpreter with numpy, scipy, h5py and dfxcorr loaded (measured 91 MB).
-BASE_BYTES = 100 * 2 ** 20
+#: Memory model of a streamed reconstruction: the store of lit rows (counts as stored), the images
+#: (corrected and uncorrected t, v, phi in float64: 48 bytes per pixel), the retrieval's row blocks
+#: (``retrieve.block_mb``) and the fit's samples (float32 observations, weights, cos/sin of the
+#: flat-field phase and the pilot's temporaries: FIT_BYTES each). Against the peak resident set
+#: (/usr/bin/time -v, 2 cores) it errs high: 1.50 GB for 1.35 GB measured at 195 x 2880 x 2880,
+#: 0.84 GB for 0.72 GB at 195 x 1440 x 1440 (fit.max_samples 2e6).
+IMAGE_BYTES = 48
+FIT_BYTES = 100
+#: Resident memory of the interpreter with numpy, scipy, h5py, numba and dfxcorr loaded.
+BASE_BYTES = 150 * 2 ** 20
 
 
 class OutputError(DfxcorrError, OSError):
@@ -207,18 +209,21 @@ class Plan:
                  f"vibration fit: {fit}",
                  f"effects: {', '.join(self.effects) or 'none'}"]
         lines += [f"  {name} will not be fitted: {why}" for name, why in self.dropped.items()]
-        lines.append(f"memory: about {self.memory_bytes / 2 ** 30:.2f} GiB (frames + {BYTES_PER_SAMPLE} bytes per "
-                     f"lit sample + {BASE_BYTES // 2 ** 20} MiB)")
+        lines.append(f"memory: about {self.memory_bytes / 2 ** 30:.2f} GiB (lit rows as stored, images, row "
+                     f"blocks, {FIT_BYTES} bytes per fit sample, {BASE_BYTES // 2 ** 20} MiB)")
         lines += [f"output: {_name(p)}" + (" (replaced)" if os.path.lexists(p) else "") for p in self.outputs]
         return "\n".join(lines)
 
 
-def memory_estimate(shape, itemsize: int, lit_samples: int) -> int:
+def memory_estimate(shape, *, itemsize: int, lit_samples: int, fit_samples: int, block_mb: float) -> int:
     """Peak resident memory of a reconstruction (bytes).
 
-    frames as stored (J H W x itemsize) + :data:`BYTES_PER_SAMPLE` per lit sample + :data:`BASE_BYTES`.
+    lit samples x ``itemsize`` (the store) + :data:`IMAGE_BYTES` per pixel + ``block_mb`` MB (the row
+    blocks) + :data:`FIT_BYTES` per fit sample + :data:`BASE_BYTES`.
     """
-    return int(np.prod(shape)) * itemsize + BYTES_PER_SAMPLE * lit_samples + BASE_BYTES
+    _, H, W = shape
+    return int(lit_samples * itemsize + IMAGE_BYTES * H * W + block_mb * 1e6 + FIT_BYTES * fit_samples
+               + BASE_BYTES)
 
 
 def read_header(path, *, allow_external: bool = False) -> io.Scan:
@@ -341,5 +346,7 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     return Plan(scan=name, shape=(J, H, W), dtype=str(scan.data.dtype), active_rows=scan.active_rows,
                 stepping=scan.is_stepping, rows_used=int(used.sum()), lit_samples=lit, method=method,
                 columns=columns, effects=effects, dropped=dropped,
-                memory_bytes=memory_estimate(scan.shape, scan.data.dtype.itemsize, lit),
+                memory_bytes=memory_estimate(scan.shape, itemsize=scan.data.dtype.itemsize, lit_samples=lit,
+                                             fit_samples=columns.size * (lit // W),
+                                             block_mb=cfg["retrieve"]["block_mb"]),
                 outputs=[Path(p) for p in outputs])
