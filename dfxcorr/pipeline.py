@@ -35,7 +35,7 @@ from .mask import mask_from_score, motion_statistics, pilot_vibrations, score_fr
 from .progress import Progress
 from .reference import auto_visibility_threshold, resolve_reference
 from .result import Result, paper_params
-from .retrieve import chi2_sums, image_values, retrieve
+from .retrieve import image_values, retrieve
 
 log = logging.getLogger(__name__)
 
@@ -253,10 +253,11 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
     with stage("retrieve", timings):
         iterations = cfg["retrieve"]["iterations"]
         n_par = sum(np.size(p) for p in fitted.params.values())
-        maps, chi2 = blocked_retrieval(prep, blocks, fitted.params, iterations=iterations, n_params=n_par)
-        uncorrected = None
+        sets, counts = [fitted.params], [n_par]
         if cfg["retrieve"]["uncorrected"] and method != "none":
-            uncorrected, _ = blocked_retrieval(prep, blocks, {}, iterations=iterations, n_params=0)
+            sets, counts = [*sets, {}], [*counts, 0]
+        (maps, chi2), *rest = blocked_retrieval(prep, blocks, sets, iterations=iterations, n_params=counts)
+        uncorrected = rest[0][0] if rest else None
         log.info("reduced chi-square of the final model: %.4f", chi2)
     # the paper's three parameters are always reported, at their neutral value where not estimated
     params = paper_params(fitted.params, J)
@@ -301,36 +302,38 @@ def blocked_motion_mask(prep: Prepared, blocks: list[tuple[int, int]], *, column
         _place(q, obs, qq)
         _place(dof, obs, d)
         _place(fringe, obs, obs.segment_sum(roi.astype(np.float64)) > 0)
-    moving, thr = mask_from_score(score_from_statistics(eps, q), dof=dof, threshold=threshold, sigma=sigma,
-                                  dilate=dilate)
     # the score assumes a fringe; pixels without one only monitor dose and background
-    return moving & fringe, thr
+    score = np.where(fringe, score_from_statistics(eps, q), np.nan)
+    return mask_from_score(score, dof=dof, threshold=threshold, sigma=sigma, dilate=dilate)
 
 
-def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: dict, *, iterations: int,
-                      n_params: int) -> tuple[dict[str, np.ndarray], float]:
+def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: list[dict], *, iterations: int,
+                      n_params: list[int]) -> list[tuple[dict[str, np.ndarray], float]]:
     """Images (H, W) of every pixel in its region of interest, block by block, and the reduced chi-square.
 
-    The chi-square and its degrees of freedom are summed over blocks, so the result equals
-    :func:`dfxcorr.retrieve.reduced_chi2` over the whole scan with ``n_params`` per-frame parameters.
+    One pass over the blocks serves every parameter set of ``params`` (e.g. the fitted and the neutral
+    ones), so each block's observations are built once. The chi-square and its degrees of freedom are
+    summed over blocks, so each result equals :func:`dfxcorr.retrieve.reduced_chi2` over the whole scan
+    with that set's ``n_params`` per-frame parameters.
     """
     H, W = prep.shape[1:]
-    maps = {k: np.full((H, W), np.nan) for k in ("transmission", "dark_field", "differential_phase")}
-    chi2 = samples = pixels = 0
+    maps = [{k: np.full((H, W), np.nan) for k in ("transmission", "dark_field", "differential_phase")}
+            for _ in params]
+    sums = np.zeros((len(params), 3))  # chi-square, samples, pixels
     left_out = 0
     for rows in blocks:
         obs, roi = prep.observations(rows=rows)
         obs = replace(obs, use=roi)
-        rec = retrieve(obs, params, iterations=iterations, n_frame_params=0)
-        for k, v in image_values(rec.images).items():
-            _place(maps[k], obs, v)
-        c, n, p = chi2_sums(obs, rec.expected, rec.images.valid)
-        chi2, samples, pixels = chi2 + c, samples + n, pixels + p
+        for m, p, acc in zip(maps, params, sums, strict=True):
+            rec = retrieve(obs, p, iterations=iterations, n_frame_params=0)
+            for k, v in image_values(rec.images).items():
+                _place(m[k], obs, v)
+            acc += (rec.chi2_sum, rec.samples, int(rec.images.valid.sum()))
         left_out += int(np.count_nonzero(obs.segment_sum(roi.astype(np.float64)) == 0))
     if left_out:
         log.info("region of interest: %d pixels see no fringe (reference visibility < %.3g) and are left out "
                  "of the images", left_out, prep.min_visibility)
-    return maps, chi2 / max(samples - 3 * pixels - n_params, 1)
+    return [(m, float(c / max(n - 3 * px - k, 1))) for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
 
 
 def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarray,

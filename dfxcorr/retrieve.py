@@ -27,12 +27,18 @@ class Retrieval:
         Inverse noise variances of the last solve.
     reduced_chi2 : float
         Pearson chi-square per degree of freedom over the solved pixels.
+    chi2_sum : float
+        That Pearson chi-square, summed over the used samples of the solved pixels.
+    samples : int
+        Those samples (the pixels are ``images.valid.sum()``): sums over blocks of pixels add up.
     """
 
     images: M.Images
     expected: np.ndarray
     weights: np.ndarray
     reduced_chi2: float
+    chi2_sum: float = 0.0
+    samples: int = 0
 
 
 def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_params: int | None = None,
@@ -62,7 +68,8 @@ def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_
     images = M.Images(out["coef"], out["valid"])
     n_par = sum(np.size(p) for p in params.values()) if n_frame_params is None else n_frame_params
     chi2 = _per_dof(out["chi2"], out["samples"], int(images.valid.sum()), n_par, 3)
-    return Retrieval(images=images, expected=out["expected"], weights=out["weights"], reduced_chi2=chi2)
+    return Retrieval(images=images, expected=out["expected"], weights=out["weights"], reduced_chi2=chi2,
+                     chi2_sum=float(out["chi2"]), samples=int(out["samples"]))
 
 
 def reduced_chi2(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *, n_params: int = 0,
