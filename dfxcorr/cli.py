@@ -140,7 +140,8 @@ def _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, pre
     out = Path(output) if output else Path(f"{Path(scan).stem}_result.h5")
     outputs = _reconstruct_outputs(out, tiff_dir=tiff_dir, preview=preview)
     _guard(outputs, inputs=[scan, *config_files], overwrite=overwrite)
-    cfg = C.load(config_files, list(sets) + ([f"fit.method={method}"] if method else []))
+    cfg = C.load(config_files, list(sets) + ([f"fit.method={method}"] if method else [])
+                 + (["retrieve.uncorrected=true"] if preview else []))
     return out, cfg, outputs
 
 

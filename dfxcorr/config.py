@@ -144,7 +144,9 @@ SCHEMA: dict[str, dict[str, Option]] = {
     "retrieve": {
         "iterations": Option(2, "solves with noise weights from the previous model (1: data weights, eq. 6)",
                              int, check=_positive),
-        "uncorrected": Option(True, "also retrieve the images without vibration correction (previews)", bool),
+        "uncorrected": Option(False, "also retrieve the images without vibration correction (written to "
+                                     "uncorrected/ and shown by --preview, which turns this on); off by default: "
+                                     "it doubles the retrieval's time", bool),
         "block_mb": Option(256, "memory for one block of detector rows in the retrieval and the motion mask (MB): "
                                 "pixels are independent there, so the scan is processed in blocks that fit",
                            _NUM, check=_positive),

@@ -46,7 +46,7 @@ def main():
     t0 = time.perf_counter()
     scan, truth = S.simulate(sim_cfg)
     t_sim = time.perf_counter() - t0
-    cfg = C.load([], args.sets)
+    cfg = C.load([], ['retrieve.uncorrected=true', *args.sets])
     t0 = time.perf_counter()
     result = pipeline.reconstruct(scan, cfg, command_line="scripts/paper_study.py")
     t_rec = time.perf_counter() - t0
