@@ -311,7 +311,8 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: dic
     """
     H, W = prep.shape[1:]
     maps = {k: np.full((H, W), np.nan) for k in ("transmission", "dark_field", "differential_phase")}
-    chi2 = samples = pixels = 0
+    chi2 = 0.0
+    samples = pixels = 0
     left_out = 0
     for rows in blocks:
         obs, roi = prep.observations(rows=rows)
