@@ -12,6 +12,7 @@ from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import DTypeLike
 
 from .errors import DfxcorrError
 from .io import Reference, Scan, frame_rows
@@ -104,7 +105,8 @@ class LitStore:
 
     def observations(self, reference: Reference, *, columns: np.ndarray | None = None,
                      rows: tuple[int, int] | None = None, pixel_mask: np.ndarray | None = None,
-                     gain: float | None = None, electronic: float = 0.0, dtype=np.float64) -> Observations:
+                     gain: float | None = None, electronic: float = 0.0, dtype: DTypeLike = np.float64
+                     ) -> Observations:
         """Align the flat field to the held samples of some columns and rows.
 
         Parameters
@@ -188,6 +190,7 @@ def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: 
             if idx.size:
                 r0, r1 = int(row[idx[0]]), int(row[idx[-1]]) + 1
                 counts[idx] = frame_rows(data, j, r0, r1)[row[idx] - r0]
+    assert scan.dark is not None  # Scan.__post_init__ fills it
     return LitStore(counts=counts, row=row, frame=frame, u=u, shape=(J, H, W),
                     phase_step=np.asarray(scan.phase_step, dtype=np.float64), dark=scan.dark, gain=scan.gain)
 

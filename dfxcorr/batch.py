@@ -93,7 +93,8 @@ def plan(entries: list[tuple[int, str]], out_dir: str | os.PathLike) -> list[Job
         If two scans share a stem (their results would collide) or a scan is listed twice.
     """
     out_dir = Path(out_dir)
-    jobs, seen = [], {}
+    jobs: list[Job] = []
+    seen: dict[str, int] = {}
     for line, text in entries:
         scan = Path(text)
         stem = scan.stem

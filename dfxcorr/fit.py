@@ -14,7 +14,9 @@ the data say anything.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize
@@ -61,7 +63,9 @@ class FitResult:
 class _Problem:
     """Packs effect parameters into one preconditioned vector for scipy."""
 
-    def __init__(self, obs, names, params, weights, *, phase=None, precondition=True, prior=None, fringe=None):
+    def __init__(self, obs: M.Observations, names: Iterable[str], params: dict[str, np.ndarray], weights: np.ndarray,
+                 *, phase: float | None = None, precondition: bool = True, prior: dict | None = None,
+                 fringe: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.obs, self.names, self.weights, self.phase = obs, list(names), weights, phase
         # cos and sin of the flat-field phase: fixed for the fit, so the kernels need no trigonometry per sample
         self.fringe = K.fringe(obs) if fringe is None else fringe
@@ -78,7 +82,7 @@ class _Problem:
             self.scale = np.sqrt(self._curvature(params))
         self.history: list[float] = []
 
-    def unpack(self, theta):
+    def unpack(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         out, i = dict(self.fixed), 0
         for n, shp in zip(self.names, self.shapes, strict=True):
             size = int(np.prod(shp))
@@ -86,7 +90,7 @@ class _Problem:
             i += size
         return out
 
-    def _channel_sums(self, params, *, square):
+    def _channel_sums(self, params: dict[str, np.ndarray], *, square: bool) -> tuple[float, np.ndarray]:
         """Reduced cost and the per-parameter sums of the kernel (gradient, or sum w F^2 if ``square``)."""
         cost, g = K.reduced_cost(self.obs, _channels(self.obs, params), self.weights, *self.fringe, phase=self.phase,
                                  square=square,
@@ -94,28 +98,31 @@ class _Problem:
         sums = M.channel_adjoint(self.names, M.Channels(*g), x=self.obs.x, square=square)
         return cost, np.concatenate([sums[n].ravel() for n in self.names])
 
-    def _curvature(self, params):
+    def _curvature(self, params: dict[str, np.ndarray]) -> np.ndarray:
         """Diagonal of the cost's Gauss-Newton Hessian (2 x Fisher information, paper eq. 27) plus the prior."""
         h = 2.0 * self._channel_sums(params, square=True)[1] + 2.0 * self.prior_w
         positive = h[h > 0]
         floor = 1e-12 * (positive.max() if positive.size else 1.0)
         return np.maximum(h, max(floor, 1e-300))
 
-    def evaluate(self, z):
+    def evaluate(self, z: np.ndarray) -> tuple[float, np.ndarray]:
         theta = z / self.scale
         cost, grad = self._channel_sums(self.unpack(theta), square=False)
         dev = theta - self.centre
         return cost + float(np.sum(self.prior_w * dev ** 2)), (grad + 2.0 * self.prior_w * dev) / self.scale
 
-    def bounds(self):
+    def bounds(self) -> list[tuple[float | None, None]]:
         """Physical lower bounds (visibility and dose stay positive), in the rescaled variables."""
         lows = np.concatenate([np.full(int(np.prod(shp)), -np.inf if M.effect(n).lower is None else M.effect(n).lower)
                                for n, shp in zip(self.names, self.shapes, strict=True)]) * self.scale
         return [(lo if np.isfinite(lo) else None, None) for lo in lows]
 
 
-def minimise(obs, names, params, weights, *, phase=None, maxiter=200, gtol=1e-3, precondition=True,
-             prior=None, on_iteration=None, fringe=None) -> tuple[dict[str, np.ndarray], list[float], str, bool]:
+def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.ndarray], weights: np.ndarray, *,
+             phase: float | None = None, maxiter: int = 200, gtol: float = 1e-3, precondition: bool = True,
+             prior: dict | None = None, on_iteration: Callable[[float], None] | None = None,
+             fringe: tuple[np.ndarray, np.ndarray] | None = None
+             ) -> tuple[dict[str, np.ndarray], list[float], str, bool]:
     """Minimise the reduced cost over the parameters of ``names``, the others held fixed.
 
     Parameters
@@ -153,7 +160,7 @@ def minimise(obs, names, params, weights, *, phase=None, maxiter=200, gtol=1e-3,
     prob = _Problem(obs, names, params, weights, phase=phase, precondition=precondition, prior=prior, fringe=fringe)
     costs: list[float] = []
 
-    def callback(intermediate_result):
+    def callback(intermediate_result: Any) -> None:  # a scipy.optimize.OptimizeResult
         costs.append(float(intermediate_result.fun))
         if on_iteration is not None:
             on_iteration(costs[-1])
@@ -163,11 +170,12 @@ def minimise(obs, names, params, weights, *, phase=None, maxiter=200, gtol=1e-3,
     return prob.unpack(res.x / prob.scale), costs, str(res.message), bool(res.success)
 
 
-def fit_vibrations(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | None = None,
+def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODEL, start: dict | None = None,
                    weights: np.ndarray | None = None, circmean_iterations: int = 10, staged: bool = True,
                    maxiter: int = 300, gtol: float = 1e-3, precondition: bool = True, prior: bool = True,
                    reweight: int = 1, visibility_gauge: str = "max", visibility_quantile: float = 0.99,
-                   gauge_fraction: float = 0.5, on_iteration=None) -> FitResult:
+                   gauge_fraction: float = 0.5, on_iteration: Callable[[str, float], None] | None = None
+                   ) -> FitResult:
     """Estimate per-frame effect parameters by maximum likelihood (paper Sec. II-C to II-E).
 
     Parameters
@@ -239,7 +247,8 @@ def fit_vibrations(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | 
             phase = M.circular_mean(images.phi, amp)
         if label == "reweight":
             weights = _model_weights(obs, params, weights)
-        cb = None if on_iteration is None else (lambda c, _l=label: on_iteration(_l, c))
+        cb: Callable[[float], None] | None = None if on_iteration is None else (
+            lambda c, _l=label: on_iteration(_l, c))
         params, c, msg, ok = minimise(obs, free, params, weights, phase=phase, maxiter=iters, gtol=gtol,
                                       precondition=precondition, prior=wide, on_iteration=cb, fringe=fringe)
         log.debug("stage %s: %d iterations, %s", label, len(c), msg)
@@ -311,7 +320,7 @@ def wrap_phases(params: dict, obs: M.Observations) -> dict:
     return out
 
 
-def catalogue_prior(names) -> dict:
+def catalogue_prior(names: Iterable[str]) -> dict:
     """A wide prior for every per-frame effect: its neutral value, width from the catalogue."""
     return {n: (M.effect(n).neutral, M.effect(n).scale) for n in names if M.effect(n).per_frame}
 

@@ -18,6 +18,7 @@ import math
 import os
 import re
 from pathlib import Path
+from typing import TypedDict
 
 import h5py
 import numpy as np
@@ -103,7 +104,8 @@ def _frames_shape(path: Path, shape: tuple) -> tuple[int, int, int]:
                                "or a stack of frames [S, H, W]")
     if 0 in shape:
         raise StackImportError(f"{path}: holds no data (shape {shape})")
-    return tuple(int(n) for n in shape)
+    n, h, w = shape
+    return int(n), int(h), int(w)
 
 
 def _open_npy(path: Path) -> _Frames:
@@ -242,6 +244,14 @@ def _open_file(path: Path, shape, dtype, offset: int) -> _Frames:
     if kind == "tiff":
         return _open_tiff(path)
     return _open_raw(path, shape, dtype, offset)
+
+
+class _RawLayout(TypedDict):
+    """How to read raw files: the ``shape``, ``dtype`` and ``offset`` options of :class:`Series`."""
+
+    shape: tuple[int, int] | None
+    dtype: str | None
+    offset: int
 
 
 class Series:
@@ -433,7 +443,7 @@ def nominal_steps(n: int, *, steps_per_period: float | None = None,
         raise StackImportError("give exactly one of steps_per_period and phases "
                                f"(got steps_per_period={steps_per_period!r}, phases={phases!r})")
     if phases is not None:
-        out = np.asarray(phases, dtype=np.float64)
+        out: np.ndarray = np.asarray(phases, dtype=np.float64)
         if out.shape != (n,):
             raise StackImportError(f"phases has {out.size} values for {n} steps")
         if not np.all(np.isfinite(out)):
@@ -822,17 +832,21 @@ def import_scanning(output, *, frames, positions, position_units: str = "pixel",
     if position_units not in ("pixel", "mm"):
         raise StackImportError(f"position_units must be pixel or mm, got {position_units!r}")
     px = _pixel_size(pixel_size)
-    if position_units == "mm" and px is None:
-        raise StackImportError("positions in mm need the pixel size (pixel_size) to convert them to detector rows")
+    row_pitch: float | None = None  # m, to convert a log in mm
+    if position_units == "mm":
+        if px is None:
+            raise StackImportError("positions in mm need the pixel size (pixel_size) to convert them to detector "
+                                   "rows")
+        row_pitch = px[0]
     gain_value = _gain(gain)
-    raw = {"shape": shape, "dtype": dtype, "offset": offset}
+    raw: _RawLayout = {"shape": shape, "dtype": dtype, "offset": offset}
     with contextlib.ExitStack() as stack:
         series = stack.enter_context(Series(frames, **raw))
         J, H, W = series.shape
         data = _Counts(series, f"frames {_describe(frames)}")
         position = read_positions(positions, J, column=position_column)
-        if position_units == "mm":
-            position = position * 1e-3 / px[0]
+        if row_pitch is not None:
+            position = position * 1e-3 / row_pitch
         extra = {f"{_IMPORT_GROUP}/source_files": _strings(series.files),
                  f"{_IMPORT_GROUP}/source_dtype": str(series.dtype),
                  f"{_IMPORT_GROUP}/position_log": _strings([positions]),
@@ -883,7 +897,7 @@ def _active_rows(series: Series, dark, first: int | None, rows: int | None, name
     H = series.shape[1]
     if (first is None) != (rows is None):
         raise StackImportError("give both active_first_row and active_rows, or neither (found from the flux)")
-    if first is None:
+    if first is None or rows is None:  # both, by the check above
         profile = np.zeros(H)
         for frame in series:
             profile += frame.mean(axis=1)

@@ -11,14 +11,15 @@ import logging
 import math
 import os
 import secrets
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, Protocol, overload
 
 import h5py
 import numpy as np
+from numpy.typing import DTypeLike
 
 from .errors import DfxcorrError, OutputExistsError
 
@@ -32,6 +33,21 @@ _FRAME_DTYPES = (np.uint16, np.uint32, np.float32, np.float64)
 
 class ScanFormatError(DfxcorrError, ValueError):
     """The file is not a valid dfxcorr scan; the message names the offending dataset."""
+
+
+class FrameSource(Protocol):
+    """Frames [N, H, W] in memory (an ndarray) or read on demand (:class:`H5Frames`, the importer's counts).
+
+    ``source[j]`` and ``source[j, r0:r1]`` give ndarrays; nothing else is asked of a source.
+    """
+
+    @property
+    def shape(self) -> tuple[int, ...]: ...
+
+    @property
+    def dtype(self) -> np.dtype: ...
+
+    def __getitem__(self, key: Any) -> Any: ...
 
 
 @dataclass
@@ -55,7 +71,7 @@ class SteppingReference:
 
     Attributes
     ----------
-    data : ndarray, shape (S, A, W)
+    data : ndarray or FrameSource, shape (S, A, W)
         Counts.
     phase_step : ndarray, shape (S,)
         Nominal step phases (rad).
@@ -63,7 +79,7 @@ class SteppingReference:
         Dark signal per frame of that series.
     """
 
-    data: np.ndarray
+    data: FrameSource
     phase_step: np.ndarray
     dark: np.ndarray | None = None
 
@@ -85,18 +101,18 @@ class H5Frames:
     dtype : numpy.dtype
     """
 
-    def __init__(self, path: str | os.PathLike, dataset: str, shape: tuple, dtype):
+    def __init__(self, path: str | os.PathLike, dataset: str, shape: tuple[int, ...], dtype: DTypeLike):
         self.path, self.dataset = Path(path), dataset
         self.shape, self.dtype = tuple(int(n) for n in shape), np.dtype(dtype)
         self.ndim = 3
 
     @contextmanager
-    def open(self):
+    def open(self) -> Iterator[h5py.Dataset]:
         """The HDF5 dataset, open for several reads in a row (closed on leaving)."""
         with h5py.File(self.path, "r") as f:
             yield f[self.dataset]
 
-    def __getitem__(self, key):
+    def __getitem__(self, key: Any) -> Any:
         with self.open() as dset:
             return dset[key]
 
@@ -104,7 +120,7 @@ class H5Frames:
         return self.shape[0]
 
 
-def frame_rows(data, j: int, r0: int, r1: int) -> np.ndarray:
+def frame_rows(data: FrameSource, j: int, r0: int, r1: int) -> np.ndarray:
     """Rows r0:r1 of frame j of an in-memory array or an :class:`H5Frames`, shape (r1 - r0, W)."""
     return np.asarray(data[j, r0:r1])
 
@@ -115,7 +131,7 @@ class Scan:
 
     Attributes
     ----------
-    data : ndarray or H5Frames, shape (J, H, W)
+    data : ndarray or H5Frames (any FrameSource), shape (J, H, W)
         Raw frames in acquisition order, dtype as stored; :func:`read_scan` leaves them in the file
         (:class:`H5Frames`) and the pipeline reads the lit rows of each frame once.
     position : ndarray, shape (J,)
@@ -138,7 +154,7 @@ class Scan:
         Files other than the scan file that were read (only when external storage was allowed).
     """
 
-    data: np.ndarray
+    data: FrameSource
     position: np.ndarray
     reference: Reference | SteppingReference
     phase_step: np.ndarray | None = None
@@ -159,7 +175,8 @@ class Scan:
     @property
     def shape(self) -> tuple[int, int, int]:
         """(J, H, W): frames, detector rows, detector columns."""
-        return tuple(self.data.shape)
+        J, H, W = self.data.shape
+        return J, H, W
 
     @property
     def active_rows(self) -> int:
@@ -237,18 +254,18 @@ class _Walker:
         self.allow_external = allow_external
         self.external: list[str] = []
 
-    def _outside(self, path: str, what: str, files=()) -> None:
+    def _outside(self, path: str, what: str, files: Iterable[str] = ()) -> None:
         if not self.allow_external:
             raise ScanFormatError(f"/{path} is {what}; refused (set load.allow_external=true to follow it)")
         for name in files:
             self._record(name)
 
-    def _record(self, name) -> None:
+    def _record(self, name: str | os.PathLike) -> None:
         full = str(Path(name).resolve())
         if full != str(Path(self.f.filename).resolve()) and full not in self.external:
             self.external.append(full)
 
-    def get(self, path: str):
+    def get(self, path: str) -> Any:
         """The object at ``path`` (or None when absent) after checking every link on the way."""
         parts = [p for p in path.split("/") if p]
         depth = 0
@@ -283,6 +300,14 @@ class _Walker:
             raise ScanFormatError(f"/{path}: dangling link")
         self._record(obj.file.filename)  # the file HDF5 actually opened behind an external link
         return obj
+
+    @overload
+    def dataset(self, path: str, *, required: Literal[True] = True, lit: tuple[np.ndarray, int] | None = None
+                ) -> h5py.Dataset: ...
+
+    @overload
+    def dataset(self, path: str, *, required: bool, lit: tuple[np.ndarray, int] | None = None
+                ) -> h5py.Dataset | None: ...
 
     def dataset(self, path: str, *, required: bool = True, lit: tuple[np.ndarray, int] | None = None
                 ) -> h5py.Dataset | None:
@@ -528,7 +553,10 @@ def read_scan(path: str | os.PathLike, *, allow_external: bool = False) -> Scan:
         if not (np.isfinite(gain) and gain > 0):
             raise ScanFormatError(f"/{_DET}/gain must be a positive number, is {gain}")
         px = [_optional(f, f"{_DET}/{k}") for k in ("y_pixel_size", "x_pixel_size")]
-        pixel_size = tuple(float(np.asarray(p).reshape(-1)[0]) for p in px) if all(p is not None for p in px) else None
+        pixel_size: tuple[float, float] | None = None
+        if all(p is not None for p in px):
+            size_y, size_x = (float(np.asarray(p).reshape(-1)[0]) for p in px)
+            pixel_size = (size_y, size_x)
         reference = _read_reference(f, W)
         attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     return Scan(data=data, position=position, reference=reference, phase_step=phase_step, dark=dark,
@@ -571,7 +599,7 @@ def _read_reference(f: h5py.File, W: int) -> Reference | SteppingReference:
     raise ScanFormatError(f"missing required dataset {missing[0]} (or /entry/reference/stepping/data)")
 
 
-def _check_counts(name: str, data) -> None:
+def _check_counts(name: str, data: FrameSource) -> None:
     """NaN or negative counts in float frames (array or HDF5 dataset), read one frame at a time."""
     if data.dtype.kind != "f":
         return
@@ -641,7 +669,8 @@ CHUNK_ROWS = 64
 
 
 def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, Any] | None = None,
-               compression: str | None = "gzip", frames=None, overwrite: bool = False) -> None:
+               compression: str | None = "gzip", frames: Iterable[tuple[int, int, np.ndarray]] | None = None,
+               overwrite: bool = False) -> None:
     """Write a scan file atomically (to a temporary name, renamed when complete), one frame at a time.
 
     Parameters
@@ -702,7 +731,7 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, Any] | N
             f.create_dataset(key, data=value)
 
 
-def _write_frames(group: h5py.Group, name: str, frames, compression: str | None) -> None:
+def _write_frames(group: h5py.Group, name: str, frames: FrameSource, compression: str | None) -> None:
     """Write frames [N, H, W] chunked per frame, one frame at a time (``frames`` may read them lazily)."""
     n, h, w = frames.shape
     dset = group.create_dataset(name, shape=(n, h, w), dtype=frames.dtype, chunks=(1, h, w), compression=compression)

@@ -43,7 +43,8 @@ def set_threads() -> int:
         The number of threads set (at most numba's pool size).
     """
     if "NUMBA_THREADING_LAYER" not in os.environ:
-        numba.config.THREADING_LAYER = "workqueue"
+        # numba.config sets its options at run time from the environment, unseen by mypy
+        numba.config.THREADING_LAYER = "workqueue"  # type: ignore[attr-defined]
     n = 0
     for var in ("SLURM_CPUS_PER_TASK", "OMP_NUM_THREADS"):
         first = os.environ.get(var, "").split(",")[0].strip()
@@ -52,7 +53,7 @@ def set_threads() -> int:
             break
     if n == 0:
         n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    n = max(1, min(n, numba.config.NUMBA_NUM_THREADS))
+    n = max(1, min(n, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]  # set at run time, as above
     numba.set_num_threads(n)
     return n
 

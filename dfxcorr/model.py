@@ -34,6 +34,7 @@ segment sums over the blocks of one row; per-frame sums are bincounts over the b
 """
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -131,7 +132,7 @@ def effect(name: str) -> Effect:
         raise ValueError(f"unknown effect {name!r}; the catalogue has {', '.join(CATALOGUE)}") from None
 
 
-def neutral_params(effects, n_frames: int) -> dict[str, np.ndarray]:
+def neutral_params(effects: Iterable[str], n_frames: int) -> dict[str, np.ndarray]:
     """Parameters at which every listed effect is absent.
 
     Returns
@@ -202,7 +203,7 @@ class Observations:
     starts: np.ndarray = field(init=False)
     pixel: np.ndarray = field(init=False)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if np.any(np.diff(self.row) < 0):
             raise ValueError("observation blocks must be sorted by row")
         self.rows, self.starts, counts = np.unique(self.row, return_index=True, return_counts=True)
@@ -313,7 +314,8 @@ def channels(params: dict[str, np.ndarray], *, x: np.ndarray, n_frames: int) -> 
     return out
 
 
-def channel_adjoint(names, grad: Channels, *, x: np.ndarray, square: bool = False) -> dict[str, np.ndarray]:
+def channel_adjoint(names: Sequence[str], grad: Channels, *, x: np.ndarray, square: bool = False
+                    ) -> dict[str, np.ndarray]:
     """Pull channel gradients back to effect parameters (the adjoint of :func:`channels`).
 
     Parameters
@@ -350,7 +352,7 @@ def channel_adjoint(names, grad: Channels, *, x: np.ndarray, square: bool = Fals
     return out
 
 
-def component_table(names) -> tuple[np.ndarray, np.ndarray, int, list[tuple[str, int]]]:
+def component_table(names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, int, list[tuple[str, int]]]:
     """The parameter components of ``names`` as the Fisher kernel reads them.
 
     Returns
@@ -364,12 +366,20 @@ def component_table(names) -> tuple[np.ndarray, np.ndarray, int, list[tuple[str,
     """
     order = [n for n in names if effect(n).per_frame] + [n for n in names if not effect(n).per_frame]
     comps = [(n, m) for n in order for m in range(effect(n).size)]
-    channel = np.array([kernels.CHANNEL_IDS[effect(n).channel] for n, _ in comps], dtype=np.int64)
+    channel = np.array([_channel_id(n) for n, _ in comps], dtype=np.int64)
     power = np.array([effect(n).powers[m] if effect(n).per_frame else m for n, m in comps], dtype=np.int64)
     return channel, power, sum(effect(n).size for n in names if effect(n).per_frame), comps
 
 
-def fisher_index(names, n_frames: int) -> list[tuple[str, int, int]]:
+def _channel_id(name: str) -> int:
+    """:data:`dfxcorr.kernels.CHANNEL_IDS` of an effect with parameters (those without a channel have none)."""
+    channel = effect(name).channel
+    if channel is None:
+        raise ValueError(f"effect {name!r} does not enter the expected count")
+    return kernels.CHANNEL_IDS[channel]
+
+
+def fisher_index(names: Sequence[str], n_frames: int) -> list[tuple[str, int, int]]:
     """(name, frame, component) of each axis entry of the Fisher matrix; frame is -1 for global effects."""
     _, _, n_per_frame, comps = component_table(names)
     return [(n, j, m) for j in range(n_frames) for n, m in comps[:n_per_frame]] + \
@@ -604,7 +614,7 @@ def reduce_component(obs: Observations, name: str, F: np.ndarray) -> np.ndarray:
 
 
 def gradient(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, resid: np.ndarray,
-             names) -> dict[str, np.ndarray]:
+             names: Iterable[str]) -> dict[str, np.ndarray]:
     """Gradient of the cost sum w (I - Ibar)^2 with respect to effect parameters at fixed images.
 
     At the closed-form images this is the gradient of the reduced cost (envelope theorem, paper
@@ -625,11 +635,13 @@ def gradient(obs: Observations, dsg: Design, images: Images, weights: np.ndarray
 
 def leverage(obs: Observations, dsg: Design, images: Images, weights: np.ndarray) -> np.ndarray:
     """Leverage of each sample in its pixel's image fit, w x^T N^-1 x, shape (K, C)."""
+    if images.inverse is None:
+        raise ValueError("leverage needs the inverse normal matrices (solve_images(..., keep_inverse=True))")
     X = np.stack([dsg.A, dsg.Bc, dsg.Bs], axis=-1)
     return weights * np.einsum("kca,kcab,kcb->kc", X, images.inverse[obs.pixel], X)
 
 
-def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, names,
+def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, names: Sequence[str],
                   *, profiled: bool = True) -> tuple[np.ndarray, list[tuple[str, int, int]]]:
     """Fisher information of all effect parameters, with the images profiled out.
 

@@ -15,20 +15,20 @@ import numpy as np
 from .align import AlignmentError, build_observations, subsample_columns
 from .analysis import identify
 from .fit import fit_vibrations, initial_weights
-from .io import Reference, Scan, SteppingReference
+from .io import FrameSource, Reference, Scan, SteppingReference
 from .model import Observations
 from .retrieve import retrieve
 
 log = logging.getLogger(__name__)
 
 
-def stepping_observations(data: np.ndarray, phase_step: np.ndarray, *, dark: np.ndarray | None = None,
+def stepping_observations(data: FrameSource, phase_step: np.ndarray, *, dark: np.ndarray | None = None,
                           gain: float = 1.0) -> Observations:
     """Observations of a phase-stepping series of the unloaded interferometer (flat field 1, 1, 0).
 
     Parameters
     ----------
-    data : ndarray, shape (S, A, W)
+    data : ndarray or FrameSource, shape (S, A, W)
     phase_step : ndarray, shape (S,)
     dark : ndarray, shape (A, W), optional
 
@@ -105,9 +105,9 @@ def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=("phase_
     S = ref.data.shape[0]
     if S < 3:
         raise AlignmentError(f"/entry/reference/stepping/data has {S} steps; at least 3 are needed")
-    bad = [e for e in effects if e not in ("phase_offset", "tilt", "dose")]
-    if bad:
-        raise AlignmentError(f"{', '.join(bad)} cannot be estimated from a reference stepping series "
+    unsupported = [e for e in effects if e not in ("phase_offset", "tilt", "dose")]
+    if unsupported:
+        raise AlignmentError(f"{', '.join(unsupported)} cannot be estimated from a reference stepping series "
                              f"(not identifiable there, paper Sec. II-F)")
     obs = stepping_observations(ref.data, ref.phase_step, dark=ref.dark, gain=gain)
     nominal = retrieve(obs, {})

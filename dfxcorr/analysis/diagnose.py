@@ -28,6 +28,7 @@ import json
 import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy import ndimage, stats
@@ -272,11 +273,14 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
         nb = value.size
         lab = lab[sel]
         use = sel if kind == "variance" else bright
+        S: np.ndarray
+        V: np.ndarray
+        expect: np.ndarray
         if kind == "variance":
             S = np.bincount(lab, weights=e[sel], minlength=nb)
             V = np.bincount(lab, weights=kappa[sel], minlength=nb)
             expect = c * np.bincount(lab, weights=keep[sel], minlength=nb)
-            lost = 1
+            lost = 1.0
         else:
             S = np.bincount(lab, weights=np.where(use, z, 0.0)[sel], minlength=nb)
             V = c * np.bincount(lab, weights=np.where(use, keep, 0.0)[sel], minlength=nb)
@@ -546,9 +550,7 @@ def _chi2(obs: M.Observations, params: dict, *, n_params: int) -> tuple[float, f
 
 def _where(name: str, test: dict, obs: M.Observations) -> str:
     if name == "sample_motion":
-        rows, cols = np.nonzero(test["mask"])
-        return (f"{rows.size} pixels in rows {rows.min()}-{rows.max()}, columns {cols.min()}-{cols.max()}"
-                if rows.size else "nowhere")
+        return _motion_where(test["mask"])
     if name == "detector_gain":
         return "all pixels (noise, not the mean)"
     if not M.effect(name).per_frame:
@@ -560,6 +562,12 @@ def _where(name: str, test: dict, obs: M.Observations) -> str:
     top = np.sort(order[: max(1, int(np.searchsorted(np.cumsum(share[order]) / share.sum(), 0.5)) + 1)])
     spread = "all frames" if top.size > 0.3 * obs.n_frames else "few frames"
     return f"{spread}; half of the statistic in {top.size} frames, {top.min()}-{top.max()}"
+
+
+def _motion_where(mask: np.ndarray) -> str:
+    rows, cols = np.nonzero(mask)
+    return (f"{rows.size} pixels in rows {rows.min()}-{rows.max()}, columns {cols.min()}-{cols.max()}"
+            if rows.size else "nowhere")
 
 
 def _estimate(name: str, params: dict, good: np.ndarray, extra: dict) -> str:
@@ -647,7 +655,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
         log.info("round %d: reduced chi-square %.4f; %s", rnd, state["reduced_chi2"],
                  ", ".join(f"{k} S={t['statistic']:.4g} (dof {t['dof']}{'' if t['identifiable'] else ', n.i.'})"
                            for k, t in sorted(tests.items(), key=lambda kv: -kv[1]["statistic"])))
-        choice = trial = None
+        chosen: tuple[str, dict] | None = None
         for candidate in _ranked(tests, alpha=d["alpha"], min_gain_change=d["min_gain_change"], gain=obs.gain):
             if candidate in rejected:
                 continue
@@ -659,16 +667,17 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
             share = _explained_share(state["signatures"], trial["signatures"])
             if share is None or share >= d["explain_share"] or (share >= 0 and _silences(state["signatures"],
                                                                                           trial["signatures"])):
-                choice = candidate
+                chosen = candidate, trial
                 break
             log.info("round %d: %s removes %.0f %% of the significant residual signatures' excess: rejected",
                      rnd, candidate, 100 * share)
             rejected[candidate] = share
             _restore(obs, fit_obs, state)
-        if choice is None:
+        if chosen is None:
             break
+        choice, trial = chosen
         t = tests[choice]
-        extra = {}
+        extra: dict[str, Any] = {}
         if choice == "sample_motion":
             motion = trial["motion"]
             extra["pixels"] = int(motion.sum())
@@ -808,7 +817,7 @@ def _unexplained(sigs: list[dict], motion: dict | None, modelled_motion: bool, *
             "where": s["where"], "description": s["description"]} for s in sigs if s["significant"]]
     if motion is not None and not modelled_motion and motion["dof"] and motion["log_p"] < np.log(alpha):
         out.append({"axis": "pixel", "statistic": motion["statistic"], "dof": motion["dof"],
-                    "p_value": motion["p_value"], "where": _where("sample_motion", motion, None),
+                    "p_value": motion["p_value"], "where": _motion_where(motion["mask"]),
                     "description": f"{int(motion['mask'].sum())} pixels whose frames disagree beyond noise, in "
                                    f"clusters; masking them does not explain the misfit"})
     return sorted(out, key=lambda u: u["p_value"])

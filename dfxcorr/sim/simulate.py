@@ -200,6 +200,7 @@ class Simulation:
         if e["heart_step_mm"]:
             self.after = _heart_step(self.images, cfg)
             self.moving = self.after["region"]
+        self.reference: Reference | SteppingReference
         self.reference, self.reference_steps = self.flat, np.zeros(0)
         if s["reference_steps"]:
             self.reference, self.reference_steps = _reference_series(self.flat, s, rng)
