@@ -81,7 +81,7 @@ def prepared_scan():
 @pytest.mark.slow
 def test_row_blocks_give_the_images_of_one_pass(prepared_scan):
     scan, _ = prepared_scan
-    base = ["fit.subsample=3", "fit.maxiter=60"]
+    base = ["fit.subsample=3", "fit.maxiter=60", "retrieve.uncorrected=true"]
     tiny = pipeline.reconstruct(scan, C.load([], base + ["retrieve.block_mb=0.000001"]))
     huge = pipeline.reconstruct(scan, C.load([], base + ["retrieve.block_mb=100000"]))
     for name in ("transmission", "dark_field", "differential_phase"):
