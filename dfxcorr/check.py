@@ -315,7 +315,7 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     IdentifiabilityError
         A visibility effect set to true that this acquisition cannot determine.
     """
-    from .analysis.identify import IdentifiabilityError
+    from .analysis.identify import drop_visibility
 
     J, H, W = scan.shape
     method = cfg["fit"]["method"]
@@ -331,18 +331,9 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     lit = int(count[used].sum()) * W
     columns = np.zeros(0, int) if method == "none" else _columns(W, cfg, lit // W)
     effects = C.effects_of(cfg) if method != "none" else ()
-    dropped = {}
     why = _visibility_reasons(scan) if {"visibility_loss", "visibility_tilt"} & set(effects) else None
-    if why:
-        keys = {e: k for k, e in C.VIBRATION_EFFECTS.items()}
-        for name_ in ("visibility_loss", "visibility_tilt"):
-            if name_ not in effects:
-                continue
-            if cfg["vibration"][keys[name_]] is True:
-                raise IdentifiabilityError(f"{name_} is not identifiable here: {why}; set "
-                                           f"vibration.{keys[name_]}=false")
-            dropped[name_] = why
-        effects = tuple(e for e in effects if e not in dropped)
+    kept, dropped = drop_visibility(cfg, effects, why)
+    effects = tuple(kept)
     return Plan(scan=name, shape=(J, H, W), dtype=str(scan.data.dtype), active_rows=scan.active_rows,
                 stepping=scan.is_stepping, rows_used=int(used.sum()), lit_samples=lit, method=method,
                 columns=columns, effects=effects, dropped=dropped,

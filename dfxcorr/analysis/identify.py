@@ -214,6 +214,44 @@ def visibility_unidentifiable(scan: Scan, reference) -> str | None:
     return why
 
 
+def refuse_if_asked(cfg: dict, name: str, why: str) -> None:
+    """Refuse an effect the acquisition cannot determine if the configuration asks for it explicitly.
+
+    Raises
+    ------
+    IdentifiabilityError
+        If ``vibration.<key of name>`` is true (not auto).
+    """
+    key = {e: k for k, e in C.VIBRATION_EFFECTS.items()}[name]
+    if cfg["vibration"][key] is True:
+        raise IdentifiabilityError(f"{name} is not identifiable here: {why}; set vibration.{key}=false"
+                                   + (" (or auto)" if name == "visibility_loss" else ""))
+
+
+def drop_visibility(cfg: dict, effects, why: str | None) -> tuple[list[str], dict[str, str]]:
+    """The effects without the visibility ones where ``why`` (paper Sec. II-F) says they cannot be determined.
+
+    Returns
+    -------
+    kept : list of str
+    dropped : dict
+        Effect -> reason.
+
+    Raises
+    ------
+    IdentifiabilityError
+        If the configuration explicitly asks for a visibility effect that ``why`` rules out.
+    """
+    kept, dropped = [], {}
+    for name in effects:
+        if why and name in ("visibility_loss", "visibility_tilt"):
+            refuse_if_asked(cfg, name, why)
+            dropped[name] = why
+        else:
+            kept.append(name)
+    return kept, dropped
+
+
 def resolve_effects(cfg: dict, scan: Scan, reference, fit_obs: M.Observations) -> tuple[str, ...]:
     """The effects to fit: the configured ones that this acquisition can determine.
 
@@ -226,21 +264,13 @@ def resolve_effects(cfg: dict, scan: Scan, reference, fit_obs: M.Observations) -
     IdentifiabilityError
         If the configuration explicitly asks for an effect the acquisition cannot determine.
     """
-    keys = {e: k for k, e in C.VIBRATION_EFFECTS.items()}
-
     def refuse_or_drop(name, why):
-        if cfg["vibration"][keys[name]] is True:
-            raise IdentifiabilityError(f"{name} is not identifiable here: {why}; set vibration.{keys[name]}=false"
-                                       + (" (or auto)" if name == "visibility_loss" else ""))
+        refuse_if_asked(cfg, name, why)
         log.info("%s is not fitted: %s", name, why)
 
-    paper_why = visibility_unidentifiable(scan, reference)
-    names = []
-    for name in C.effects_of(cfg):
-        if paper_why and name in ("visibility_loss", "visibility_tilt"):
-            refuse_or_drop(name, paper_why)
-        else:
-            names.append(name)
+    names, dropped = drop_visibility(cfg, C.effects_of(cfg), visibility_unidentifiable(scan, reference))
+    for name, why in dropped.items():
+        log.info("%s is not fitted: %s", name, why)
     chosen: list[str] = []
     for verdict in select(fit_obs, initial_weights(fit_obs, {}), names):
         if verdict.identifiable:
