@@ -689,8 +689,6 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, Any] | N
     overwrite : bool
         Replace an existing file (otherwise :class:`OutputExistsError`).
     """
-    J, H, W = scan.shape
-    chunks = (1, min(CHUNK_ROWS, H), W)
     with atomic_path(path, overwrite=overwrite) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT
         f.attrs["format_version"] = FORMAT_VERSION
@@ -700,10 +698,7 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, Any] | N
         inst.attrs["NX_class"] = "NXinstrument"
         det = inst.create_group("detector")
         det.attrs["NX_class"] = "NXdetector"
-        dset = det.create_dataset("data", shape=(J, H, W), dtype=scan.data.dtype, compression=compression,
-                                  chunks=chunks)
-        for j, r0, block in (frames if frames is not None else ((j, 0, scan.data[j]) for j in range(J))):
-            dset[j, r0:r0 + block.shape[0]] = block
+        _write_frames(det, "data", scan.data, compression, chunk_rows=CHUNK_ROWS, blocks=frames)
         if np.any(scan.dark != 0):
             det.create_dataset("dark", data=scan.dark)
         det.create_dataset("gain", data=float(scan.gain))
@@ -719,7 +714,7 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, Any] | N
         ref = entry.create_group("reference")
         if isinstance(scan.reference, SteppingReference):
             st = ref.create_group("stepping")
-            _write_frames(st, "data", scan.reference.data, compression)
+            _write_frames(st, "data", scan.reference.data, compression, chunk_rows=scan.reference.data.shape[1])
             st.create_dataset("phase_step", data=scan.reference.phase_step).attrs["units"] = "rad"
             if scan.reference.dark is not None:
                 st.create_dataset("dark", data=scan.reference.dark)
@@ -731,12 +726,18 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, Any] | N
             f.create_dataset(key, data=value)
 
 
-def _write_frames(group: h5py.Group, name: str, frames: FrameSource, compression: str | None) -> None:
-    """Write frames [N, H, W] chunked per frame, one frame at a time (``frames`` may read them lazily)."""
+def _write_frames(group: h5py.Group, name: str, frames: FrameSource, compression: str | None, *,
+                  chunk_rows: int, blocks: Iterable[tuple[int, int, np.ndarray]] | None = None) -> None:
+    """Write frames [N, H, W] one frame at a time, in chunks of (1, ``chunk_rows``, W).
+
+    ``frames`` may read them lazily; ``blocks`` of (frame, first row, rows) replace them where given
+    (rows not given stay 0), so that a producer can hand over one frame's lit rows at a time.
+    """
     n, h, w = frames.shape
-    dset = group.create_dataset(name, shape=(n, h, w), dtype=frames.dtype, chunks=(1, h, w), compression=compression)
-    for k in range(n):
-        dset[k] = frames[k]
+    dset = group.create_dataset(name, shape=(n, h, w), dtype=frames.dtype, chunks=(1, min(chunk_rows, h), w),
+                                compression=compression)
+    for k, r0, block in (blocks if blocks is not None else ((k, 0, frames[k]) for k in range(n))):
+        dset[k, r0:r0 + block.shape[0]] = block
 
 
 def read_reference(path: str | os.PathLike, *, allow_external: bool = False) -> Reference | SteppingReference:
