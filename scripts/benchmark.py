@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import re
 import shutil
 import subprocess
@@ -37,6 +35,7 @@ import numpy as np
 
 from dfxcorr import config as C
 from dfxcorr import pipeline
+from dfxcorr.analysis.compare import machine
 from dfxcorr.analysis.evaluate import frames_lighting, vibration_rmse
 from dfxcorr.export import SPEC_EFFECTS, read_result_h5
 from dfxcorr.io import read_scan
@@ -47,21 +46,6 @@ ROOT = Path(__file__).resolve().parents[1]
 CASES = {"default": [], "every column": ["fit.subsample=1"], "every 20th column": ["fit.subsample=20"],
          "no preconditioning": ["fit.precondition=false"]}
 CLINICAL = {"binned": ROOT / "configs" / "clinical-binned.yaml", "full": ROOT / "configs" / "clinical.yaml"}
-
-
-def machine() -> dict:
-    """Cores, memory and CPU model of this machine (Linux /proc; what is unknown is left out)."""
-    out = {"platform": f"{platform.machine()}, {platform.system()}, python {platform.python_version()}",
-           "cores": os.cpu_count()}
-    try:
-        mem = Path("/proc/meminfo").read_text()
-        out["memory_gb"] = round(int(re.search(r"MemTotal:\s+(\d+)", mem).group(1)) / 2 ** 20, 1)
-        cpu = re.search(r"model name\s*:\s*(.+)", Path("/proc/cpuinfo").read_text())
-        if cpu:
-            out["cpu"] = cpu.group(1).strip()
-    except (OSError, AttributeError):
-        pass
-    return out
 
 
 def measured(cmd: list[str]) -> tuple[float, float]:
@@ -132,7 +116,7 @@ def main():
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
     args = ap.parse_args()
     info = machine()
-    print(json.dumps(info), flush=True)
+    print(info, flush=True)
     doc_path = args.out / "benchmark.json"
     doc = json.loads(doc_path.read_text()) if doc_path.exists() else {}
     if "machine" in doc:  # the earlier layout held the paper target alone
