@@ -544,8 +544,7 @@ def gain_test(obs: M.Observations, ibar: np.ndarray, images, dsg, weights, *,
 
 def _chi2(obs: M.Observations, params: dict, *, n_params: int) -> tuple[float, float, Retrieval]:
     rec = retrieve(obs, params, n_frame_params=n_params)
-    sel = rec.images.valid[obs.pixel] & obs.use
-    return float(M.pearson(obs, rec.expected)[sel].sum()), rec.reduced_chi2, rec
+    return rec.chi2_sum, rec.reduced_chi2, rec
 
 
 def _where(name: str, test: dict, obs: M.Observations) -> str:
