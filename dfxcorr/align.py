@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import logging
 from contextlib import nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import DTypeLike
@@ -98,6 +99,15 @@ class LitStore:
     def rows(self) -> np.ndarray:
         """Detector rows held, ascending."""
         return np.unique(self.row)
+
+    def shifted(self, rows: np.ndarray | float) -> LitStore:
+        """The same samples with the flat field read ``rows`` off: at u - rows (scalar, or (J,) per frame).
+
+        Which samples are lit stays as the recorded positions say; only where the flat-field maps are
+        read moves (a reference offset or per-frame position errors of a fraction of a row).
+        """
+        delta = np.broadcast_to(np.asarray(rows, dtype=np.float64), (self.shape[0],))
+        return replace(self, u=self.u - delta[self.frame])
 
     def samples_per_column(self) -> int:
         """Lit samples in one detector column (K)."""
@@ -195,6 +205,25 @@ def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: 
                     phase_step=np.asarray(scan.phase_step, dtype=np.float64), dark=scan.dark, gain=scan.gain)
 
 
+def read_position_errors(path: str | Path, n_frames: int) -> np.ndarray:
+    """Per-frame position errors delta_j (rows) from a .npy file or a text file of one number per frame.
+
+    Raises
+    ------
+    AlignmentError
+        Naming the file, if it cannot be read or does not hold ``n_frames`` finite numbers.
+    """
+    path = Path(path)
+    try:
+        values = np.load(path, allow_pickle=False) if path.suffix == ".npy" else np.loadtxt(path, ndmin=1)
+    except (OSError, ValueError) as exc:
+        raise AlignmentError(f"{path}: cannot read the position errors ({exc})") from None
+    values = np.asarray(values, dtype=np.float64).ravel() if np.asarray(values).dtype.kind in "fiu" else None
+    if values is None or values.size != n_frames or not np.all(np.isfinite(values)):
+        raise AlignmentError(f"{path}: expected {n_frames} finite position errors (rows), one per frame")
+    return values
+
+
 def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray | None = None,
                        min_frames: int = 3, pixel_mask: np.ndarray | None = None,
                        gain: float | None = None) -> Observations:
@@ -239,4 +268,5 @@ def _ranges(idx: np.ndarray) -> str:
 
 
 __all__ = ["AlignmentError", "LitStore", "build_observations", "collect_lit_rows", "interpolate_rows", "lit_blocks",
+           "read_position_errors",
            "subsample_columns", "tilt_alias_period", "lateral_coordinate"]

@@ -81,6 +81,14 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                          "95th percentile of the reference visibility; 0 keeps all", (int, float, str),
                                  check=lambda v: None if v == "auto" or (not isinstance(v, str) and 0 <= v < 1)
                                  else "must be auto or lie in [0, 1)"),
+        "reference_offset": Option(0.0, "rows by which the whole interferometer sat off during the scan relative to "
+                                        "the reference: the flat field is read at u - offset (reference_offset of "
+                                        "dfxcorr diagnose)", _NUM,
+                                   check=lambda v: None if math.isfinite(v) else "must be finite"),
+        "position_errors": Option(None, "file (.npy, or text with one number per frame) of per-frame errors delta_j "
+                                        "of the recorded positions (rows): frame j's flat field is read at "
+                                        "u - delta_j (position_errors.txt of dfxcorr diagnose); null: none", str,
+                                  nullable=True),
     },
     "mask": {
         "enabled": Option(True, "leave pixels whose frames disagree (sample motion, paper Sec. II-E) out of the "

@@ -26,7 +26,7 @@ import numpy as np
 from . import __version__
 from . import config as C
 from . import model as M
-from .align import LitStore, collect_lit_rows, subsample_columns, tilt_alias_period
+from .align import LitStore, collect_lit_rows, read_position_errors, subsample_columns, tilt_alias_period
 from .analysis.identify import resolve_effects
 from .baselines import fit_alternating, fit_correlation
 from .fit import FitResult, fit_vibrations
@@ -136,6 +136,9 @@ def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) 
             scan = read_scan(path, allow_external=cfg["load"]["allow_external"])
             log.info("scan %s: %d frames of %d x %d, active area %d rows%s", path.name, *scan.shape,
                      scan.active_rows, ", phase stepping" if scan.is_stepping else "")
+    # a bad position-error file is refused before any computation
+    shift = cfg["align"]["reference_offset"] + (read_position_errors(cfg["align"]["position_errors"], scan.shape[0])
+                                                if cfg["align"]["position_errors"] is not None else 0.0)
     with stage("align", timings):
         step_effects = tuple(e for e, on in (("phase_offset", cfg["reference"]["step_errors"]),
                                              ("dose", cfg["reference"]["dose"])) if on is not False)
@@ -143,6 +146,10 @@ def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) 
                                       optional=("dose",) if cfg["reference"]["dose"] == "auto" else ())
         store = collect_lit_rows(scan, active_rows=reference.transmission.shape[0],
                                  min_frames=cfg["align"]["min_frames"])
+        if np.any(shift != 0):
+            store = store.shifted(shift)
+            log.info("flat field read off the recorded positions by %.3g rows on average (align.reference_offset, "
+                     "align.position_errors)", float(np.mean(shift)))
         log.info("lit samples: %d rows x frames of %d columns (%.0f MB as %s)", store.row.size, scan.shape[2],
                  store.counts.nbytes / 1e6, store.counts.dtype)
         vmin = cfg["align"]["min_visibility"]

@@ -58,6 +58,17 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                    check=_positive),
         "reference_step_errors": Option(0.0, "std of the phase errors of the reference series' steps (rad)", _NUM,
                                         check=_nonneg),
+        "tiles": Option(0, "grating tiles across the width (0: one seamless grating): the flat-field phase gradient "
+                           "along the scan is constant within a tile and jumps between tiles, as do t^f and v^f",
+                        int, check=_nonneg),
+        "tile_fringes": Option(0.3, "tiles: fringe counts over the active area vary by up to +- this between tiles "
+                                    "(seeded)", _NUM, check=_nonneg),
+        "tile_contrast": Option(0.05, "tiles: t^f and v^f vary by up to +- this fraction between tiles (seeded)",
+                                _NUM, check=_nonneg),
+        "flat_along_scan": Option(0.0, "departure of the flat field from linearity along the scan: relative "
+                                       "variation of t^f and v^f along u, and phase curvature along u of "
+                                       "2 pi times this (rad) at the active area's edges; 0: linear", _NUM,
+                                  check=_nonneg),
     },
     "effects": {
         "phase_offset": Option(2 * np.pi / 16, "std of phi0_j (rad) (stepping: of the step errors)", _NUM,
@@ -80,6 +91,11 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "declare_gain": Option(True, "write the true gain into the file (false conceals it: readers assume 1)",
                                bool),
         "read_noise": Option(0.0, "electronic noise std (detector units)", _NUM, check=_nonneg),
+        "reference_offset": Option(0.0, "the whole interferometer sat this many rows off during the scan: every "
+                                        "frame reads the flat-field maps at u - offset, the file's reference stays "
+                                        "unshifted", _NUM, check=lambda v: None if np.isfinite(v) else "must be finite"),
+        "position_error": Option(0.0, "std (rows) of a per-frame error delta_j of the recorded active-area position: "
+                                      "frame j reads the flat-field maps at u - delta_j", _NUM, check=_nonneg),
     },
 }
 
@@ -99,6 +115,12 @@ CONCEALED = {
     "harmonic": ("effects.harmonic", 0.03, [0.01, 0.005, 0.002, 0.001], {}, []),
     "sample_motion": ("effects.sample_motion", 0.3, [0.1, 0.05, 0.02, 0.01], {}, []),
     "detector_gain": ("effects.detector_gain", 2.0, [1.3, 1.1, 1.05, 1.02], {"effects.declare_gain": False}, []),
+    # both are told from the images' phase only where the flat field's gradient jumps (tiled gratings) or
+    # is not linear along the scan
+    "reference_offset": ("effects.reference_offset", 0.5, [0.2, 0.1, 0.05, 0.02],
+                         {"simulate.tiles": 8, "simulate.flat_along_scan": 0.1}, []),
+    "position_error": ("effects.position_error", 0.5, [0.2, 0.1, 0.05, 0.02],
+                       {"simulate.tiles": 8, "simulate.flat_along_scan": 0.1}, []),
 }
 
 
@@ -117,14 +139,42 @@ def geometry(cfg: dict) -> dict:
 
 
 def flat_field(cfg: dict, A: int, W: int) -> Reference:
-    """Flat field with a fringe count growing from the centre to the edges (paper Sec. III-A)."""
+    """Flat field with a fringe count growing from the centre to the edges (paper Sec. III-A).
+
+    With ``simulate.tiles`` the gratings are tiled across the width: each tile has its own fringe count
+    (the value at its centre, varied by up to +- ``tile_fringes``), phase at u = 0, t^f and v^f, so the
+    phase gradient along the scan is piecewise constant across the width. ``flat_along_scan`` adds the
+    departures from linearity along u that real flat fields have: phase curvature, and t^f and v^f
+    varying along u (differently in each tile). The tiles draw from their own stream of the seed, so the
+    other random draws of a scan do not change.
+    """
     s = cfg["simulate"]
     u = (np.arange(A) + 0.5)[:, None]
     x = M.lateral_coordinate(np.arange(W), W)[None, :]
-    fringes = s["fringes_centre"] + (s["fringes_edge"] - s["fringes_centre"]) * x ** 2
+    n = s["tiles"]
+    tile = np.minimum((np.arange(W) * n) // W, n - 1)[None, :] if n else np.zeros((1, W), int)
+    if n:
+        rng = np.random.default_rng([s["seed"], 1])
+        centre = M.lateral_coordinate((np.arange(n) + 0.5) * W / n - 0.5, W)
+        jitter = rng.uniform(-1, 1, (4, n))
+        fringes = (s["fringes_centre"] + (s["fringes_edge"] - s["fringes_centre"]) * centre ** 2
+                   + s["tile_fringes"] * jitter[0])[tile]
+        phase0 = (np.pi * jitter[1])[tile]
+        tf_tile, vf_tile = (1 + s["tile_contrast"] * jitter[2])[tile], (1 + s["tile_contrast"] * jitter[3])[tile]
+    else:
+        fringes = s["fringes_centre"] + (s["fringes_edge"] - s["fringes_centre"]) * x ** 2
+        phase0, tf_tile, vf_tile = 0.0, 1.0, 1.0
     flux = s["flux"] * (1 + s["flat_gradient"] * (u / A - 0.5)) * np.ones((1, W))
-    return Reference(transmission=flux, visibility=np.full((A, W), float(s["visibility"])),
-                     phase=2 * np.pi * fringes * u / A)
+    vis = np.full((A, W), float(s["visibility"]))
+    phase = 2 * np.pi * fringes * u / A + phase0
+    a = s["flat_along_scan"]
+    if a:
+        # one period of variation over the active area, shifted from tile to tile
+        wave = 2 * np.pi * u / A + tile
+        flux = flux * (1 + a * np.sin(wave))
+        vis = vis * (1 + a * np.cos(wave))
+        phase = phase + 2 * np.pi * a * 4 * (u / A - 0.5) ** 2
+    return Reference(transmission=flux * tf_tile, visibility=vis * vf_tile, phase=phase)
 
 
 def sample_images(cfg: dict, H: int, W: int) -> dict[str, np.ndarray]:
@@ -206,6 +256,11 @@ class Simulation:
             self.reference, self.reference_steps = _reference_series(self.flat, s, rng)
         self._streams = np.random.SeedSequence(s["seed"]).spawn(J)
         self.dtype = np.dtype(s["dtype"])
+        # a stream of its own: switching the position errors on leaves every other draw as it was
+        self.jitter = np.random.default_rng([s["seed"], 2]).normal(0, e["position_error"], J) \
+            if e["position_error"] else np.zeros(J)
+        #: Rows by which frame j reads the flat-field maps off its nominal local rows (maps at u - shift[j]).
+        self.shift = e["reference_offset"] + self.jitter
 
     def frame_counts(self, j: int) -> tuple[int, np.ndarray]:
         """Detected counts (float64, before storage) of frame j's lit rows: (r0, array (n, W))."""
@@ -216,6 +271,7 @@ class Simulation:
             return 0, np.zeros((0, W))
         cols = np.arange(W)
         ref = self.flat
+        u = u - self.shift[j]
         phif = interpolate_rows(self._phase, u) + g["phase_step"][j]
         zeros = np.zeros((row.size, W))
         obs = M.Observations(counts=zeros, tf=interpolate_rows(ref.transmission, u),
@@ -271,7 +327,9 @@ class Simulation:
                      background=p.get("background", np.zeros(3)), harmonic=p.get("harmonic", np.zeros(2)),
                      motion_mask=self.moving, gain=np.float64(e["detector_gain"]),
                      reference_steps=self.reference_steps, reference_transmission=ref.transmission,
-                     reference_visibility=ref.visibility, reference_phase=ref.phase, config=json.dumps(self.cfg))
+                     reference_visibility=ref.visibility, reference_phase=ref.phase,
+                     reference_offset=np.float64(e["reference_offset"]), vib_position_jitter=self.jitter,
+                     config=json.dumps(self.cfg))
         return truth
 
 
@@ -290,7 +348,9 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
         ``image_transmission``, ``image_dark_field``, ``image_differential_phase`` (H, W); per frame
         ``vib_phase_offset``, ``vib_tilt``, ``vib_visibility``, ``vib_curvature``, ``vib_dose``
         (J,), ``vib_visibility_tilt`` (J, 2); ``background`` (3,), ``harmonic`` (2,),
-        ``motion_mask`` (H, W), ``gain``; ``reference_steps`` (actual step phases of a simulated
+        ``motion_mask`` (H, W), ``gain``; ``reference_offset`` (rows) and ``vib_position_jitter`` (J,
+        rows: frame j read the flat-field maps at u - reference_offset - vib_position_jitter[j]);
+        ``reference_steps`` (actual step phases of a simulated
         reference series, else empty) and the exact flat-field maps ``reference_*``; ``config`` (JSON).
     """
     sim = Simulation(cfg)
