@@ -116,6 +116,12 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
            "part of the sample moved during the scan: pixels whose frames disagree"),
     Effect("detector_gain", None, False, (), 1.0, "none",
            "noise is not Poisson in the file's units: variance = g * mean (+ electronic noise)"),
+    # read where the flat field is aligned (align.reference_offset, align.position_errors), not in the model's
+    # channels
+    Effect("reference_offset", None, False, ("delta",), 0.0, "none",
+           "the interferometer sat delta rows off during the scan: the flat field is read at u - delta"),
+    Effect("position_error", None, True, ("delta",), 0.0, "shift",
+           "the recorded position of frame j is off by delta_j rows: its flat field is read at u - delta_j"),
 )}
 
 #: The paper's model (eq. 19).

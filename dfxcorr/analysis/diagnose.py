@@ -36,7 +36,7 @@ from scipy import ndimage, stats
 from .. import config as C
 from .. import model as M
 from .. import plots
-from ..align import subsample_columns
+from ..align import read_position_errors, subsample_columns
 from ..fit import fit_vibrations, well_determined
 from ..io import Scan, atomic_path
 from ..mask import motion_score
@@ -44,6 +44,7 @@ from ..pipeline import Prepared, prepare, stage
 from ..retrieve import Retrieval, retrieve
 from . import identify
 from .identify import resolve_effects, visibility_unidentifiable
+from .offsets import estimate_position_errors, offset_test, position_test, realign
 
 log = logging.getLogger(__name__)
 
@@ -121,6 +122,10 @@ class Diagnosis:
     unexplained: list
     signatures: list
     shape: tuple
+    #: Where the final model reads the flat field: the global offset (rows, the configured one plus a detected
+    #: reference_offset) and the per-frame position errors (J,) when position_error was detected, else None.
+    reference_offset: float = 0.0
+    position_errors: np.ndarray | None = None
 
     def to_json(self) -> dict:
         """The ``diagnosis.json`` document of ``spec/diagnosis.md`` (version 2)."""
@@ -552,6 +557,8 @@ def _where(name: str, test: dict, obs: M.Observations) -> str:
         return _motion_where(test["mask"])
     if name == "detector_gain":
         return "all pixels (noise, not the mean)"
+    if name == "reference_offset":
+        return "steps of the differential phase at the flat field's tile boundaries, all rows"
     if not M.effect(name).per_frame:
         return "the whole detector (global parameters)"
     share = np.clip(test["frames"], 0, None)
@@ -574,6 +581,10 @@ def _estimate(name: str, params: dict, good: np.ndarray, extra: dict) -> str:
         return f"g = {extra['gain']:.3f}, electronic sigma = {np.sqrt(extra['electronic']):.3g} counts"
     if name == "sample_motion":
         return f"{extra['pixels']} pixels"
+    if name == "reference_offset":
+        return f"delta = {extra['value']:.3f} rows"
+    if name == "position_error":
+        return f"std {np.std(np.asarray(extra['values'])[good]):.3g} rows"
     p = params.get(name)
     if p is None:
         return ""
@@ -616,7 +627,9 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     # the tests need every pixel: the diagnosis holds the whole scan (the reconstruction streams it)
     obs, roi = prep.observations()
     # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit
-    fit_obs = obs.subset(subsample_columns(scan.shape[2], d["subsample"]))
+    fit_cols = subsample_columns(scan.shape[2], d["subsample"])
+    fit_obs = obs.subset(fit_cols)
+    shift = np.zeros(scan.shape[0])  # rows by which obs reads the flat field off the prepared alignment
     model = list(resolve_effects(cfg, scan, reference, fit_obs)) if base == "configured" else []
     base_model = list(model)
     good_frames = well_determined(fit_obs, cfg["fit"]["gauge_fraction"])
@@ -650,6 +663,10 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                                                                                        keep_inverse=True),
                                                    dsg, rec.weights,
                                                    exclude=ndimage.binary_dilation(outliers)[obs.row][:, obs.columns])
+            if "reference_offset" not in detected:
+                tests["reference_offset"] = offset_test(prep, obs, params, shift)
+            if "position_error" not in detected:
+                tests["position_error"] = position_test(prep, fit_obs, params, shift, dispersion=dispersion)
         last_tests.update(tests)
         log.info("round %d: reduced chi-square %.4f; %s", rnd, state["reduced_chi2"],
                  ", ".join(f"{k} S={t['statistic']:.4g} (dof {t['dof']}{'' if t['identifiable'] else ', n.i.'})"
@@ -661,7 +678,8 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
             t = tests[candidate]
             mask = ndimage.binary_dilation(t["mask"], iterations=1) if candidate == "sample_motion" else motion
             noise = (t["gain"], t["electronic"]) if candidate == "detector_gain" else (obs.gain, obs.electronic)
-            trial = _fit_state(obs, fit_obs, model + [candidate] if M.effect(candidate).channel is not None else model,
+            views = _realigned(prep, obs, fit_obs, fit_cols, params, shift, candidate, t)
+            trial = _fit_state(*views[:2], model + [candidate] if M.effect(candidate).channel is not None else model,
                                params, mask, cfg, timings, f"round {rnd}: trial {candidate}", noise=noise)
             share = _explained_share(state["signatures"], trial["signatures"])
             if share is None or share >= d["explain_share"] or (share >= 0 and _silences(state["signatures"],
@@ -683,6 +701,12 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
         elif choice == "detector_gain":
             modelled_noise = True
             extra = {"gain": t["gain"], "electronic": t["electronic"]}
+        elif choice in ("reference_offset", "position_error"):
+            obs, fit_obs, found = views
+            # position errors in the gauge of phase_offset (median zero over the well-determined frames)
+            extra = {"value": float(np.mean(found - shift))} if choice == "reference_offset" else \
+                {"values": (found - shift - np.median((found - shift)[good_frames])).tolist()}
+            shift = found
         else:
             model.append(choice)
         rejected.clear()  # a candidate that did not explain the misfit then may, now that the model changed
@@ -722,13 +746,20 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                  f"excess does not grow; otherwise it stays out of the model (its explained "
                  f"share is reported) and the next candidate is tried. What stays significant is listed as "
                  f"unexplained")
+    # the final alignment: the configured one, plus what was found (position_errors.txt holds the per-frame
+    # shifts beyond the offset, common part included, so that reconstruct reads the flat field where this fit did)
+    offset = float(reports["reference_offset"].extra["value"]) if "reference_offset" in reports else 0.0
     return Diagnosis(scan=name, base_model=base_model, initial_chi2=initial, final_chi2=state["reduced_chi2"],
                      effects=effects,
                      final_model=base_model + [n for n in detected if n in model and n not in base_model]
                      + [n for n in detected if n not in model],
                      before=before, after=after, params=params, gain=obs.gain, electronic=obs.electronic,
                      motion_mask=motion, criterion=criterion, rounds=rounds, unexplained=unexplained,
-                     signatures=state["signatures"], shape=scan.shape)
+                     signatures=state["signatures"], shape=scan.shape,
+                     reference_offset=cfg["align"]["reference_offset"] + offset,
+                     position_errors=None if "position_error" not in reports else shift - offset + (
+                         read_position_errors(cfg["align"]["position_errors"], scan.shape[0])
+                         if cfg["align"]["position_errors"] is not None else 0.0))
 
 
 def _set_noise(obs: M.Observations, fit_obs: M.Observations, noise: tuple[float, float]) -> None:
@@ -774,6 +805,26 @@ def _fit_state(obs: M.Observations, fit_obs: M.Observations, model: list, start:
             "motion": motion, "gain": obs.gain, "electronic": obs.electronic}
 
 
+def _realigned(prep: Prepared, obs: M.Observations, fit_obs: M.Observations, fit_cols: np.ndarray, params: dict,
+               shift: np.ndarray, candidate: str, test: dict) -> tuple:
+    """The samples a trial of ``candidate`` fits: realigned for reference_offset and position_error.
+
+    Returns (obs, fit_obs, shift): the observations (all columns, and the fit's) and the per-frame rows by
+    which they read the flat field off the prepared alignment (``shift`` unchanged for other candidates).
+    """
+    if candidate == "reference_offset":
+        found = shift + test["value"]
+        # one refinement at the corrected alignment: the step's sensitivity is a linearisation
+        found = found + offset_test(prep, realign(prep, obs, found), params, found)["value"]
+    elif candidate == "position_error":
+        delta, _ = estimate_position_errors(prep, fit_obs, params, shift)
+        found = shift + delta
+    else:
+        return obs, fit_obs, shift
+    moved = realign(prep, obs, found)
+    return moved, moved.subset(fit_cols), found
+
+
 def _ranked(tests: dict, *, alpha: float, min_gain_change: float, gain: float) -> list[str]:
     """Significant identifiable candidates in the order they are tried.
 
@@ -785,7 +836,10 @@ def _ranked(tests: dict, *, alpha: float, min_gain_change: float, gain: float) -
         return []
     threshold = np.log(alpha / len(tests))
     sig = {k for k, t in tests.items() if t["identifiable"] and t["log_p"] < threshold}
-    order = sorted((k for k in sig if k != "detector_gain"), key=lambda k: -tests[k]["explains"])
+    # a reference offset's statistic comes from the image, not the likelihood (which barely sees it); its step
+    # signature at the tile boundaries is specific, while mean-effect proxies would soak up what it does to the fit
+    order = sorted((k for k in sig if k != "detector_gain"), key=lambda k: (k != "reference_offset",
+                                                                            -tests[k]["explains"]))
     if "detector_gain" in sig and abs(tests["detector_gain"]["gain"] / gain - 1) > min_gain_change:
         at = order.index("sample_motion") if "sample_motion" in order else len(order)
         order.insert(at, "detector_gain")
@@ -824,7 +878,7 @@ def _unexplained(sigs: list[dict], motion: dict | None, modelled_motion: bool, *
 
 def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
     """Write ``diagnosis.json``, ``report.md``, ``residuals.png``, ``signatures.png`` and (if detected)
-    ``motion_mask.tif``."""
+    ``motion_mask.tif`` and ``position_errors.txt`` (one delta_j per frame, rows: ``align.position_errors``)."""
     import tifffile
 
     from ..export import check_output
@@ -832,7 +886,8 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {k: out_dir / k for k in ("diagnosis.json", "report.md", "residuals.png", "signatures.png")}
-    for p in paths.values():
+    positions = out_dir / "position_errors.txt"
+    for p in [*paths.values(), *([positions] if diag.position_errors is not None else [])]:
         check_output(p, overwrite=overwrite)
     with atomic_path(paths["diagnosis.json"], overwrite=overwrite) as tmp:
         tmp.write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
@@ -843,12 +898,18 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
         with atomic_path(out_dir / "motion_mask.tif", overwrite=overwrite) as tmp:
             tifffile.imwrite(tmp, diag.motion_mask.astype(np.uint8))
         written.append(out_dir / "motion_mask.tif")
+    if diag.position_errors is not None:
+        with atomic_path(positions, overwrite=overwrite) as tmp:
+            np.savetxt(tmp, diag.position_errors, fmt="%.6f",
+                       header="position error delta_j of each frame (rows): dfxcorr reconstruct --set "
+                              "align.position_errors=<this file>")
+        written.append(positions)
     with atomic_path(paths["report.md"], overwrite=overwrite) as tmp:
-        tmp.write_text(_markdown(diag))
+        tmp.write_text(_markdown(diag, out_dir))
     return written
 
 
-def _markdown(diag: Diagnosis) -> str:
+def _markdown(diag: Diagnosis, out_dir: Path | None = None) -> str:
     lines = [f"# dfxcorr diagnose: {diag.scan}", "",
              (f"Base model: {', '.join(diag.base_model) or 'none (plain retrieval)'}. "
               f"Final model: {', '.join(diag.final_model) or 'none'}."), "",
@@ -889,7 +950,7 @@ def _markdown(diag: Diagnosis) -> str:
                "deviation; bins beyond 3 sigma in red, panel titles in red where the signature is significant."), ""]
     if diag.motion_mask.any():
         lines += [f"The pixels taken as moving are in motion_mask.tif ({int(diag.motion_mask.sum())} pixels).", ""]
-    sets = reconstruct_settings(diag)
+    sets = reconstruct_settings(diag, out_dir)
     lines += ["To reconstruct with the final model:", "",
               f"    dfxcorr reconstruct {diag.scan} -o result.h5" + "".join(f" --set {s}" for s in sets), ""]
     return "\n".join(lines)
@@ -902,8 +963,11 @@ def _verdict_where(e: EffectReport) -> str:
     return e.where or ""
 
 
-def reconstruct_settings(diag: Diagnosis) -> list[str]:
-    """The ``--set`` options that make ``reconstruct`` use the diagnosis's final model."""
+def reconstruct_settings(diag: Diagnosis, out_dir: Path | None = None) -> list[str]:
+    """The ``--set`` options that make ``reconstruct`` use the diagnosis's final model.
+
+    ``out_dir``: where :func:`write_report` put ``position_errors.txt`` (default the current directory).
+    """
     keys = {e: k for k, e in C.VIBRATION_EFFECTS.items()}
     sets = [f"vibration.{keys[n]}=true" for n in diag.final_model if n in keys and n not in diag.base_model]
     sets += [f"vibration.{keys[n]}=false" for n in M.PAPER_MODEL if n not in diag.final_model]
@@ -911,6 +975,10 @@ def reconstruct_settings(diag: Diagnosis) -> list[str]:
         sets.append("mask.enabled=true")
     if "detector_gain" in diag.final_model:
         sets += [f"load.gain={diag.gain:.4g}", f"load.electronic={diag.electronic:.4g}"]
+    if diag.reference_offset:
+        sets.append(f"align.reference_offset={diag.reference_offset:.4g}")
+    if diag.position_errors is not None:
+        sets.append(f"align.position_errors={Path(out_dir or '.') / 'position_errors.txt'}")
     return sets
 
 
