@@ -149,7 +149,7 @@ def _shift_derivative(prep: Prepared, obs: M.Observations, params: dict, images:
 
 
 def position_test(prep: Prepared, obs: M.Observations, params: dict, shift: np.ndarray, *,
-                  dispersion: float = 1.0, step: float = 0.25, min_share: float = 0.01, prior: float = 1.0) -> dict:
+                  dispersion: float = 1.0, step: float = 0.25, min_precision: float = 1.0, prior: float = 1.0) -> dict:
     """Per-frame score test for position errors, and one Gauss-Newton step of their estimate.
 
     Frame j's score U_j = sum w r dIbar/d delta_j and information I_j = sum w (dIbar/d delta_j)^2, each
@@ -172,9 +172,9 @@ def position_test(prep: Prepared, obs: M.Observations, params: dict, shift: np.n
         Pearson chi-square per degree of freedom of the current fit.
     step : float
         Rows of the finite difference.
-    min_share : float
-        Identifiable when, in the median frame, at least this share of delta_j's information survives
-        the profiling of the frame's model parameters.
+    min_precision : float
+        Identifiable when, in the median frame, delta_j's standard error with the frame's model
+        parameters profiled is below this (rows).
     prior : float
         Width (rows) of a Gaussian prior on each delta_j in the step (not in the test).
 
@@ -220,14 +220,13 @@ def position_test(prep: Prepared, obs: M.Observations, params: dict, shift: np.n
     common = float(u_d[use].sum() ** 2 / i_d[use].sum()) / dispersion if use.any() else 0.0
     stat = max(float(per.sum()) - common, 0.0)
     dof = max(int(use.sum()) - 1, 0)
-    share = np.median(np.where(info[:, 0, 0] > 0, i_d / np.where(info[:, 0, 0] > 0, info[:, 0, 0], 1.0), 0.0)[use]) \
-        if use.any() else 0.0
+    precision = float(np.sqrt(dispersion / np.median(i_d[use]))) if use.any() else np.inf
     param_step: dict = {}
     for k, (n, m) in enumerate(names, start=1):
         param_step.setdefault(n, np.zeros_like(params[n]))[:, m] = sol[:, k]
     return {"statistic": stat, "dof": dof, "p_value": float(stats.chi2.sf(stat, dof)) if dof else 1.0,
             "log_p": float(stats.chi2.logsf(stat, dof)) if dof else 0.0,
-            "identifiable": bool(dof and share >= min_share), "excess": 0, "explains": stat * dispersion,
+            "identifiable": bool(dof and precision < min_precision), "excess": 0, "explains": stat * dispersion,
             "frames": per, "step": np.where(use, sol[:, 0], 0.0), "param_step": param_step}
 
 

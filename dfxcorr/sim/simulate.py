@@ -118,9 +118,9 @@ CONCEALED = {
     # both are told from the images' phase only where the flat field's gradient jumps (tiled gratings) or
     # is not linear along the scan
     "reference_offset": ("effects.reference_offset", 0.5, [0.2, 0.1, 0.05, 0.02],
-                         {"simulate.tiles": 8, "simulate.flat_along_scan": 0.1}, []),
+                         {"simulate.tiles": 8, "simulate.flat_along_scan": 0.02}, []),
     "position_error": ("effects.position_error", 0.5, [0.2, 0.1, 0.05, 0.02],
-                       {"simulate.tiles": 8, "simulate.flat_along_scan": 0.1}, []),
+                       {"simulate.tiles": 8, "simulate.flat_along_scan": 0.02}, []),
 }
 
 
