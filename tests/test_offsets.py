@@ -1,6 +1,7 @@
 """Where the flat field is read: tiled gratings in the simulator, reference_offset and position_error."""
 import numpy as np
 import pytest
+from test_diagnose import chi2_tolerance, concealed
 
 from dfxcorr import config as C
 from dfxcorr import model as M
@@ -10,7 +11,6 @@ from dfxcorr.analysis.diagnose import diagnose, reconstruct_settings, write_repo
 from dfxcorr.sim import simulate as S
 
 from conftest import sim_config
-from test_diagnose import chi2_tolerance, concealed
 
 TILED = {"simulate.tiles": 8, "simulate.flat_along_scan": 0.02}
 
@@ -115,32 +115,35 @@ def test_clean_tiled_scan_raises_no_alarm():
     assert tested["reference_offset"].identifiable and tested["position_error"].identifiable
 
 
-@pytest.mark.slow
-def test_reference_offset_is_named_estimated_and_corrected(tmp_path):
-    scan, truth, cfg = concealed("reference_offset")
+def named_alone(effect):
+    """Diagnose the concealed ``effect`` (tiled gratings): it alone is detected and the fit returns to the noise."""
+    scan, truth, cfg = concealed(effect)
     diag = diagnose(scan, cfg)
     found = [e for e in diag.effects if e.detected]
-    assert [e.name for e in found] == ["reference_offset"]
+    assert [e.name for e in found] == [effect], [(e.name, e.statistic, e.dof) for e in diag.effects]
+    assert diag.final_chi2 == pytest.approx(1.0, abs=chi2_tolerance(diag, cfg))
+    return scan, truth, cfg, diag, found
+
+
+@pytest.mark.slow
+def test_reference_offset_is_named_estimated_and_corrected():
+    scan, truth, cfg, diag, found = named_alone("reference_offset")
     # the estimate against the truth, within what the step signature's noise allows
     sigma = abs(found[0].extra["value"]) / np.sqrt(found[0].statistic)
     assert found[0].extra["value"] == pytest.approx(truth["reference_offset"], abs=4 * sigma)
-    assert diag.final_chi2 == pytest.approx(1.0, abs=chi2_tolerance(diag, cfg))
     sets = reconstruct_settings(diag)
     assert sets == [f"align.reference_offset={diag.reference_offset:.4g}"]
     before = phase_error(P.reconstruct(scan, cfg), truth)
     after = phase_error(P.reconstruct(scan, C.load([], sets)), truth)
     clean_scan, clean = S.simulate(sim_config(**TILED, **{"simulate.seed": 11}))
     reference = phase_error(P.reconstruct(clean_scan, cfg), clean)
-    assert after < 0.5 * before and after < 1.5 * reference
+    # the steps at the tile boundaries go: the error falls to that of the same scan without offset
+    assert after < 0.8 * before and after < 1.05 * reference, (before, after, reference)
 
 
 @pytest.mark.slow
 def test_position_error_is_named_estimated_and_corrected(tmp_path):
-    scan, truth, cfg = concealed("position_error")
-    diag = diagnose(scan, cfg)
-    found = [e for e in diag.effects if e.detected]
-    assert [e.name for e in found] == ["position_error"]
-    assert diag.final_chi2 == pytest.approx(1.0, abs=chi2_tolerance(diag, cfg))
+    scan, truth, cfg, diag, found = named_alone("position_error")
     # the estimate in the gauge of phase_offset (median zero over the well-determined frames)
     values, jitter = np.asarray(found[0].extra["values"]), truth["vib_position_jitter"]
     err = values - jitter

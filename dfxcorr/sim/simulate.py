@@ -93,7 +93,8 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "read_noise": Option(0.0, "electronic noise std (detector units)", _NUM, check=_nonneg),
         "reference_offset": Option(0.0, "the whole interferometer sat this many rows off during the scan: every "
                                         "frame reads the flat-field maps at u - offset, the file's reference stays "
-                                        "unshifted", _NUM, check=lambda v: None if np.isfinite(v) else "must be finite"),
+                                        "unshifted", _NUM,
+                                   check=lambda v: None if np.isfinite(v) else "must be finite"),
         "position_error": Option(0.0, "std (rows) of a per-frame error delta_j of the recorded active-area position: "
                                       "frame j reads the flat-field maps at u - delta_j", _NUM, check=_nonneg),
     },
