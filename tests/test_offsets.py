@@ -12,7 +12,7 @@ from dfxcorr.sim import simulate as S
 
 from conftest import sim_config
 
-TILED = {"simulate.tiles": 8, "simulate.flat_along_scan": 0.02}
+TILED = {"simulate.tiles": 8, "simulate.flat_nonlinearity": 1.0}
 
 
 def image_errors(result, truth) -> np.ndarray:

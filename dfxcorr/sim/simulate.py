@@ -65,10 +65,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                     "(seeded)", _NUM, check=_nonneg),
         "tile_contrast": Option(0.05, "tiles: t^f and v^f vary by up to +- this fraction between tiles (seeded)",
                                 _NUM, check=_nonneg),
-        "flat_along_scan": Option(0.0, "departure of the flat field from linearity along the scan: relative "
-                                       "variation of t^f and v^f along u, and phase curvature along u of "
-                                       "2 pi times this (rad) at the active area's edges; 0: linear", _NUM,
-                                  check=_nonneg),
+        "flat_nonlinearity": Option(0.0, "departure of the flat field from linearity along the scan, in units of "
+                                         "a typical one (1: t^f and v^f vary by +- 2 % along u, the phase curves "
+                                         "by 2 pi 0.02 rad towards the active area's edges); 0: linear", _NUM,
+                                    check=_nonneg),
     },
     "effects": {
         "phase_offset": Option(2 * np.pi / 16, "std of phi0_j (rad) (stepping: of the step errors)", _NUM,
@@ -119,9 +119,9 @@ CONCEALED = {
     # both are told from the images' phase only where the flat field's gradient jumps (tiled gratings) or
     # is not linear along the scan
     "reference_offset": ("effects.reference_offset", 0.5, [0.2, 0.1, 0.05, 0.02],
-                         {"simulate.tiles": 8, "simulate.flat_along_scan": 0.02}, []),
+                         {"simulate.tiles": 8, "simulate.flat_nonlinearity": 1.0}, []),
     "position_error": ("effects.position_error", 0.5, [0.2, 0.1, 0.05, 0.02],
-                       {"simulate.tiles": 8, "simulate.flat_along_scan": 0.02}, []),
+                       {"simulate.tiles": 8, "simulate.flat_nonlinearity": 1.0}, []),
 }
 
 
@@ -139,12 +139,16 @@ def geometry(cfg: dict) -> dict:
     return dict(H=H, W=W, A=A, position=position, phase_step=np.zeros(J))
 
 
+#: Relative variation of t^f and v^f along the scan, and phase departure / 2 pi, of ``flat_nonlinearity: 1``.
+NONLINEARITY = 0.02
+
+
 def flat_field(cfg: dict, A: int, W: int) -> Reference:
     """Flat field with a fringe count growing from the centre to the edges (paper Sec. III-A).
 
     With ``simulate.tiles`` the gratings are tiled across the width: each tile has its own fringe count
     (the value at its centre, varied by up to +- ``tile_fringes``), phase at u = 0, t^f and v^f, so the
-    phase gradient along the scan is piecewise constant across the width. ``flat_along_scan`` adds the
+    phase gradient along the scan is piecewise constant across the width. ``flat_nonlinearity`` adds the
     departures from linearity along u that real flat fields have: phase curvature, and t^f and v^f
     varying along u (differently in each tile). The tiles draw from their own stream of the seed, so the
     other random draws of a scan do not change.
@@ -168,7 +172,7 @@ def flat_field(cfg: dict, A: int, W: int) -> Reference:
     flux = s["flux"] * (1 + s["flat_gradient"] * (u / A - 0.5)) * np.ones((1, W))
     vis = np.full((A, W), float(s["visibility"]))
     phase = 2 * np.pi * fringes * u / A + phase0
-    a = s["flat_along_scan"]
+    a = NONLINEARITY * s["flat_nonlinearity"]
     if a:
         # one period of variation over the active area, shifted from tile to tile
         wave = 2 * np.pi * u / A + tile
