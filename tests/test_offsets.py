@@ -55,7 +55,7 @@ def test_tiles_make_the_phase_gradient_piecewise_constant():
     cfg = sim_config(**{"simulate.tiles": 8})
     ref = S.flat_field(cfg, 15, 102)
     k = np.diff(ref.phase, axis=0)
-    assert np.allclose(k, k[:1])  # linear along the scan without flat_along_scan
+    assert np.allclose(k, k[:1])  # linear along the scan without flat_nonlinearity
     jumps = np.flatnonzero(np.abs(np.diff(k[0])) > 1e-12)
     assert jumps.size == 7  # one value per tile, 8 tiles
     fringes = k[0, jumps[0]] * 15 / (2 * np.pi)
