@@ -41,7 +41,7 @@ from ..fit import fit_vibrations, well_determined
 from ..io import Scan, atomic_path
 from ..mask import motion_score
 from ..pipeline import Prepared, prepare, stage
-from ..retrieve import Retrieval, retrieve
+from ..retrieve import Retrieval, image_maps, retrieve
 from . import identify
 from .identify import resolve_effects, visibility_unidentifiable
 
@@ -121,6 +121,7 @@ class Diagnosis:
     unexplained: list
     signatures: list
     shape: tuple
+    changes: list = field(default_factory=list)
 
     def to_json(self) -> dict:
         """The ``diagnosis.json`` document of ``spec/diagnosis.md`` (version 2)."""
@@ -627,6 +628,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     rounds: list[dict] = []
     last_tests: dict[str, dict] = {}
     rejected: dict[str, float] = {}
+    changes: list[dict] = []
     paper_why = visibility_unidentifiable(scan, reference)
     state = _fit_state(obs, fit_obs, model, {}, motion, cfg, timings, "round 0")
     initial = state["reduced_chi2"]
@@ -696,6 +698,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
         reports[choice].delta_chi2 = rounds[-1]["delta_chi2"]
         reports[choice].reduced_chi2_after = trial["reduced_chi2"]
         reports[choice].estimate = _estimate(choice, trial["params"], good_frames, extra)
+        changes.append(_change(choice, obs, state, trial, extra))
         log.info("round %d: adding %s", rnd, choice)
         state = trial
     params, rec = state["params"], state["rec"]
@@ -728,7 +731,23 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                      + [n for n in detected if n not in model],
                      before=before, after=after, params=params, gain=obs.gain, electronic=obs.electronic,
                      motion_mask=motion, criterion=criterion, rounds=rounds, unexplained=unexplained,
-                     signatures=state["signatures"], shape=scan.shape)
+                     signatures=state["signatures"], shape=scan.shape, changes=changes)
+
+
+def _change(name: str, obs: M.Observations, before: dict, after: dict, extra: dict) -> dict:
+    """What adding ``name`` changed, for its picture: images and residual maps before and after (H, W), and
+    its per-frame estimate (J, n) where it has one."""
+    out: dict[str, Any] = {"name": name, "reduced_chi2": (before["reduced_chi2"], after["reduced_chi2"])}
+    for key, state in (("before", before), ("after", after)):
+        rec = state["rec"]
+        out[key] = image_maps(obs, rec.images)
+        out[key]["residual"] = locate(obs, M.design(obs, state["params"]), rec.images, rec.expected).pixel
+    values = after["params"].get(name) if M.effect(name).per_frame else None
+    if values is None and "values" in extra:
+        values = np.asarray(extra["values"], dtype=np.float64).reshape(len(extra["values"]), -1)
+    out["per_frame"] = values
+    out["components"] = M.effect(name).components
+    return out
 
 
 def _set_noise(obs: M.Observations, fit_obs: M.Observations, noise: tuple[float, float]) -> None:
@@ -823,8 +842,8 @@ def _unexplained(sigs: list[dict], motion: dict | None, modelled_motion: bool, *
 
 
 def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
-    """Write ``diagnosis.json``, ``report.md``, ``residuals.png``, ``signatures.png`` and (if detected)
-    ``motion_mask.tif``."""
+    """Write ``diagnosis.json``, ``report.md``, ``residuals.png``, ``signatures.png``, one
+    ``effect-<name>.png`` per detected effect and (if detected) ``motion_mask.tif``."""
     import tifffile
 
     from ..export import check_output
@@ -832,12 +851,15 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {k: out_dir / k for k in ("diagnosis.json", "report.md", "residuals.png", "signatures.png")}
+    paths.update({c["name"]: out_dir / _effect_picture(c["name"]) for c in diag.changes})
     for p in paths.values():
         check_output(p, overwrite=overwrite)
     with atomic_path(paths["diagnosis.json"], overwrite=overwrite) as tmp:
         tmp.write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
     plots.plot_diagnosis(diag, paths["residuals.png"])
     plots.plot_signatures(diag.signatures, paths["signatures.png"], n_frames=diag.shape[0], n_rows=diag.shape[1])
+    for change in diag.changes:
+        plots.plot_effect(change, paths[change["name"]], overwrite=overwrite)
     written = list(paths.values())
     if diag.motion_mask.any():
         with atomic_path(out_dir / "motion_mask.tif", overwrite=overwrite) as tmp:
@@ -846,6 +868,10 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
     with atomic_path(paths["report.md"], overwrite=overwrite) as tmp:
         tmp.write_text(_markdown(diag))
     return written
+
+
+def _effect_picture(name: str) -> str:
+    return f"effect-{name}.png"
 
 
 def _markdown(diag: Diagnosis) -> str:
@@ -887,6 +913,13 @@ def _markdown(diag: Diagnosis) -> str:
                "(variance) or plain (mean) standardized residual over what noise leaves after the fit took its "
                "share (3 image unknowns per pixel, the per-frame parameters' leverage), in units of its standard "
                "deviation; bins beyond 3 sigma in red, panel titles in red where the signature is significant."), ""]
+    if diag.changes:
+        lines += ["## What each detected effect changed", ""]
+        for c in diag.changes:
+            lines += [f"![adding {c['name']}]({_effect_picture(c['name'])})", ""]
+        lines += [("Per effect, in the order added: the differential-phase and dark-field images of the fit before "
+                   "and after adding it, and their difference; the residual per pixel before and after; its "
+                   "per-frame estimate against frame where it has one."), ""]
     if diag.motion_mask.any():
         lines += [f"The pixels taken as moving are in motion_mask.tif ({int(diag.motion_mask.sum())} pixels).", ""]
     sets = reconstruct_settings(diag)
