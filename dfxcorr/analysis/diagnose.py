@@ -189,7 +189,8 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
     - variance signatures by frame, detector row, column, fringe phase (16 bins of theta + phi) and
       expected count (12 bins of equal size): per bin S = sum (z^2 - c (1 - h)), with variance
       sum c^2 (1 - h)^2 (2 + k), k the excess kurtosis of scaled Poisson noise (scaled up to the
-      observed spread of z^2 where that is larger); sum S^2 / var is
+      observed spread of z^2 where that is larger), or sum c^2 (2 (1 - h) + k (1 - h)^2) for bins that
+      hold whole pixels (row, column: their residuals are correlated); sum S^2 / var is
       chi-square with (bins - 1) dof (c is estimated). A global variance excess is detector_gain's,
       not a signature;
     - mean signatures by frame and by (frame, row) block: per bin S = sum z with variance
@@ -251,8 +252,14 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
     # mean signatures a sign they do not have
     bright = sel & (np.maximum(ibar - obs.dark, 0.0) >= min_photons * g_true)
     kappa = np.where(sel, c ** 2 * keep ** 2 * (2.0 + kurt), 0.0)
+    # the residuals of one pixel are correlated (covariance 1 - H, H its hat matrix): var sum_pixel z^2 =
+    # 2 tr((1 - H)^2) = 2 sum (1 - h), not 2 sum (1 - h)^2. Bins that hold whole pixels (rows, columns)
+    # need the former: with 5 phase steps the latter is 2.5 times too small
+    kappa_pixels = np.where(sel, c ** 2 * (2.0 * keep + kurt * keep ** 2), 0.0)
     # the tails of z^2 are heavier than those of noise alone where the fit is slightly off sample by sample
-    kappa *= max(float(np.sum(e ** 2) / np.sum(kappa)), 1.0)
+    tails = max(float(np.sum(e ** 2) / np.sum(kappa)), 1.0)
+    kappa *= tails
+    kappa_pixels *= tails
     K, C_ = obs.counts.shape
     frame = np.broadcast_to(obs.frame[:, None], (K, C_))
     psi = np.angle(np.exp(1j * (dsg.theta + images.phi[obs.pixel])))
@@ -279,7 +286,7 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
         expect: np.ndarray
         if kind == "variance":
             S = np.bincount(lab, weights=e[sel], minlength=nb)
-            V = np.bincount(lab, weights=kappa[sel], minlength=nb)
+            V = np.bincount(lab, weights=(kappa_pixels if axis in ("row", "column") else kappa)[sel], minlength=nb)
             expect = c * np.bincount(lab, weights=keep[sel], minlength=nb)
             lost = 1.0
         else:
