@@ -143,6 +143,9 @@ def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) 
                                       optional=("dose",) if cfg["reference"]["dose"] == "auto" else ())
         store = collect_lit_rows(scan, active_rows=reference.transmission.shape[0],
                                  min_frames=cfg["align"]["min_frames"])
+        if cfg["load"]["detector_lag"]:
+            store = store.lag_free(cfg["load"]["detector_lag"])
+            log.info("detector lag %.4g taken out of the counts", cfg["load"]["detector_lag"])
         log.info("lit samples: %d rows x frames of %d columns (%.0f MB as %s)", store.row.size, scan.shape[2],
                  store.counts.nbytes / 1e6, store.counts.dtype)
         vmin = cfg["align"]["min_visibility"]

@@ -80,6 +80,9 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "declare_gain": Option(True, "write the true gain into the file (false conceals it: readers assume 1)",
                                bool),
         "read_noise": Option(0.0, "electronic noise std (detector units)", _NUM, check=_nonneg),
+        "detector_lag": Option(0.0, "fraction a of each detected frame carried into the next (first-frame lag): "
+                                    "frame j records S_j + a S_(j-1), also in rows lit in j - 1 only", _NUM,
+                               check=lambda v: None if 0 <= v < 1 else "must lie in [0, 1)"),
     },
 }
 
@@ -99,6 +102,7 @@ CONCEALED = {
     "harmonic": ("effects.harmonic", 0.03, [0.01, 0.005, 0.002, 0.001], {}, []),
     "sample_motion": ("effects.sample_motion", 0.3, [0.1, 0.05, 0.02, 0.01], {}, []),
     "detector_gain": ("effects.detector_gain", 2.0, [1.3, 1.1, 1.05, 1.02], {"effects.declare_gain": False}, []),
+    "detector_lag": ("effects.detector_lag", 0.03, [0.01, 0.003, 0.001, 0.0003], {}, []),
 }
 
 
@@ -235,10 +239,19 @@ class Simulation:
         return int(row[0]), _detect(ibar, self.cfg, np.random.default_rng(self._streams[j]))
 
     def frames(self):
-        """Yield (j, r0, counts (n, W)) in the stored dtype for every frame; warns once if counts are clipped."""
+        """Yield (j, r0, counts (n, W)) in the stored dtype for every frame; warns once if counts are clipped.
+
+        With ``effects.detector_lag`` = a, frame j records its detected counts plus a times those of
+        frame j - 1, over the rows lit in either.
+        """
         clipped = 0
+        lag = self.cfg["effects"]["detector_lag"]
+        previous = (0, np.zeros((0, self.shape[2])))
         for j in range(self.shape[0]):
-            r0, counts = self.frame_counts(j)
+            r0, counts = detected = self.frame_counts(j)
+            if lag:
+                r0, counts = _with_lag(detected, previous, lag)
+                previous = detected
             stored, n = _store(counts, self.dtype)
             clipped += n
             yield j, r0, stored
@@ -270,6 +283,7 @@ class Simulation:
                      vib_visibility_tilt=p.get("visibility_tilt", np.zeros((J, 2))),
                      background=p.get("background", np.zeros(3)), harmonic=p.get("harmonic", np.zeros(2)),
                      motion_mask=self.moving, gain=np.float64(e["detector_gain"]),
+                     detector_lag=np.float64(e["detector_lag"]),
                      reference_steps=self.reference_steps, reference_transmission=ref.transmission,
                      reference_visibility=ref.visibility, reference_phase=ref.phase, config=json.dumps(self.cfg))
         return truth
@@ -290,7 +304,7 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
         ``image_transmission``, ``image_dark_field``, ``image_differential_phase`` (H, W); per frame
         ``vib_phase_offset``, ``vib_tilt``, ``vib_visibility``, ``vib_curvature``, ``vib_dose``
         (J,), ``vib_visibility_tilt`` (J, 2); ``background`` (3,), ``harmonic`` (2,),
-        ``motion_mask`` (H, W), ``gain``; ``reference_steps`` (actual step phases of a simulated
+        ``motion_mask`` (H, W), ``gain``, ``detector_lag`` (the fraction a); ``reference_steps`` (actual step phases of a simulated
         reference series, else empty) and the exact flat-field maps ``reference_*``; ``config`` (JSON).
     """
     sim = Simulation(cfg)
@@ -360,6 +374,20 @@ def _detect(mean: np.ndarray, cfg: dict, rng: np.random.Generator) -> np.ndarray
     if e["read_noise"]:
         out += rng.normal(0, e["read_noise"], out.shape)
     return out
+
+
+def _with_lag(current: tuple[int, np.ndarray], previous: tuple[int, np.ndarray], fraction: float
+              ) -> tuple[int, np.ndarray]:
+    """Detected rows (r0, counts) of a frame plus ``fraction`` times those of the previous frame, over both's rows."""
+    spans = [(r0, c) for r0, c in (current, previous) if c.shape[0]]
+    if len(spans) < 2:
+        return current if current[1].shape[0] else (previous[0], fraction * previous[1])
+    lo = min(r0 for r0, _ in spans)
+    hi = max(r0 + c.shape[0] for r0, c in spans)
+    out = np.zeros((hi - lo, current[1].shape[1]))
+    out[current[0] - lo:current[0] - lo + current[1].shape[0]] += current[1]
+    out[previous[0] - lo:previous[0] - lo + previous[1].shape[0]] += fraction * previous[1]
+    return lo, out
 
 
 def _reference_series(ref: Reference, s: dict, rng: np.random.Generator) -> tuple[SteppingReference, np.ndarray]:
