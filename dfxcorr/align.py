@@ -146,8 +146,8 @@ class LitStore:
 
     def observations(self, reference: Reference, *, columns: np.ndarray | None = None,
                      rows: tuple[int, int] | None = None, pixel_mask: np.ndarray | None = None,
-                     gain: float | None = None, electronic: float = 0.0, dtype: DTypeLike = np.float64
-                     ) -> Observations:
+                     gain: float | None = None, electronic: float = 0.0, noise: np.ndarray | None = None,
+                     dtype: DTypeLike = np.float64) -> Observations:
         """Align the flat field to the held samples of some columns and rows.
 
         Parameters
@@ -164,6 +164,8 @@ class LitStore:
             Overrides the file's detector gain.
         electronic : float
             Electronic noise variance (counts^2).
+        noise : ndarray, shape (H, W), optional
+            Variance factor of each detector pixel (``pixel_noise``; default 1).
         dtype : numpy dtype
             Of the sample arrays: float64, or float32 to halve them (counts up to 2^24 stay exact;
             the flat field is interpolated in float64 first).
@@ -186,7 +188,8 @@ class LitStore:
         use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
         return Observations(counts=counts, tf=tf, vf=vf, phif=phif.astype(dtype, copy=False), dark=dark, use=use,
                             row=row, frame=frame, columns=cols, shape=(J, H, W),
-                            gain=self.gain if gain is None else gain, electronic=electronic)
+                            gain=self.gain if gain is None else gain, electronic=electronic,
+                            noise=None if noise is None else noise[np.ix_(np.unique(row), cols)])
 
 
 def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: int = 3) -> LitStore:

@@ -73,6 +73,9 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                     "counts recursively before anything else (dfxcorr diagnose estimates it as "
                                     "detector_lag); 0: none", _NUM, check=lambda v: None if 0 <= v < 1
                                else "must lie in [0, 1)"),
+        "pixel_noise": Option(None, "TIFF of per-pixel noise variance factors f (variance f * gain * mean + "
+                                    "electronic), e.g. the pixel_noise.tif that dfxcorr diagnose writes; null: 1",
+                              str, nullable=True),
         "allow_external": Option(False, "follow HDF5 external links, external raw storage and virtual datasets of "
                                         "the scan file (each file read is hashed into the provenance); false "
                                         "refuses them", bool),

@@ -189,6 +189,9 @@ class Observations:
         Detector units per photon.
     electronic : float
         Electronic noise variance (counts^2); the variance of a sample is gain * (Ibar - dark) + electronic.
+    noise : ndarray, shape (R, C), or None
+        Variance factor f of each pixel held (``pixel_noise``): the variance is f * gain * (Ibar - dark)
+        + electronic; None: 1 everywhere.
     """
 
     counts: np.ndarray
@@ -203,6 +206,7 @@ class Observations:
     shape: tuple
     gain: float = 1.0
     electronic: float = 0.0
+    noise: np.ndarray | None = None
     rows: np.ndarray = field(init=False)
     starts: np.ndarray = field(init=False)
     pixel: np.ndarray = field(init=False)
@@ -246,7 +250,12 @@ class Observations:
         idx = np.asarray(columns)
         return Observations(self.counts[:, idx], self.tf[:, idx], self.vf[:, idx], self.phif[:, idx],
                             self.dark[:, idx], self.use[:, idx], self.row, self.frame, self.columns[idx],
-                            self.shape, self.gain, self.electronic)
+                            self.shape, self.gain, self.electronic, None if self.noise is None else self.noise[:, idx])
+
+    def pixel_gain(self, gain: float | None = None) -> np.ndarray:
+        """Detector units per photon of each pixel held, f * gain (``pixel_noise``), shape (R, C)."""
+        g = self.gain if gain is None else gain
+        return g * (np.ones((self.rows.size, self.columns.size)) if self.noise is None else self.noise)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -705,8 +714,10 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
 
 
 def variance(obs: Observations, ibar: np.ndarray, *, gain: float | None = None, floor: float = 1e-3) -> np.ndarray:
-    """Noise variance of each sample, g (Ibar - dark) + electronic, shape (K, C)."""
+    """Noise variance of each sample, f g (Ibar - dark) + electronic (f of ``obs.noise``), shape (K, C)."""
     g = obs.gain if gain is None else gain
+    if obs.noise is not None:
+        g = g * obs.noise[obs.pixel]
     return g * np.maximum(ibar - obs.dark, floor) + obs.electronic
 
 

@@ -121,6 +121,7 @@ class Diagnosis:
     unexplained: list
     signatures: list
     shape: tuple
+    pixel_noise: np.ndarray | None = None
 
     def to_json(self) -> dict:
         """The ``diagnosis.json`` document of ``spec/diagnosis.md`` (version 2)."""
@@ -562,6 +563,101 @@ def lag_test(prep: Prepared) -> dict:
             "identifiable": True, "excess": 0, "value": a, "se": se}
 
 
+def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *, alpha: float,
+                     exclude: np.ndarray | None = None) -> dict:
+    """Pixel classes whose noise variance differs from the rest: found by detector column and row, factor per class.
+
+    Per pixel, the Pearson chi-square X_i of its samples under the current noise model and its degrees of
+    freedom n_i - 3 (3 image unknowns). Per detector column (and row) the sum X against c times its dof,
+    c the overall dispersion: z = (X - c dof) / (c sqrt(V)), V the variance of the summed z^2 (2 + g / mu
+    per sample: scaled Poisson noise); columns and rows significant after Holm (alpha over all of them)
+    are anomalous, above or below. Classes: pixels sharing (column above / below / regular, row above /
+    below / regular); the regular class is the reference. Each other class gets the factor
+    f = (X / dof of the class) / (X / dof of the regular class), so that its reduced chi-square becomes that
+    of the rest (a global gain stays detector_gain's). Statistic: the Gaussian likelihood ratio of a
+    variance scale per class, sum dof (f - 1 - ln f), chi-square with one dof per class.
+
+    Returns
+    -------
+    dict
+        'statistic', 'dof', 'p_value', 'log_p', 'explains', 'identifiable', 'excess', 'map' (H, W) factors
+        (relative to the current ones), 'classes' (list of dict: 'columns', 'rows', 'pixels', 'factor').
+    """
+    sel = obs.use & valid[obs.pixel]
+    if exclude is not None:
+        sel &= ~exclude
+    z2 = np.where(sel, M.pearson(obs, ibar), 0.0)
+    g = obs.pixel_gain()[obs.pixel]
+    kv = np.where(sel, 2.0 + g / np.maximum(ibar - obs.dark, 1e-3), 0.0)
+    n = obs.segment_sum(sel.astype(float))
+    dof = np.maximum(n - 3, 0.0)
+    X = np.where(dof > 0, obs.segment_sum(z2), 0.0)
+    V = np.where(dof > 0, obs.segment_sum(kv) * dof / np.maximum(n, 1), 0.0)
+    img = {k: obs.to_image(v, fill=0.0) for k, v in (("X", X), ("dof", dof), ("V", V))}
+    H, W = obs.shape[1:]
+    fmap = np.ones((H, W))
+    none = {"statistic": 0.0, "dof": 0, "p_value": 1.0, "log_p": 0.0, "explains": 0.0, "identifiable": True,
+            "excess": 0, "map": fmap, "classes": []}
+    if img["dof"].sum() <= 0:
+        return none
+    c = img["X"].sum() / img["dof"].sum()
+    signs, tests = [], []
+    for axis in (0, 1):
+        Xa, Da, Va = (img[k].sum(axis=axis) for k in ("X", "dof", "V"))
+        ok = Da > 0
+        z = np.where(ok, (Xa - c * Da) / (c * np.sqrt(np.where(ok, Va, 1.0))), 0.0)
+        signs.append(np.sign(z))
+        tests += [{"log_p": float(np.log(2) + stats.norm.logsf(abs(v))), "axis": axis, "i": i}
+                  for i, v in enumerate(z) if ok[i]]
+    _holm(tests, alpha)
+    anomalous = [np.zeros(W, bool), np.zeros(H, bool)]
+    for t in tests:
+        anomalous[t["axis"]][t["i"]] = t["significant"]
+    col = np.where(anomalous[0], signs[0], 0).astype(int)
+    row = np.where(anomalous[1], signs[1], 0).astype(int)
+    label = 3 * (row[:, None] + 1) + (col[None, :] + 1)
+    regular = label == 4
+    if regular.all() or img["dof"][regular].sum() <= 0:
+        return none
+    c0 = img["X"][regular].sum() / img["dof"][regular].sum()
+    classes, stat = [], 0.0
+    for k in np.unique(label[~regular]):
+        m = label == k
+        d = img["dof"][m].sum()
+        if d <= 0:
+            continue
+        f = img["X"][m].sum() / d / c0
+        fmap[m] = f
+        stat += float(d * (f - 1 - np.log(f)))
+        r_idx, c_idx = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+        classes.append({"rows": _ranges(r_idx, limit=8), "columns": _ranges(c_idx, limit=8),
+                        "pixels": int(m.sum()), "factor": float(f), "dof": float(d)})
+    if not classes:
+        return none
+    k = len(classes)
+    return {"statistic": stat, "dof": k, "p_value": float(stats.chi2.sf(stat, k)),
+            "log_p": float(stats.chi2.logsf(stat, k)), "explains": stat, "identifiable": True, "excess": 0,
+            "map": fmap, "classes": classes}
+
+
+def class_chi2(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, classes: np.ndarray) -> dict[int, float]:
+    """Reduced chi-square per pixel class: sum of Pearson residuals over sum of (samples - 3) per pixel.
+
+    ``classes`` (H, W) int labels; returns label -> reduced chi-square (under the noise model of ``obs``).
+    """
+    sel = obs.use & valid[obs.pixel]
+    n = obs.segment_sum(sel.astype(float))
+    X = obs.to_image(obs.segment_sum(np.where(sel, M.pearson(obs, ibar), 0.0)), fill=0.0)
+    dof = obs.to_image(np.maximum(n - 3, 0.0), fill=0.0)
+    return {int(k): float(X[classes == k].sum() / dof[classes == k].sum()) for k in np.unique(classes)
+            if dof[classes == k].sum() > 0}
+
+
+def _set_pixel_noise(obs: M.Observations, fit_obs: M.Observations, fmap: np.ndarray | None) -> None:
+    for o in (obs, fit_obs):
+        o.noise = None if fmap is None else fmap[np.ix_(o.rows, o.columns)]
+
+
 def _lag_observations(prep: Prepared, fraction: float, subsample: int) -> tuple[Prepared, M.Observations,
                                                                                  M.Observations]:
     """The preparation, test and fit observations with detector lag ``fraction`` taken out of the counts."""
@@ -587,6 +683,8 @@ def _where(name: str, test: dict, obs: M.Observations) -> str:
         return "all pixels (noise, not the mean)"
     if name == "detector_lag":
         return "all frames; signal in the rows the active area has just left"
+    if name == "pixel_noise":
+        return "; ".join(f"rows {c['rows']} x columns {c['columns']}" for c in test["classes"][:3])
     if not M.effect(name).per_frame:
         return "the whole detector (global parameters)"
     share = np.clip(test["frames"], 0, None)
@@ -611,6 +709,8 @@ def _estimate(name: str, params: dict, good: np.ndarray, extra: dict) -> str:
         return f"{extra['pixels']} pixels"
     if name == "detector_lag":
         return f"a = {100 * extra['value']:.4g} % (se {100 * extra['se']:.2g} %)"
+    if name == "pixel_noise":
+        return ", ".join(f"f = {c['factor']:.3g} ({c['pixels']} pixels)" for c in extra["classes"])
     p = params.get(name)
     if p is None:
         return ""
@@ -689,6 +789,11 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                                                    exclude=ndimage.binary_dilation(outliers)[obs.row][:, obs.columns])
             if "detector_lag" not in detected:
                 tests["detector_lag"] = lag_test(prep)
+            if "pixel_noise" not in detected:
+                outliers = tests["sample_motion"]["mask"] if "sample_motion" in tests else motion
+                tests["pixel_noise"] = pixel_noise_test(
+                    obs, rec.expected, rec.images.valid, alpha=d["alpha"],
+                    exclude=ndimage.binary_dilation(outliers)[obs.row][:, obs.columns])
         last_tests.update(tests)
         log.info("round %d: reduced chi-square %.4f; %s", rnd, state["reduced_chi2"],
                  ", ".join(f"{k} S={t['statistic']:.4g} (dof {t['dof']}{'' if t['identifiable'] else ', n.i.'})"
@@ -700,7 +805,10 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
             t = tests[candidate]
             mask = ndimage.binary_dilation(t["mask"], iterations=1) if candidate == "sample_motion" else motion
             noise = (t["gain"], t["electronic"]) if candidate == "detector_gain" else (obs.gain, obs.electronic)
-            on = (obs, fit_obs) if candidate != "detector_lag" else _lag_observations(prep, t["value"], d["subsample"])[1:]
+            on = (obs, fit_obs) if candidate != "detector_lag" else \
+                _lag_observations(prep, t["value"], d["subsample"])[1:]
+            if candidate == "pixel_noise":
+                _set_pixel_noise(obs, fit_obs, t["map"] * (1.0 if prep.pixel_noise is None else prep.pixel_noise))
             trial = _fit_state(*on, model + [candidate] if M.effect(candidate).channel is not None else model,
                                params, mask, cfg, timings, f"round {rnd}: trial {candidate}", noise=noise)
             share = _explained_share(state["signatures"], trial["signatures"])
@@ -712,6 +820,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                      rnd, candidate, 100 * share)
             rejected[candidate] = share
             _restore(obs, fit_obs, state)
+            _set_pixel_noise(obs, fit_obs, prep.pixel_noise)
         if chosen is None:
             break
         choice, trial = chosen
@@ -726,6 +835,9 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
         elif choice == "detector_lag":
             prep, obs, fit_obs = _lag_observations(prep, t["value"], d["subsample"])
             extra = {"value": t["value"], "se": t["se"]}
+        elif choice == "pixel_noise":
+            prep = replace(prep, pixel_noise=t["map"] * (1.0 if prep.pixel_noise is None else prep.pixel_noise))
+            extra = {"classes": t["classes"]}
         else:
             model.append(choice)
         rejected.clear()  # a candidate that did not explain the misfit then may, now that the model changed
@@ -771,7 +883,8 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                      + [n for n in detected if n not in model],
                      before=before, after=after, params=params, gain=obs.gain, electronic=obs.electronic,
                      motion_mask=motion, criterion=criterion, rounds=rounds, unexplained=unexplained,
-                     signatures=state["signatures"], shape=scan.shape)
+                     signatures=state["signatures"], shape=scan.shape,
+                     pixel_noise=prep.pixel_noise if "pixel_noise" in detected else None)
 
 
 def _set_noise(obs: M.Observations, fit_obs: M.Observations, noise: tuple[float, float]) -> None:
@@ -835,6 +948,10 @@ def _ranked(tests: dict, *, alpha: float, min_gain_change: float, gain: float) -
     if "detector_gain" in sig and abs(tests["detector_gain"]["gain"] / gain - 1) > min_gain_change:
         at = order.index("sample_motion") if "sample_motion" in order else len(order)
         order.insert(at, "detector_gain")
+    if "pixel_noise" in order:
+        # a variance pattern, like detector_gain: after the mean effects, before localised outliers
+        order.remove("pixel_noise")
+        order.insert(order.index("sample_motion") if "sample_motion" in order else len(order), "pixel_noise")
     return order
 
 
@@ -889,12 +1006,16 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
         with atomic_path(out_dir / "motion_mask.tif", overwrite=overwrite) as tmp:
             tifffile.imwrite(tmp, diag.motion_mask.astype(np.uint8))
         written.append(out_dir / "motion_mask.tif")
+    if diag.pixel_noise is not None:
+        with atomic_path(out_dir / "pixel_noise.tif", overwrite=overwrite) as tmp:
+            tifffile.imwrite(tmp, diag.pixel_noise.astype(np.float32))
+        written.append(out_dir / "pixel_noise.tif")
     with atomic_path(paths["report.md"], overwrite=overwrite) as tmp:
-        tmp.write_text(_markdown(diag))
+        tmp.write_text(_markdown(diag, out_dir))
     return written
 
 
-def _markdown(diag: Diagnosis) -> str:
+def _markdown(diag: Diagnosis, out_dir: Path) -> str:
     lines = [f"# dfxcorr diagnose: {diag.scan}", "",
              (f"Base model: {', '.join(diag.base_model) or 'none (plain retrieval)'}. "
               f"Final model: {', '.join(diag.final_model) or 'none'}."), "",
@@ -935,7 +1056,7 @@ def _markdown(diag: Diagnosis) -> str:
                "deviation; bins beyond 3 sigma in red, panel titles in red where the signature is significant."), ""]
     if diag.motion_mask.any():
         lines += [f"The pixels taken as moving are in motion_mask.tif ({int(diag.motion_mask.sum())} pixels).", ""]
-    sets = reconstruct_settings(diag)
+    sets = reconstruct_settings(diag, out_dir=out_dir)
     lines += ["To reconstruct with the final model:", "",
               f"    dfxcorr reconstruct {diag.scan} -o result.h5" + "".join(f" --set {s}" for s in sets), ""]
     return "\n".join(lines)
@@ -948,8 +1069,11 @@ def _verdict_where(e: EffectReport) -> str:
     return e.where or ""
 
 
-def reconstruct_settings(diag: Diagnosis) -> list[str]:
-    """The ``--set`` options that make ``reconstruct`` use the diagnosis's final model."""
+def reconstruct_settings(diag: Diagnosis, *, out_dir: Path | None = None) -> list[str]:
+    """The ``--set`` options that make ``reconstruct`` use the diagnosis's final model.
+
+    ``out_dir``: where the report (and a pixel_noise.tif) is written (default: the current directory).
+    """
     keys = {e: k for k, e in C.VIBRATION_EFFECTS.items()}
     sets = [f"vibration.{keys[n]}=true" for n in diag.final_model if n in keys and n not in diag.base_model]
     sets += [f"vibration.{keys[n]}=false" for n in M.PAPER_MODEL if n not in diag.final_model]
@@ -957,7 +1081,10 @@ def reconstruct_settings(diag: Diagnosis) -> list[str]:
         sets.append("mask.enabled=true")
     if "detector_gain" in diag.final_model:
         sets += [f"load.gain={diag.gain:.4g}", f"load.electronic={diag.electronic:.4g}"]
-    sets += [f"load.detector_lag={e.extra['value']:.6g}" for e in diag.effects if e.name == "detector_lag" and e.detected]
+    sets += [f"load.detector_lag={e.extra['value']:.6g}" for e in diag.effects
+             if e.name == "detector_lag" and e.detected]
+    if "pixel_noise" in diag.final_model:
+        sets.append(f"load.pixel_noise={Path(out_dir or '.') / 'pixel_noise.tif'}")
     return sets
 
 

@@ -83,6 +83,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "detector_lag": Option(0.0, "fraction a of each detected frame carried into the next (first-frame lag): "
                                     "frame j records S_j + a S_(j-1), also in rows lit in j - 1 only", _NUM,
                                check=lambda v: None if 0 <= v < 1 else "must lie in [0, 1)"),
+        "pixel_noise": Option(1.0, "noise variance factor of the module-boundary pixels (first and last row and "
+                                   "column of each detector module): their noise is scaled around the mean; "
+                                   "1: none", _NUM, check=_positive),
+        "module_pixels": Option(16, "detector module size (pixels) for pixel_noise", int, check=_positive),
     },
 }
 
@@ -103,6 +107,7 @@ CONCEALED = {
     "sample_motion": ("effects.sample_motion", 0.3, [0.1, 0.05, 0.02, 0.01], {}, []),
     "detector_gain": ("effects.detector_gain", 2.0, [1.3, 1.1, 1.05, 1.02], {"effects.declare_gain": False}, []),
     "detector_lag": ("effects.detector_lag", 0.03, [0.01, 0.003, 0.001, 0.0003], {}, []),
+    "pixel_noise": ("effects.pixel_noise", 1 / 3, [0.6, 0.8, 0.9, 0.95], {}, []),
 }
 
 
@@ -208,6 +213,7 @@ class Simulation:
         self.reference, self.reference_steps = self.flat, np.zeros(0)
         if s["reference_steps"]:
             self.reference, self.reference_steps = _reference_series(self.flat, s, rng)
+        self.noise_factor = pixel_noise_map(H, W, factor=e["pixel_noise"], module=e["module_pixels"])
         self._streams = np.random.SeedSequence(s["seed"]).spawn(J)
         self.dtype = np.dtype(s["dtype"])
 
@@ -236,7 +242,8 @@ class Simulation:
             # the region's transmission beats about 7 times over the scan, like a heart during a 7 s scan
             swing = 1 + e["sample_motion"] * np.sin(2 * np.pi * 7 * j / J)
             ibar = np.where(self.moving[row], (ibar - dsg.offset) * swing + dsg.offset, ibar)
-        return int(row[0]), _detect(ibar, self.cfg, np.random.default_rng(self._streams[j]))
+        return int(row[0]), _detect(ibar, self.cfg, np.random.default_rng(self._streams[j]),
+                                    factor=self.noise_factor[row])
 
     def frames(self):
         """Yield (j, r0, counts (n, W)) in the stored dtype for every frame; warns once if counts are clipped.
@@ -283,7 +290,7 @@ class Simulation:
                      vib_visibility_tilt=p.get("visibility_tilt", np.zeros((J, 2))),
                      background=p.get("background", np.zeros(3)), harmonic=p.get("harmonic", np.zeros(2)),
                      motion_mask=self.moving, gain=np.float64(e["detector_gain"]),
-                     detector_lag=np.float64(e["detector_lag"]),
+                     detector_lag=np.float64(e["detector_lag"]), pixel_noise=self.noise_factor,
                      reference_steps=self.reference_steps, reference_transmission=ref.transmission,
                      reference_visibility=ref.visibility, reference_phase=ref.phase, config=json.dumps(self.cfg))
         return truth
@@ -304,7 +311,8 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
         ``image_transmission``, ``image_dark_field``, ``image_differential_phase`` (H, W); per frame
         ``vib_phase_offset``, ``vib_tilt``, ``vib_visibility``, ``vib_curvature``, ``vib_dose``
         (J,), ``vib_visibility_tilt`` (J, 2); ``background`` (3,), ``harmonic`` (2,),
-        ``motion_mask`` (H, W), ``gain``, ``detector_lag`` (the fraction a); ``reference_steps`` (actual step phases of a simulated
+        ``motion_mask`` (H, W), ``gain``, ``detector_lag`` (the fraction a),
+        ``pixel_noise`` (H, W) variance factors; ``reference_steps`` (actual step phases of a simulated
         reference series, else empty) and the exact flat-field maps ``reference_*``; ``config`` (JSON).
     """
     sim = Simulation(cfg)
@@ -365,12 +373,26 @@ def _heart_step(img: dict, cfg: dict) -> dict[str, np.ndarray]:
     return out
 
 
-def _detect(mean: np.ndarray, cfg: dict, rng: np.random.Generator) -> np.ndarray:
-    """Detector response to a mean signal in detector units: g * Poisson(mean / g) + electronic noise."""
+def pixel_noise_map(height: int, width: int, *, factor: float, module: int) -> np.ndarray:
+    """Variance factor of each pixel: ``factor`` on the first and last row and column of each module, else 1."""
+    def edge(n):
+        k = np.arange(n) % module
+        return (k == 0) | (k == module - 1)
+    return np.where(edge(height)[:, None] | edge(width)[None, :], float(factor), 1.0)
+
+
+def _detect(mean: np.ndarray, cfg: dict, rng: np.random.Generator, *, factor: np.ndarray | None = None) -> np.ndarray:
+    """Detector response to a mean signal in detector units: g * Poisson(mean / g) + electronic noise.
+
+    ``factor`` (same shape): per-pixel variance factor of the photon noise (``effects.pixel_noise``), the
+    noise scaled around the mean by its square root.
+    """
     s, e = cfg["simulate"], cfg["effects"]
     g = e["detector_gain"]
     mean = np.maximum(mean, 0.0)
     out = g * rng.poisson(mean / g).astype(np.float64) if s["noise"] else mean.copy()
+    if factor is not None and s["noise"] and np.any(factor != 1):
+        out = mean + np.sqrt(factor) * (out - mean)
     if e["read_noise"]:
         out += rng.normal(0, e["read_noise"], out.shape)
     return out
