@@ -571,8 +571,9 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
     freedom n_i - 3 (3 image unknowns). Per detector column (and row) the sum X against c times its dof,
     c the overall dispersion: z = (X - c dof) / (c sqrt(V)), V the variance of the summed z^2 (2 + g / mu
     per sample: scaled Poisson noise); columns and rows significant after Holm (alpha over all of them)
-    are anomalous, above or below. Classes: pixels sharing (column above / below / regular, row above /
-    below / regular); the regular class is the reference. Each other class gets the factor
+    are anomalous, and grouped by their variance ratio (:func:`_variance_groups`: lines whose ratios agree
+    within noise). Classes: pixels sharing (column group, row group), group 0 regular; the regular class is
+    the reference. Each other class gets the factor
     f = (X / dof of the class) / (X / dof of the regular class), so that its reduced chi-square becomes that
     of the rest (a global gain stays detector_gain's). Statistic: the Gaussian likelihood ratio of a
     variance scale per class, sum dof (f - 1 - ln f), chi-square with one dof per class.
@@ -600,23 +601,32 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
             "excess": 0, "map": fmap, "classes": []}
     if img["dof"].sum() <= 0:
         return none
-    c = img["X"].sum() / img["dof"].sum()
-    signs, tests = [], []
-    for axis in (0, 1):
-        Xa, Da, Va = (img[k].sum(axis=axis) for k in ("X", "dof", "V"))
-        ok = Da > 0
-        z = np.where(ok, (Xa - c * Da) / (c * np.sqrt(np.where(ok, Va, 1.0))), 0.0)
-        signs.append(np.sign(z))
-        tests += [{"log_p": float(np.log(2) + stats.norm.logsf(abs(v))), "axis": axis, "i": i}
-                  for i, v in enumerate(z) if ok[i]]
-    _holm(tests, alpha)
-    anomalous = [np.zeros(W, bool), np.zeros(H, bool)]
-    for t in tests:
-        anomalous[t["axis"]][t["i"]] = t["significant"]
-    col = np.where(anomalous[0], signs[0], 0).astype(int)
-    row = np.where(anomalous[1], signs[1], 0).astype(int)
-    label = 3 * (row[:, None] + 1) + (col[None, :] + 1)
-    regular = label == 4
+    groups = [np.zeros(W, int), np.zeros(H, int)]
+    # the dispersion of the regular pixels, the anomalous columns and rows found against it: repeated until
+    # they stay the same (anomalous lines would otherwise pull the reference and make the rest look anomalous)
+    for _ in range(5):
+        regular = (groups[1][:, None] == 0) & (groups[0][None, :] == 0)
+        c = img["X"][regular].sum() / img["dof"][regular].sum()
+        tests, lines = [], []
+        for axis in (0, 1):
+            # a column's sum over the regular rows, a row's over the regular columns
+            keep = (groups[1][:, None] == 0) if axis == 0 else (groups[0][None, :] == 0)
+            Xa, Da, Va = (np.where(keep, img[k], 0.0).sum(axis=axis) for k in ("X", "dof", "V"))
+            ok = Da > 0
+            z = np.where(ok, (Xa - c * Da) / (c * np.sqrt(np.where(ok, Va, 1.0))), 0.0)
+            lines.append((Xa, Da, Va))
+            tests += [{"log_p": float(np.log(2) + stats.norm.logsf(abs(v))), "axis": axis, "i": i}
+                      for i, v in enumerate(z) if ok[i]]
+        _holm(tests, alpha)
+        new = []
+        for axis in (0, 1):
+            idx = np.array([t["i"] for t in tests if t["axis"] == axis and t["significant"]], int)
+            new.append(_variance_groups(*(v[idx] for v in lines[axis]), idx, c=c, size=(W, H)[axis]))
+        if all(np.array_equal(a, b) for a, b in zip(new, groups, strict=True)):
+            break
+        groups = new
+    label = groups[1][:, None] * (groups[0].max() + 1) + groups[0][None, :]
+    regular = label == 0
     if regular.all() or img["dof"][regular].sum() <= 0:
         return none
     c0 = img["X"][regular].sum() / img["dof"][regular].sum()
@@ -638,6 +648,28 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
     return {"statistic": stat, "dof": k, "p_value": float(stats.chi2.sf(stat, k)),
             "log_p": float(stats.chi2.logsf(stat, k)), "explains": stat, "identifiable": True, "excess": 0,
             "map": fmap, "classes": classes}
+
+
+def _variance_groups(X: np.ndarray, dof: np.ndarray, V: np.ndarray, idx: np.ndarray, *, c: float, size: int,
+                     z_split: float = 5.0) -> np.ndarray:
+    """Group anomalous detector lines (columns or rows) whose variance ratios agree: 0 regular, 1, 2, ... groups.
+
+    The lines ``idx`` (their chi-square sums X, dof and variances V), sorted by their ratio X / (c dof), join
+    the current group while they lie within ``z_split`` standard deviations of its pooled ratio.
+    """
+    out = np.zeros(size, int)
+    if idx.size == 0:
+        return out
+    ratio = X / (c * dof)
+    order = np.argsort(ratio)
+    g, Xg, Dg, Vg = 0, 0.0, 0.0, 0.0
+    for i in order:
+        if g and abs(ratio[i] - Xg / (c * Dg)) > z_split * np.sqrt(V[i] / dof[i] ** 2 + Vg / Dg ** 2):
+            g, Xg, Dg, Vg = g + 1, 0.0, 0.0, 0.0
+        g = max(g, 1)
+        out[idx[i]] = g
+        Xg, Dg, Vg = Xg + X[i], Dg + dof[i], Vg + V[i]
+    return out
 
 
 def class_chi2(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, classes: np.ndarray) -> dict[int, float]:
