@@ -837,12 +837,13 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
             t = tests[candidate]
             mask = ndimage.binary_dilation(t["mask"], iterations=1) if candidate == "sample_motion" else motion
             noise = (t["gain"], t["electronic"]) if candidate == "detector_gain" else (obs.gain, obs.electronic)
-            on = (obs, fit_obs) if candidate != "detector_lag" else \
-                _lag_observations(prep, t["value"], d["subsample"])[1:]
+            # lag changes the data themselves: their fit starts afresh, as round 0 did
+            on, start = ((obs, fit_obs), params) if candidate != "detector_lag" else \
+                (_lag_observations(prep, t["value"], d["subsample"])[1:], {})
             if candidate == "pixel_noise":
                 _set_pixel_noise(obs, fit_obs, t["map"] * (1.0 if prep.pixel_noise is None else prep.pixel_noise))
             trial = _fit_state(*on, model + [candidate] if M.effect(candidate).channel is not None else model,
-                               params, mask, cfg, timings, f"round {rnd}: trial {candidate}", noise=noise)
+                               start, mask, cfg, timings, f"round {rnd}: trial {candidate}", noise=noise)
             share = _explained_share(state["signatures"], trial["signatures"])
             if share is None or share >= d["explain_share"] or (share >= 0 and _silences(state["signatures"],
                                                                                           trial["signatures"])):
