@@ -11,7 +11,11 @@ Each round fits the current model, then tests every catalogue effect the model l
 - sample_motion by the per-pixel chi-square: pixels far beyond what noise allows, in numbers no
   chance explains (binomial test);
 - detector_gain by a likelihood-ratio test of the variance model g (Ibar - dark) + electronic
-  against the current one, considered only when no structured effect is left.
+  against the current one, considered only when no structured effect is left;
+- detector_lag measured directly in the rows the active area has just left (:func:`lag_test`), tried
+  before everything else and taken out of the counts (the data change, not the model);
+- pixel_noise by anomalous detector columns and rows of the per-pixel chi-square, grouped into pixel
+  classes with one variance factor each (:func:`pixel_noise_test`), tried with detector_gain.
 
 Whether an effect can be identified at all comes from the null space of the Fisher information
 (:mod:`dfxcorr.analysis.identify`). The significant candidates (Holm's correction over the effects tried
@@ -244,7 +248,7 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
     var = M.variance(obs, ibar)
     z = np.where(sel, (obs.counts - ibar) / np.sqrt(var), 0.0)
     c = float(np.sum(z ** 2) / np.sum(keep))
-    g_true = c * obs.gain
+    g_true = c * obs.pixel_gain()[obs.pixel]
     kurt = g_true ** 3 * np.maximum(ibar - obs.dark, 1e-3) / (c * var) ** 2
     e = np.where(sel, z ** 2 - c * keep, 0.0)
     # at a few photons the weighted fit's mean is biased towards low counts: dim samples would give the
@@ -512,7 +516,8 @@ def noise_model(obs: M.Observations, ibar: np.ndarray, images: M.Images, dsg: M.
     if exclude is not None:
         sel &= ~exclude
     r2 = ((obs.counts - ibar) ** 2 / (1 - h))[sel]
-    mu = np.maximum(ibar - obs.dark, 1e-3)[sel]
+    # the photon variance per unit gain: the mean times the pixel's variance factor (pixel_noise)
+    mu = (np.maximum(ibar - obs.dark, 1e-3) * obs.pixel_gain(1.0)[obs.pixel])[sel]
     v0 = M.variance(obs, ibar)[sel]
     w = 1.0 / v0 ** 2
     A = np.stack([mu, np.ones_like(mu)], axis=1) * np.sqrt(w)[:, None]
