@@ -580,7 +580,8 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
     within noise). Classes: pixels sharing (column group, row group), group 0 regular; the regular class is
     the reference. Each other class gets the factor
     f = (X / dof of the class) / (X / dof of the regular class), so that its reduced chi-square becomes that
-    of the rest (a global gain stays detector_gain's). Statistic: the Gaussian likelihood ratio of a
+    of the rest (a global gain stays detector_gain's); where no pixel is regular (every row anomalous, say)
+    the factors are against the stated noise model. Statistic: the Gaussian likelihood ratio of a
     variance scale per class, sum dof (f - 1 - ln f), chi-square with one dof per class.
 
     Returns
@@ -611,7 +612,7 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
     # they stay the same (anomalous lines would otherwise pull the reference and make the rest look anomalous)
     for _ in range(5):
         regular = (groups[1][:, None] == 0) & (groups[0][None, :] == 0)
-        c = img["X"][regular].sum() / img["dof"][regular].sum()
+        c = _dispersion(img, regular)
         tests, lines = [], []
         for axis in (0, 1):
             # a column's sum over the regular rows, a row's over the regular columns
@@ -632,9 +633,9 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
         groups = new
     label = groups[1][:, None] * (groups[0].max() + 1) + groups[0][None, :]
     regular = label == 0
-    if regular.all() or img["dof"][regular].sum() <= 0:
+    if regular.all():
         return none
-    c0 = img["X"][regular].sum() / img["dof"][regular].sum()
+    c0 = _dispersion(img, regular)
     classes, stat = [], 0.0
     for k in np.unique(label[~regular]):
         m = label == k
@@ -653,6 +654,12 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
     return {"statistic": stat, "dof": k, "p_value": float(stats.chi2.sf(stat, k)),
             "log_p": float(stats.chi2.logsf(stat, k)), "explains": stat, "identifiable": True, "excess": 0,
             "map": fmap, "classes": classes}
+
+
+def _dispersion(img: dict, regular: np.ndarray) -> float:
+    """Reduced chi-square of the regular pixels; 1 (the stated noise model) when every line is anomalous."""
+    dof = img["dof"][regular].sum()
+    return float(img["X"][regular].sum() / dof) if dof > 0 else 1.0
 
 
 def _variance_groups(X: np.ndarray, dof: np.ndarray, V: np.ndarray, idx: np.ndarray, *, c: float, size: int,
