@@ -15,7 +15,7 @@ Each round fits the current model, then tests every catalogue effect the model l
 - detector_lag measured directly in the rows the active area has just left (:func:`lag_test`), tried
   before everything else and taken out of the counts (the data change, not the model);
 - pixel_noise by anomalous detector columns and rows of the per-pixel chi-square, grouped into pixel
-  classes with one variance factor each (:func:`pixel_noise_test`), tried with detector_gain.
+  classes with one variance factor each (:func:`pixel_noise_test`), tried just before detector_gain.
 
 Whether an effect can be identified at all comes from the null space of the Fisher information
 (:mod:`dfxcorr.analysis.identify`). The significant candidates (Holm's correction over the effects tried
@@ -980,7 +980,8 @@ def _ranked(tests: dict, *, alpha: float, min_gain_change: float, gain: float) -
 
     Holm over the m effects tested; structured effects (sample_motion included) by the chi-square they
     explain, detector_gain at the end but before sample_motion (a global variance excess is modelled
-    before localised outliers are judged against it).
+    before localised outliers are judged against it), pixel_noise just before detector_gain, detector_lag
+    first (measured directly).
     """
     if not tests:
         return []
@@ -994,9 +995,11 @@ def _ranked(tests: dict, *, alpha: float, min_gain_change: float, gain: float) -
         at = order.index("sample_motion") if "sample_motion" in order else len(order)
         order.insert(at, "detector_gain")
     if "pixel_noise" in order:
-        # a variance pattern, like detector_gain: after the mean effects, before localised outliers
+        # a variance pattern: after the mean effects, before a global gain (its factors are relative to the
+        # regular pixels, so a gain fitted first would be pulled by the anomalous ones) and localised outliers
         order.remove("pixel_noise")
-        order.insert(order.index("sample_motion") if "sample_motion" in order else len(order), "pixel_noise")
+        at = [order.index(k) for k in ("detector_gain", "sample_motion") if k in order]
+        order.insert(min(at, default=len(order)), "pixel_noise")
     return order
 
 
