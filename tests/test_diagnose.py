@@ -8,7 +8,7 @@ from dfxcorr import config as C
 from dfxcorr.analysis.diagnose import diagnose, write_report
 from dfxcorr.sim import simulate as S
 
-from conftest import shared_path, sim_config
+from conftest import real_ipp_scan, sim_config
 
 
 def concealed(effect, *, seed=11, amplitude=None):
@@ -183,12 +183,7 @@ def test_report_files_follow_the_contract(tmp_path):
 @pytest.mark.shared
 @pytest.mark.slow
 def test_real_recording_is_diagnosed(tmp_path):
-    from dfxcorr.importer import import_stepping
-
-    folder = shared_path("real", "tum-ipp-stepping")
-    import_stepping(tmp_path / "ipp.h5", sample=str(folder / "data_stepping_*.npy"),
-                    reference=str(folder / "flat_stepping_*.npy"), steps_per_period=11)
-    diag = diagnose(tmp_path / "ipp.h5", C.defaults())
+    diag = diagnose(real_ipp_scan(tmp_path), C.defaults())
     verdict = {e.name: e for e in diag.effects}
     assert not verdict["visibility_loss"].identifiable and not verdict["visibility_loss"].detected
     # the recording's noise is below Poisson mostly in the detector's module-boundary pixels (whole columns

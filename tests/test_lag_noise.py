@@ -14,7 +14,7 @@ from dfxcorr.analysis.evaluate import image_rmse
 from dfxcorr.retrieve import retrieve
 from dfxcorr.sim import simulate as S
 
-from conftest import shared_path, sim_config
+from conftest import real_ipp_scan, sim_config
 
 #: Mean effects that lag used to pose as (issue 11): none may be detected once lag is named.
 PROXIES = {"visibility_tilt", "dose", "curvature", "harmonic", "detector_gain"}
@@ -134,19 +134,15 @@ def test_pixel_noise_map_of_the_wrong_shape_is_refused(tmp_path):
 @pytest.mark.shared
 @pytest.mark.slow
 def test_real_recording_pixel_classes_come_to_one(tmp_path):
-    from dfxcorr.importer import import_stepping
-
-    folder = shared_path("real", "tum-ipp-stepping")
-    import_stepping(tmp_path / "ipp.h5", sample=str(folder / "data_stepping_*.npy"),
-                    reference=str(folder / "flat_stepping_*.npy"), steps_per_period=11)
-    diag = diagnose(tmp_path / "ipp.h5", C.defaults())
+    path = real_ipp_scan(tmp_path)
+    diag = diagnose(path, C.defaults())
     assert "pixel_noise" in [e.name for e in diag.effects if e.detected]
     report = next(e for e in diag.effects if e.name == "pixel_noise")
     # the module-boundary pixels carry well below the Poisson variance (about a third in the boundaries' centres)
     assert min(c["factor"] for c in report.extra["classes"]) < 0.5
     _, labels = np.unique(np.round(diag.pixel_noise, 6), return_inverse=True)
     labels = labels.reshape(diag.pixel_noise.shape)
-    prep = pipeline.prepare(tmp_path / "ipp.h5", C.defaults())
+    prep = pipeline.prepare(path, C.defaults())
     for noise, expect_one in ((None, False), (diag.pixel_noise, True)):
         obs, roi = replace(prep, pixel_noise=noise).observations()
         obs.use = roi
