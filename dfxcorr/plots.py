@@ -374,6 +374,57 @@ def plot_diagnosis(diag, path: Path, *, overwrite: bool = False) -> None:
     save_figure(fig, path, overwrite=overwrite)
 
 
+def plot_effect(change: dict, path: Path, *, overwrite: bool = False) -> Path:
+    """What adding one effect changed (``dfxcorr diagnose``): images, residual maps and its estimate.
+
+    Parameters
+    ----------
+    change : dict
+        From the diagnosis: 'name', 'reduced_chi2' (before, after), 'before' and 'after' (detector
+        images 'differential_phase', 'dark_field', 'residual', each (H, W)), 'per_frame' ((J, n) or
+        None) and 'components' (n names).
+    path : Path
+        Output PNG.
+    """
+    plt = pyplot()
+    fig, axes = plt.subplots(3, 3, figsize=(13, 11), layout="constrained")
+    before, after = change["before"], change["after"]
+    for row, name in enumerate(("differential_phase", "dark_field")):
+        a, b = display_image(name, before[name]), display_image(name, after[name])
+        lo, hi = display_window(name, a)
+        diff = b - a
+        lim = float(np.nanpercentile(np.abs(diff), 99.5)) if np.isfinite(diff).any() else 1.0
+        for col, (img, title, window, cmap) in enumerate((
+                (a, "before", (lo, hi), "gray"), (b, "after", (lo, hi), "gray"),
+                (diff, "after - before", (-max(lim, 1e-12), max(lim, 1e-12)), "RdBu_r"))):
+            ax = axes[row, col]
+            im = ax.imshow(img, cmap=cmap, vmin=window[0], vmax=window[1], interpolation="nearest")
+            ax.set_title(f"{IMAGE_LABELS[name]}, {title}", fontsize=9)
+            fig.colorbar(im, ax=ax, shrink=0.8)
+    top = max(2.0, float(np.nanpercentile(before["residual"], 99)))
+    for col, (res, title) in enumerate(((before["residual"], "before"), (after["residual"], "after"))):
+        ax = axes[2, col]
+        im = ax.imshow(res, cmap="magma", vmin=0, vmax=top, interpolation="nearest")
+        ax.set_title(f"residual per pixel (1 = noise), {title}", fontsize=9)
+        fig.colorbar(im, ax=ax, shrink=0.8)
+    ax = axes[2, 2]
+    values = change.get("per_frame")
+    if values is not None:
+        for m, comp in enumerate(change["components"]):
+            ax.plot(np.arange(values.shape[0]), values[:, m], ".-", ms=3, lw=0.8, label=comp)
+        ax.set_xlabel("frame")
+        ax.set_ylabel(f"{change['name']} estimate")
+        ax.grid(alpha=0.3)
+        if values.shape[1] > 1:
+            ax.legend(fontsize=8)
+    else:
+        ax.axis("off")
+        ax.text(0.5, 0.5, f"{change['name']}: no per-frame parameter", ha="center", va="center", fontsize=10)
+    chi_b, chi_a = change["reduced_chi2"]
+    fig.suptitle(f"adding {change['name']}: reduced chi-square {chi_b:.4f} -> {chi_a:.4f}", fontsize=11)
+    return save_figure(fig, path, overwrite=overwrite)
+
+
 def plot_signatures(signatures: list, path: Path, *, n_frames: int, n_rows: int) -> Path:
     """The residual signatures of the final fit, significant bins marked (``dfxcorr diagnose``).
 

@@ -173,11 +173,16 @@ def test_report_files_follow_the_contract(tmp_path):
     stats_ = [e["statistic"] for e in doc["effects"][1:]]
     assert stats_ == sorted(stats_, reverse=True)
     assert doc["final_model"][-1] == "dose"
-    for png in ("residuals.png", "signatures.png"):
+    for png in ("residuals.png", "signatures.png", "effect-dose.png"):
         assert (tmp_path / png).read_bytes()[:4] == b"\x89PNG"
-    assert len(written) == 4
+    assert len(written) == 5
+    # the dose picture shows the per-frame estimate of the final model, and the residual map after it is flat
+    change, = diag.changes
+    np.testing.assert_array_equal(change["per_frame"], diag.params["dose"])
+    assert np.nanmean(change["after"]["residual"]) < np.nanmean(change["before"]["residual"])
     report = (tmp_path / "report.md").read_text()
     assert "Criterion" in report and "--set vibration.dose=true" in report and "## Unexplained" in report
+    assert "![adding dose](effect-dose.png)" in report
 
 
 @pytest.mark.shared

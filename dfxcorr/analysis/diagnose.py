@@ -45,7 +45,7 @@ from ..fit import fit_vibrations, well_determined
 from ..io import Scan, atomic_path
 from ..mask import motion_score
 from ..pipeline import Prepared, prepare, stage
-from ..retrieve import Retrieval, retrieve
+from ..retrieve import Retrieval, image_maps, retrieve
 from . import identify
 from .identify import resolve_effects, visibility_unidentifiable
 
@@ -125,6 +125,7 @@ class Diagnosis:
     unexplained: list
     signatures: list
     shape: tuple
+    changes: list = field(default_factory=list)
     pixel_noise: np.ndarray | None = None
 
     def to_json(self) -> dict:
@@ -193,7 +194,8 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
     - variance signatures by frame, detector row, column, fringe phase (16 bins of theta + phi) and
       expected count (12 bins of equal size): per bin S = sum (z^2 - c (1 - h)), with variance
       sum c^2 (1 - h)^2 (2 + k), k the excess kurtosis of scaled Poisson noise (scaled up to the
-      observed spread of z^2 where that is larger); sum S^2 / var is
+      observed spread of z^2 where that is larger), or sum c^2 (2 (1 - h) + k (1 - h)^2) for bins that
+      hold whole pixels (row, column: their residuals are correlated); sum S^2 / var is
       chi-square with (bins - 1) dof (c is estimated). A global variance excess is detector_gain's,
       not a signature;
     - mean signatures by frame and by (frame, row) block: per bin S = sum z with variance
@@ -255,8 +257,14 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
     # mean signatures a sign they do not have
     bright = sel & (np.maximum(ibar - obs.dark, 0.0) >= min_photons * g_true)
     kappa = np.where(sel, c ** 2 * keep ** 2 * (2.0 + kurt), 0.0)
+    # the residuals of one pixel are correlated (covariance 1 - H, H its hat matrix): var sum_pixel z^2 =
+    # 2 tr((1 - H)^2) = 2 sum (1 - h), not 2 sum (1 - h)^2. Bins that hold whole pixels (rows, columns)
+    # need the former: with 5 phase steps the latter is 2.5 times too small
+    kappa_pixels = np.where(sel, c ** 2 * (2.0 * keep + kurt * keep ** 2), 0.0)
     # the tails of z^2 are heavier than those of noise alone where the fit is slightly off sample by sample
-    kappa *= max(float(np.sum(e ** 2) / np.sum(kappa)), 1.0)
+    tails = max(float(np.sum(e ** 2) / np.sum(kappa)), 1.0)
+    kappa *= tails
+    kappa_pixels *= tails
     K, C_ = obs.counts.shape
     frame = np.broadcast_to(obs.frame[:, None], (K, C_))
     psi = np.angle(np.exp(1j * (dsg.theta + images.phi[obs.pixel])))
@@ -283,7 +291,7 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
         expect: np.ndarray
         if kind == "variance":
             S = np.bincount(lab, weights=e[sel], minlength=nb)
-            V = np.bincount(lab, weights=kappa[sel], minlength=nb)
+            V = np.bincount(lab, weights=(kappa_pixels if axis in ("row", "column") else kappa)[sel], minlength=nb)
             expect = c * np.bincount(lab, weights=keep[sel], minlength=nb)
             lost = 1.0
         else:
@@ -808,6 +816,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     rounds: list[dict] = []
     last_tests: dict[str, dict] = {}
     rejected: dict[str, float] = {}
+    changes: list[dict] = []
     paper_why = visibility_unidentifiable(scan, reference)
     state = _fit_state(obs, fit_obs, model, {}, motion, cfg, timings, "round 0")
     initial = state["reduced_chi2"]
@@ -871,6 +880,9 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
         choice, trial = chosen
         t = tests[choice]
         extra: dict[str, Any] = {}
+        # the data and noise model the state before the change was fitted with (lag and pixel_noise change them)
+        before_obs = obs if choice != "pixel_noise" else replace(
+            obs, noise=None if prep.pixel_noise is None else prep.pixel_noise[np.ix_(obs.rows, obs.columns)])
         if choice == "sample_motion":
             motion = trial["motion"]
             extra["pixels"] = int(motion.sum())
@@ -896,6 +908,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
         reports[choice].delta_chi2 = rounds[-1]["delta_chi2"]
         reports[choice].reduced_chi2_after = trial["reduced_chi2"]
         reports[choice].estimate = _estimate(choice, trial["params"], good_frames, extra)
+        changes.append(_change(choice, obs, state, trial, extra, before_obs=before_obs))
         log.info("round %d: adding %s", rnd, choice)
         state = trial
     params, rec = state["params"], state["rec"]
@@ -928,8 +941,26 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                      + [n for n in detected if n not in model],
                      before=before, after=after, params=params, gain=obs.gain, electronic=obs.electronic,
                      motion_mask=motion, criterion=criterion, rounds=rounds, unexplained=unexplained,
-                     signatures=state["signatures"], shape=scan.shape,
+                     signatures=state["signatures"], shape=scan.shape, changes=changes,
                      pixel_noise=prep.pixel_noise if "pixel_noise" in detected else None)
+
+
+def _change(name: str, obs: M.Observations, before: dict, after: dict, extra: dict, *,
+            before_obs: M.Observations | None = None) -> dict:
+    """What adding ``name`` changed, for its picture: images and residual maps before and after (H, W), and
+    its per-frame estimate (J, n) where it has one. ``before_obs``: the observations of ``before`` where the
+    change altered the data or their noise model (detector_lag, pixel_noise); default ``obs``."""
+    out: dict[str, Any] = {"name": name, "reduced_chi2": (before["reduced_chi2"], after["reduced_chi2"])}
+    for key, state, seen in (("before", before, before_obs or obs), ("after", after, obs)):
+        rec = state["rec"]
+        out[key] = image_maps(seen, rec.images)
+        out[key]["residual"] = locate(seen, M.design(seen, state["params"]), rec.images, rec.expected).pixel
+    values = after["params"].get(name) if M.effect(name).per_frame else None
+    if values is None and "values" in extra:
+        values = np.asarray(extra["values"], dtype=np.float64).reshape(len(extra["values"]), -1)
+    out["per_frame"] = values
+    out["components"] = M.effect(name).components
+    return out
 
 
 def _set_noise(obs: M.Observations, fit_obs: M.Observations, noise: tuple[float, float]) -> None:
@@ -1034,8 +1065,8 @@ def _unexplained(sigs: list[dict], motion: dict | None, modelled_motion: bool, *
 
 
 def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
-    """Write ``diagnosis.json``, ``report.md``, ``residuals.png``, ``signatures.png`` and (if detected)
-    ``motion_mask.tif``."""
+    """Write ``diagnosis.json``, ``report.md``, ``residuals.png``, ``signatures.png``, one
+    ``effect-<name>.png`` per detected effect and (if detected) ``motion_mask.tif``."""
     import tifffile
 
     from ..export import check_output
@@ -1043,12 +1074,15 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {k: out_dir / k for k in ("diagnosis.json", "report.md", "residuals.png", "signatures.png")}
+    paths.update({c["name"]: out_dir / _effect_picture(c["name"]) for c in diag.changes})
     for p in paths.values():
         check_output(p, overwrite=overwrite)
     with atomic_path(paths["diagnosis.json"], overwrite=overwrite) as tmp:
         tmp.write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
     plots.plot_diagnosis(diag, paths["residuals.png"])
     plots.plot_signatures(diag.signatures, paths["signatures.png"], n_frames=diag.shape[0], n_rows=diag.shape[1])
+    for change in diag.changes:
+        plots.plot_effect(change, paths[change["name"]], overwrite=overwrite)
     written = list(paths.values())
     if diag.motion_mask.any():
         with atomic_path(out_dir / "motion_mask.tif", overwrite=overwrite) as tmp:
@@ -1061,6 +1095,10 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
     with atomic_path(paths["report.md"], overwrite=overwrite) as tmp:
         tmp.write_text(_markdown(diag, out_dir))
     return written
+
+
+def _effect_picture(name: str) -> str:
+    return f"effect-{name}.png"
 
 
 def _markdown(diag: Diagnosis, out_dir: Path) -> str:
@@ -1102,6 +1140,13 @@ def _markdown(diag: Diagnosis, out_dir: Path) -> str:
                "(variance) or plain (mean) standardized residual over what noise leaves after the fit took its "
                "share (3 image unknowns per pixel, the per-frame parameters' leverage), in units of its standard "
                "deviation; bins beyond 3 sigma in red, panel titles in red where the signature is significant."), ""]
+    if diag.changes:
+        lines += ["## What each detected effect changed", ""]
+        for c in diag.changes:
+            lines += [f"![adding {c['name']}]({_effect_picture(c['name'])})", ""]
+        lines += [("Per effect, in the order added: the differential-phase and dark-field images of the fit before "
+                   "and after adding it, and their difference; the residual per pixel before and after; its "
+                   "per-frame estimate against frame where it has one."), ""]
     if diag.motion_mask.any():
         lines += [f"The pixels taken as moving are in motion_mask.tif ({int(diag.motion_mask.sum())} pixels).", ""]
     sets = reconstruct_settings(diag, out_dir=out_dir)
