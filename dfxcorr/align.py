@@ -17,7 +17,7 @@ from numpy.typing import DTypeLike
 
 from .errors import DfxcorrError
 from .io import Reference, Scan, frame_rows
-from .model import Observations, lateral_coordinate
+from .model import Observations, lag_estimate, lag_free, lateral_coordinate
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +84,13 @@ class LitStore:
     phase_step : ndarray, shape (J,)
     dark : ndarray, shape (H, W)
     gain : float
+    left_counts : ndarray, shape (L, W)
+        Counts of the pixels that the active area has just left: (row, frame) pairs lit in frame
+        j - 1 but not in j. Without lag they hold the dark signal only (they measure the lag).
+    left_prev : ndarray of int, shape (L,)
+        Index of the block (row, j - 1) of each of them.
+    lag : float
+        Detector lag fraction already taken out of ``counts`` (:meth:`lag_free`).
     """
 
     counts: np.ndarray
@@ -94,6 +101,40 @@ class LitStore:
     phase_step: np.ndarray
     dark: np.ndarray
     gain: float
+    left_counts: np.ndarray | None = None
+    left_prev: np.ndarray | None = None
+    lag: float = 0.0
+
+    def lag_free(self, fraction: float) -> LitStore:
+        """The same samples with detector lag ``fraction`` taken out (:func:`dfxcorr.model.lag_free`), float32.
+
+        Raises
+        ------
+        ValueError
+            If lag was already taken out of this store.
+        """
+        if self.lag:
+            raise ValueError("the detector lag was already taken out of these samples")
+        counts = lag_free(self.counts, self.dark[self.row], self.row, self.frame, fraction)
+        return replace(self, counts=counts, lag=float(fraction))
+
+    def lag_estimate(self) -> tuple[float, float]:
+        """Lag fraction a and its standard error from the pixels just left (:func:`dfxcorr.model.lag_estimate`).
+
+        The previous frame's lag-free signal depends on a itself (S_(j-1) = I_(j-1) - a S_(j-2)): a few
+        fixed-point iterations, each a's error times a. (nan, inf) without such pixels (phase stepping).
+        """
+        if self.left_counts is None or self.left_prev is None or self.left_prev.size == 0:
+            return float("nan"), float("inf")
+        prev_row = self.row[self.left_prev]
+        signal = self.left_counts.astype(np.float64) - self.dark[prev_row]
+        a, se = 0.0, float("inf")
+        for _ in range(4):
+            prev = lag_free(self.counts, self.dark[self.row], self.row, self.frame, self.lag or a)[self.left_prev]
+            a, se = lag_estimate(signal, prev - self.dark[prev_row])
+            if self.lag:
+                break
+        return a, se
 
     @property
     def rows(self) -> np.ndarray:
@@ -115,8 +156,8 @@ class LitStore:
 
     def observations(self, reference: Reference, *, columns: np.ndarray | None = None,
                      rows: tuple[int, int] | None = None, pixel_mask: np.ndarray | None = None,
-                     gain: float | None = None, electronic: float = 0.0, dtype: DTypeLike = np.float64
-                     ) -> Observations:
+                     gain: float | None = None, electronic: float = 0.0, noise: np.ndarray | None = None,
+                     dtype: DTypeLike = np.float64) -> Observations:
         """Align the flat field to the held samples of some columns and rows.
 
         Parameters
@@ -133,6 +174,8 @@ class LitStore:
             Overrides the file's detector gain.
         electronic : float
             Electronic noise variance (counts^2).
+        noise : ndarray, shape (H, W), optional
+            Variance factor of each detector pixel (``pixel_noise``; default 1).
         dtype : numpy dtype
             Of the sample arrays: float64, or float32 to halve them (counts up to 2^24 stay exact;
             the flat field is interpolated in float64 first).
@@ -155,7 +198,8 @@ class LitStore:
         use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
         return Observations(counts=counts, tf=tf, vf=vf, phif=phif.astype(dtype, copy=False), dark=dark, use=use,
                             row=row, frame=frame, columns=cols, shape=(J, H, W),
-                            gain=self.gain if gain is None else gain, electronic=electronic)
+                            gain=self.gain if gain is None else gain, electronic=electronic,
+                            noise=None if noise is None else noise[np.ix_(np.unique(row), cols)])
 
 
 def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: int = 3) -> LitStore:
@@ -193,16 +237,28 @@ def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: 
     counts = np.empty((row.size, W), dtype=scan.data.dtype)
     by_frame = np.argsort(frame, kind="stable")  # within a frame, rows stay ascending
     bounds = np.searchsorted(frame[by_frame], np.arange(J + 1))
+    # the pixels just left (lit in j - 1, not in j): the frame after each row's last lit frame
+    left_prev = np.flatnonzero(np.r_[row[1:] != row[:-1], True] & (frame + 1 < J))
+    left_frame = frame[left_prev] + 1
+    left_counts = np.empty((left_prev.size, W), dtype=scan.data.dtype)
+    left_order = np.argsort(left_frame, kind="stable")
+    left_bounds = np.searchsorted(left_frame[left_order], np.arange(J + 1))
     opener = scan.data.open() if hasattr(scan.data, "open") else nullcontext(scan.data)
     with opener as data:
         for j in range(J):
             idx = by_frame[bounds[j]:bounds[j + 1]]
-            if idx.size:
-                r0, r1 = int(row[idx[0]]), int(row[idx[-1]]) + 1
-                counts[idx] = frame_rows(data, j, r0, r1)[row[idx] - r0]
+            lidx = left_order[left_bounds[j]:left_bounds[j + 1]]
+            rows_j = np.r_[row[idx], row[left_prev[lidx]]]
+            if rows_j.size:
+                # one hyperslab per frame: the lit rows and the adjacent ones just left
+                r0, r1 = int(rows_j.min()), int(rows_j.max()) + 1
+                block = frame_rows(data, j, r0, r1)
+                counts[idx] = block[row[idx] - r0]
+                left_counts[lidx] = block[row[left_prev[lidx]] - r0]
     assert scan.dark is not None  # Scan.__post_init__ fills it
     return LitStore(counts=counts, row=row, frame=frame, u=u, shape=(J, H, W),
-                    phase_step=np.asarray(scan.phase_step, dtype=np.float64), dark=scan.dark, gain=scan.gain)
+                    phase_step=np.asarray(scan.phase_step, dtype=np.float64), dark=scan.dark, gain=scan.gain,
+                    left_counts=left_counts, left_prev=left_prev)
 
 
 def read_position_errors(path: str | Path, n_frames: int) -> np.ndarray:

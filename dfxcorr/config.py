@@ -69,6 +69,13 @@ SCHEMA: dict[str, dict[str, Option]] = {
                              "(dfxcorr diagnose estimates it as detector_gain)", _NUM, check=_positive, nullable=True),
         "electronic": Option(0.0, "electronic noise variance per sample (counts^2), added to gain * mean in the "
                                   "noise weights (dfxcorr diagnose estimates it)", _NUM, check=_nonneg),
+        "detector_lag": Option(0.0, "detector lag fraction a (frame j records S_j + a S_(j-1)): taken out of the "
+                                    "counts recursively before anything else (dfxcorr diagnose estimates it as "
+                                    "detector_lag); 0: none", _NUM, check=lambda v: None if 0 <= v < 1
+                               else "must lie in [0, 1)"),
+        "pixel_noise": Option(None, "TIFF of per-pixel noise variance factors f (variance f * gain * mean + "
+                                    "electronic), e.g. the pixel_noise.tif that dfxcorr diagnose writes; null: 1",
+                              str, nullable=True),
         "allow_external": Option(False, "follow HDF5 external links, external raw storage and virtual datasets of "
                                         "the scan file (each file read is hashed into the provenance); false "
                                         "refuses them", bool),

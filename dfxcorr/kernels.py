@@ -365,7 +365,7 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                         A[b, i], Bc[b, i], Bs[b, i] = a, bc, bs
                         off[b, i] = dark[k, c] + bg[0] + bg[1] * x[c] + bg[2] * y[k]
                         if from_data:
-                            w[b, i] = 1.0 / (gain * max(counts[k, c] - dark[k, c], 1.0) + electronic) \
+                            w[b, i] = 1.0 / (gain[r, c] * max(counts[k, c] - dark[k, c], 1.0) + electronic) \
                                 if use[k, c] else 0.0
                         else:
                             w[b, i] = start[k, c]
@@ -378,7 +378,8 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                                 c = c0 + i
                                 m = off[b, i] + coef[r, c, 0] * A[b, i] + coef[r, c, 1] * Bc[b, i] \
                                     + coef[r, c, 2] * Bs[b, i]
-                                w[b, i] = 1.0 / (gain * max(m - dark[k, c], 1.0) + electronic) if use[k, c] else 0.0
+                                w[b, i] = 1.0 / (gain[r, c] * max(m - dark[k, c], 1.0) + electronic) if use[k, c] \
+                                    else 0.0
                     N[:, :T] = 0.0
                     rhs[:, :T] = 0.0
                     used[:T] = 0.0
@@ -403,7 +404,7 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                         w_out[k, c] = w[b, i]
                         if valid[r, c] and use[k, c]:
                             # Pearson residual with the variance floor of model.pearson
-                            chi2[t] += (counts[k, c] - m) ** 2 / (gain * max(m - dark[k, c], 1e-3) + electronic)
+                            chi2[t] += (counts[k, c] - m) ** 2 / (gain[r, c] * max(m - dark[k, c], 1e-3) + electronic)
                             n_sel[t] += 1.0
     return coef, valid, inverse, ibar, w_out, chi2, n_sel
 
@@ -422,7 +423,8 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
     iterations : int
         Solves; each after the first takes the weights from the previous model.
     gain : float, optional
-        Overrides ``obs.gain`` in the noise weights and the chi-square.
+        Overrides ``obs.gain`` in the noise weights and the chi-square (times the pixels' variance factors
+        ``obs.noise``: the kernel reads one gain per pixel).
     keep_inverse : bool
         Also return the inverse normal matrices.
 
@@ -435,13 +437,13 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
     """
     if iterations < 1:
         raise ValueError("iterations must be at least 1")
-    g = obs.gain if gain is None else gain
+    g = obs.pixel_gain(gain)
     bounds = _bounds(obs)
     start = np.zeros((0, 0)) if weights is None else weights
     coef, valid, inverse, ibar, w, chi2, n_sel = _retrieve(
         obs.counts, obs.tf, obs.vf, obs.phif, obs.dark, obs.use, start, obs.frame, obs.y, obs.x, bounds,
         row_chunks(bounds[:-1], obs.frame.size), ch.phase, ch.vis, ch.dose, ch.background, ch.harmonic,
-        float(g), float(obs.electronic), int(iterations), weights is None, keep_inverse, TILE)
+        g, float(obs.electronic), int(iterations), weights is None, keep_inverse, TILE)
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
 

@@ -93,9 +93,10 @@ def motion_score(obs: M.Observations, params: dict | None = None, weights: np.nd
 def deviance(obs: M.Observations, ibar: np.ndarray) -> np.ndarray:
     """Poisson deviance of each sample in photon units, shape (K, C); about chi-square(1) per sample.
 
-    With electronic noise it is scaled by g mu / (g mu + sigma_e^2), the photon share of the variance.
+    With electronic noise it is scaled by g mu / (g mu + sigma_e^2), the photon share of the variance; g is
+    each pixel's gain (times its ``pixel_noise`` factor).
     """
-    g = obs.gain
+    g = obs.pixel_gain()[obs.pixel]
     mu = np.maximum(ibar - obs.dark, 1e-6) / g
     y = np.maximum(obs.counts - obs.dark, 0.0) / g
     with np.errstate(divide="ignore", invalid="ignore"):

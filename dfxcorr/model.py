@@ -122,6 +122,10 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
            "the interferometer sat delta rows off during the scan: the flat field is read at u - delta"),
     Effect("position_error", None, True, ("delta",), 0.0, "shift",
            "the recorded position of frame j is off by delta_j rows: its flat field is read at u - delta_j"),
+    Effect("detector_lag", None, False, ("a",), 0.0, "none",
+           "the detector carries a fraction a of the previous frame's signal into the next: I_j = S_j + a S_(j-1)"),
+    Effect("pixel_noise", None, False, (), 1.0, "none",
+           "the noise variance differs from pixel to pixel: variance_i = f_i * g * mean (+ electronic)"),
 )}
 
 #: The paper's model (eq. 19).
@@ -191,6 +195,9 @@ class Observations:
         Detector units per photon.
     electronic : float
         Electronic noise variance (counts^2); the variance of a sample is gain * (Ibar - dark) + electronic.
+    noise : ndarray, shape (R, C), or None
+        Variance factor f of each pixel held (``pixel_noise``): the variance is f * gain * (Ibar - dark)
+        + electronic; None: 1 everywhere.
     """
 
     counts: np.ndarray
@@ -205,6 +212,7 @@ class Observations:
     shape: tuple
     gain: float = 1.0
     electronic: float = 0.0
+    noise: np.ndarray | None = None
     rows: np.ndarray = field(init=False)
     starts: np.ndarray = field(init=False)
     pixel: np.ndarray = field(init=False)
@@ -248,7 +256,12 @@ class Observations:
         idx = np.asarray(columns)
         return Observations(self.counts[:, idx], self.tf[:, idx], self.vf[:, idx], self.phif[:, idx],
                             self.dark[:, idx], self.use[:, idx], self.row, self.frame, self.columns[idx],
-                            self.shape, self.gain, self.electronic)
+                            self.shape, self.gain, self.electronic, None if self.noise is None else self.noise[:, idx])
+
+    def pixel_gain(self, gain: float | None = None) -> np.ndarray:
+        """Detector units per photon of each pixel held, f * gain (``pixel_noise``), shape (R, C)."""
+        g = self.gain if gain is None else gain
+        return g * (np.ones((self.rows.size, self.columns.size)) if self.noise is None else self.noise)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -707,8 +720,10 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
 
 
 def variance(obs: Observations, ibar: np.ndarray, *, gain: float | None = None, floor: float = 1e-3) -> np.ndarray:
-    """Noise variance of each sample, g (Ibar - dark) + electronic, shape (K, C)."""
+    """Noise variance of each sample, f g (Ibar - dark) + electronic (f of ``obs.noise``), shape (K, C)."""
     g = obs.gain if gain is None else gain
+    if obs.noise is not None:
+        g = g * obs.noise[obs.pixel]
     return g * np.maximum(ibar - obs.dark, floor) + obs.electronic
 
 
@@ -722,3 +737,87 @@ def noise_weights(obs: Observations, ibar: np.ndarray, *, gain: float | None = N
                   floor: float = 1.0) -> np.ndarray:
     """Inverse noise variance of the used samples (shot noise floored at ``floor`` counts), 0 elsewhere."""
     return np.where(obs.use, 1.0 / variance(obs, ibar, gain=gain, floor=floor), 0.0)
+
+
+# --------------------------------------------------------------------------------------------------
+# Detector lag (a fraction of the previous frame's signal in the next)
+# --------------------------------------------------------------------------------------------------
+
+
+def previous_block(row: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """Index of the block (row, frame - 1) of each (row, frame) block sorted by row, frames ascending; -1 if none.
+
+    Parameters
+    ----------
+    row, frame : ndarray of int, shape (K,)
+
+    Returns
+    -------
+    ndarray of int, shape (K,)
+    """
+    k = np.arange(row.size)
+    prev = k - 1
+    ok = (k > 0) & (row[prev] == row) & (frame[prev] == frame - 1)
+    return np.where(ok, prev, -1)
+
+
+def lag_free(counts: np.ndarray, dark: np.ndarray, row: np.ndarray, frame: np.ndarray, fraction: float,
+             *, dtype=np.float32) -> np.ndarray:
+    """Undo detector lag recursively: S_j = (I_j - dark) - a S_(j-1), S = 0 where the pixel was not lit.
+
+    Parameters
+    ----------
+    counts : ndarray, shape (K, W)
+        Measured counts I of (row, frame) blocks sorted by row, frames ascending within a row.
+    dark : ndarray, shape (K, W)
+        Dark signal of each block's pixels (counts); it carries no lag.
+    row, frame : ndarray of int, shape (K,)
+    fraction : float
+        The lag fraction a (``spec/diagnosis.md``: I_j = S_j + a S_(j-1)).
+    dtype : numpy dtype
+        Of the result.
+
+    Returns
+    -------
+    ndarray, shape (K, W)
+        S + dark: the counts the detector would have given without lag. Where frame j - 1 did not
+        light the pixel the lag-free signal of j - 1 is 0 and I_j is returned unchanged.
+    """
+    out = np.asarray(counts, dtype=dtype) - np.asarray(dark, dtype=dtype)
+    prev = previous_block(row, frame)
+    order = np.argsort(frame, kind="stable")
+    bounds = np.searchsorted(frame[order], np.arange(int(frame.max(initial=-1)) + 2))
+    # frame by frame: frame j - 1's blocks are lag-free before frame j's read them
+    for j in range(bounds.size - 1):
+        idx = order[bounds[j]:bounds[j + 1]]
+        idx = idx[prev[idx] >= 0]
+        if idx.size:
+            out[idx] -= fraction * out[prev[idx]]
+    out += dark
+    return out
+
+
+def lag_estimate(signal: np.ndarray, previous: np.ndarray) -> tuple[float, float]:
+    """The lag fraction from pixels the active area has just left: their signal is a times the previous frame's.
+
+    Parameters
+    ----------
+    signal : ndarray, shape (L, W)
+        I_j - dark of pixels lit in frame j - 1 but not in frame j.
+    previous : ndarray, shape (L, W)
+        Their lag-free signal S_(j-1) in frame j - 1 (counts above dark).
+
+    Returns
+    -------
+    a : float
+        sum signal / sum previous (the maximum-likelihood ratio when the signal is Poisson around a S).
+    se : float
+        Its standard error from the scatter of the samples around a S (sandwich, whatever the gain
+        and electronic noise); 0 when every sample is exactly a S (no noise at all).
+    """
+    total = float(np.sum(previous, dtype=np.float64))
+    if total <= 0:
+        return 0.0, np.inf
+    a = float(np.sum(signal, dtype=np.float64)) / total
+    se = float(np.sqrt(np.sum((signal - a * previous) ** 2, dtype=np.float64))) / total
+    return a, se

@@ -29,6 +29,7 @@ from . import model as M
 from .align import LitStore, collect_lit_rows, read_position_errors, subsample_columns, tilt_alias_period
 from .analysis.identify import resolve_effects
 from .baselines import fit_alternating, fit_correlation
+from .errors import DfxcorrError
 from .fit import FitResult, fit_vibrations
 from .io import Reference, Scan, read_scan
 from .mask import mask_from_score, motion_statistics, pilot_vibrations, score_from_statistics
@@ -80,6 +81,8 @@ class Prepared:
         Samples whose aligned reference visibility is below this carry no fringe (region of interest).
     gain, electronic : float
         Noise model of the configuration (``load.*``).
+    pixel_noise : ndarray, shape (H, W), or None
+        Variance factor of each pixel (``load.pixel_noise``); None: 1 everywhere.
     """
 
     scan: Scan
@@ -90,6 +93,7 @@ class Prepared:
     min_visibility: float
     gain: float
     electronic: float
+    pixel_noise: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -108,7 +112,7 @@ class Prepared:
         roi : ndarray of bool, shape (K, C)
         """
         obs = self.store.observations(self.reference, columns=columns, rows=rows, gain=self.gain,
-                                      electronic=self.electronic, dtype=dtype)
+                                      electronic=self.electronic, noise=self.pixel_noise, dtype=dtype)
         roi = obs.vf >= self.min_visibility
         return replace(obs, vf=np.where(roi, obs.vf, 0).astype(obs.vf.dtype, copy=False)), roi
 
@@ -139,6 +143,7 @@ def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) 
     # a bad position-error file is refused before any computation
     shift = cfg["align"]["reference_offset"] + (read_position_errors(cfg["align"]["position_errors"], scan.shape[0])
                                                 if cfg["align"]["position_errors"] is not None else 0.0)
+    pixel_noise = read_pixel_noise(cfg["load"]["pixel_noise"], scan.shape[1:])
     with stage("align", timings):
         step_effects = tuple(e for e, on in (("phase_offset", cfg["reference"]["step_errors"]),
                                              ("dose", cfg["reference"]["dose"])) if on is not False)
@@ -150,12 +155,43 @@ def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) 
             store = store.shifted(shift)
             log.info("flat field read off the recorded positions by %.3g rows on average (align.reference_offset, "
                      "align.position_errors)", float(np.mean(shift)))
+        if cfg["load"]["detector_lag"]:
+            store = store.lag_free(cfg["load"]["detector_lag"])
+            log.info("detector lag %.4g taken out of the counts", cfg["load"]["detector_lag"])
         log.info("lit samples: %d rows x frames of %d columns (%.0f MB as %s)", store.row.size, scan.shape[2],
                  store.counts.nbytes / 1e6, store.counts.dtype)
         vmin = cfg["align"]["min_visibility"]
         vmin = auto_visibility_threshold(reference.visibility) if vmin == "auto" else float(vmin)
     return Prepared(scan=scan, name=path.name if path else "scan", path=path, reference=reference, store=store,
-                    min_visibility=vmin, gain=cfg["load"]["gain"] or scan.gain, electronic=cfg["load"]["electronic"])
+                    min_visibility=vmin, gain=cfg["load"]["gain"] or scan.gain, electronic=cfg["load"]["electronic"],
+                    pixel_noise=pixel_noise)
+
+
+def read_pixel_noise(path: str | Path | None, shape: tuple[int, int]) -> np.ndarray | None:
+    """The variance factor map of ``load.pixel_noise`` (a TIFF of shape (H, W), e.g. diagnose's pixel_noise.tif).
+
+    Raises
+    ------
+    PixelNoiseError
+        If the file cannot be read, or its shape or values do not fit (positive and finite, one per pixel).
+    """
+    if path is None:
+        return None
+    import tifffile
+
+    try:
+        f = np.asarray(tifffile.imread(path), dtype=np.float64)
+    except (OSError, ValueError) as exc:
+        raise PixelNoiseError(f"{path}: cannot read the pixel noise map of load.pixel_noise ({exc})") from None
+    if f.shape != tuple(shape):
+        raise PixelNoiseError(f"{path}: load.pixel_noise map has shape {f.shape}, the detector {tuple(shape)}")
+    if not np.all(np.isfinite(f) & (f > 0)):
+        raise PixelNoiseError(f"{path}: load.pixel_noise map holds values that are not positive and finite")
+    return f
+
+
+class PixelNoiseError(DfxcorrError, ValueError):
+    """A pixel noise map (``load.pixel_noise``) that does not fit the scan."""
 
 
 #: Bytes per (pixel, frame) sample at the peak of a block's retrieval or motion statistics in float64: 153

@@ -20,6 +20,16 @@ def shared_path(*parts) -> Path:
     return p
 
 
+def real_ipp_scan(tmp_path) -> Path:
+    """The shared real phase-stepping recording imported into ``tmp_path / 'ipp.h5'`` (skips where it is absent)."""
+    from dfxcorr.importer import import_stepping
+
+    folder = shared_path("real", "tum-ipp-stepping")
+    import_stepping(tmp_path / "ipp.h5", sample=str(folder / "data_stepping_*.npy"),
+                    reference=str(folder / "flat_stepping_*.npy"), steps_per_period=11)
+    return tmp_path / "ipp.h5"
+
+
 def sim_config(**overrides) -> dict:
     """A small scan: 5 mm pixels (90 x 102), active area 15 rows moving 1 row per frame (104 frames).
 

@@ -34,6 +34,7 @@ def realign(prep: Prepared, like: M.Observations, shift: np.ndarray | float) -> 
     rows = (int(like.row[0]), int(like.row[-1]) + 1)
     obs = store.observations(prep.reference, columns=like.columns, rows=rows, gain=like.gain,
                              electronic=like.electronic, dtype=like.counts.dtype)
+    obs.noise = like.noise
     obs.vf = np.where(like.vf > 0, obs.vf, 0).astype(obs.vf.dtype, copy=False)
     obs.use = like.use.copy()
     return obs

@@ -97,6 +97,13 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                    check=lambda v: None if np.isfinite(v) else "must be finite"),
         "position_error": Option(0.0, "std (rows) of a per-frame error delta_j of the recorded active-area position: "
                                       "frame j reads the flat-field maps at u - delta_j", _NUM, check=_nonneg),
+        "detector_lag": Option(0.0, "fraction a of each detected frame carried into the next (first-frame lag): "
+                                    "frame j records S_j + a S_(j-1), also in rows lit in j - 1 only", _NUM,
+                               check=lambda v: None if 0 <= v < 1 else "must lie in [0, 1)"),
+        "pixel_noise": Option(1.0, "noise variance factor of the module-boundary pixels (first and last row and "
+                                   "column of each detector module): their noise is scaled around the mean; "
+                                   "1: none", _NUM, check=_positive),
+        "module_pixels": Option(16, "detector module size (pixels) for pixel_noise", int, check=_positive),
     },
 }
 
@@ -122,6 +129,8 @@ CONCEALED = {
                          {"simulate.tiles": 8, "simulate.flat_nonlinearity": 1.0}, []),
     "position_error": ("effects.position_error", 0.5, [0.2, 0.1, 0.05, 0.02],
                        {"simulate.tiles": 8, "simulate.flat_nonlinearity": 1.0}, []),
+    "detector_lag": ("effects.detector_lag", 0.03, [0.01, 0.003, 0.001, 0.0003], {}, []),
+    "pixel_noise": ("effects.pixel_noise", 1 / 3, [0.6, 0.8, 0.9, 0.95], {}, []),
 }
 
 
@@ -259,6 +268,7 @@ class Simulation:
         self.reference, self.reference_steps = self.flat, np.zeros(0)
         if s["reference_steps"]:
             self.reference, self.reference_steps = _reference_series(self.flat, s, rng)
+        self.noise_factor = pixel_noise_map(H, W, factor=e["pixel_noise"], module=e["module_pixels"])
         self._streams = np.random.SeedSequence(s["seed"]).spawn(J)
         self.dtype = np.dtype(s["dtype"])
         # a stream of its own: switching the position errors on leaves every other draw as it was
@@ -293,13 +303,23 @@ class Simulation:
             # the region's transmission beats about 7 times over the scan, like a heart during a 7 s scan
             swing = 1 + e["sample_motion"] * np.sin(2 * np.pi * 7 * j / J)
             ibar = np.where(self.moving[row], (ibar - dsg.offset) * swing + dsg.offset, ibar)
-        return int(row[0]), _detect(ibar, self.cfg, np.random.default_rng(self._streams[j]))
+        return int(row[0]), _detect(ibar, self.cfg, np.random.default_rng(self._streams[j]),
+                                    factor=self.noise_factor[row])
 
     def frames(self):
-        """Yield (j, r0, counts (n, W)) in the stored dtype for every frame; warns once if counts are clipped."""
+        """Yield (j, r0, counts (n, W)) in the stored dtype for every frame; warns once if counts are clipped.
+
+        With ``effects.detector_lag`` = a, frame j records its detected counts plus a times those of
+        frame j - 1, over the rows lit in either.
+        """
         clipped = 0
+        lag = self.cfg["effects"]["detector_lag"]
+        previous = (0, np.zeros((0, self.shape[2])))
         for j in range(self.shape[0]):
-            r0, counts = self.frame_counts(j)
+            r0, counts = detected = self.frame_counts(j)
+            if lag:
+                r0, counts = _with_lag(detected, previous, lag)
+                previous = detected
             stored, n = _store(counts, self.dtype)
             clipped += n
             yield j, r0, stored
@@ -331,6 +351,7 @@ class Simulation:
                      vib_visibility_tilt=p.get("visibility_tilt", np.zeros((J, 2))),
                      background=p.get("background", np.zeros(3)), harmonic=p.get("harmonic", np.zeros(2)),
                      motion_mask=self.moving, gain=np.float64(e["detector_gain"]),
+                     detector_lag=np.float64(e["detector_lag"]), pixel_noise=self.noise_factor,
                      reference_steps=self.reference_steps, reference_transmission=ref.transmission,
                      reference_visibility=ref.visibility, reference_phase=ref.phase,
                      reference_offset=np.float64(e["reference_offset"]), vib_position_jitter=self.jitter,
@@ -353,9 +374,10 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
         ``image_transmission``, ``image_dark_field``, ``image_differential_phase`` (H, W); per frame
         ``vib_phase_offset``, ``vib_tilt``, ``vib_visibility``, ``vib_curvature``, ``vib_dose``
         (J,), ``vib_visibility_tilt`` (J, 2); ``background`` (3,), ``harmonic`` (2,),
-        ``motion_mask`` (H, W), ``gain``; ``reference_offset`` (rows) and ``vib_position_jitter`` (J,
-        rows: frame j read the flat-field maps at u - reference_offset - vib_position_jitter[j]);
-        ``reference_steps`` (actual step phases of a simulated
+        ``motion_mask`` (H, W), ``gain``, ``detector_lag`` (the fraction a), ``pixel_noise`` (H, W)
+        variance factors; ``reference_offset`` (rows) and ``vib_position_jitter`` (J, rows: frame j read
+        the flat-field maps at u - reference_offset - vib_position_jitter[j]); ``reference_steps`` (actual
+        step phases of a simulated
         reference series, else empty) and the exact flat-field maps ``reference_*``; ``config`` (JSON).
     """
     sim = Simulation(cfg)
@@ -416,15 +438,43 @@ def _heart_step(img: dict, cfg: dict) -> dict[str, np.ndarray]:
     return out
 
 
-def _detect(mean: np.ndarray, cfg: dict, rng: np.random.Generator) -> np.ndarray:
-    """Detector response to a mean signal in detector units: g * Poisson(mean / g) + electronic noise."""
+def pixel_noise_map(height: int, width: int, *, factor: float, module: int) -> np.ndarray:
+    """Variance factor of each pixel: ``factor`` on the first and last row and column of each module, else 1."""
+    def edge(n):
+        k = np.arange(n) % module
+        return (k == 0) | (k == module - 1)
+    return np.where(edge(height)[:, None] | edge(width)[None, :], float(factor), 1.0)
+
+
+def _detect(mean: np.ndarray, cfg: dict, rng: np.random.Generator, *, factor: np.ndarray | None = None) -> np.ndarray:
+    """Detector response to a mean signal in detector units: g * Poisson(mean / g) + electronic noise.
+
+    ``factor`` (same shape): per-pixel variance factor of the photon noise (``effects.pixel_noise``), the
+    noise scaled around the mean by its square root.
+    """
     s, e = cfg["simulate"], cfg["effects"]
     g = e["detector_gain"]
     mean = np.maximum(mean, 0.0)
     out = g * rng.poisson(mean / g).astype(np.float64) if s["noise"] else mean.copy()
+    if factor is not None and s["noise"] and np.any(factor != 1):
+        out = mean + np.sqrt(factor) * (out - mean)
     if e["read_noise"]:
         out += rng.normal(0, e["read_noise"], out.shape)
     return out
+
+
+def _with_lag(current: tuple[int, np.ndarray], previous: tuple[int, np.ndarray], fraction: float
+              ) -> tuple[int, np.ndarray]:
+    """Detected rows (r0, counts) of a frame plus ``fraction`` times those of the previous frame, over both's rows."""
+    spans = [(r0, c) for r0, c in (current, previous) if c.shape[0]]
+    if len(spans) < 2:
+        return current if current[1].shape[0] else (previous[0], fraction * previous[1])
+    lo = min(r0 for r0, _ in spans)
+    hi = max(r0 + c.shape[0] for r0, c in spans)
+    out = np.zeros((hi - lo, current[1].shape[1]))
+    out[current[0] - lo:current[0] - lo + current[1].shape[0]] += current[1]
+    out[previous[0] - lo:previous[0] - lo + previous[1].shape[0]] += fraction * previous[1]
+    return lo, out
 
 
 def _reference_series(ref: Reference, s: dict, rng: np.random.Generator) -> tuple[SteppingReference, np.ndarray]:
