@@ -8,6 +8,10 @@ them, :func:`dfxcorr.model.channel_adjoint` maps channel gradients back), so a n
 enters through an existing channel needs no change here. The numpy expressions of
 :mod:`dfxcorr.model` are the definition; the tests hold these kernels to them.
 
+The second harmonic follows the sample (its term is m cos(2 psi + beta), not linear in the images):
+where it is non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton steps,
+each a solve with the columns :func:`_image_columns` at the previous images (``model.solve_images``).
+
 Layout: a pixel is (row, column); its samples are the blocks ``starts[r]:starts[r + 1]`` of one row
 (:class:`dfxcorr.model.Observations`). The kernels run over chunks of rows in parallel; every chunk
 owns its accumulators (summed afterwards), so no two threads write the same memory. Within a row
@@ -107,7 +111,7 @@ def _design(ct, st, amp, bv, hc, hs):
 
 @njit(cache=True, inline="always")
 def _direction(cs, ss):
-    """cos phi, sin phi of images (c, s) (0 where c = s = 0) and the harmonic's factors e = m cos 2 phi, f = m sin 2 phi."""
+    """cos phi, sin phi of images (c, s) (0 where c = s = 0) and the harmonic factors e = m cos 2phi, f = m sin 2phi."""
     m = np.sqrt(cs * cs + ss * ss)
     if m == 0.0:
         return 0.0, 0.0, 0.0, 0.0
