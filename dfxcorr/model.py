@@ -438,10 +438,12 @@ def design(obs: Observations, params: dict[str, np.ndarray]) -> Design:
     theta = obs.phif + ch.phase[obs.frame]
     amp = dose * obs.tf
     Bv = amp * obs.vf * vis
-    c2, s2 = np.cos(2 * theta), np.sin(2 * theta)
-    return Design(A=amp * np.ones_like(theta), Bc=Bv * np.cos(theta), Bs=-Bv * np.sin(theta),
-                  Hc=Bv * (hc * c2 - hs * s2), Hs=Bv * (hc * s2 + hs * c2), offset=background + obs.dark,
-                  theta=theta, dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
+    Hc, Hs = np.zeros_like(theta), np.zeros_like(theta)
+    if hc or hs:
+        c2, s2 = np.cos(2 * theta), np.sin(2 * theta)
+        Hc, Hs = Bv * (hc * c2 - hs * s2), Bv * (hc * s2 + hs * c2)
+    return Design(A=amp * np.ones_like(theta), Bc=Bv * np.cos(theta), Bs=-Bv * np.sin(theta), Hc=Hc, Hs=Hs,
+                  offset=background + obs.dark, theta=theta, dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
 
 
 def background_basis(obs: Observations) -> list[np.ndarray]:
@@ -476,8 +478,10 @@ def image_columns(dsg: Design, c: np.ndarray, s: np.ndarray) -> tuple[np.ndarray
 
     Bc and Bs plus the harmonic term's derivatives: d e/dc = u (1 + 2 w^2), d e/ds = -w (1 + 2 u^2),
     d f/dc = 2 w^3, d f/ds = 2 u^3. By Euler's identity c dIbar/dc + s dIbar/ds is the whole modulated
-    part, so these are the columns of a Gauss-Newton step as of a closed-form solve.
+    part, so a Gauss-Newton step is a closed-form solve with these columns.
     """
+    if not any(dsg.harmonic):
+        return dsg.Bc, dsg.Bs
     u, w, _, _ = harmonic_factors(c, s)
     return (dsg.Bc + dsg.Hc * u * (1 + 2 * w * w) - dsg.Hs * 2 * w ** 3,
             dsg.Bs - dsg.Hc * w * (1 + 2 * u * u) - dsg.Hs * 2 * u ** 3)
