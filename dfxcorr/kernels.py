@@ -8,6 +8,10 @@ them, :func:`dfxcorr.model.channel_adjoint` maps channel gradients back), so a n
 enters through an existing channel needs no change here. The numpy expressions of
 :mod:`dfxcorr.model` are the definition; the tests hold these kernels to them.
 
+The second harmonic follows the sample (its term is m cos(2 psi + beta), not linear in the images):
+where it is non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton steps,
+each a solve with the columns :func:`_image_columns` at the previous images (``model.solve_images``).
+
 Layout: a pixel is (row, column); its samples are the blocks ``starts[r]:starts[r + 1]`` of one row
 (:class:`dfxcorr.model.Observations`). The kernels run over chunks of rows in parallel; every chunk
 owns its accumulators (summed afterwards), so no two threads write the same memory. Within a row
@@ -27,6 +31,11 @@ CHANNEL_IDS = {"phase": 0, "visibility": 1, "dose": 2, "background": 3, "harmoni
 
 #: Columns per tile: a tile's samples of one row (up to a few hundred frames) stay in the L2 cache.
 TILE = 64
+
+#: Gauss-Newton steps of the per-pixel solve after the first (harmonic-free) one when the second harmonic
+#: is in the model (its term is not linear in the images; tests/test_model.py holds these steps to a
+#: converged solve).
+HARMONIC_STEPS = 3
 
 
 def set_threads() -> int:
@@ -94,19 +103,39 @@ def _bounds(obs) -> np.ndarray:
 
 @njit(cache=True, inline="always")
 def _design(ct, st, amp, bv, hc, hs):
-    """Harmonic factor h, cos 2θ, sin 2θ and the design columns A, Bc, Bs of one sample."""
+    """cos 2θ, sin 2θ, the design columns A, Bc, Bs and the harmonic's columns Hc, Hs of one sample."""
     c2 = ct * ct - st * st
     s2 = 2.0 * st * ct
-    h = 1.0 + hc * c2 - hs * s2
-    return h, c2, s2, amp * h, bv * ct, -bv * st
+    return c2, s2, amp, bv * ct, -bv * st, bv * (hc * c2 - hs * s2), bv * (hc * s2 + hs * c2)
 
 
 @njit(cache=True, inline="always")
-def _derivatives(tt, cs, ss, ct, st, c2, s2, h, tf, vf, amp, bc, bs, vis, hc, hs):
-    """dIbar/d(channel) of one sample at images (t, c, s): phase, visibility, dose, hc, hs."""
+def _direction(cs, ss):
+    """cos phi, sin phi of images (c, s) (0 where c = s = 0) and the harmonic factors e = m cos 2phi, f = m sin 2phi."""
+    m = np.sqrt(cs * cs + ss * ss)
+    if m == 0.0:
+        return 0.0, 0.0, 0.0, 0.0
+    u, w = cs / m, ss / m
+    return u, w, cs * u - ss * w, ss * u + cs * w
+
+
+@njit(cache=True, inline="always")
+def _image_columns(bc, bs, hcc, hcs, u, w):
+    """dIbar/dc, dIbar/ds of one sample at images of direction (u, w) (model.image_columns)."""
+    return bc + hcc * u * (1.0 + 2.0 * w * w) - hcs * 2.0 * w * w * w, \
+        bs - hcc * w * (1.0 + 2.0 * u * u) - hcs * 2.0 * u * u * u
+
+
+@njit(cache=True, inline="always")
+def _derivatives(tt, cs, ss, ct, st, c2, s2, e, f, tf, vf, amp, bc, bs, vis, hc, hs):
+    """dIbar/d(channel) of one sample at images (t, c, s), harmonic factors (e, f): phase, visibility, dose, hc, hs."""
     q = cs * ct - ss * st
-    f_phase = tt * amp * (-2.0 * hc * s2 - 2.0 * hs * c2) + cs * bs - ss * bc
-    return f_phase, amp * vf * q, tf * (tt * h + vf * vis * q), tt * amp * c2, -tt * amp * s2
+    g = c2 * e - s2 * f
+    k = s2 * e + c2 * f
+    p2 = hc * g - hs * k
+    bv = amp * vf * vis
+    f_phase = cs * bs - ss * bc - 2.0 * bv * (hc * k + hs * g)
+    return f_phase, amp * vf * (q + p2), tf * (tt + vf * vis * (q + p2)), bv * g, -bv * k
 
 
 @njit(cache=True, inline="always")
@@ -166,13 +195,13 @@ def _solve(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used, out, inv):
 def _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis, dose, k, c, j, hc, hs):
     """Fringe phase by angle addition (no trigonometric call per sample), then :func:`_design`.
 
-    Returns (cos θ, sin θ, D tf, h, cos 2θ, sin 2θ, A, Bc, Bs) of sample (k, c) in frame j.
+    Returns (cos θ, sin θ, D tf, cos 2θ, sin 2θ, A, Bc, Bs, Hc, Hs) of sample (k, c) in frame j.
     """
     ct = cphi[k, c] * cos_p[j, c] - sphi[k, c] * sin_p[j, c]
     st = sphi[k, c] * cos_p[j, c] + cphi[k, c] * sin_p[j, c]
     amp = dose[j] * tf[k, c]
-    h, c2, s2, a, bc, bs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
-    return ct, st, amp, h, c2, s2, a, bc, bs
+    c2, s2, a, bc, bs, hcc, hcs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
+    return ct, st, amp, c2, s2, a, bc, bs, hcc, hcs
 
 
 @njit(cache=True, inline="always")
@@ -204,6 +233,7 @@ def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chun
     g_bg = np.empty((n, 3, C))
     g_harm = np.empty((n, 2, C))
     hc, hs = harm[0], harm[1]
+    steps = 1 + (HARMONIC_STEPS if (hc != 0.0 or hs != 0.0) else 0)
     m00, m01, m10, m11 = hold[0, 0], hold[0, 1], hold[1, 0], hold[1, 1]
     for t in prange(n):
         cost[t, :] = 0.0
@@ -216,43 +246,51 @@ def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chun
         rhs = np.empty((3, tile))
         used = np.empty(tile)
         coef = np.empty((3, tile))
+        dirn = np.empty((4, tile))  # u, w, e, f of each column's images (_direction)
         u = np.empty(3)
         inv = np.empty((3, 3))
         for r in range(chunks[t], chunks[t + 1]):
             lo, hi = bounds[r], bounds[r + 1]
             for c0 in range(0, C, tile):
                 T = min(tile, C - c0)
-                N[:, :T] = 0.0
-                rhs[:, :T] = 0.0
-                used[:T] = 0.0
+                for step in range(steps):
+                    N[:, :T] = 0.0
+                    rhs[:, :T] = 0.0
+                    used[:T] = 0.0
+                    for k in range(lo, hi):
+                        j = frame[k]
+                        off = bg[0] + bg[2] * y[k]
+                        for i in range(T):
+                            c = c0 + i
+                            _, _, _, _, _, a, bc, bs, hcc, hcs = _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis,
+                                                                               dose, k, c, j, hc, hs)
+                            if step > 0:
+                                # Gauss-Newton step of the harmonic: the columns at the current images
+                                bc, bs = _image_columns(bc, bs, hcc, hcs, dirn[0, i], dirn[1, i])
+                            _accumulate(N, rhs, used, i, w[k, c], a, m00 * bc + m01 * bs, m10 * bc + m11 * bs,
+                                        counts[k, c] - dark[k, c] - off - bg[1] * x[c])
+                    for i in range(T):
+                        _solve(N[0, i], N[1, i], N[2, i], N[3, i], N[4, i], N[5, i], rhs[0, i], rhs[1, i],
+                               rhs[2, i], used[i], u, inv)
+                        # back from the solved columns (x1, x2) to (t, c, s)
+                        coef[0, i] = u[0]
+                        coef[1, i] = m00 * u[1] + m10 * u[2]
+                        coef[2, i] = m01 * u[1] + m11 * u[2]
+                        dirn[0, i], dirn[1, i], dirn[2, i], dirn[3, i] = _direction(coef[1, i], coef[2, i])
                 for k in range(lo, hi):
                     j = frame[k]
                     off = bg[0] + bg[2] * y[k]
                     for i in range(T):
                         c = c0 + i
-                        _, _, _, _, _, _, a, bc, bs = _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis, dose, k, c,
-                                                                    j, hc, hs)
-                        _accumulate(N, rhs, used, i, w[k, c], a, m00 * bc + m01 * bs, m10 * bc + m11 * bs,
-                                    counts[k, c] - dark[k, c] - off - bg[1] * x[c])
-                for i in range(T):
-                    _solve(N[0, i], N[1, i], N[2, i], N[3, i], N[4, i], N[5, i], rhs[0, i], rhs[1, i], rhs[2, i],
-                           used[i], u, inv)
-                    # back from the solved columns (x1, x2) to (t, c, s)
-                    coef[0, i] = u[0]
-                    coef[1, i] = m00 * u[1] + m10 * u[2]
-                    coef[2, i] = m01 * u[1] + m11 * u[2]
-                for k in range(lo, hi):
-                    j = frame[k]
-                    off = bg[0] + bg[2] * y[k]
-                    for i in range(T):
-                        c = c0 + i
-                        ct, st, amp, h, c2, s2, a, bc, bs = _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis,
-                                                                          dose, k, c, j, hc, hs)
+                        ct, st, amp, c2, s2, a, bc, bs, hcc, hcs = _angle_design(cphi, sphi, cos_p, sin_p, tf, vf,
+                                                                                 vis, dose, k, c, j, hc, hs)
                         tt, cs, ss = coef[0, i], coef[1, i], coef[2, i]
-                        f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs, ss, ct, st, c2, s2, h, tf[k, c], vf[k, c],
+                        e, f = dirn[2, i], dirn[3, i]
+                        f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs, ss, ct, st, c2, s2, e, f, tf[k, c], vf[k, c],
                                                                 amp, bc, bs, vis[j, c], hc, hs)
                         wk = w[k, c]
-                        res = counts[k, c] - dark[k, c] - off - bg[1] * x[c] - (tt * a + cs * bc + ss * bs)
+                        res = counts[k, c] - dark[k, c] - off - bg[1] * x[c] - (tt * a + cs * bc + ss * bs) \
+                            - (hcc * e - hcs * f)
                         cost[t, c] += wk * res * res
                         # gradient: sum (-2 w r) F; Gauss-Newton diagonal: sum (w F) F
                         g = -2.0 * wk * res
@@ -335,12 +373,14 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
     chi2 = np.empty(n)
     n_sel = np.empty(n)
     hc, hs = harm[0], harm[1]
+    steps = 1 + (HARMONIC_STEPS if (hc != 0.0 or hs != 0.0) else 0)
     for t in prange(n):
         chi2[t] = 0.0
         n_sel[t] = 0.0
         N = np.empty((6, tile))
         rhs = np.empty((3, tile))
         used = np.empty(tile)
+        dirn = np.empty((4, tile))  # u, w, e, f of each column's images (_direction)
         u = np.empty(3)
         inv = np.empty((3, 3))
         for r in range(chunks[t], chunks[t + 1]):
@@ -350,6 +390,8 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
             A = np.empty((nb, tile))
             Bc = np.empty((nb, tile))
             Bs = np.empty((nb, tile))
+            Hc = np.empty((nb, tile))
+            Hs = np.empty((nb, tile))
             off = np.empty((nb, tile))
             w = np.empty((nb, tile))
             for c0 in range(0, C, tile):
@@ -361,8 +403,9 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                         c = c0 + i
                         th = phif[k, c] + phase[j, c]
                         amp = dose[j] * tf[k, c]
-                        _, _, _, a, bc, bs = _design(np.cos(th), np.sin(th), amp, amp * vf[k, c] * vis[j, c], hc, hs)
-                        A[b, i], Bc[b, i], Bs[b, i] = a, bc, bs
+                        _, _, a, bc, bs, hcc, hcs = _design(np.cos(th), np.sin(th), amp, amp * vf[k, c] * vis[j, c],
+                                                            hc, hs)
+                        A[b, i], Bc[b, i], Bs[b, i], Hc[b, i], Hs[b, i] = a, bc, bs, hcc, hcs
                         off[b, i] = dark[k, c] + bg[0] + bg[1] * x[c] + bg[2] * y[k]
                         if from_data:
                             w[b, i] = 1.0 / (gain[r, c] * max(counts[k, c] - dark[k, c], 1.0) + electronic) \
@@ -377,29 +420,35 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                             for i in range(T):
                                 c = c0 + i
                                 m = off[b, i] + coef[r, c, 0] * A[b, i] + coef[r, c, 1] * Bc[b, i] \
-                                    + coef[r, c, 2] * Bs[b, i]
+                                    + coef[r, c, 2] * Bs[b, i] + (Hc[b, i] * dirn[2, i] - Hs[b, i] * dirn[3, i])
                                 w[b, i] = 1.0 / (gain[r, c] * max(m - dark[k, c], 1.0) + electronic) if use[k, c] \
                                     else 0.0
-                    N[:, :T] = 0.0
-                    rhs[:, :T] = 0.0
-                    used[:T] = 0.0
-                    for b in range(nb):
-                        k = lo + b
+                    for step in range(steps):
+                        N[:, :T] = 0.0
+                        rhs[:, :T] = 0.0
+                        used[:T] = 0.0
+                        for b in range(nb):
+                            k = lo + b
+                            for i in range(T):
+                                bc, bs = Bc[b, i], Bs[b, i]
+                                if step > 0:
+                                    # Gauss-Newton step of the harmonic: the columns at the current images
+                                    bc, bs = _image_columns(bc, bs, Hc[b, i], Hs[b, i], dirn[0, i], dirn[1, i])
+                                _accumulate(N, rhs, used, i, w[b, i], A[b, i], bc, bs, counts[k, c0 + i] - off[b, i])
                         for i in range(T):
-                            _accumulate(N, rhs, used, i, w[b, i], A[b, i], Bc[b, i], Bs[b, i],
-                                        counts[k, c0 + i] - off[b, i])
-                    for i in range(T):
-                        c = c0 + i
-                        valid[r, c] = _solve(N[0, i], N[1, i], N[2, i], N[3, i], N[4, i], N[5, i], rhs[0, i],
-                                             rhs[1, i], rhs[2, i], used[i], u, inv)
-                        coef[r, c, 0], coef[r, c, 1], coef[r, c, 2] = u[0], u[1], u[2]
-                        if keep_inverse:
-                            inverse[r, c] = inv
+                            c = c0 + i
+                            valid[r, c] = _solve(N[0, i], N[1, i], N[2, i], N[3, i], N[4, i], N[5, i], rhs[0, i],
+                                                 rhs[1, i], rhs[2, i], used[i], u, inv)
+                            coef[r, c, 0], coef[r, c, 1], coef[r, c, 2] = u[0], u[1], u[2]
+                            dirn[0, i], dirn[1, i], dirn[2, i], dirn[3, i] = _direction(u[1], u[2])
+                            if keep_inverse:
+                                inverse[r, c] = inv
                 for b in range(nb):
                     k = lo + b
                     for i in range(T):
                         c = c0 + i
-                        m = off[b, i] + coef[r, c, 0] * A[b, i] + coef[r, c, 1] * Bc[b, i] + coef[r, c, 2] * Bs[b, i]
+                        m = off[b, i] + coef[r, c, 0] * A[b, i] + coef[r, c, 1] * Bc[b, i] + coef[r, c, 2] * Bs[b, i] \
+                            + (Hc[b, i] * dirn[2, i] - Hs[b, i] * dirn[3, i])
                         ibar[k, c] = m
                         w_out[k, c] = w[b, i]
                         if valid[r, c] and use[k, c]:
@@ -497,12 +546,15 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
                     if wk == 0:
                         continue
                     tt, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
+                    du, dw, e, f = _direction(cs, ss)
                     th = phif[k, c] + phase[j, c]
                     ct, st = np.cos(th), np.sin(th)
                     amp = dose[j] * tf[k, c]
-                    h, c2, s2, a, bc, bs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
+                    c2, s2, a, bc, bs, hcc, hcs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
                     basis[0], basis[1], basis[2], basis[3], basis[4] = _derivatives(
-                        tt, cs, ss, ct, st, c2, s2, h, tf[k, c], vf[k, c], amp, bc, bs, vis[j, c], hc, hs)
+                        tt, cs, ss, ct, st, c2, s2, e, f, tf[k, c], vf[k, c], amp, bc, bs, vis[j, c], hc, hs)
+                    # the images' columns of the profiled correction: their derivatives at the images
+                    xc, xs = _image_columns(bc, bs, hcc, hcs, du, dw)
                     for q in range(Q):
                         ch = channel[q]
                         if ch <= 2:
@@ -519,8 +571,8 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
                             local[s1, s2_] += wf * F[q2]
                         if profiled:
                             Y[3 * c, s1] += wf * a
-                            Y[3 * c + 1, s1] += wf * bc
-                            Y[3 * c + 2, s1] += wf * bs
+                            Y[3 * c + 1, s1] += wf * xc
+                            Y[3 * c + 2, s1] += wf * xs
             if profiled:
                 # sum over the row's columns of Y^T N^-1 Y = Z^T Z, Z = L^T Y with N^-1 = L L^T (upper triangle)
                 rc = np.zeros((m, m))

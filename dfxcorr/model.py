@@ -7,8 +7,8 @@ loops of :mod:`dfxcorr.kernels`, which evaluate the same model from the channel 
 
 For detector pixel i (row r, column c) in frame j the expected count is
 
-    Ibar = D_j tf (t_i (1 + hc cos 2θ - hs sin 2θ) + vf V_ij t_i v_i cos(θ + phi_i)) + b(x_i, y_i) + dark_i
-    θ = phi^f + phase_step_j + Φ_ij
+    Ibar = D_j tf t_i (1 + vf V_ij v_i (cos psi + a2 cos(2 psi + beta))) + b(x_i, y_i) + dark_i
+    psi = θ + phi_i,   θ = phi^f + phase_step_j + Φ_ij
 
 with the *channels*
 
@@ -16,15 +16,23 @@ with the *channels*
     V_ij = sum over visibility effects (visibility_loss: v0_j, default 1; visibility_tilt: x v1_j + x^2 v2_j)
     D_j  = dose, default 1
     b    = background, a smooth additive term (coefficients of 1, x, y in counts)
-    hc, hs = second harmonic of the stepping curve (global)
+    hc, hs = (a2 cos beta, a2 sin beta), the second harmonic of the stepping curve (global)
 
-Written in the linear per-pixel unknowns (t, c, s) = (t, t v cos phi, t v sin phi) (paper eq. 8),
+The second harmonic follows the full fringe phase psi (the sample's refraction included) and carries
+the product of all visibilities, like the first (``spec/diagnosis.md`` version 2).
 
-    Ibar = t A + c Bc + s Bs + offset,   A = D tf (1 + hc cos 2θ - hs sin 2θ),
-    Bc = D tf vf V cos θ,  Bs = -D tf vf V sin θ,   offset = b + dark,
+Written in the per-pixel unknowns (t, c, s) = (t, t v cos phi, t v sin phi) (paper eq. 8), m = sqrt(c^2 + s^2),
 
-so the images follow in closed form (weighted linear least squares, eq. 9) for given per-frame
-parameters, and v = sqrt(c^2 + s^2) / t, phi = atan2(s, c) (eq. 10).
+    Ibar = t A + c Bc + s Bs + Hc (c^2 - s^2) / m - Hs 2 c s / m + offset,
+    A = D tf,  Bc = D tf vf V cos θ,  Bs = -D tf vf V sin θ,
+    Hc = D tf vf V (hc cos 2θ - hs sin 2θ),  Hs = D tf vf V (hc sin 2θ + hs cos 2θ),  offset = b + dark.
+
+Without the harmonic the model is linear in (t, c, s) and the images follow in closed form (weighted
+linear least squares, eq. 9) for given per-frame parameters; v = sqrt(c^2 + s^2) / t, phi = atan2(s, c)
+(eq. 10). The harmonic term is homogeneous of degree 1 in (c, s) but not linear: the images are then
+refined by Gauss-Newton steps (:func:`solve_images`), each again a closed-form solve whose columns are
+the model's derivatives at the current direction of (c, s) (by Euler's identity the linearised model
+has no constant term), so the solution is the least-squares optimum and the envelope theorem holds.
 
 Data layout
 -----------
@@ -111,7 +119,7 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
     Effect("background", "background", False, ("1", "x", "y"), 0.0, "none",
            "additive signal not modulated by the gratings: b0 + b1 x + b2 y (counts)", scale=1e6),
     Effect("harmonic", "harmonic", False, ("cos", "sin"), 0.0, "none",
-           "non-sinusoidal stepping curve: a2 cos(2 psi + beta) in the flat field", scale=1.0),
+           "non-sinusoidal stepping curve: v cos psi becomes v (cos psi + a2 cos(2 psi + beta))", scale=1.0),
     Effect("sample_motion", None, False, (), 0.0, "none",
            "part of the sample moved during the scan: pixels whose frames disagree"),
     Effect("detector_gain", None, False, (), 1.0, "none",
@@ -407,15 +415,18 @@ def fisher_index(names: Sequence[str], n_frames: int) -> list[tuple[str, int, in
 
 @dataclass
 class Design:
-    """Per-sample coefficients of the linear per-pixel model Ibar = t A + c Bc + s Bs + offset.
+    """Per-sample coefficients of the per-pixel model Ibar = t A + c Bc + s Bs + Hc e - Hs f + offset.
 
-    All arrays have shape (K, C) (``dose`` (K, 1)); ``theta`` is the fringe phase without the sample.
-    ``channels`` holds the channel values they were made from.
+    e = (c^2 - s^2) / m, f = 2 c s / m (:func:`harmonic_factors`). All arrays have shape (K, C)
+    (``dose`` (K, 1)); ``theta`` is the fringe phase without the sample; ``Hc``, ``Hs`` are zero without
+    the harmonic. ``channels`` holds the channel values they were made from.
     """
 
     A: np.ndarray
     Bc: np.ndarray
     Bs: np.ndarray
+    Hc: np.ndarray
+    Hs: np.ndarray
     offset: np.ndarray
     theta: np.ndarray
     dose: np.ndarray
@@ -445,16 +456,54 @@ def design(obs: Observations, params: dict[str, np.ndarray]) -> Design:
     hc, hs = float(ch.harmonic[0]), float(ch.harmonic[1])
     theta = obs.phif + ch.phase[obs.frame]
     amp = dose * obs.tf
-    A = amp * (1.0 + hc * np.cos(2 * theta) - hs * np.sin(2 * theta)) if (hc or hs) else amp * np.ones_like(theta)
     Bv = amp * obs.vf * vis
-    return Design(A=A, Bc=Bv * np.cos(theta), Bs=-Bv * np.sin(theta), offset=background + obs.dark,
-                  theta=theta, dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
+    Hc, Hs = np.zeros_like(theta), np.zeros_like(theta)
+    if hc or hs:
+        c2, s2 = np.cos(2 * theta), np.sin(2 * theta)
+        Hc, Hs = Bv * (hc * c2 - hs * s2), Bv * (hc * s2 + hs * c2)
+    return Design(A=amp * np.ones_like(theta), Bc=Bv * np.cos(theta), Bs=-Bv * np.sin(theta), Hc=Hc, Hs=Hs,
+                  offset=background + obs.dark, theta=theta, dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
 
 
 def background_basis(obs: Observations) -> list[np.ndarray]:
     """The smooth basis of the background effect (1, x, y), each broadcast to (K, C)."""
     K, C = obs.counts.shape
     return [np.ones((K, C)), np.broadcast_to(obs.x[None, :], (K, C)), np.broadcast_to(obs.y[:, None], (K, C))]
+
+
+def harmonic_factors(c: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Direction of (c, s) and the sample's factors of the harmonic term.
+
+    Parameters
+    ----------
+    c, s : ndarray
+        t v cos phi, t v sin phi (any shape).
+
+    Returns
+    -------
+    u, w : ndarray
+        cos phi, sin phi (0 where c = s = 0: no modulation, no harmonic).
+    e, f : ndarray
+        (c^2 - s^2) / m = m cos 2 phi and 2 c s / m = m sin 2 phi, m = sqrt(c^2 + s^2).
+    """
+    m = np.hypot(c, s)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, w = np.where(m > 0, c / m, 0.0), np.where(m > 0, s / m, 0.0)
+    return u, w, c * u - s * w, s * u + c * w
+
+
+def image_columns(dsg: Design, c: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """dIbar/dc and dIbar/ds at images (c, s) given per sample, each (K, C).
+
+    Bc and Bs plus the harmonic term's derivatives: d e/dc = u (1 + 2 w^2), d e/ds = -w (1 + 2 u^2),
+    d f/dc = 2 w^3, d f/ds = 2 u^3. By Euler's identity c dIbar/dc + s dIbar/ds is the whole modulated
+    part, so a Gauss-Newton step is a closed-form solve with these columns.
+    """
+    if not any(dsg.harmonic):
+        return dsg.Bc, dsg.Bs
+    u, w, _, _ = harmonic_factors(c, s)
+    return (dsg.Bc + dsg.Hc * u * (1 + 2 * w * w) - dsg.Hs * 2 * w ** 3,
+            dsg.Bs - dsg.Hc * w * (1 + 2 * u * u) - dsg.Hs * 2 * u ** 3)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -547,7 +596,11 @@ def solve_pixels(obs: Observations, columns: list[np.ndarray], target: np.ndarra
 
 def solve_images(obs: Observations, dsg: Design, weights: np.ndarray, *, phase: float | None = None,
                  keep_inverse: bool = False) -> Images:
-    """Closed-form images for fixed per-frame parameters (paper eqs. 8-9).
+    """Least-squares images for fixed per-frame parameters (paper eqs. 8-9).
+
+    Closed form without the harmonic. With it, the first solve leaves the harmonic out and each of
+    :data:`dfxcorr.kernels.HARMONIC_STEPS` further solves is a Gauss-Newton step with the columns of
+    :func:`image_columns` at the previous images.
 
     Parameters
     ----------
@@ -558,26 +611,38 @@ def solve_images(obs: Observations, dsg: Design, weights: np.ndarray, *, phase: 
         If given, the phase image is held at this constant (the circular-mean measure of paper eq. 36)
         and only t and t v are solved for.
     keep_inverse : bool
-        Keep the inverse normal matrices (needed for leverages).
+        Keep the inverse normal matrices of the last solve (needed for leverages).
 
     Returns
     -------
     Images
     """
     target = obs.counts - dsg.offset
-    if phase is None:
-        coef, valid, inv = solve_pixels(obs, [dsg.A, dsg.Bc, dsg.Bs], target, weights, keep_inverse=keep_inverse)
-        return Images(coef, valid, inv)
-    cp, sp = np.cos(phase), np.sin(phase)
-    coef2, valid, _ = solve_pixels(obs, [dsg.A, dsg.Bc * cp + dsg.Bs * sp], target, weights)
-    coef = np.stack([coef2[..., 0], coef2[..., 1] * cp, coef2[..., 1] * sp], axis=-1)
-    return Images(coef, valid, None)
+    steps = 1 + (kernels.HARMONIC_STEPS if any(dsg.harmonic) else 0)
+    coef = np.zeros((obs.rows.size, obs.columns.size, 3))
+    for _ in range(steps):
+        Xc, Xs = image_columns(dsg, coef[obs.pixel, :, 1], coef[obs.pixel, :, 2])
+        if phase is None:
+            coef, valid, inv = solve_pixels(obs, [dsg.A, Xc, Xs], target, weights, keep_inverse=keep_inverse)
+            continue
+        cp, sp = np.cos(phase), np.sin(phase)
+        coef2, valid, _ = solve_pixels(obs, [dsg.A, Xc * cp + Xs * sp], target, weights)
+        coef, inv = np.stack([coef2[..., 0], coef2[..., 1] * cp, coef2[..., 1] * sp], axis=-1), None
+    return Images(coef, valid, inv)
+
+
+def harmonic_term(obs: Observations, dsg: Design, images: Images) -> np.ndarray:
+    """The second harmonic's share of the expected counts, Hc e - Hs f, shape (K, C)."""
+    c = images.coef[obs.pixel]
+    _, _, e, f = harmonic_factors(c[..., 1], c[..., 2])
+    return dsg.Hc * e - dsg.Hs * f
 
 
 def expected(obs: Observations, dsg: Design, images: Images) -> np.ndarray:
     """Expected counts Ibar, shape (K, C)."""
     c = images.coef[obs.pixel]
-    return c[..., 0] * dsg.A + c[..., 1] * dsg.Bc + c[..., 2] * dsg.Bs + dsg.offset
+    linear = c[..., 0] * dsg.A + c[..., 1] * dsg.Bc + c[..., 2] * dsg.Bs + dsg.offset
+    return linear + harmonic_term(obs, dsg, images) if any(dsg.harmonic) else linear
 
 
 def circular_mean(phi: np.ndarray, weights: np.ndarray | None = None) -> float:
@@ -609,19 +674,25 @@ def sample_derivatives(obs: Observations, dsg: Design, images: Images, name: str
     x = obs.x[None, :]
     hc, hs = dsg.harmonic
     amp = dsg.dose * obs.tf
+    bv = amp * obs.vf * dsg.vis
+    # m cos(2 psi), m sin(2 psi) of the sample (psi = θ + phi), and the harmonic's a2 m cos, a2 m sin (2 psi + beta)
+    _, _, ef, ff = harmonic_factors(cc, ss)
+    g = np.cos(2 * dsg.theta) * ef - np.sin(2 * dsg.theta) * ff
+    k = np.sin(2 * dsg.theta) * ef + np.cos(2 * dsg.theta) * ff
+    p2, q2 = hc * g - hs * k, hc * k + hs * g
+    q = cc * np.cos(dsg.theta) - ss * np.sin(dsg.theta)
     if e.channel == "phase":
-        dA = amp * (-2 * hc * np.sin(2 * dsg.theta) - 2 * hs * np.cos(2 * dsg.theta)) if (hc or hs) else 0.0
-        base = t * dA + cc * dsg.Bs - ss * dsg.Bc
-        return [base * x ** k for k in e.powers]
+        base = cc * dsg.Bs - ss * dsg.Bc - 2 * bv * q2
+        return [base * x ** k_ for k_ in e.powers]
     if e.channel == "visibility":
-        base = amp * obs.vf * (cc * np.cos(dsg.theta) - ss * np.sin(dsg.theta))
-        return [base * x ** k for k in e.powers]
+        base = amp * obs.vf * (q + p2)
+        return [base * x ** k_ for k_ in e.powers]
     if e.channel == "dose":
-        return [(t * dsg.A + cc * dsg.Bc + ss * dsg.Bs) / dsg.dose]
+        return [(t * dsg.A + cc * dsg.Bc + ss * dsg.Bs + (dsg.Hc * ef - dsg.Hs * ff)) / dsg.dose]
     if e.channel == "background":
         return background_basis(obs)
     if e.channel == "harmonic":
-        return [t * amp * np.cos(2 * dsg.theta), -t * amp * np.sin(2 * dsg.theta)]
+        return [bv * g, -bv * k]
     raise ValueError(f"effect {name!r} does not enter the expected count")
 
 
@@ -656,7 +727,8 @@ def leverage(obs: Observations, dsg: Design, images: Images, weights: np.ndarray
     """Leverage of each sample in its pixel's image fit, w x^T N^-1 x, shape (K, C)."""
     if images.inverse is None:
         raise ValueError("leverage needs the inverse normal matrices (solve_images(..., keep_inverse=True))")
-    X = np.stack([dsg.A, dsg.Bc, dsg.Bs], axis=-1)
+    c = images.coef[obs.pixel]
+    X = np.stack([dsg.A, *image_columns(dsg, c[..., 1], c[..., 2])], axis=-1)
     return weights * np.einsum("kca,kcab,kcb->kc", X, images.inverse[obs.pixel], X)
 
 

@@ -112,7 +112,8 @@ def correction_oracle(obs, dsg, images, w, names):
     glob = [F for n in names if not M.effect(n).per_frame for F in M.sample_derivatives(obs, dsg, images, n)]
     Pf, Pg = len(per_frame), len(glob)
     D = np.stack(per_frame + glob, axis=-1)
-    X = np.stack([dsg.A, dsg.Bc, dsg.Bs], axis=-1)
+    c = images.coef[obs.pixel]
+    X = np.stack([dsg.A, *M.image_columns(dsg, c[..., 1], c[..., 2])], axis=-1)
     out = np.zeros((J * Pf + Pg, J * Pf + Pg))
     bounds = np.append(obs.starts, obs.frame.size)
     for r in range(obs.rows.size):

@@ -80,7 +80,8 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "dose": Option(0.0, "relative std of the per-frame dose d_j", _NUM, check=_nonneg),
         "background": Option(0.0, "additive background at the detector centre, fraction of the flux", _NUM,
                              check=_nonneg),
-        "harmonic": Option(0.0, "amplitude a2 of the second harmonic, fraction of the flux", _NUM, check=_nonneg),
+        "harmonic": Option(0.0, "amplitude a2 of the stepping curve's second harmonic, fraction of the first's "
+                                "(it follows the sample's phase and visibility)", _NUM, check=_nonneg),
         "harmonic_phase": Option(0.5, "phase beta of the second harmonic (rad)", _NUM),
         "sample_motion": Option(0.0, "relative transmission change of a moving region (heart-like disc)", _NUM,
                                 check=_nonneg),
@@ -120,7 +121,7 @@ CONCEALED = {
     "dose": ("effects.dose", 0.02, [0.005, 0.002, 0.001, 0.0005], {}, []),
     # an additive term is only told from the transmission where t^f varies along the scan
     "background": ("effects.background", 0.05, [0.02, 0.01, 0.005, 0.002], {"simulate.flat_gradient": 0.3}, []),
-    "harmonic": ("effects.harmonic", 0.03, [0.01, 0.005, 0.002, 0.001], {}, []),
+    "harmonic": ("effects.harmonic", 0.06, [0.03, 0.02, 0.01, 0.005], {}, []),
     "sample_motion": ("effects.sample_motion", 0.3, [0.1, 0.05, 0.02, 0.01], {}, []),
     "detector_gain": ("effects.detector_gain", 2.0, [1.3, 1.1, 1.05, 1.02], {"effects.declare_gain": False}, []),
     # both are told from the images' phase only where the flat field's gradient jumps (tiled gratings) or
