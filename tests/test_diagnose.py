@@ -216,3 +216,19 @@ def test_real_recording_is_diagnosed(tmp_path):
     axes = {u["axis"] for u in diag.unexplained}
     assert abs(diag.final_chi2 - 1) < 0.01 or {"column", "row"} <= axes, (diag.final_chi2, diag.unexplained)
     assert not any(e.detected for e in diag.effects if e.name not in ("detector_gain", "pixel_noise"))
+
+
+def test_unidentifiable_effect_that_explains_the_misfit_stops_the_naming():
+    # phase stepping with a per-step visibility loss: the configured model drops visibility_loss (not
+    # identifiable, paper Sec. II-F); proxies (sample_motion, curvature, pixel_noise) used to be named for it
+    sets = ["simulate.geometry=stepping", "simulate.steps=5", "simulate.steps_per_period=5", "simulate.pixel_mm=2.4",
+            "simulate.height_mm=153.6", "simulate.width_mm=460.8", "simulate.seed=5", "effects.visibility_loss=0.2"]
+    scan, _ = S.simulate(C.load([], sets, schema=S.SCHEMA))
+    diag = diagnose(scan, C.defaults())
+    assert not any(e.detected for e in diag.effects), [(e.name, e.p_value) for e in diag.effects if e.detected]
+    vis = next(e for e in diag.effects if e.name == "visibility_loss")
+    assert not vis.identifiable and vis.extra["explains_misfit"]
+    assert vis.extra["reduced_chi2_with"] == pytest.approx(1.0, abs=0.05)
+    assert diag.final_chi2 > 1.2
+    # the misfit it leaves is still located
+    assert diag.unexplained

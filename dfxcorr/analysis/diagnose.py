@@ -834,6 +834,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     last_tests: dict[str, dict] = {}
     rejected: dict[str, float] = {}
     changes: list[dict] = []
+    blind: dict[str, dict] = {}  # unidentifiable effects tried: what a trial refit with them explained
     paper_why = visibility_unidentifiable(scan, reference)
     state = _fit_state(obs, fit_obs, model, {}, motion, cfg, timings, "round 0")
     initial = state["reduced_chi2"]
@@ -872,6 +873,22 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
         log.info("round %d: reduced chi-square %.4f; %s", rnd, state["reduced_chi2"],
                  ", ".join(f"{k} S={t['statistic']:.4g} (dof {t['dof']}{'' if t['identifiable'] else ', n.i.'})"
                            for k, t in sorted(tests.items(), key=lambda kv: -kv[1]["statistic"])))
+        while (suspect := _strongest_unidentifiable(tests, alpha=d["alpha"], tried=blind)) is not None:
+            # an effect this acquisition cannot determine may still be what the data show: if a trial refit with
+            # it explains the misfit, no identifiable proxy may be named for it
+            trial = _fit_state(obs, fit_obs, model + [suspect], params, motion, cfg, timings,
+                               f"round {rnd}: trial {suspect} (not identifiable)")
+            share = _explained_share(state["signatures"], trial["signatures"])
+            _restore(obs, fit_obs, state)
+            blind[suspect] = {"explains_misfit": share is None or share >= d["explain_share"],
+                              "explained_share": share, "reduced_chi2_with": trial["reduced_chi2"]}
+            if blind[suspect]["explains_misfit"]:
+                log.warning("round %d: the misfit is what %s explains (reduced chi-square %.4f with it), which this "
+                            "acquisition cannot identify: nothing else is named in its place", rnd, suspect,
+                            trial["reduced_chi2"])
+                break
+        if any(b["explains_misfit"] for b in blind.values()):
+            break
         chosen: tuple[str, dict] | None = None
         for candidate in _ranked(tests, alpha=d["alpha"], min_gain_change=d["min_gain_change"], gain=obs.gain):
             if candidate in rejected:
@@ -948,6 +965,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
         extra = {"excess_null_directions": t["excess"]} if t["excess"] else {}
         if n in rejected:
             extra["explained_share"] = rejected[n]
+        extra.update(blind.get(n, {}))
         effects.append(EffectReport(n, False, bool(t["identifiable"]), t["statistic"], int(t["dof"]), t["p_value"],
                                     extra=extra))
     unexplained = _unexplained(state["signatures"], last_tests.get("sample_motion"), "sample_motion" in detected,
@@ -961,7 +979,9 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                  f"the residual signatures that were significant (Holm, alpha = {d['alpha']}) must shrink by "
                  f"{100 * d['explain_share']:.0f} % or more, or one of them must become insignificant while the "
                  f"excess does not grow; otherwise it stays out of the model (its explained "
-                 f"share is reported) and the next candidate is tried. What stays significant is listed as "
+                 f"share is reported) and the next candidate is tried. A significant effect that the acquisition "
+                 f"cannot identify gets a trial refit first: if it explains the misfit so, the diagnosis stops "
+                 f"there (naming a proxy would be the wrong physics). What stays significant is listed as "
                  f"unexplained")
     # the final alignment: the configured one, plus what was found (position_errors.txt holds the per-frame
     # shifts beyond the offset, common part included, so that reconstruct reads the flat field where this fit did)
@@ -1059,6 +1079,15 @@ def _realigned(prep: Prepared, obs: M.Observations, fit_obs: M.Observations, fit
         return obs, fit_obs, shift
     moved = realign(prep, obs, found)
     return moved, moved.subset(fit_cols), found
+
+
+def _strongest_unidentifiable(tests: dict, *, alpha: float, tried: dict) -> str | None:
+    """The not identifiable mean effect, not tried yet, whose score test is significant (Holm) with the largest
+    explained chi-square; None if there is none."""
+    threshold = np.log(alpha / max(len(tests), 1))
+    cands = [k for k, t in tests.items() if not t["identifiable"] and k not in tried
+             and M.effect(k).channel is not None and t["log_p"] < threshold]
+    return max(cands, key=lambda k: tests[k]["explains"]) if cands else None
 
 
 def _ranked(tests: dict, *, alpha: float, min_gain_change: float, gain: float) -> list[str]:
@@ -1222,6 +1251,10 @@ def _markdown(diag: Diagnosis, out_dir: Path | None = None) -> str:
 
 
 def _verdict_where(e: EffectReport) -> str:
+    if e.extra.get("explains_misfit"):
+        return (f"explains the misfit (a trial refit with it reaches reduced chi-square "
+                f"{e.extra['reduced_chi2_with']:.4f}), but this acquisition cannot identify it: nothing else is "
+                f"named in its place")
     if "explained_share" in e.extra:
         return (f"significant, but a trial refit removes only {100 * e.extra['explained_share']:.0f} % of the "
                 f"signatures' excess: not added")
