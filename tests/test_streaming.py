@@ -29,7 +29,7 @@ def _open_files() -> int:
     return h5py.h5f.get_obj_count(h5py.h5f.OBJ_ALL, h5py.h5f.OBJ_FILE)
 
 
-def test_lazy_scan_reads_only_the_lit_rows_and_closes_the_file(tmp_path, small_scan, monkeypatch):
+def test_lazy_scan_reads_only_the_lit_rows_and_those_just_left_and_closes_the_file(tmp_path, small_scan, monkeypatch):
     scan, _ = small_scan()
     write_scan(tmp_path / "s.h5", scan)
     lazy = read_scan(tmp_path / "s.h5")
@@ -42,10 +42,17 @@ def test_lazy_scan_reads_only_the_lit_rows_and_closes_the_file(tmp_path, small_s
     row, frame, _ = align.lit_blocks(scan.position, scan.active_rows, scan.shape[1])
     lit = {(int(f), int(r)) for r, f in zip(row, frame, strict=True)}
     read = {(j, r) for j, r0, r1 in reads for r in range(r0, r1)}
-    # one hyperslab per frame, and nothing but lit rows (those of rows lit too rarely to enter are skipped)
-    assert len(reads) == len({j for j, _, _ in reads}) and read <= lit
-    assert {(int(f), int(r)) for r, f in zip(store.row, store.frame, strict=True)} == read
+    # the rows the active area has just left (lit in j - 1, not in j), which measure the detector lag
+    left = {(f + 1, r) for f, r in lit if (f + 1, r) not in lit and f + 1 < scan.shape[0]}
+    # one hyperslab per frame, and nothing but lit rows and those just left (rows lit too rarely to enter
+    # are skipped)
+    assert len(reads) == len({j for j, _, _ in reads}) and read <= lit | left
+    held = {(int(f), int(r)) for r, f in zip(store.row, store.frame, strict=True)}
+    held_left = {(int(store.frame[k]) + 1, int(store.row[k])) for k in store.left_prev}
+    assert held | held_left == read and held_left <= left
     np.testing.assert_array_equal(store.counts, scan.data[store.frame, store.row])
+    np.testing.assert_array_equal(store.left_counts, scan.data[store.frame[store.left_prev] + 1,
+                                                               store.row[store.left_prev]])
 
 
 def test_reading_a_scan_holds_a_fraction_of_its_frames(tmp_path):

@@ -585,8 +585,10 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
                      exclude: np.ndarray | None = None) -> dict:
     """Pixel classes whose noise variance differs from the rest: found by detector column and row, factor per class.
 
-    Per pixel, the Pearson chi-square X_i of its samples under the current noise model and its degrees of
-    freedom n_i - 3 (3 image unknowns). Per detector column (and row) the sum X against c times its dof,
+    Per pixel, the Pearson chi-square X_i of its samples under the current noise model, each sample's z^2
+    divided by the regular pixels' dispersion at its expected count (12 bins: a variance misfit that follows
+    the count, a detector nonlinearity say, is no pixel class), and its degrees of freedom n_i - 3 (3 image
+    unknowns). Per detector column (and row) the sum X against c times its dof,
     c the overall dispersion: z = (X - c dof) / (c sqrt(V)), V the variance of the summed z^2 (2 + g / mu
     per sample: scaled Poisson noise); columns and rows significant after Holm (alpha over all of them)
     are anomalous, and grouped by their variance ratio (:func:`_variance_groups`: lines whose ratios agree
@@ -611,20 +613,29 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
     kv = np.where(sel, 2.0 + g / np.maximum(ibar - obs.dark, 1e-3), 0.0)
     n = obs.segment_sum(sel.astype(float))
     dof = np.maximum(n - 3, 0.0)
-    X = np.where(dof > 0, obs.segment_sum(z2), 0.0)
+    share = np.where(sel, (dof / np.maximum(n, 1))[obs.pixel], 0.0)  # a sample's share of its pixel's dof
     V = np.where(dof > 0, obs.segment_sum(kv) * dof / np.maximum(n, 1), 0.0)
-    img = {k: obs.to_image(v, fill=0.0) for k, v in (("X", X), ("dof", dof), ("V", V))}
+    img = {k: obs.to_image(v, fill=0.0) for k, v in (("dof", dof), ("V", V))}
     H, W = obs.shape[1:]
     fmap = np.ones((H, W))
     none = {"statistic": 0.0, "dof": 0, "p_value": 1.0, "log_p": 0.0, "explains": 0.0, "identifiable": True,
             "excess": 0, "map": fmap, "classes": []}
     if img["dof"].sum() <= 0:
         return none
+    # a variance misfit that depends on the expected count (detector nonlinearity, say) is not a pixel class:
+    # z^2 is measured against the regular pixels' dispersion at the same count (12 bins of equal size)
+    edges = np.quantile(ibar[sel], np.linspace(0, 1, 13)[1:-1])
+    cbin = np.digitize(ibar, edges)
     groups = [np.zeros(W, int), np.zeros(H, int)]
     # the dispersion of the regular pixels, the anomalous columns and rows found against it: repeated until
     # they stay the same (anomalous lines would otherwise pull the reference and make the rest look anomalous)
     for _ in range(5):
         regular = (groups[1][:, None] == 0) & (groups[0][None, :] == 0)
+        reg = sel & regular[obs.row][:, obs.columns]
+        num = np.bincount(cbin[reg], weights=z2[reg], minlength=12)
+        den = np.bincount(cbin[reg], weights=share[reg], minlength=12)
+        per_count = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
+        img["X"] = obs.to_image(np.where(dof > 0, obs.segment_sum(z2 / per_count[cbin]), 0.0), fill=0.0)
         c = _dispersion(img, regular)
         tests, lines = [], []
         for axis in (0, 1):
