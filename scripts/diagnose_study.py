@@ -157,9 +157,17 @@ def main():
     ap.add_argument("--clean", type=int, default=len(CLEAN), help=f"clean scans (at most {len(CLEAN)})")
     ap.add_argument("--effects", nargs="*", default=list(SCENARIOS))
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
+    ap.add_argument("--update", action="store_true",
+                    help="keep the other effects' rows of an existing diagnosis-study.json (and its clean scans "
+                         "when --clean 0): run the study in parts")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     results = {"machine": machine(), "pixel_mm": args.pixel_mm, "concealed": [], "limits": {}, "clean": []}
+    if args.update and (args.out / "diagnosis-study.json").exists():
+        old = json.loads((args.out / "diagnosis-study.json").read_text())
+        results["concealed"] = [r for r in old["concealed"] if r["effect"] not in args.effects]
+        results["limits"] = {k: v for k, v in old["limits"].items() if k not in args.effects}
+        results["clean"] = old["clean"] if args.clean == 0 else []
     for effect in args.effects:
         _, realistic, smaller, _, _ = SCENARIOS[effect]
         limit = None
@@ -192,6 +200,9 @@ def main():
                      f"{', '.join(r['found']) or '-'} | {r['initial_chi2']:.4f} -> {r['final_chi2']:.4f} | "
                      f"{_fmt_estimate(r)} | {_fmt_images(r)} | {r['cost_vs_reconstruct']:g} |")
     lines += ["", "| effect | smallest amplitude still named first |", "|---|---|"]
+    order = {name: i for i, name in enumerate(SCENARIOS)}
+    results["concealed"].sort(key=lambda r: order[r["effect"]])
+    results["limits"] = dict(sorted(results["limits"].items(), key=lambda kv: order[kv[0]]))
     lines += [f"| {k} | {'not found' if v is None else f'{v:g}'} |" for k, v in results["limits"].items()]
     lines += ["", "| clean scan | seed | found | unexplained | reduced chi2 | cost |", "|---|---|---|---|---|---|"]
     lines += [f"| {r['scan']} | {r['seed']} | {', '.join(r['found']) or '-'} | {', '.join(r['unexplained']) or '-'} "
