@@ -185,6 +185,9 @@ def main():
         r["scan"] = f"{phantom}, {'tiled' if flat else 'smooth'} flat field, gain {gain:g} stated"
         results["clean"].append(r)
         print(json.dumps(r), flush=True)
+    order = {name: i for i, name in enumerate(SCENARIOS)}
+    results["concealed"].sort(key=lambda r: order[r["effect"]])
+    results["limits"] = dict(sorted(results["limits"].items(), key=lambda kv: order[kv[0]]))
     (args.out / "diagnosis-study.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
     lines = ["# Diagnosis on concealed effects", "",
              f"Simulated scans at {args.pixel_mm:g} mm pixels; machine: {results['machine']}. Each effect present in "
@@ -200,9 +203,6 @@ def main():
                      f"{', '.join(r['found']) or '-'} | {r['initial_chi2']:.4f} -> {r['final_chi2']:.4f} | "
                      f"{_fmt_estimate(r)} | {_fmt_images(r)} | {r['cost_vs_reconstruct']:g} |")
     lines += ["", "| effect | smallest amplitude still named first |", "|---|---|"]
-    order = {name: i for i, name in enumerate(SCENARIOS)}
-    results["concealed"].sort(key=lambda r: order[r["effect"]])
-    results["limits"] = dict(sorted(results["limits"].items(), key=lambda kv: order[kv[0]]))
     lines += [f"| {k} | {'not found' if v is None else f'{v:g}'} |" for k, v in results["limits"].items()]
     lines += ["", "| clean scan | seed | found | unexplained | reduced chi2 | cost |", "|---|---|---|---|---|---|"]
     lines += [f"| {r['scan']} | {r['seed']} | {', '.join(r['found']) or '-'} | {', '.join(r['unexplained']) or '-'} "
