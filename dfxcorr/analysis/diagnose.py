@@ -688,8 +688,9 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
             mask = ndimage.binary_dilation(t["mask"], iterations=1) if candidate == "sample_motion" else motion
             noise = (t["gain"], t["electronic"]) if candidate == "detector_gain" else (obs.gain, obs.electronic)
             views = _realigned(prep, obs, fit_obs, fit_cols, params, shift, candidate, t)
-            trial = _fit_state(*views[:2], model + [candidate] if M.effect(candidate).channel is not None else model,
-                               params, mask, cfg, timings, f"round {rnd}: trial {candidate}", noise=noise)
+            trial = _fit_state(views[0], views[1],
+                               model + [candidate] if M.effect(candidate).channel is not None else model, params,
+                               mask, cfg, timings, f"round {rnd}: trial {candidate}", noise=noise)
             share = _explained_share(state["signatures"], trial["signatures"])
             if share is None or share >= d["explain_share"] or (share >= 0 and _silences(state["signatures"],
                                                                                           trial["signatures"])):
@@ -832,7 +833,8 @@ def _fit_state(obs: M.Observations, fit_obs: M.Observations, model: list, start:
 
 
 def _realigned(prep: Prepared, obs: M.Observations, fit_obs: M.Observations, fit_cols: np.ndarray, params: dict,
-               shift: np.ndarray, candidate: str, test: dict) -> tuple:
+               shift: np.ndarray, candidate: str, test: dict
+               ) -> tuple[M.Observations, M.Observations, np.ndarray]:
     """The samples a trial of ``candidate`` fits: realigned for reference_offset and position_error.
 
     Returns (obs, fit_obs, shift): the observations (all columns, and the fit's) and the per-frame rows by
