@@ -425,7 +425,7 @@ def plot_effect(change: dict, path: Path, *, overwrite: bool = False) -> Path:
     return save_figure(fig, path, overwrite=overwrite)
 
 
-def plot_signatures(signatures: list, path: Path, *, n_frames: int, n_rows: int) -> Path:
+def plot_signatures(signatures: list, path: Path, *, n_frames: int, n_rows: int, overwrite: bool = False) -> Path:
     """The residual signatures of the final fit, significant bins marked (``dfxcorr diagnose``).
 
     Parameters
@@ -472,7 +472,7 @@ def plot_signatures(signatures: list, path: Path, *, n_frames: int, n_rows: int)
             ax.legend(fontsize=7)
     for ax in axes.ravel()[len(panels):]:
         ax.set_visible(False)
-    return save_figure(fig, path)
+    return save_figure(fig, path, overwrite=overwrite)
 
 
 def plot_nps(path, study: dict, *, title: str = "", overwrite: bool = False) -> Path:

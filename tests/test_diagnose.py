@@ -202,6 +202,11 @@ def test_report_files_follow_the_contract(tmp_path):
     report = (tmp_path / "report.md").read_text()
     assert "Criterion" in report and "--set vibration.dose=true" in report and "## Unexplained" in report
     assert "![adding dose](effect-dose.png)" in report
+    # a second report into the same folder: refused, or replaced with --overwrite (every picture included)
+    from dfxcorr.errors import OutputExistsError
+    with pytest.raises(OutputExistsError):
+        write_report(diag, tmp_path)
+    assert write_report(diag, tmp_path, overwrite=True) == written
 
 
 @pytest.mark.shared

@@ -1073,7 +1073,8 @@ def _fit_state(obs: M.Observations, fit_obs: M.Observations, model: list, start:
 
 
 def _realigned(prep: Prepared, obs: M.Observations, fit_obs: M.Observations, fit_cols: np.ndarray, params: dict,
-               shift: np.ndarray, candidate: str, test: dict) -> tuple:
+               shift: np.ndarray, candidate: str, test: dict
+               ) -> tuple[M.Observations, M.Observations, np.ndarray]:
     """The samples a trial of ``candidate`` fits: realigned for reference_offset and position_error.
 
     Returns (obs, fit_obs, shift): the observations (all columns, and the fit's) and the per-frame rows by
@@ -1179,8 +1180,9 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
         check_output(p, overwrite=overwrite)
     with atomic_path(paths["diagnosis.json"], overwrite=overwrite) as tmp:
         tmp.write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
-    plots.plot_diagnosis(diag, paths["residuals.png"])
-    plots.plot_signatures(diag.signatures, paths["signatures.png"], n_frames=diag.shape[0], n_rows=diag.shape[1])
+    plots.plot_diagnosis(diag, paths["residuals.png"], overwrite=overwrite)
+    plots.plot_signatures(diag.signatures, paths["signatures.png"], n_frames=diag.shape[0], n_rows=diag.shape[1],
+                          overwrite=overwrite)
     for change in diag.changes:
         plots.plot_effect(change, paths[change["name"]], overwrite=overwrite)
     written = list(paths.values())

@@ -53,6 +53,8 @@ def phase_variance(images: M.Images, dispersion: float = 1.0) -> np.ndarray:
     """Variance (rad^2) of each pixel's phase phi = atan2(s, c) from the inverse normal matrix, (R, C)."""
     c, s = images.coef[..., 1], images.coef[..., 2]
     inv = images.inverse
+    if inv is None:
+        raise ValueError("the phase variance needs the inverse normal matrices (solve_images(..., keep_inverse=True))")
     with np.errstate(divide="ignore", invalid="ignore"):
         var = (s ** 2 * inv[..., 1, 1] + c ** 2 * inv[..., 2, 2] - 2 * c * s * inv[..., 1, 2]) / (c ** 2 + s ** 2) ** 2
     return np.where(images.valid, var * dispersion, np.nan)
