@@ -69,6 +69,12 @@ def estimate_error(name: str, diag, truth: dict) -> dict:
     if name == "sample_motion":
         mask, true = diag.motion_mask, truth["motion_mask"]
         return {"pixels": int(mask.sum()), "true_pixels": int(true.sum()), "in_region": float(mask[true].mean())}
+    if name == "pixel_noise":
+        est, tru = diag.pixel_noise, np.asarray(truth["pixel_noise"], float)
+        lit = np.isfinite(diag.after.pixel)
+        odd = lit & (tru != 1)
+        return {"factor": float(np.median(est[odd])), "truth": float(np.median(tru[odd])),
+                "misclassified": float(np.mean((est[lit] != 1) != (tru[lit] != 1)))}
     if "value" in extra:
         key = {"reference_offset": "reference_offset", "detector_lag": "detector_lag"}.get(name, name)
         return {"estimate": float(extra["value"]), "truth": float(truth.get(key, np.nan))}
@@ -136,6 +142,8 @@ def _fmt_estimate(r: dict) -> str:
         return f"RMSE {e['rmse']:.3g} (truth std {e['truth_std']:.3g})"
     if "a2" in e:
         return f"a2 {e['a2']:.4f} ({e['a2_truth']:.4f}), beta {e['beta']:.2f} ({e['beta_truth']:.2f})"
+    if "misclassified" in e:
+        return f"f {e['factor']:.3g} ({e['truth']:.3g}), {100 * e['misclassified']:.1f} % of pixels misclassified"
     if "pixels" in e:
         return f"{e['pixels']} pixels ({e['true_pixels']} moving, {100 * e['in_region']:.0f} % of them)"
     est, tru = e["estimate"], e["truth"]
