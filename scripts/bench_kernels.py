@@ -33,7 +33,8 @@ from dfxcorr import config as C
 from dfxcorr import kernels as K
 from dfxcorr import model as M
 from dfxcorr import pipeline
-from dfxcorr.align import build_observations, resolve_reference
+from dfxcorr.align import build_observations
+from dfxcorr.reference import resolve_reference
 from dfxcorr.sim import simulate as S
 
 ROOT = Path(__file__).resolve().parents[1]
