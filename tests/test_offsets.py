@@ -151,7 +151,7 @@ def test_position_error_is_named_estimated_and_corrected(tmp_path):
     assert np.median(np.abs(err)) < 0.2 * np.std(jitter)
     written = write_report(diag, tmp_path / "diag")
     assert tmp_path / "diag" / "position_errors.txt" in written
-    sets = reconstruct_settings(diag, tmp_path / "diag")
+    sets = reconstruct_settings(diag, out_dir=tmp_path / "diag")
     assert sets == [f"align.position_errors={tmp_path / 'diag' / 'position_errors.txt'}"]
     # the frames' phase offsets absorb most of what position errors do to the phase image; the transmission
     # and dark field keep it (measured with the true errors: 12 % and 8 % lower)
