@@ -69,6 +69,10 @@ def estimate_error(name: str, diag, truth: dict) -> dict:
     if name == "sample_motion":
         mask, true = diag.motion_mask, truth["motion_mask"]
         return {"pixels": int(mask.sum()), "true_pixels": int(true.sum()), "in_region": float(mask[true].mean())}
+    if name == "pixel_noise":
+        # the factor the boundary pixels got (median over the truth's boundary pixels) against the truth's
+        est, true = diag.pixel_noise, truth["pixel_noise"]
+        return {"estimate": float(np.median(est[true != 1])), "truth": float(np.median(true[true != 1]))}
     if "value" in extra:
         key = {"reference_offset": "reference_offset", "detector_lag": "detector_lag"}.get(name, name)
         return {"estimate": float(extra["value"]), "truth": float(truth.get(key, np.nan))}
