@@ -834,7 +834,7 @@ def previous_block(row: np.ndarray, frame: np.ndarray) -> np.ndarray:
 
 
 def lag_free(counts: np.ndarray, dark: np.ndarray, row: np.ndarray, frame: np.ndarray, fraction: float,
-             *, dtype=np.float32) -> np.ndarray:
+             *, dtype: type = np.float32) -> np.ndarray:
     """Undo detector lag recursively: S_j = (I_j - dark) - a S_(j-1), S = 0 where the pixel was not lit.
 
     Parameters
@@ -855,7 +855,7 @@ def lag_free(counts: np.ndarray, dark: np.ndarray, row: np.ndarray, frame: np.nd
         S + dark: the counts the detector would have given without lag. Where frame j - 1 did not
         light the pixel the lag-free signal of j - 1 is 0 and I_j is returned unchanged.
     """
-    out = np.asarray(counts, dtype=dtype) - np.asarray(dark, dtype=dtype)
+    out: np.ndarray = np.asarray(counts, dtype=dtype) - np.asarray(dark, dtype=dtype)
     prev = previous_block(row, frame)
     order = np.argsort(frame, kind="stable")
     bounds = np.searchsorted(frame[order], np.arange(int(frame.max(initial=-1)) + 2))

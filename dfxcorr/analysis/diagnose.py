@@ -653,7 +653,8 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
         new = []
         for axis in (0, 1):
             idx = np.array([t["i"] for t in tests if t["axis"] == axis and t["significant"]], int)
-            new.append(_variance_groups(*(v[idx] for v in lines[axis]), idx, c=c, size=(W, H)[axis]))
+            Xa, Da, Va = lines[axis]
+            new.append(_variance_groups(Xa[idx], Da[idx], Va[idx], idx, c=c, size=(W, H)[axis]))
         if all(np.array_equal(a, b) for a, b in zip(new, groups, strict=True)):
             break
         groups = new
@@ -1135,8 +1136,8 @@ def _ranked(tests: dict, *, alpha: float, min_gain_change: float, gain: float) -
         # a variance pattern: after the mean effects, before a global gain (its factors are relative to the
         # regular pixels, so a gain fitted first would be pulled by the anomalous ones) and localised outliers
         order.remove("pixel_noise")
-        at = [order.index(k) for k in ("detector_gain", "sample_motion") if k in order]
-        order.insert(min(at, default=len(order)), "pixel_noise")
+        later = [order.index(k) for k in ("detector_gain", "sample_motion") if k in order]
+        order.insert(min(later, default=len(order)), "pixel_noise")
     return order
 
 
