@@ -596,10 +596,8 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
     the reference. Each other class gets the factor
     f = (X / dof of the class) / (X / dof of the regular class), so that its reduced chi-square becomes that
     of the rest (a global gain stays detector_gain's); where no pixel is regular (every row anomalous, say)
-    the factors are against the stated noise model. Only classes with f < 1 count: a mean misfit local to
-    some lines raises their variance too, and must not be hidden by a noise factor. Statistic: the
-    Gaussian likelihood ratio of a variance scale per class, sum dof (f - 1 - ln f), chi-square with one
-    dof per class.
+    the factors are against the stated noise model. Statistic: the Gaussian likelihood ratio of a
+    variance scale per class, sum dof (f - 1 - ln f), chi-square with one dof per class.
 
     Returns
     -------
@@ -670,11 +668,6 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
         if d <= 0:
             continue
         f = img["X"][m].sum() / d / c0
-        if f >= 1:
-            # an excess may be a mean misfit local to those lines (a tile boundary's phase step, say), which
-            # no noise factor should hide; only a deficit is evidence that the noise itself differs there.
-            # The lines stay in the residual signatures (unexplained, if nothing else explains them)
-            continue
         fmap[m] = f
         stat += float(d * (f - 1 - np.log(f)))
         r_idx, c_idx = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
