@@ -906,7 +906,11 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
         if any(b["explains_misfit"] for b in blind.values()):
             break
         chosen: tuple[str, dict] | None = None
-        for candidate in _ranked(tests, alpha=d["alpha"], min_gain_change=d["min_gain_change"], gain=obs.gain):
+        # the per-frame parameters, fitted on every n-th column, leave their noise in the other columns' residuals:
+        # about n chi-square per parameter, an apparent gain that a stated one must not be taken for
+        n_par = sum(np.size(p) for p in params.values())
+        apparent = obs.gain * (1 + d["subsample"] * n_par * state["reduced_chi2"] / max(state["chi2"], 1.0))
+        for candidate in _ranked(tests, alpha=d["alpha"], min_gain_change=d["min_gain_change"], gain=apparent):
             if candidate in rejected:
                 continue
             t = tests[candidate]
