@@ -589,7 +589,7 @@ def lag_test(prep: Prepared) -> dict:
 
 
 def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *, alpha: float,
-                     exclude: np.ndarray | None = None) -> dict:
+                     exclude: np.ndarray | None = None, fitted: np.ndarray | None = None) -> dict:
     """Pixel classes whose noise variance differs from the rest: found by detector column and row, factor per class.
 
     Per pixel, the Pearson chi-square X_i of its samples under the current noise model, each sample's z^2
@@ -605,6 +605,10 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
     of the rest (a global gain stays detector_gain's); where no pixel is regular (every row anomalous, say)
     the factors are against the stated noise model. Statistic: the Gaussian likelihood ratio of a
     variance scale per class, sum dof (f - 1 - ln f), chi-square with one dof per class.
+
+    ``fitted`` (C,) marks the columns the per-frame parameters were fitted on: their residuals are smaller
+    (the parameters took some of their variance, and of any misfit), so their dispersion reference is that
+    of the regular fitted columns, per count bin like the rest.
 
     Returns
     -------
@@ -632,15 +636,16 @@ def pixel_noise_test(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *
     # a variance misfit that depends on the expected count (detector nonlinearity, say) is not a pixel class:
     # z^2 is measured against the regular pixels' dispersion at the same count (12 bins of equal size)
     edges = np.quantile(ibar[sel], np.linspace(0, 1, 13)[1:-1])
-    cbin = np.digitize(ibar, edges)
+    kind = np.zeros(obs.columns.size, int) if fitted is None else np.asarray(fitted, int)
+    cbin = 2 * np.digitize(ibar, edges) + kind[None, :]
     groups = [np.zeros(W, int), np.zeros(H, int)]
     # the dispersion of the regular pixels, the anomalous columns and rows found against it: repeated until
     # they stay the same (anomalous lines would otherwise pull the reference and make the rest look anomalous)
     for _ in range(5):
         regular = (groups[1][:, None] == 0) & (groups[0][None, :] == 0)
         reg = sel & regular[obs.row][:, obs.columns]
-        num = np.bincount(cbin[reg], weights=z2[reg], minlength=12)
-        den = np.bincount(cbin[reg], weights=share[reg], minlength=12)
+        num = np.bincount(cbin[reg], weights=z2[reg], minlength=24)
+        den = np.bincount(cbin[reg], weights=share[reg], minlength=24)
         per_count = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
         img["X"] = obs.to_image(np.where(dof > 0, obs.segment_sum(z2 / per_count[cbin]), 0.0), fill=0.0)
         c = _dispersion(img, regular)
@@ -877,21 +882,20 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                                                                                        keep_inverse=True),
                                                    dsg, rec.weights,
                                                    exclude=ndimage.binary_dilation(outliers)[obs.row][:, obs.columns])
-            if "reference_offset" not in detected:
+            # a phase-stepping recording has no scan positions to be off
+            if "reference_offset" not in detected and not scan.is_stepping:
                 tests["reference_offset"] = offset_test(prep, obs, params, shift)
-            if "position_error" not in detected:
+            if "position_error" not in detected and not scan.is_stepping:
                 tests["position_error"] = position_test(prep, fit_obs, params, shift, dispersion=dispersion)
             if "detector_lag" not in detected:
                 tests["detector_lag"] = lag_test(prep)
             if "pixel_noise" not in detected:
                 outliers = tests["sample_motion"]["mask"] if "sample_motion" in tests else motion
-                # the fit's columns lost variance to the per-frame parameters (most at the edges, through the
-                # tilt), which their 3 image unknowns per pixel do not count: they would pass for quiet pixels
                 fitted = np.zeros(obs.columns.size, bool)
                 fitted[fit_cols] = True
                 tests["pixel_noise"] = pixel_noise_test(
-                    obs, rec.expected, rec.images.valid, alpha=d["alpha"],
-                    exclude=ndimage.binary_dilation(outliers)[obs.row][:, obs.columns] | fitted[None, :])
+                    obs, rec.expected, rec.images.valid, alpha=d["alpha"], fitted=fitted,
+                    exclude=ndimage.binary_dilation(outliers)[obs.row][:, obs.columns])
         last_tests.update(tests)
         log.info("round %d: reduced chi-square %.4f; %s", rnd, state["reduced_chi2"],
                  ", ".join(f"{k} S={t['statistic']:.4g} (dof {t['dof']}{'' if t['identifiable'] else ', n.i.'})"
