@@ -676,10 +676,19 @@ def sample_derivatives(obs: Observations, dsg: Design, images: Images, name: str
     amp = dsg.dose * obs.tf
     bv = amp * obs.vf * dsg.vis
     # m cos(2 psi), m sin(2 psi) of the sample (psi = θ + phi), and the harmonic's a2 m cos, a2 m sin (2 psi + beta)
-    _, _, ef, ff = harmonic_factors(cc, ss)
-    g = np.cos(2 * dsg.theta) * ef - np.sin(2 * dsg.theta) * ff
-    k = np.sin(2 * dsg.theta) * ef + np.cos(2 * dsg.theta) * ff
-    p2, q2 = hc * g - hs * k, hc * k + hs * g
+    ef: np.ndarray | float
+    ff: np.ndarray | float
+    g: np.ndarray | float
+    k: np.ndarray | float
+    p2: np.ndarray | float
+    q2: np.ndarray | float
+    ef = ff = g = k = p2 = q2 = 0.0
+    # the harmonic's own derivatives need its factors even where it is absent (hc = hs = 0: a score test)
+    if hc or hs or e.channel == "harmonic":
+        _, _, ef, ff = harmonic_factors(cc, ss)
+        c2, s2 = np.cos(2 * dsg.theta), np.sin(2 * dsg.theta)
+        g, k = c2 * ef - s2 * ff, s2 * ef + c2 * ff
+        p2, q2 = hc * g - hs * k, hc * k + hs * g
     q = cc * np.cos(dsg.theta) - ss * np.sin(dsg.theta)
     if e.channel == "phase":
         base = cc * dsg.Bs - ss * dsg.Bc - 2 * bv * q2

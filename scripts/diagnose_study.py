@@ -76,8 +76,7 @@ def estimate_error(name: str, diag, truth: dict) -> dict:
         return {"factor": float(np.median(est[odd])), "truth": float(np.median(tru[odd])),
                 "misclassified": float(np.mean((est[lit] != 1) != (tru[lit] != 1)))}
     if "value" in extra:
-        key = {"reference_offset": "reference_offset", "detector_lag": "detector_lag"}.get(name, name)
-        return {"estimate": float(extra["value"]), "truth": float(truth.get(key, np.nan))}
+        return {"estimate": float(extra["value"]), "truth": float(truth.get(name, np.nan))}
     if "values" in extra:
         est, tru = np.asarray(extra["values"], float), np.asarray(truth.get("vib_position_jitter", np.nan), float)
         d = est - tru

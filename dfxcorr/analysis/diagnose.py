@@ -740,7 +740,7 @@ def _set_pixel_noise(obs: M.Observations, fit_obs: M.Observations, fmap: np.ndar
 
 
 def _lag_observations(prep: Prepared, like: M.Observations, shift: np.ndarray, fraction: float,
-                      subsample: int) -> tuple[Prepared, M.Observations, M.Observations]:
+                      fit_cols: np.ndarray) -> tuple[Prepared, M.Observations, M.Observations]:
     """The preparation, test and fit observations with detector lag ``fraction`` taken out of the counts.
 
     ``like``: the current test observations (their region of interest, noise model and use are kept);
@@ -748,7 +748,7 @@ def _lag_observations(prep: Prepared, like: M.Observations, shift: np.ndarray, f
     """
     lag_prep = replace(prep, store=prep.store.lag_free(fraction))
     obs = realign(lag_prep, like, shift)
-    return lag_prep, obs, obs.subset(subsample_columns(prep.shape[2], subsample))
+    return lag_prep, obs, obs.subset(fit_cols)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -846,6 +846,8 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit
     fit_cols = subsample_columns(scan.shape[2], d["subsample"])
     fit_obs = obs.subset(fit_cols)
+    fitted = np.zeros(obs.columns.size, bool)
+    fitted[fit_cols] = True
     shift = np.zeros(scan.shape[0])  # rows by which obs reads the flat field off the prepared alignment
     model = list(resolve_effects(cfg, scan, reference, fit_obs)) if base == "configured" else []
     base_model = list(model)
@@ -891,8 +893,6 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                 tests["detector_lag"] = lag_test(prep)
             if "pixel_noise" not in detected:
                 outliers = tests["sample_motion"]["mask"] if "sample_motion" in tests else motion
-                fitted = np.zeros(obs.columns.size, bool)
-                fitted[fit_cols] = True
                 tests["pixel_noise"] = pixel_noise_test(
                     obs, rec.expected, rec.images.valid, alpha=d["alpha"], fitted=fitted,
                     exclude=ndimage.binary_dilation(outliers)[obs.row][:, obs.columns])
@@ -929,10 +929,13 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
             noise = (t["gain"], t["electronic"]) if candidate == "detector_gain" else (obs.gain, obs.electronic)
             views = _realigned(prep, obs, fit_obs, fit_cols, params, shift, candidate, t)
             # lag changes the data themselves: their fit starts afresh, as round 0 did
-            on, start = (views[:2], params) if candidate != "detector_lag" else \
-                (_lag_observations(prep, obs, shift, t["value"], d["subsample"])[1:], {})
+            lagged = _lag_observations(prep, obs, shift, t["value"], fit_cols) if candidate == "detector_lag" else None
+            on, start = (views[:2], params) if lagged is None else (lagged[1:], {})
+            noise_map = prep.pixel_noise
             if candidate == "pixel_noise":
-                _set_pixel_noise(obs, fit_obs, t["map"] * (1.0 if prep.pixel_noise is None else prep.pixel_noise))
+                # the test's factors are relative to the current ones
+                noise_map = t["map"] * (1.0 if prep.pixel_noise is None else prep.pixel_noise)
+                _set_pixel_noise(obs, fit_obs, noise_map)
             trial = _fit_state(*on, model + [candidate] if M.effect(candidate).channel is not None else model,
                                start, mask, cfg, timings, f"round {rnd}: trial {candidate}", noise=noise)
             share = _explained_share(state["signatures"], trial["signatures"])
@@ -966,10 +969,11 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                 {"values": (found - shift - np.median((found - shift)[good_frames])).tolist()}
             shift = found
         elif choice == "detector_lag":
-            prep, obs, fit_obs = _lag_observations(prep, obs, shift, t["value"], d["subsample"])
+            assert lagged is not None  # the accepted trial's
+            prep, obs, fit_obs = lagged
             extra = {"value": t["value"], "se": t["se"]}
         elif choice == "pixel_noise":
-            prep = replace(prep, pixel_noise=t["map"] * (1.0 if prep.pixel_noise is None else prep.pixel_noise))
+            prep = replace(prep, pixel_noise=noise_map)
             extra = {"classes": t["classes"]}
         else:
             model.append(choice)
@@ -1113,12 +1117,16 @@ def _realigned(prep: Prepared, obs: M.Observations, fit_obs: M.Observations, fit
     return moved, moved.subset(fit_cols), found
 
 
+def _significant(tests: dict, alpha: float) -> list[str]:
+    """The candidates whose test beats Holm's first threshold alpha / m (m = candidates tested in the round)."""
+    return [k for k, t in tests.items() if t["log_p"] < np.log(alpha / len(tests))]
+
+
 def _strongest_unidentifiable(tests: dict, *, alpha: float, tried: dict) -> str | None:
     """The not identifiable mean effect, not tried yet, whose score test is significant (Holm) with the largest
     explained chi-square; None if there is none."""
-    threshold = np.log(alpha / max(len(tests), 1))
-    cands = [k for k, t in tests.items() if not t["identifiable"] and k not in tried
-             and M.effect(k).channel is not None and t["log_p"] < threshold]
+    cands = [k for k in _significant(tests, alpha) if not tests[k]["identifiable"] and k not in tried
+             and M.effect(k).channel is not None]
     return max(cands, key=lambda k: tests[k]["explains"]) if cands else None
 
 
@@ -1130,10 +1138,7 @@ def _ranked(tests: dict, *, alpha: float, min_gain_change: float, gain: float) -
     before localised outliers are judged against it), pixel_noise just before detector_gain, detector_lag
     first (measured directly).
     """
-    if not tests:
-        return []
-    threshold = np.log(alpha / len(tests))
-    sig = {k for k, t in tests.items() if t["identifiable"] and t["log_p"] < threshold}
+    sig = {k for k in _significant(tests, alpha) if tests[k]["identifiable"]}
     # a reference offset's statistic comes from the image, not the likelihood (which barely sees it); its step
     # signature at the tile boundaries is specific, while mean-effect proxies would soak up what it does to the fit
     order = sorted((k for k in sig if k != "detector_gain"), key=lambda k: (k != "reference_offset",
@@ -1195,8 +1200,10 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {k: out_dir / k for k in ("diagnosis.json", "report.md", "residuals.png", "signatures.png")}
     paths.update({c["name"]: out_dir / _effect_picture(c["name"]) for c in diag.changes})
-    positions = out_dir / "position_errors.txt"
-    for p in [*paths.values(), *([positions] if diag.position_errors is not None else [])]:
+    positions, mask, noise = (out_dir / n for n in ("position_errors.txt", "motion_mask.tif", "pixel_noise.tif"))
+    optional = [(positions, diag.position_errors is not None), (mask, diag.motion_mask.any()),
+                (noise, diag.pixel_noise is not None)]
+    for p in [*paths.values(), *(p for p, written in optional if written)]:
         check_output(p, overwrite=overwrite)
     with atomic_path(paths["diagnosis.json"], overwrite=overwrite) as tmp:
         tmp.write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
@@ -1207,9 +1214,9 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
         plots.plot_effect(change, paths[change["name"]], overwrite=overwrite)
     written = list(paths.values())
     if diag.motion_mask.any():
-        with atomic_path(out_dir / "motion_mask.tif", overwrite=overwrite) as tmp:
+        with atomic_path(mask, overwrite=overwrite) as tmp:
             tifffile.imwrite(tmp, diag.motion_mask.astype(np.uint8))
-        written.append(out_dir / "motion_mask.tif")
+        written.append(mask)
     if diag.position_errors is not None:
         with atomic_path(positions, overwrite=overwrite) as tmp:
             np.savetxt(tmp, diag.position_errors, fmt="%.6f",
@@ -1217,9 +1224,9 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
                               "align.position_errors=<this file>")
         written.append(positions)
     if diag.pixel_noise is not None:
-        with atomic_path(out_dir / "pixel_noise.tif", overwrite=overwrite) as tmp:
+        with atomic_path(noise, overwrite=overwrite) as tmp:
             tifffile.imwrite(tmp, diag.pixel_noise.astype(np.float32))
-        written.append(out_dir / "pixel_noise.tif")
+        written.append(noise)
     with atomic_path(paths["report.md"], overwrite=overwrite) as tmp:
         tmp.write_text(_markdown(diag, out_dir))
     return written

@@ -130,8 +130,8 @@ def offset_test(prep: Prepared, obs: M.Observations, params: dict, shift: np.nda
     # the estimator's coefficients on the phase image: the adjoint of the stencil applied to -w D3(s) / info
     a = -w * f_s / info
     coef = np.zeros_like(phi)
-    for shift, factor in ((3, 1.0), (2, -3.0), (1, 3.0), (0, -1.0)):
-        coef[:, shift:shift + a.shape[1]] += factor * a
+    for at, factor in ((3, 1.0), (2, -3.0), (1, 3.0), (0, -1.0)):
+        coef[:, at:at + a.shape[1]] += factor * a
     sigma2 = float(np.sum(coef ** 2 * v))
     dispersion = max(float(np.sum(w * (f_phi + f_s * delta) ** 2) / max(int(keep.sum()) - 1, 1)), 1.0)
     sigma = np.sqrt(sigma2 * dispersion)
