@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage, stats
 
+from . import kernels as K
 from . import model as M
 
 
@@ -108,11 +109,11 @@ def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4
     """A quick estimate of the paper's per-frame phase offset, tilt and visibility for the motion score.
 
     Gauss-Newton steps (at most ``iterations``, until the rms step is below ``tol``) on every
-    ``every``-th held column with the images profiled out (the Fisher
-    information of :func:`dfxcorr.model.fisher_matrix`; its gauge directions get the minimum-norm
-    step). Pixels whose mean squared residual exceeds 4 times the median pixel's are left out of each
-    step so that a moving region does not steer its frames (relative to the median: early on, the
-    vibrations themselves are far beyond photon noise); whole pixels, not samples, so that no frame
+    ``every``-th held column with the images profiled out (the profiled Fisher information of
+    :func:`dfxcorr.kernels.fisher`; its gauge directions get the minimum-norm step). Pixels whose
+    mean squared residual exceeds 4 times the median pixel's are left out of each step so that a
+    moving region does not steer its frames (relative to the median: early on, the vibrations
+    themselves are far beyond photon noise); whole pixels, not samples, so that no frame
     loses its information (a frame that lights one row has no other). Unmodelled vibrations would
     otherwise dominate the residual of bright, modulated pixels and hide the motion among them.
 
@@ -122,28 +123,34 @@ def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4
         'phase_offset', 'tilt', 'visibility_loss', each (J, 1).
     """
     names = M.PAPER_MODEL
+    K.set_threads()
     sub = obs.subset(np.arange(0, obs.columns.size, every))
+    fringe = K.fringe(sub)
+    table = M.component_table(names)[:3]
+    index = M.fisher_index(names, sub.n_frames)
     params = M.neutral_params(names, obs.n_frames)
     weights = M.noise_weights(sub, np.maximum(sub.counts, 1.0))
     for _ in range(iterations):
-        dsg = M.design(sub, params)
-        images = M.solve_images(sub, dsg, weights, keep_inverse=True)
-        resid = sub.counts - M.expected(sub, dsg, images)
+        ch = M.channels(params, x=sub.x, n_frames=sub.n_frames)
+        solved = K.retrieve(sub, ch, weights=weights)
+        resid = sub.counts - solved["expected"]
         z2 = sub.segment_sum(weights * resid ** 2) / np.maximum(sub.segment_sum((weights > 0) * 1.0), 1)
-        outlier = z2 > 4.0 * np.median(z2[images.valid])
-        w = np.where(outlier | ~images.valid, 0.0, 1.0)[sub.pixel] * weights
-        images = M.solve_images(sub, dsg, w, keep_inverse=True)
-        resid = sub.counts - M.expected(sub, dsg, images)
-        info, index = M.fisher_matrix(sub, dsg, images, w, names)
-        grad = M.gradient(sub, dsg, images, w, resid, names)
+        outlier = z2 > 4.0 * np.median(z2[solved["valid"]])
+        w = np.where(outlier | ~solved["valid"], 0.0, 1.0)[sub.pixel] * weights
+        held = K.retrieve(sub, ch, weights=w, keep_inverse=True)
+        plain, corr = K.fisher(sub, ch, w, held["coef"], held["inverse"], table)
+        # the reduced cost's gradient is that at the images solved with w (envelope theorem)
+        grad = M.channel_adjoint(names, M.Channels(*K.reduced_cost(sub, ch, w, *fringe,
+                                                                    channels=("phase", "visibility"))[1]), x=sub.x)
         rhs = -0.5 * np.array([grad[n][j, m] for n, j, m in index])
-        step = np.linalg.lstsq(info, rhs, rcond=1e-8)[0]
+        step = np.linalg.lstsq(plain - corr, rhs, rcond=1e-8)[0]
         for (n, j, m), d in zip(index, step, strict=True):
             params[n][j, m] += d
         if np.sqrt(np.mean(step ** 2)) < tol:
             break
-        dsg = M.design(sub, params)
-        weights = M.noise_weights(sub, M.expected(sub, dsg, M.solve_images(sub, dsg, weights)))
+        # noise weights from the model solved with the current weights
+        weights = K.retrieve(sub, M.channels(params, x=sub.x, n_frames=sub.n_frames), weights=weights,
+                             iterations=2)["weights"]
     return params
 
 

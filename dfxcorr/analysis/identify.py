@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import config as C
+from .. import kernels as K
 from .. import model as M
 from ..errors import DfxcorrError
 from ..fit import initial_weights
@@ -92,9 +93,16 @@ class Information:
 
 
 def information(obs: M.Observations, dsg: M.Design, images: M.Images, weights: np.ndarray, names) -> Information:
-    """Fisher information of ``names`` at the given design and images (``images.inverse`` needed)."""
-    info, index = M.fisher_matrix(obs, dsg, images, weights, names)
-    plain = np.diag(M.fisher_matrix(obs, dsg, images, weights, names, profiled=False)[0])
+    """Fisher information of ``names`` at the given design and images (``images.inverse`` needed).
+
+    From the compiled kernel (:func:`dfxcorr.kernels.fisher`, held to :func:`dfxcorr.model.fisher_matrix`
+    by the tests): the plain information and the profiled correction in one pass.
+    """
+    K.set_threads()
+    plain_matrix, corr = K.fisher(obs, dsg.channels, weights, images.coef, images.inverse,
+                                  M.component_table(names)[:3])
+    info, index = plain_matrix - corr, M.fisher_index(names, obs.n_frames)
+    plain = np.diag(plain_matrix)
     used = np.bincount(obs.frame, weights=obs.use.sum(axis=1), minlength=obs.n_frames) > 0
     return Information(matrix=info, plain=plain, owner=np.array([n for n, _, _ in index]),
                        frame=np.array([j for _, j, _ in index]), component=np.array([m for _, _, m in index]),
