@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import difflib
 import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -148,7 +149,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "circmean_iterations": Option(10, "first iterations with the phase image at its circular mean (eq. 36)",
                                       int, check=_nonneg),
         "staged": Option(True, "fit phases first, add visibility and other effects afterwards (Sec. II-E)", bool),
-        "precondition": Option(True, "rescale by the Fisher diagonal (eq. 34)", bool),
+        "precondition": Option(True, "rescale the fit's variables by the Fisher information", bool),
+        "preconditioner": Option("profiled", "profiled: whiten by the whole profiled Fisher information (same "
+                                             "minimum, far fewer iterations); diagonal: its plain diagonal, the "
+                                             "paper's eq. 34", str, choices=("profiled", "diagonal")),
         "reweight": Option(1, "refits with noise weights from the fitted model", int, check=_nonneg),
         "visibility_gauge": Option("max", "normalise v^s to a robust maximum of 1 (max) or a median of 1 "
                                           "(median, eq. 22)", str, choices=("max", "median")),
@@ -235,6 +239,12 @@ class _StrictLoader(yaml.SafeLoader):
             except TypeError:  # an unhashable key: SafeLoader refuses it with its own message
                 break
         return super().construct_mapping(node, deep=deep)
+
+
+# YAML 1.1 reads 1e-5 (an exponent without a decimal point) as a string; YAML 1.2 and every user read a number
+_StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float",
+                                    re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+                                    list("-+0123456789"))
 
 
 def parse_yaml(text: str) -> Any:

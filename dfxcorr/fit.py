@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.linalg import solve_triangular
 from scipy.optimize import minimize
 
 from . import kernels as K
@@ -60,12 +61,19 @@ class FitResult:
     well_determined: np.ndarray | None = None
 
 
+#: Share of the diagonal preconditioner (eq. 34) added to the profiled Hessian: it bounds the steps of
+#: parameters that the images take up almost entirely at the start (a frame lighting one or two rows),
+#: whose profiled curvature there understates what the cost shows once the images settle (paper study,
+#: every column: 0 -> 377 iterations, the 'all' stage at its limit; 0.01 -> 190; 0.1 -> 195; diagonal 426).
+RIDGE = 0.01
+
+
 class _Problem:
     """Packs effect parameters into one preconditioned vector for scipy."""
 
     def __init__(self, obs: M.Observations, names: Iterable[str], params: dict[str, np.ndarray], weights: np.ndarray,
-                 *, phase: float | None = None, precondition: bool = True, prior: dict | None = None,
-                 fringe: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 *, phase: float | None = None, precondition: bool = True, preconditioner: str = "profiled",
+                 prior: dict | None = None, fringe: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.obs, self.names, self.weights, self.phase = obs, list(names), weights, phase
         # cos and sin of the flat-field phase: fixed for the fit, so the kernels need no trigonometry per sample
         self.fringe = K.fringe(obs) if fringe is None else fringe
@@ -78,9 +86,50 @@ class _Problem:
         self.prior_w = np.concatenate([np.broadcast_to(prior[n][1], params[n].shape).ravel() ** -2.0 if n in prior
                                        else np.zeros(params[n].size) for n in self.names])
         self.scale = np.ones_like(self.theta0)
+        # z = chol^T (scale theta): chol is the Cholesky factor of the unit-diagonal profiled Hessian, or None
+        self.chol: np.ndarray | None = None
         if precondition:
             self.scale = np.sqrt(self._curvature(params))
+            if preconditioner == "profiled" and phase is None:
+                self.chol = self._profiled_factor(params)
         self.history: list[float] = []
+
+    def to_z(self, theta: np.ndarray) -> np.ndarray:
+        """The optimiser's variables of parameters ``theta``."""
+        y = theta * self.scale
+        return y if self.chol is None else self.chol.T @ y
+
+    def to_theta(self, z: np.ndarray) -> np.ndarray:
+        """Parameters of the optimiser's variables ``z``."""
+        y = z if self.chol is None else solve_triangular(self.chol, z, trans="T", lower=True)
+        return y / self.scale
+
+    def _profiled_factor(self, params: dict[str, np.ndarray]) -> np.ndarray | None:
+        """Cholesky factor of the reduced cost's Gauss-Newton Hessian, scaled to unit diagonal.
+
+        The Hessian is 2 x the profiled Fisher information (plain minus the share the images take up, as
+        in :func:`uncertainty`) plus the prior. Whitening by it removes what the diagonal of eq. 34 leaves:
+        the coupling of phase offset and tilt, and of frames through the images they share (frames that
+        light few rows share their pixels with few others, so their plain diagonal overstates their
+        information many times over). None where the factorisation fails (the diagonal is used then).
+        """
+        images = _solve(self.obs, params, self.weights, keep_inverse=True)
+        plain, corr = K.fisher(self.obs, _channels(self.obs, params), self.weights, images.coef, images.inverse,
+                               M.component_table(self.names)[:3])
+        offsets = np.cumsum([0] + [int(np.prod(shp)) for shp in self.shapes])
+        where = {n: (o, shp) for n, o, shp in zip(self.names, offsets[:-1], self.shapes, strict=True)}
+        order = np.array([where[n][0] + (np.ravel_multi_index((j, m), where[n][1]) if j >= 0 else m)
+                          for n, j, m in M.fisher_index(self.names, self.obs.n_frames)])
+        h = np.empty((order.size, order.size))
+        h[np.ix_(order, order)] = 2.0 * (plain - corr)
+        h[np.diag_indices_from(h)] += 2.0 * self.prior_w
+        h /= np.outer(self.scale, self.scale)
+        h[np.diag_indices_from(h)] += RIDGE
+        try:
+            return np.linalg.cholesky(h)
+        except np.linalg.LinAlgError:
+            log.debug("profiled Hessian not positive definite: diagonal preconditioning")
+            return None
 
     def unpack(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         out, i = dict(self.fixed), 0
@@ -106,21 +155,30 @@ class _Problem:
         return np.maximum(h, max(floor, 1e-300))
 
     def evaluate(self, z: np.ndarray) -> tuple[float, np.ndarray]:
-        theta = z / self.scale
+        theta = self.to_theta(z)
         cost, grad = self._channel_sums(self.unpack(theta), square=False)
         dev = theta - self.centre
-        return cost + float(np.sum(self.prior_w * dev ** 2)), (grad + 2.0 * self.prior_w * dev) / self.scale
+        g = (grad + 2.0 * self.prior_w * dev) / self.scale
+        if self.chol is not None:
+            g = solve_triangular(self.chol, g, lower=True)
+        return cost + float(np.sum(self.prior_w * dev ** 2)), g
 
-    def bounds(self) -> list[tuple[float | None, None]]:
-        """Physical lower bounds (visibility and dose stay positive), in the rescaled variables."""
-        lows = np.concatenate([np.full(int(np.prod(shp)), -np.inf if M.effect(n).lower is None else M.effect(n).lower)
-                               for n, shp in zip(self.names, self.shapes, strict=True)]) * self.scale
-        return [(lo if np.isfinite(lo) else None, None) for lo in lows]
+    def lower(self) -> np.ndarray:
+        """Physical lower bounds of the parameters (visibility and dose stay positive; -inf: none)."""
+        return np.concatenate([np.full(int(np.prod(shp)), -np.inf if M.effect(n).lower is None else M.effect(n).lower)
+                               for n, shp in zip(self.names, self.shapes, strict=True)])
+
+    def bounds(self) -> list[tuple[float | None, None]] | None:
+        """The lower bounds in the optimiser's variables: a box only under diagonal scaling (else None)."""
+        if self.chol is not None:
+            return None
+        return [(lo if np.isfinite(lo) else None, None) for lo in self.lower() * self.scale]
 
 
 def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.ndarray], weights: np.ndarray, *,
              phase: float | None = None, maxiter: int = 200, gtol: float = 1e-3, precondition: bool = True,
-             prior: dict | None = None, on_iteration: Callable[[float], None] | None = None,
+             preconditioner: str = "profiled", prior: dict | None = None,
+             on_iteration: Callable[[float], None] | None = None,
              fringe: tuple[np.ndarray, np.ndarray] | None = None
              ) -> tuple[dict[str, np.ndarray], list[float], str, bool]:
     """Minimise the reduced cost over the parameters of ``names``, the others held fixed.
@@ -141,7 +199,13 @@ def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.nda
         Stop when the largest preconditioned gradient component falls below this (units of the
         cost per standard deviation of a parameter).
     precondition : bool
-        Rescale by the Fisher diagonal (paper eq. 34).
+        Rescale by the Fisher information.
+    preconditioner : {'profiled', 'diagonal'}
+        'diagonal': the diagonal of the plain Fisher information (paper eq. 34); 'profiled': whiten by
+        the whole profiled Fisher information (its Cholesky factor), so that L-BFGS also sees the
+        coupling of the parameters, which the diagonal leaves it to learn (the phase-held stage uses the
+        diagonal). Both reach the same minimum; the whitened variables have no box bounds, so where a
+        parameter ends below its bound the stage is finished under the diagonal scaling.
     prior : dict, optional
         Effect name -> (centre, width): a Gaussian prior on each per-frame parameter, arrays
         broadcastable to the parameters (see :func:`catalogue_prior`, :func:`empirical_prior`).
@@ -157,7 +221,6 @@ def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.nda
     message : str
     converged : bool
     """
-    prob = _Problem(obs, names, params, weights, phase=phase, precondition=precondition, prior=prior, fringe=fringe)
     costs: list[float] = []
 
     def callback(intermediate_result: Any) -> None:  # a scipy.optimize.OptimizeResult
@@ -165,14 +228,28 @@ def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.nda
         if on_iteration is not None:
             on_iteration(costs[-1])
 
-    res = minimize(prob.evaluate, prob.theta0 * prob.scale, jac=True, method="L-BFGS-B", bounds=prob.bounds(),
+    prob = _Problem(obs, names, params, weights, phase=phase, precondition=precondition,
+                    preconditioner=preconditioner, prior=prior, fringe=fringe)
+    res = minimize(prob.evaluate, prob.to_z(prob.theta0), jac=True, method="L-BFGS-B", bounds=prob.bounds(),
                    callback=callback, options={"maxiter": maxiter, "maxcor": 20, "ftol": 1e-15, "gtol": gtol})
-    return prob.unpack(res.x / prob.scale), costs, str(res.message), bool(res.success)
+    theta = prob.to_theta(res.x)
+    lower = prob.lower()
+    if prob.chol is not None and np.any(theta < lower):
+        # the whitened variables have no box bounds: finish under the diagonal scaling, which keeps them
+        log.debug("%d parameters below their bounds: diagonal preconditioning from there", int(np.sum(theta < lower)))
+        start = prob.unpack(np.maximum(theta, lower))
+        prob = _Problem(obs, names, {**params, **start}, weights, phase=phase, precondition=precondition,
+                        preconditioner="diagonal", prior=prior, fringe=fringe)
+        res = minimize(prob.evaluate, prob.to_z(prob.theta0), jac=True, method="L-BFGS-B", bounds=prob.bounds(),
+                       callback=callback, options={"maxiter": maxiter, "maxcor": 20, "ftol": 1e-15, "gtol": gtol})
+        theta = prob.to_theta(res.x)
+    return prob.unpack(theta), costs, str(res.message), bool(res.success)
 
 
 def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODEL, start: dict | None = None,
                    weights: np.ndarray | None = None, circmean_iterations: int = 10, staged: bool = True,
-                   maxiter: int = 300, gtol: float = 1e-3, precondition: bool = True, prior: bool = True,
+                   maxiter: int = 300, gtol: float = 1e-3, precondition: bool = True,
+                   preconditioner: str = "profiled", prior: bool = True,
                    reweight: int = 1, visibility_gauge: str = "max", visibility_quantile: float = 0.99,
                    gauge_fraction: float = 0.5, on_iteration: Callable[[str, float], None] | None = None
                    ) -> FitResult:
@@ -197,6 +274,8 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
     gtol : float
         Convergence threshold on the preconditioned gradient.
     precondition : bool
+        See :func:`minimise`.
+    preconditioner : {'profiled', 'diagonal'}
         See :func:`minimise`.
     prior : bool
         Keep frames with little data sane: a wide prior around the neutral values during the main
@@ -250,7 +329,8 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
         cb: Callable[[float], None] | None = None if on_iteration is None else (
             lambda c, _l=label: on_iteration(_l, c))
         params, c, msg, ok = minimise(obs, free, params, weights, phase=phase, maxiter=iters, gtol=gtol,
-                                      precondition=precondition, prior=wide, on_iteration=cb, fringe=fringe)
+                                      precondition=precondition, preconditioner=preconditioner,
+                                      prior=wide, on_iteration=cb, fringe=fringe)
         log.debug("stage %s: %d iterations, %s", label, len(c), msg)
         costs += c
         stage_of += [label] * len(c)
@@ -267,7 +347,8 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
             log.info("%d of %d weakly determined frames moved by the global search", moved, weak.size)
         cb = None if on_iteration is None else (lambda c: on_iteration("prior", c))
         params, c, msg, ok = minimise(obs, names, params, weights, maxiter=maxiter, gtol=gtol,
-                                      precondition=precondition, prior=narrow, on_iteration=cb, fringe=fringe)
+                                      precondition=precondition, preconditioner=preconditioner,
+                                      prior=narrow, on_iteration=cb, fringe=fringe)
         costs += c
         stage_of += ["prior"] * len(c)
         messages.append(f"prior: {msg}")

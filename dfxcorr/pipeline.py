@@ -417,7 +417,8 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
             bar.update(1, status=f"{stage_name} cost {cost:.6g}")
         result = FIT_METHODS[method](fit_obs, effects=effects, circmean_iterations=f["circmean_iterations"],
                                      staged=f["staged"], maxiter=f["maxiter"], gtol=f["gtol"],
-                                     precondition=f["precondition"], reweight=f["reweight"],
+                                     precondition=f["precondition"],
+                                     preconditioner=f["preconditioner"], reweight=f["reweight"],
                                      visibility_gauge=f["visibility_gauge"],
                                      visibility_quantile=f["visibility_quantile"],
                                      gauge_fraction=f["gauge_fraction"], on_iteration=tick)

@@ -68,3 +68,9 @@ def test_one_list_of_estimators():
 
     assert C.SCHEMA["fit"]["method"].choices == C.METHODS
     assert set(pipeline.FIT_METHODS) | {"none"} == set(C.METHODS) == set(compare.METHODS)
+
+
+@pytest.mark.parametrize("text, value", [("1e-5", 1e-5), ("2E3", 2000.0), ("1.5e-3", 1.5e-3), ("1_000", 1000)])
+def test_numbers_with_an_exponent_are_numbers(text, value):
+    """YAML 1.1 would read 1e-5 as a string and --set fit.gtol=1e-5 would be refused."""
+    assert C.load([], [f"fit.gtol={text}"])["fit"]["gtol"] == value
