@@ -193,7 +193,9 @@ class LitStore:
         vf = interpolate_rows(reference.visibility[:, cols], u).astype(dtype, copy=False)
         phif = interpolate_rows(phase, u)
         phif += self.phase_step[frame][:, None]
-        counts = (self.counts[lo:hi] if columns is None else self.counts[lo:hi, cols]).astype(dtype)
+        # C order whatever the store's: the kernels walk a sample row at a time (a Fortran-ordered copy made
+        # every cost evaluation about 1.7x slower)
+        counts = (self.counts[lo:hi] if columns is None else self.counts[lo:hi, cols]).astype(dtype, order="C")
         dark = self.dark[row[:, None], cols[None, :]].astype(dtype, copy=False)
         use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
         return Observations(counts=counts, tf=tf, vf=vf, phif=phif.astype(dtype, copy=False), dark=dark, use=use,

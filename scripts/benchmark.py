@@ -5,6 +5,8 @@ Target ``paper`` (default) simulates the paper's study (209 frames of 450 x 510)
 reconstructs it
 - with the defaults,
 - with every 20th column (``fit.subsample=20``): what subsampling saves,
+- with the paper's diagonal preconditioner (``fit.preconditioner=diagonal``): what whitening by the
+  whole profiled Fisher information saves,
 - without preconditioning (``fit.precondition=false``): what eq. 34 saves,
 and reports seconds per stage, L-BFGS iterations and the ratios.
 
@@ -44,6 +46,7 @@ from dfxcorr.sim import simulate as S
 ROOT = Path(__file__).resolve().parents[1]
 
 CASES = {"default": [], "every column": ["fit.subsample=1"], "every 20th column": ["fit.subsample=20"],
+         "diagonal preconditioning (eq. 34)": ["fit.preconditioner=diagonal"],
          "no preconditioning": ["fit.precondition=false"]}
 CLINICAL = {"binned": ROOT / "configs" / "clinical-binned.yaml", "full": ROOT / "configs" / "clinical.yaml"}
 
