@@ -10,7 +10,8 @@ on two cores; ``--pixel-mm 1`` is the paper's full size (450 x 510 pixels). Outp
     python scripts/paper_figures.py fig6 --pixel-mm 1   # one figure at full size
 
 fig4   images before and after correction (paper Fig. 4)
-fig6   cost per iteration: ML with and without preconditioning, alternating (Fig. 6, Sec. III-C)
+fig6   cost per iteration: ML with and without preconditioning (eq. 34 and dfxcorr's profiled one), alternating
+       (Fig. 6, Sec. III-C)
 fig7   dark field: no correction, phase only, phase and v^s (Fig. 7, Sec. III-D.1)
 fig8   the correlation method on the thorax and on a slab of constant attenuation (Fig. 8, Sec. III-D.2)
 fig11  noise power spectra of blank scans for none / correlation / ml (Fig. 11, Sec. III-D.4)
@@ -130,7 +131,9 @@ def fig6(args) -> dict:
     # the plain estimators of the paper's comparison: no prior, no reweighting, one stage
     common = dict(effects=effects, weights=weights, reweight=0, maxiter=args.iterations, gtol=1e-7)
     runs = {"ML, preconditioned (eq. 34)": lambda: fit_vibrations(obs, **common, circmean_iterations=0, staged=False,
-                                                                   prior=False, precondition=True),
+                                                                   prior=False, preconditioner="diagonal"),
+            "ML, whitened by the profiled Fisher information (dfxcorr's default)": lambda: fit_vibrations(
+                obs, **common, circmean_iterations=0, staged=False, prior=False, preconditioner="profiled"),
             "ML, not preconditioned": lambda: fit_vibrations(obs, **common, circmean_iterations=0, staged=False,
                                                              prior=False, precondition=False),
             "alternating": lambda: fit_alternating(obs, **common)}

@@ -168,6 +168,16 @@ def test_threads_follow_the_environment(monkeypatch):
     K.set_threads()
 
 
+def test_blas_runs_on_one_thread_beside_the_kernels():
+    """Idle OpenBLAS threads spin on the cores numba's threads need: set_threads holds BLAS to one."""
+    from threadpoolctl import threadpool_info
+
+    np.linalg.cholesky(np.eye(300))  # BLAS loaded and used
+    K.set_threads()
+    blas = [p for p in threadpool_info() if p["user_api"] == "blas"]
+    assert blas and all(p["num_threads"] == 1 for p in blas)
+
+
 def test_only_the_requested_channels_are_summed(rng):
     obs = prepared(rng)
     params = random_params(rng, obs.n_frames, ALL)

@@ -107,6 +107,16 @@ def test_row_blocks_give_the_images_of_one_pass(prepared_scan):
                                rtol=1e-10, equal_nan=True)
 
 
+def test_observations_are_c_ordered_whatever_the_store(prepared_scan):
+    """The kernels walk one sample row at a time: a Fortran-ordered store must not reach them as such."""
+    scan, _ = prepared_scan
+    prep = pipeline.prepare(scan, C.defaults())
+    prep.store.counts = np.asfortranarray(prep.store.counts)
+    for columns in (None, np.arange(0, scan.shape[2], 3)):
+        obs, _ = prep.observations(columns=columns, dtype=np.float32)
+        assert all(getattr(obs, n).flags["C_CONTIGUOUS"] for n in ("counts", "tf", "vf", "phif", "dark", "use"))
+
+
 def test_row_blocks_follow_the_memory_budget(prepared_scan):
     scan, _ = prepared_scan
     store = pipeline.prepare(scan, C.defaults()).store
