@@ -137,7 +137,7 @@ SCHEMA: dict[str, dict[str, Option]] = {
                             check=lambda v: None if v == "auto" or (not isinstance(v, str) and v > 0)
                             else "must be auto or a positive integer"),
         "max_samples": Option(2_000_000, "subsample auto: most lit samples (rows x frames x columns) the fit may "
-                                         "hold; the fit's time grows with them (about 12 s per million samples "
+                                         "hold; the fit's time grows with them (about 3 s per million samples "
                                          "on 2 cores) and 2e6 keeps phi0 and phi1 within the paper's 0.004 rad "
                                          "on a clinical scan (measured: scripts/benchmark.py clinical)",
                               int, check=_positive),
