@@ -3,7 +3,9 @@
 The cost is the weighted least-squares approximation of the shot-noise log-likelihood (paper eqs. 6,
 20) with the images solved in closed form for every trial of the per-frame parameters (eq. 23), so
 L-BFGS only sees the per-frame parameters and the gradient follows from the envelope theorem
-(eq. 25). The problem is rescaled by the diagonal of its Fisher information (eqs. 27, 34).
+(eq. 25). L-BFGS works in variables whitened by the profiled Fisher information of the per-frame
+parameters (its Cholesky factor; the paper rescales by the diagonal of the plain one, eqs. 27, 34,
+which ``preconditioner='diagonal'`` keeps).
 
 Against local minima (paper Sec. II-E) the fit runs in stages: first the phase effects with the
 phase image held at its circular mean (eq. 36), then the phase effects with free images, then every
@@ -69,6 +71,11 @@ RIDGE = 0.01
 #: At most this many evenly spread columns enter the profiled Hessian of the preconditioner (scaled up to all):
 #: the coupling it captures is that of frames through the rows they share, which every column repeats.
 FACTOR_COLUMNS = 64
+#: Above this many parameters the dense profiled Hessian (P x P, per thread in the Fisher kernel) is not
+#: formed and the diagonal preconditions (a clinical scan has 585; a long scan with many effects could
+#: need gigabytes).
+FACTOR_MAX_PARAMETERS = 3000
+PRECONDITIONERS = ("profiled", "diagonal")
 
 
 class _Problem:
@@ -77,6 +84,8 @@ class _Problem:
     def __init__(self, obs: M.Observations, names: Iterable[str], params: dict[str, np.ndarray], weights: np.ndarray,
                  *, phase: float | None = None, precondition: bool = True, preconditioner: str = "profiled",
                  prior: dict | None = None, fringe: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        if preconditioner not in PRECONDITIONERS:
+            raise ValueError(f"preconditioner must be one of {', '.join(PRECONDITIONERS)}, got {preconditioner!r}")
         self.obs, self.names, self.weights, self.phase = obs, list(names), weights, phase
         # cos and sin of the flat-field phase: fixed for the fit, so the kernels need no trigonometry per sample
         self.fringe = K.fringe(obs) if fringe is None else fringe
@@ -89,11 +98,12 @@ class _Problem:
         self.prior_w = np.concatenate([np.broadcast_to(prior[n][1], params[n].shape).ravel() ** -2.0 if n in prior
                                        else np.zeros(params[n].size) for n in self.names])
         self.scale = np.ones_like(self.theta0)
-        # z = chol^T (scale theta): chol is the Cholesky factor of the unit-diagonal profiled Hessian, or None
+        # z = chol^T (scale theta): chol is the Cholesky factor of the profiled Hessian divided by the diagonal
+        # preconditioner's scales (eq. 34), or None
         self.chol: np.ndarray | None = None
         if precondition:
             self.scale = np.sqrt(self._curvature(params))
-            if preconditioner == "profiled" and phase is None:
+            if preconditioner == "profiled" and phase is None and self.theta0.size <= FACTOR_MAX_PARAMETERS:
                 self.chol = self._profiled_factor(params)
         self.history: list[float] = []
 
@@ -108,14 +118,16 @@ class _Problem:
         return y / self.scale
 
     def _profiled_factor(self, params: dict[str, np.ndarray]) -> np.ndarray | None:
-        """Cholesky factor of the reduced cost's Gauss-Newton Hessian, scaled to unit diagonal.
+        """Cholesky factor of the reduced cost's Gauss-Newton Hessian, divided by the diagonal scales.
 
         The Hessian is 2 x the profiled Fisher information (plain minus the share the images take up, as
         in :func:`uncertainty`) plus the prior. Whitening by it removes what the diagonal of eq. 34 leaves:
         the coupling of phase offset and tilt, and of frames through the images they share (frames that
         light few rows share their pixels with few others, so their plain diagonal overstates their
         information many times over). It is computed on at most :data:`FACTOR_COLUMNS` columns and scaled
-        to all. None where the factorisation fails (the diagonal is used then).
+        to all, then divided by ``outer(scale, scale)`` (the plain diagonal of eq. 34, so its own diagonal
+        is the profiled share of the information, at most 1, plus :data:`RIDGE`). None where the matrix is
+        not finite or the factorisation fails (the diagonal is used then).
         """
         obs, weights = self.obs, self.weights
         if obs.columns.size > FACTOR_COLUMNS:
@@ -133,6 +145,9 @@ class _Problem:
         h[np.diag_indices_from(h)] += 2.0 * self.prior_w
         h /= np.outer(self.scale, self.scale)
         h[np.diag_indices_from(h)] += RIDGE
+        if not np.all(np.isfinite(h)):
+            log.debug("profiled Hessian not finite: diagonal preconditioning")
+            return None
         try:
             return np.linalg.cholesky(h)
         except np.linalg.LinAlgError:
@@ -213,7 +228,9 @@ def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.nda
         the whole profiled Fisher information (its Cholesky factor), so that L-BFGS also sees the
         coupling of the parameters, which the diagonal leaves it to learn (the phase-held stage uses the
         diagonal). Both reach the same minimum; the whitened variables have no box bounds, so where a
-        parameter ends below its bound the stage is finished under the diagonal scaling.
+        parameter ends below its bound the stage is finished under the diagonal scaling, from the last
+        iterate within the bounds and within the same ``maxiter``. Above
+        :data:`FACTOR_MAX_PARAMETERS` parameters the diagonal is used.
     prior : dict, optional
         Effect name -> (centre, width): a Gaussian prior on each per-frame parameter, arrays
         broadcastable to the parameters (see :func:`catalogue_prior`, :func:`empirical_prior`).
@@ -230,26 +247,36 @@ def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.nda
     converged : bool
     """
     costs: list[float] = []
+    # the last iterate within the lower bounds (the whitened variables have no box bounds)
+    feasible: list[np.ndarray] = []
 
     def callback(intermediate_result: Any) -> None:  # a scipy.optimize.OptimizeResult
         costs.append(float(intermediate_result.fun))
+        if prob.chol is not None:
+            now = prob.to_theta(intermediate_result.x)
+            if np.all(now >= lower):
+                feasible[:] = [now]
         if on_iteration is not None:
             on_iteration(costs[-1])
 
     prob = _Problem(obs, names, params, weights, phase=phase, precondition=precondition,
                     preconditioner=preconditioner, prior=prior, fringe=fringe)
+    lower = prob.lower()
+    if np.all(prob.theta0 >= lower):
+        feasible.append(prob.theta0)
     res = minimize(prob.evaluate, prob.to_z(prob.theta0), jac=True, method="L-BFGS-B", bounds=prob.bounds(),
                    callback=callback, options={"maxiter": maxiter, "maxcor": 20, "ftol": 1e-15, "gtol": gtol})
     theta = prob.to_theta(res.x)
-    lower = prob.lower()
     if prob.chol is not None and np.any(theta < lower):
-        # the whitened variables have no box bounds: finish under the diagonal scaling, which keeps them
+        # finish under the diagonal scaling, which keeps the bounds, from the last iterate within them (a
+        # clipped end point could sit across a symmetry, e.g. v < 0 for a fringe shifted by pi)
         log.debug("%d parameters below their bounds: diagonal preconditioning from there", int(np.sum(theta < lower)))
-        start = prob.unpack(np.maximum(theta, lower))
+        start = prob.unpack(feasible[-1] if feasible else np.maximum(theta, lower))
         prob = _Problem(obs, names, {**params, **start}, weights, phase=phase, precondition=precondition,
                         preconditioner="diagonal", prior=prior, fringe=fringe)
         res = minimize(prob.evaluate, prob.to_z(prob.theta0), jac=True, method="L-BFGS-B", bounds=prob.bounds(),
-                       callback=callback, options={"maxiter": maxiter, "maxcor": 20, "ftol": 1e-15, "gtol": gtol})
+                       callback=callback, options={"maxiter": max(maxiter - len(costs), 1), "maxcor": 20,
+                                                   "ftol": 1e-15, "gtol": gtol})
         theta = prob.to_theta(res.x)
     return prob.unpack(theta), costs, str(res.message), bool(res.success)
 

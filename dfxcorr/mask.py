@@ -55,16 +55,17 @@ def motion_statistics(obs: M.Observations, params: dict | None = None,
         params = pilot_vibrations(obs)
     K.set_threads()
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
-    # without weights: a solve with the data's, then one with the model's (the kernel's two iterations)
+    # without weights, those of the model (a solve with the data's first): the score compares the residual
+    # with the noise the model predicts, not with the data's own scatter
     solved = K.retrieve(obs, ch, iterations=2) if weights is None else K.retrieve(obs, ch, weights=weights)
     weights, ibar = solved["weights"], solved["expected"]
     n = obs.segment_sum((weights > 0).astype(float))
     # the fringe's amplitude per unit image modulation, |(Bc, Bs)| = D tf vf V of model.design
-    fringe = ch.dose[obs.frame][:, None] * obs.tf * obs.vf * ch.vis[obs.frame]
+    fringe_amp = ch.dose[obs.frame][:, None] * obs.tf * obs.vf * ch.vis[obs.frame]
     with np.errstate(divide="ignore", invalid="ignore"):
         eps = obs.segment_sum(np.where(weights > 0, deviance(obs, ibar), 0.0)) / (n - 3)
         amp = np.hypot(solved["coef"][..., 1], solved["coef"][..., 2])[obs.pixel]
-        q = obs.segment_sum(weights * (amp * fringe) ** 2) / n
+        q = obs.segment_sum(weights * (amp * fringe_amp) ** 2) / n
     ok = solved["valid"] & (n > 3) & np.isfinite(eps) & np.isfinite(q)
     return np.where(ok, eps, np.nan), np.where(ok, q, np.nan), n - 3
 
@@ -131,9 +132,9 @@ def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4
     index = M.fisher_index(names, sub.n_frames)
     params = M.neutral_params(names, obs.n_frames)
     weights = M.noise_weights(sub, np.maximum(sub.counts, 1.0))
+    ch = M.channels(params, x=sub.x, n_frames=sub.n_frames)
+    solved = K.retrieve(sub, ch, weights=weights)
     for _ in range(iterations):
-        ch = M.channels(params, x=sub.x, n_frames=sub.n_frames)
-        solved = K.retrieve(sub, ch, weights=weights)
         resid = sub.counts - solved["expected"]
         z2 = sub.segment_sum(weights * resid ** 2) / np.maximum(sub.segment_sum((weights > 0) * 1.0), 1)
         outlier = z2 > 4.0 * np.median(z2[solved["valid"]])
@@ -149,9 +150,10 @@ def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4
             params[n][j, m] += d
         if np.sqrt(np.mean(step ** 2)) < tol:
             break
-        # noise weights from the model solved with the current weights
-        weights = K.retrieve(sub, M.channels(params, x=sub.x, n_frames=sub.n_frames), weights=weights,
-                             iterations=2)["weights"]
+        # noise weights from the model solved with the current weights; the solve with them is the next step's
+        ch = M.channels(params, x=sub.x, n_frames=sub.n_frames)
+        solved = K.retrieve(sub, ch, weights=weights, iterations=2)
+        weights = solved["weights"]
     return params
 
 
@@ -162,9 +164,11 @@ def robust_threshold(score: np.ndarray, *, sigma: float) -> float:
     return float(med + sigma * 1.4826 * np.median(np.abs(s - med)))
 
 
-def _chi2_logsf(x, k):
-    """log P(chi-square with k degrees of freedom > x); -inf below the smallest double (such a pixel stays
-    flagged). From scipy.special: scipy.stats would add about 0.3 s to every start of the program."""
+def _chi2_logsf(x: np.ndarray | float, k: np.ndarray | float) -> np.ndarray:
+    """log P(chi-square with k degrees of freedom > x), elementwise; -inf below the smallest double.
+
+    Such a pixel stays flagged. From scipy.special: scipy.stats would add about 0.3 s to every start.
+    """
     with np.errstate(divide="ignore"):
         return np.log(special.gammaincc(np.asarray(k) / 2.0, np.asarray(x) / 2.0))
 

@@ -1085,7 +1085,9 @@ def _fit_state(obs: M.Observations, fit_obs: M.Observations, model: list, start:
             warm = bool(start)
             fitted = fit_vibrations(fit_obs, effects=model, start=start, gtol=cfg["fit"]["gtol"], staged=not warm,
                                     circmean_iterations=0 if warm else cfg["fit"]["circmean_iterations"],
-                                    reweight=0 if warm else 1, visibility_gauge=cfg["fit"]["visibility_gauge"],
+                                    reweight=0 if warm else 1, precondition=cfg["fit"]["precondition"],
+                                    preconditioner=cfg["fit"]["preconditioner"],
+                                    visibility_gauge=cfg["fit"]["visibility_gauge"],
                                     visibility_quantile=cfg["fit"]["visibility_quantile"],
                                     gauge_fraction=cfg["fit"]["gauge_fraction"])
             params = {k: v for k, v in fitted.params.items() if k in model}
