@@ -19,8 +19,13 @@ resolution under 60 s and 1.6 GB, binned under 15 s, RMSE within 0.004 rad.
 
 Both print the machine and write its section of docs/benchmark.json (the other section is kept).
 
+Target ``targets`` runs nothing: it prints every speed target of the clinical-scale work (issue 9) with
+the figure measured for it and the machine, from docs/benchmark.json, docs/bench-baseline.json
+(scripts/bench_baseline.py) and docs/bench-kernels.json (scripts/bench_kernels.py).
+
 Usage: python scripts/benchmark.py [paper] [--pixel-mm 1.0] [--repeat 1] [--out docs/]
        python scripts/benchmark.py clinical --dir /tmp/dfx-bench [--cases binned full] [--set k=v ...]
+       python scripts/benchmark.py targets [--out docs/]
 """
 from __future__ import annotations
 
@@ -109,7 +114,7 @@ def clinical(args) -> dict:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("target", nargs="?", choices=("paper", "clinical"), default="paper")
+    ap.add_argument("target", nargs="?", choices=("paper", "clinical", "targets"), default="paper")
     ap.add_argument("--pixel-mm", type=float, default=1.0, help="paper: pixel pitch of the simulated study (mm)")
     ap.add_argument("--repeat", type=int, default=1, help="paper: runs per case (the fastest counts)")
     ap.add_argument("--dir", type=Path, default=Path("/tmp/dfx-bench"), help="clinical: folder for the scans")
@@ -118,6 +123,9 @@ def main():
                     help="clinical: reconstruct option (repeatable)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
     args = ap.parse_args()
+    if args.target == "targets":
+        targets(args.out)
+        return
     info = machine()
     print(info, flush=True)
     doc_path = args.out / "benchmark.json"
@@ -130,6 +138,47 @@ def main():
         doc["paper"] = paper(args, info)
     args.out.mkdir(parents=True, exist_ok=True)
     doc_path.write_text(json.dumps(doc, indent=2))
+
+
+def targets(folder: Path) -> None:
+    """Print each target with its measured figure, the machine and whether it is met (from the saved JSON)."""
+    def load(name):
+        path = folder / name
+        return json.loads(path.read_text()) if path.exists() else {}
+
+    bench, base, kern = load("benchmark.json"), load("bench-baseline.json"), load("bench-kernels.json")
+    rows = []
+    clin = bench.get("clinical", {}).get("cases", {})
+    if "full" in clin:
+        c = clin["full"]
+        worst = max(c["rmse"]["phase_offset"], c["rmse"]["tilt"])
+        rows.append(("full resolution 195 x 2880 x 2880: < 60 s, <= 1.6 GB, phi0/phi1 RMSE < 0.004 rad",
+                     f"{c['seconds']} s, {c['peak_rss_mb'] / 1000:.2f} GB, {worst:.4f} rad",
+                     c["seconds"] < 60 and c["peak_rss_mb"] <= 1600 and worst < 0.004))
+    if "binned" in clin:
+        c = clin["binned"]
+        rows.append(("binned 195 x 1440 x 1440: < 15 s", f"{c['seconds']} s", c["seconds"] < 15))
+    for case, entry in base.get("summary", {}).items():
+        sec = entry["median_seconds"]
+        settings = "each at its own defaults" if case == "defaults" else case
+        rows.append((f"paper study, {settings}, this / {base.get('reference')}: ratio <= 0.2",
+                     f"{sec['this checkout']} / {sec[base.get('reference')]} s, ratio {entry['ratio_this_over_ref']}",
+                     entry["ratio_this_over_ref"] <= 0.2))
+    every = bench.get("paper", {}).get("cases", {}).get("every column")
+    if every:
+        rows.append(("paper study, fit.subsample=1: < 30 s", f"{every['seconds']} s (in memory)",
+                     every["seconds"] < 30))
+    for key, label in (("paper_every_column", "paper study, every column"), ("clinical_fit_columns", "clinical fit")):
+        if key in kern:
+            k = kern[key]
+            rows.append((f"ns per sample, {label}: cost+gradient / retrieval (CPU) against the bandwidth floor",
+                         f"{k['cost_gradient']['cpu_ns_per_sample']} / {k['retrieval']['cpu_ns_per_sample']} ns "
+                         f"against {k['cost_gradient']['floor_ns_per_sample']} / "
+                         f"{k['retrieval']['floor_ns_per_sample']} ns", None))
+    print("machine:", bench.get("clinical", {}).get("machine") or bench.get("paper", {}).get("machine"),
+          "| kernels:", kern.get("machine"))
+    for what, figure, met in rows:
+        print(f"{what}\n    measured {figure}: {'-' if met is None else 'met' if met else 'NOT met'}")
 
 
 def paper(args, info: dict) -> dict:
