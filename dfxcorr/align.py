@@ -157,7 +157,7 @@ class LitStore:
     def observations(self, reference: Reference, *, columns: np.ndarray | None = None,
                      rows: tuple[int, int] | None = None, pixel_mask: np.ndarray | None = None,
                      gain: float | None = None, electronic: float = 0.0, noise: np.ndarray | None = None,
-                     dtype: DTypeLike = np.float64) -> Observations:
+                     dtype: DTypeLike = np.float64, phase_unwrapped: bool = False) -> Observations:
         """Align the flat field to the held samples of some columns and rows.
 
         Parameters
@@ -179,6 +179,9 @@ class LitStore:
         dtype : numpy dtype
             Of the sample arrays: float64, or float32 to halve them (counts up to 2^24 stay exact;
             the flat field is interpolated in float64 first).
+        phase_unwrapped : bool
+            The reference's phase is already unwrapped along the scan (axis 0), so it is not done again
+            (a caller aligning block after block unwraps once).
 
         Returns
         -------
@@ -188,7 +191,7 @@ class LitStore:
         cols = np.arange(W) if columns is None else np.asarray(columns, dtype=np.int64)
         lo, hi = (0, self.row.size) if rows is None else np.searchsorted(self.row, rows)
         row, frame, u = self.row[lo:hi], self.frame[lo:hi], self.u[lo:hi]
-        phase = np.unwrap(reference.phase[:, cols], axis=0)
+        phase = reference.phase[:, cols] if phase_unwrapped else np.unwrap(reference.phase[:, cols], axis=0)
         tf = interpolate_rows(reference.transmission[:, cols], u).astype(dtype, copy=False)
         vf = interpolate_rows(reference.visibility[:, cols], u).astype(dtype, copy=False)
         phif = interpolate_rows(phase, u)

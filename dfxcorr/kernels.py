@@ -20,6 +20,7 @@ tile finds what the first left in cache. Sums are accumulated in float64 whateve
 """
 from __future__ import annotations
 
+import functools
 import os
 
 import numba
@@ -75,8 +76,15 @@ def set_threads() -> int:
         n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     n = max(1, min(n, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]  # set at run time, as above
     numba.set_num_threads(n)
-    threadpool_limits(limits=1, user_api="blas")
+    _single_threaded_blas()
     return n
+
+
+@functools.cache
+def _single_threaded_blas() -> None:
+    """Hold BLAS to one thread, once per process (finding the loaded libraries takes about 2.5 ms, and
+    set_threads runs for every block of a scan: 0.7 s at full resolution)."""
+    threadpool_limits(limits=1, user_api="blas")
 
 
 def row_chunks(starts: np.ndarray, n_blocks: int, *, per_thread: int = 4) -> np.ndarray:
