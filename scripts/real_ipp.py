@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -42,7 +43,11 @@ def main():
                                                                "reference.dose=false"]))
         ml = pipeline.reconstruct(path, C.defaults(), command_line="scripts/real_ipp.py")
         diag = diagnose(path, C.defaults())
-    write_report(diag, args.out / "real-ipp-diagnosis", overwrite=True)
+    # a fresh folder: a picture of an effect an earlier run detected must not stay beside this run's report
+    report = args.out / "real-ipp-diagnosis"
+    if report.exists():
+        shutil.rmtree(report)
+    write_report(diag, report)
     ml.uncorrected = {k: nominal_steps.image(k) for k in ml.IMAGES}
     plots.write_preview(args.out / "real-ipp.png", ml, overwrite=True,
                          title="real stepping recording (11 steps, 195 x 487): nominal steps (top) vs estimated step "
