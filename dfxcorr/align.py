@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import DTypeLike
 
+from . import kernels as K
 from .errors import DfxcorrError
 from .io import Reference, Scan, frame_rows
 from .model import Observations, lag_estimate, lag_free, lateral_coordinate
@@ -26,8 +27,11 @@ class AlignmentError(DfxcorrError, ValueError):
     """No usable pixel, or a reference that cannot be aligned."""
 
 
-def interpolate_rows(maps: np.ndarray, u: np.ndarray) -> np.ndarray:
+def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, dtype: DTypeLike = np.float64) -> np.ndarray:
     """Linear interpolation of row-sampled maps at continuous local rows.
+
+    With f = u - 0.5 and k0 = floor(f) clipped to [0, A - 2], the value is
+    (1 - (f - k0)) maps[k0] + (f - k0) maps[k0 + 1] (compiled: :func:`dfxcorr.kernels.interpolate_rows`).
 
     Parameters
     ----------
@@ -35,18 +39,17 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray) -> np.ndarray:
         Values at the row centres u = k + 0.5.
     u : ndarray, shape (K,)
         Local rows (0 <= u < A for lit samples); the outer half rows are extrapolated linearly.
+    dtype : numpy dtype
+        Of the result (computed in float64).
 
     Returns
     -------
     ndarray, shape (K, W)
     """
-    A = maps.shape[0]
-    if A == 1:
-        return np.repeat(maps, u.size, axis=0)
-    f = np.asarray(u, dtype=np.float64) - 0.5
-    k0 = np.clip(np.floor(f).astype(np.int64), 0, A - 2)
-    a = (f - k0)[:, None]
-    return (1.0 - a) * maps[k0] + a * maps[k0 + 1]
+    if maps.shape[0] == 1:
+        return np.repeat(maps, np.size(u), axis=0).astype(dtype, copy=False)
+    K.set_threads()
+    return K.interpolate_rows(maps, u, dtype=dtype)
 
 
 def lit_blocks(position: np.ndarray, active_rows: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -192,8 +195,8 @@ class LitStore:
         lo, hi = (0, self.row.size) if rows is None else np.searchsorted(self.row, rows)
         row, frame, u = self.row[lo:hi], self.frame[lo:hi], self.u[lo:hi]
         phase = reference.phase[:, cols] if phase_unwrapped else np.unwrap(reference.phase[:, cols], axis=0)
-        tf = interpolate_rows(reference.transmission[:, cols], u).astype(dtype, copy=False)
-        vf = interpolate_rows(reference.visibility[:, cols], u).astype(dtype, copy=False)
+        tf = interpolate_rows(reference.transmission[:, cols], u, dtype=dtype)
+        vf = interpolate_rows(reference.visibility[:, cols], u, dtype=dtype)
         phif = interpolate_rows(phase, u)
         phif += self.phase_step[frame][:, None]
         # C order whatever the store's: the kernels walk a sample row at a time (a Fortran-ordered copy made

@@ -48,3 +48,17 @@ def test_reference_maps_from_a_noise_free_stepping_series(rng):
     np.testing.assert_allclose(ref.transmission, t, rtol=1e-10)
     np.testing.assert_allclose(ref.visibility, v, rtol=1e-9)
     np.testing.assert_allclose(np.angle(np.exp(1j * (ref.phase - phi))), 0, atol=1e-9)
+
+
+def test_compiled_interpolation_is_the_formula():
+    """The kernel gives (1 - a) m[k0] + a m[k0 + 1] exactly, in float64 and rounded once to float32."""
+    rng = np.random.default_rng(7)
+    maps = rng.normal(size=(9, 13))
+    u = rng.uniform(0.0, 9.0, 500)
+    f = u - 0.5
+    k0 = np.clip(np.floor(f).astype(np.int64), 0, maps.shape[0] - 2)
+    a = (f - k0)[:, None]
+    oracle = (1.0 - a) * maps[k0] + a * maps[k0 + 1]
+    np.testing.assert_array_equal(interpolate_rows(maps, u), oracle)
+    np.testing.assert_array_equal(interpolate_rows(maps, u, dtype=np.float32), oracle.astype(np.float32))
+    np.testing.assert_array_equal(interpolate_rows(maps[:1], u), np.repeat(maps[:1], u.size, axis=0))
