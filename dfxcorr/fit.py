@@ -129,10 +129,7 @@ class _Problem:
         is the profiled share of the information, at most 1, plus :data:`RIDGE`). None where the matrix is
         not finite or the factorisation fails (the diagonal is used then).
         """
-        obs, weights = self.obs, self.weights
-        if obs.columns.size > FACTOR_COLUMNS:
-            keep = np.unique(np.linspace(0, obs.columns.size - 1, FACTOR_COLUMNS).astype(int))
-            obs, weights = obs.subset(keep), weights[:, keep]
+        obs, weights = spread_columns(self.obs, self.weights, most=FACTOR_COLUMNS)
         images = _solve(obs, params, weights, keep_inverse=True)
         plain, corr = K.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
                                M.component_table(self.names)[:3])
@@ -392,6 +389,14 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
     unc = uncertainty(obs, params, weights)
     return FitResult(params=params, uncertainty=unc, cost=np.asarray(costs), stage=stage_of,
                      iterations=len(costs), converged=converged, messages=messages, well_determined=good)
+
+
+def spread_columns(obs: M.Observations, weights: np.ndarray, *, most: int) -> tuple[M.Observations, np.ndarray]:
+    """At most ``most`` evenly spread columns of the observations and their weights (K, C); all if fewer."""
+    if obs.columns.size <= most:
+        return obs, weights
+    keep = np.unique(np.linspace(0, obs.columns.size - 1, most).astype(int))
+    return obs.subset(keep), weights[:, keep]
 
 
 def initial_weights(obs: M.Observations, params: dict) -> np.ndarray:

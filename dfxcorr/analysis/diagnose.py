@@ -734,9 +734,14 @@ def class_chi2(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, classes
             if dof[classes == k].sum() > 0}
 
 
+def _held_noise(fmap: np.ndarray | None, obs: M.Observations) -> np.ndarray | None:
+    """The variance factors (R, C) of the pixels ``obs`` holds, from a detector map (H, W); None stays None."""
+    return None if fmap is None else fmap[np.ix_(obs.rows, obs.columns)]
+
+
 def _set_pixel_noise(obs: M.Observations, fit_obs: M.Observations, fmap: np.ndarray | None) -> None:
     for o in (obs, fit_obs):
-        o.noise = None if fmap is None else fmap[np.ix_(o.rows, o.columns)]
+        o.noise = _held_noise(fmap, o)
 
 
 def _lag_observations(prep: Prepared, like: M.Observations, shift: np.ndarray, fraction: float,
@@ -947,7 +952,8 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                      rnd, candidate, 100 * share)
             rejected[candidate] = share
             _restore(obs, fit_obs, state)
-            _set_pixel_noise(obs, fit_obs, prep.pixel_noise)
+            if candidate == "pixel_noise":
+                _set_pixel_noise(obs, fit_obs, prep.pixel_noise)
         if chosen is None:
             break
         choice, trial = chosen
@@ -955,7 +961,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
         extra: dict[str, Any] = {}
         # the data and noise model the state before the change was fitted with (lag and pixel_noise change them)
         before_obs = obs if choice != "pixel_noise" else replace(
-            obs, noise=None if prep.pixel_noise is None else prep.pixel_noise[np.ix_(obs.rows, obs.columns)])
+            obs, noise=_held_noise(prep.pixel_noise, obs))
         if choice == "sample_motion":
             motion = trial["motion"]
             extra["pixels"] = int(motion.sum())

@@ -24,7 +24,7 @@ from .. import config as C
 from .. import kernels as K
 from .. import model as M
 from ..errors import DfxcorrError
-from ..fit import initial_weights
+from ..fit import initial_weights, spread_columns
 from ..io import Scan
 
 log = logging.getLogger("dfxcorr")
@@ -167,9 +167,7 @@ def select(obs: M.Observations, weights: np.ndarray, names, *, max_columns: int 
     names = [n for n in names if M.effect(n).channel is not None]
     if not names:
         return []
-    if obs.columns.size > max_columns:
-        keep = np.unique(np.linspace(0, obs.columns.size - 1, max_columns).astype(int))
-        obs, weights = obs.subset(keep), weights[:, keep]
+    obs, weights = spread_columns(obs, weights, most=max_columns)
     params = M.neutral_params(names, obs.n_frames)
     dsg = M.design(obs, params)
     inf = information(obs, dsg, M.solve_images(obs, dsg, weights, keep_inverse=True), weights, names)
