@@ -18,7 +18,7 @@ from numpy.typing import DTypeLike
 from . import kernels as K
 from .errors import DfxcorrError
 from .io import Reference, Scan, frame_rows
-from .model import Observations, lag_estimate, lag_free, lateral_coordinate
+from .observations import Observations, lateral_coordinate
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +93,7 @@ class LitStore:
     left_prev : ndarray of int, shape (L,)
         Index of the block (row, j - 1) of each of them.
     lag : float
-        Detector lag fraction already taken out of ``counts`` (:meth:`lag_free`).
+        Detector lag fraction already taken out of ``counts`` (:func:`dfxcorr.effects.detector_lag.without_lag`).
     """
 
     counts: np.ndarray
@@ -107,37 +107,6 @@ class LitStore:
     left_counts: np.ndarray | None = None
     left_prev: np.ndarray | None = None
     lag: float = 0.0
-
-    def lag_free(self, fraction: float) -> LitStore:
-        """The same samples with detector lag ``fraction`` taken out (:func:`dfxcorr.model.lag_free`), float32.
-
-        Raises
-        ------
-        ValueError
-            If lag was already taken out of this store.
-        """
-        if self.lag:
-            raise ValueError("the detector lag was already taken out of these samples")
-        counts = lag_free(self.counts, self.dark[self.row], self.row, self.frame, fraction)
-        return replace(self, counts=counts, lag=float(fraction))
-
-    def lag_estimate(self) -> tuple[float, float]:
-        """Lag fraction a and its standard error from the pixels just left (:func:`dfxcorr.model.lag_estimate`).
-
-        The previous frame's lag-free signal depends on a itself (S_(j-1) = I_(j-1) - a S_(j-2)): a few
-        fixed-point iterations, each a's error times a. (nan, inf) without such pixels (phase stepping).
-        """
-        if self.left_counts is None or self.left_prev is None or self.left_prev.size == 0:
-            return float("nan"), float("inf")
-        prev_row = self.row[self.left_prev]
-        signal = self.left_counts.astype(np.float64) - self.dark[prev_row]
-        a, se = 0.0, float("inf")
-        for _ in range(4):
-            prev = lag_free(self.counts, self.dark[self.row], self.row, self.frame, self.lag or a)[self.left_prev]
-            a, se = lag_estimate(signal, prev - self.dark[prev_row])
-            if self.lag:
-                break
-        return a, se
 
     @property
     def rows(self) -> np.ndarray:
@@ -286,6 +255,19 @@ def read_position_errors(path: str | Path, n_frames: int) -> np.ndarray:
     if values is None or values.size != n_frames or not np.all(np.isfinite(values)):
         raise AlignmentError(f"{path}: expected {n_frames} finite position errors (rows), one per frame")
     return values
+
+
+def realign(store: LitStore, reference: Reference, like: Observations, shift: np.ndarray | float) -> Observations:
+    """Observations of the samples of ``like`` with the flat field read at u - shift (rows; scalar or (J,)).
+
+    ``like`` must come from ``store`` (same rows and columns); its ``use``, noise model and region of
+    interest (v^f = 0 outside) are kept, so that the realigned samples are the same samples.
+    """
+    rows = (int(like.row[0]), int(like.row[-1]) + 1)
+    obs = store.shifted(shift).observations(reference, columns=like.columns, rows=rows, gain=like.gain,
+                                            electronic=like.electronic, dtype=like.counts.dtype)
+    return replace(obs, noise=like.noise, vf=np.where(like.in_roi, obs.vf, 0).astype(obs.vf.dtype, copy=False),
+                   use=like.use, roi=like.roi)
 
 
 def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray | None = None,

@@ -282,7 +282,7 @@ def _columns(width: int, cfg: dict, samples_per_column: int) -> np.ndarray:
 
 def _visibility_reasons(scan: io.Scan) -> str | None:
     """Why visibility effects cannot be determined by this acquisition (paper Sec. II-F), or None."""
-    from .analysis.identify import visibility_unidentifiable
+    from .planning import visibility_unidentifiable
     from .reference import resolve_reference
 
     reference = scan.reference
@@ -315,7 +315,7 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     IdentifiabilityError
         A visibility effect set to true that this acquisition cannot determine.
     """
-    from .analysis.identify import drop_visibility
+    from .planning import VISIBILITY_EFFECTS, drop_visibility
 
     J, H, W = scan.shape
     method = cfg["fit"]["method"]
@@ -331,7 +331,7 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     lit = int(count[used].sum()) * W
     columns = np.zeros(0, int) if method == "none" else _columns(W, cfg, lit // W)
     effects = C.effects_of(cfg) if method != "none" else ()
-    why = _visibility_reasons(scan) if {"visibility_loss", "visibility_tilt"} & set(effects) else None
+    why = _visibility_reasons(scan) if set(VISIBILITY_EFFECTS) & set(effects) else None
     kept, dropped = drop_visibility(cfg, effects, why)
     effects = tuple(kept)
     return Plan(scan=name, shape=(J, H, W), dtype=str(scan.data.dtype), active_rows=scan.active_rows,

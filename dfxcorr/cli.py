@@ -243,7 +243,7 @@ def diagnose(scan, out_dir, config_files, sets, base, overwrite):
     """Find where SCAN and the model disagree, name the missing physics, add it and refit."""
     from . import check
     from .analysis.diagnose import diagnose as run
-    from .analysis.diagnose import write_report
+    from .analysis.report import write_report
 
     out = Path(out_dir)
     _guard([out / name for name in ("diagnosis.json", "report.md", "residuals.png", "motion_mask.tif")],

@@ -17,6 +17,7 @@ from typing import Any
 
 import yaml
 
+from .catalogue import config_keys
 from .errors import DfxcorrError
 
 
@@ -191,10 +192,27 @@ SCHEMA: dict[str, dict[str, Option]] = {
     },
 }
 
-#: Configuration keys of the vibration section -> catalogue effects.
-VIBRATION_EFFECTS = {"phase_offset": "phase_offset", "tilt": "tilt", "visibility": "visibility_loss",
-                     "curvature": "curvature", "visibility_tilt": "visibility_tilt", "dose": "dose",
-                     "background": "background", "harmonic": "harmonic"}
+#: Configuration keys of the vibration section -> catalogue effects (from the catalogue's entries).
+VIBRATION_EFFECTS = config_keys("vibration")
+
+
+def option(key: str, schema: dict = SCHEMA) -> Option:
+    """The option of a dotted key 'section.key'."""
+    section, name = key.split(".", 1)
+    return schema[section][name]
+
+
+def get(cfg: dict, key: str) -> Any:
+    """The value of a dotted key 'section.key' in a resolved configuration."""
+    section, name = key.split(".", 1)
+    return cfg[section][name]
+
+
+def reference_effects(cfg: dict) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The per-step effects a reference stepping series is fitted with (``reference.*``), and those only where
+    identifiable ('auto')."""
+    asked = (("phase_offset", cfg["reference"]["step_errors"]), ("dose", cfg["reference"]["dose"]))
+    return tuple(e for e, on in asked if on is not False), tuple(e for e, on in asked if on == "auto")
 
 
 def defaults(schema: dict = SCHEMA) -> dict:

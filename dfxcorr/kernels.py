@@ -29,7 +29,8 @@ from numba import njit, prange
 from threadpoolctl import threadpool_limits
 
 #: Channel ids of the component tables (see :func:`dfxcorr.model.component_table`).
-CHANNEL_IDS = {"phase": 0, "visibility": 1, "dose": 2, "background": 3, "harmonic": 4}
+PHASE, VISIBILITY, DOSE, BACKGROUND, HARMONIC = range(5)
+CHANNEL_IDS = {"phase": PHASE, "visibility": VISIBILITY, "dose": DOSE, "background": BACKGROUND, "harmonic": HARMONIC}
 
 #: Columns per tile of the retrieval: a tile's design arrays of one row (up to a few hundred frames) stay in
 #: the L2 cache.

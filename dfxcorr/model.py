@@ -1,7 +1,13 @@
 """The forward model: paper eq. 19 extended by the effect catalogue of ``spec/diagnosis.md``.
 
-This module is the only definition of the expected count, its derivatives and the per-frame effects;
-the simulator, the baselines and the diagnosis call it. The fit and the retrieval run the compiled
+"The paper" throughout this package is J. Haeusele, C. Schmid, M. Viermetz, N. Gustschin, T. Lasser,
+T. Koehler and F. Pfeiffer, "Correction for mechanical inaccuracies in a scanning Talbot-Lau
+interferometer", IEEE Transactions on Medical Imaging 43(1), 2024, doi:10.1109/TMI.2023.3288358.
+
+This module is the only definition of the expected count and its derivatives; the effects it is
+made of are the entries of :mod:`dfxcorr.catalogue`, the data it is evaluated on are
+:class:`dfxcorr.observations.Observations`, and the noise model is :mod:`dfxcorr.noise`. The
+simulator, the baselines and the diagnosis call it. The fit and the retrieval run the compiled
 loops of :mod:`dfxcorr.kernels`, which evaluate the same model from the channel values of
 :func:`channels`; the numpy expressions here are their definition and the tests' oracle.
 
@@ -34,243 +40,26 @@ refined by Gauss-Newton steps (:func:`solve_images`), each again a closed-form s
 the model's derivatives at the current direction of (c, s) (by Euler's identity the linearised model
 has no constant term), so the solution is the least-squares optimum and the envelope theorem holds.
 
-Data layout
------------
-A scan is handled as an :class:`Observations` stack: one block per (illuminated detector row, frame)
-pair, ``K`` blocks sorted by row, each holding the ``C`` selected detector columns. Per-pixel sums are
-segment sums over the blocks of one row; per-frame sums are bincounts over the blocks' frames.
+The names of the catalogue, the observations and the noise model are available here too (``M.effect``,
+``M.Observations``, ``M.variance``): the model is what they are for.
 """
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from . import kernels
+from .catalogue import CATALOGUE, MEAN_EFFECTS, PAPER_MODEL, Effect, effect, neutral_params
+from .noise import noise_weights, pearson, variance
+from .observations import Noise, Observations, lateral_coordinate
 
-# --------------------------------------------------------------------------------------------------
-# The effect catalogue
-# --------------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Effect:
-    """One entry of the effect catalogue.
-
-    Attributes
-    ----------
-    name : str
-        Catalogue name (``spec/diagnosis.md``), also the result dataset name.
-    channel : str or None
-        Which term of the model it enters: 'phase', 'visibility', 'dose', 'background', 'harmonic';
-        None for effects that change the noise ('detector_gain') or the pixel set ('sample_motion').
-    per_frame : bool
-        One parameter set per frame (shape (J, n)) or one global set (shape (n,)).
-    components : tuple of str
-        Names of the n parameter components; for per-frame effects 'x^k' gives the power of the
-        lateral coordinate that multiplies the parameter.
-    neutral : float
-        Value at which the effect is absent.
-    gauge : str
-        'shift' (median over well-determined frames set to the neutral value: the images absorb a
-        constant), 'scale' (robust normalisation to 1: the images absorb a factor) or 'none'.
-    summary : str
-        One line for reports.
-    scale : float
-        Prior width (parameter units) that keeps frames with almost no data near the neutral value.
-    lower : float or None
-        Physical lower bound for the parameters (None: unbounded).
-    """
-
-    name: str
-    channel: str | None
-    per_frame: bool
-    components: tuple[str, ...]
-    neutral: float
-    gauge: str
-    summary: str
-    scale: float = 1.0
-    lower: float | None = None
-
-    @property
-    def powers(self) -> tuple[int, ...]:
-        """Powers of x for per-frame components ('x^k')."""
-        return tuple(int(c.split("^")[1]) for c in self.components)
-
-    @property
-    def size(self) -> int:
-        return len(self.components)
-
-
-CATALOGUE: dict[str, Effect] = {e.name: e for e in (
-    Effect("phase_offset", "phase", True, ("x^0",), 0.0, "shift",
-           "grating shift between exposures (or phase-step error): phi0_j added to the phase", scale=1.0),
-    Effect("tilt", "phase", True, ("x^1",), 0.0, "shift",
-           "grating rotation about the optical axis: x * phi1_j added to the phase", scale=1.0),
-    Effect("curvature", "phase", True, ("x^2",), 0.0, "shift",
-           "second-order grating deformation: x^2 * phi2_j added to the phase", scale=1.0),
-    Effect("visibility_loss", "visibility", True, ("x^0",), 1.0, "scale",
-           "grating motion during the exposure: v^s_j multiplies the visibility", scale=1.0, lower=1e-3),
-    Effect("visibility_tilt", "visibility", True, ("x^1", "x^2"), 0.0, "shift",
-           "rotation during the exposure: visibility factor v0_j + x v1_j + x^2 v2_j", scale=1.0),
-    Effect("dose", "dose", True, ("x^0",), 1.0, "scale",
-           "source output or exposure-time fluctuation: d_j multiplies the expected count", scale=1.0, lower=1e-3),
-    Effect("background", "background", False, ("1", "x", "y"), 0.0, "none",
-           "additive signal not modulated by the gratings: b0 + b1 x + b2 y (counts)", scale=1e6),
-    Effect("harmonic", "harmonic", False, ("cos", "sin"), 0.0, "none",
-           "non-sinusoidal stepping curve: v cos psi becomes v (cos psi + a2 cos(2 psi + beta))", scale=1.0),
-    Effect("sample_motion", None, False, (), 0.0, "none",
-           "part of the sample moved during the scan: pixels whose frames disagree"),
-    Effect("detector_gain", None, False, (), 1.0, "none",
-           "noise is not Poisson in the file's units: variance = g * mean (+ electronic noise)"),
-    # read where the flat field is aligned (align.reference_offset, align.position_errors), not in the model's
-    # channels
-    Effect("reference_offset", None, False, ("delta",), 0.0, "none",
-           "the interferometer sat delta rows off during the scan: the flat field is read at u - delta"),
-    Effect("position_error", None, True, ("delta",), 0.0, "shift",
-           "the recorded position of frame j is off by delta_j rows: its flat field is read at u - delta_j"),
-    Effect("detector_lag", None, False, ("a",), 0.0, "none",
-           "the detector carries a fraction a of the previous frame's signal into the next: I_j = S_j + a S_(j-1)"),
-    Effect("pixel_noise", None, False, (), 1.0, "none",
-           "the noise variance differs from pixel to pixel: variance_i = f_i * g * mean (+ electronic)"),
-)}
-
-#: The paper's model (eq. 19).
-PAPER_MODEL = ("phase_offset", "tilt", "visibility_loss")
-#: Effects that enter the expected count, in the order the fit stages them.
-MEAN_EFFECTS = tuple(n for n, e in CATALOGUE.items() if e.channel is not None)
-
-
-def effect(name: str) -> Effect:
-    """Catalogue entry by name; ValueError naming the valid names otherwise."""
-    try:
-        return CATALOGUE[name]
-    except KeyError:
-        raise ValueError(f"unknown effect {name!r}; the catalogue has {', '.join(CATALOGUE)}") from None
-
-
-def neutral_params(effects: Iterable[str], n_frames: int) -> dict[str, np.ndarray]:
-    """Parameters at which every listed effect is absent.
-
-    Returns
-    -------
-    dict
-        name -> ndarray of shape (J, n) for per-frame effects, (n,) for global ones.
-    """
-    out = {}
-    for name in effects:
-        e = effect(name)
-        if e.channel is None:
-            continue
-        shape = (n_frames, e.size) if e.per_frame else (e.size,)
-        out[name] = np.full(shape, e.neutral, dtype=np.float64)
-    return out
-
-
-# --------------------------------------------------------------------------------------------------
-# Observations: the aligned data
-# --------------------------------------------------------------------------------------------------
-
-
-def lateral_coordinate(columns: np.ndarray, width: int) -> np.ndarray:
-    """x = (2c + 1) / W - 1: -1 and +1 at the outer edges of the first and last column."""
-    return (2.0 * np.asarray(columns, dtype=np.float64) + 1.0) / width - 1.0
-
-
-@dataclass
-class Observations:
-    """Illuminated samples of a scan with their flat field, as blocks of (row, frame).
-
-    Attributes
-    ----------
-    counts : ndarray, shape (K, C)
-        Measured counts (detector units).
-    tf, vf, phif : ndarray, shape (K, C)
-        Flat-field transmission (counts), visibility and phase (rad, the nominal phase step included)
-        at each sample, aligned to the frame's position.
-    dark : ndarray, shape (K, C)
-        Dark signal (counts).
-    use : ndarray of bool, shape (K, C)
-        Samples that enter the fit (False for masked pixels).
-    row, frame : ndarray of int, shape (K,)
-        Detector row and frame of each block, sorted by row.
-    columns : ndarray of int, shape (C,)
-        Detector columns held.
-    shape : tuple
-        (J, H, W) of the scan.
-    gain : float
-        Detector units per photon.
-    electronic : float
-        Electronic noise variance (counts^2); the variance of a sample is gain * (Ibar - dark) + electronic.
-    noise : ndarray, shape (R, C), or None
-        Variance factor f of each pixel held (``pixel_noise``): the variance is f * gain * (Ibar - dark)
-        + electronic; None: 1 everywhere.
-    """
-
-    counts: np.ndarray
-    tf: np.ndarray
-    vf: np.ndarray
-    phif: np.ndarray
-    dark: np.ndarray
-    use: np.ndarray
-    row: np.ndarray
-    frame: np.ndarray
-    columns: np.ndarray
-    shape: tuple
-    gain: float = 1.0
-    electronic: float = 0.0
-    noise: np.ndarray | None = None
-    rows: np.ndarray = field(init=False)
-    starts: np.ndarray = field(init=False)
-    pixel: np.ndarray = field(init=False)
-
-    def __post_init__(self) -> None:
-        if np.any(np.diff(self.row) < 0):
-            raise ValueError("observation blocks must be sorted by row")
-        self.rows, self.starts, counts = np.unique(self.row, return_index=True, return_counts=True)
-        self.pixel = np.repeat(np.arange(self.rows.size), counts)
-
-    @property
-    def x(self) -> np.ndarray:
-        """Lateral coordinate of the held columns, shape (C,)."""
-        return lateral_coordinate(self.columns, self.shape[2])
-
-    @property
-    def y(self) -> np.ndarray:
-        """Detector-row coordinate of each block in [-1, 1], shape (K,)."""
-        return (2.0 * self.row + 1.0) / self.shape[1] - 1.0
-
-    @property
-    def n_frames(self) -> int:
-        return self.shape[0]
-
-    def segment_sum(self, a: np.ndarray) -> np.ndarray:
-        """Sum over the blocks of each row: (K, ...) -> (R, ...), R = number of rows held."""
-        return np.add.reduceat(a, self.starts, axis=0)
-
-    def frame_sum(self, a: np.ndarray) -> np.ndarray:
-        """Sum of per-block values (K,) over the blocks of each frame -> (J,)."""
-        return np.bincount(self.frame, weights=a, minlength=self.n_frames)
-
-    def to_image(self, values: np.ndarray, *, fill: float = np.nan) -> np.ndarray:
-        """Place per-pixel values (R, C) into a detector image (H, W), ``fill`` elsewhere."""
-        out = np.full(self.shape[1:], fill, dtype=np.result_type(values, type(fill)))
-        out[np.ix_(self.rows, self.columns)] = values
-        return out
-
-    def subset(self, columns: np.ndarray) -> Observations:
-        """The same blocks restricted to the given positions of ``self.columns``."""
-        idx = np.asarray(columns)
-        return Observations(self.counts[:, idx], self.tf[:, idx], self.vf[:, idx], self.phif[:, idx],
-                            self.dark[:, idx], self.use[:, idx], self.row, self.frame, self.columns[idx],
-                            self.shape, self.gain, self.electronic, None if self.noise is None else self.noise[:, idx])
-
-    def pixel_gain(self, gain: float | None = None) -> np.ndarray:
-        """Detector units per photon of each pixel held, f * gain (``pixel_noise``), shape (R, C)."""
-        g = self.gain if gain is None else gain
-        return g * (np.ones((self.rows.size, self.columns.size)) if self.noise is None else self.noise)
-
+__all__ = ["CATALOGUE", "MEAN_EFFECTS", "PAPER_MODEL", "Effect", "effect", "neutral_params", "Noise", "Observations",
+           "lateral_coordinate", "noise_weights", "pearson", "variance", "Channels", "channels", "channel_adjoint",
+           "component_table", "fisher_index", "Design", "design", "background_basis", "harmonic_factors",
+           "image_columns", "Images", "solve_pixels", "solve_images", "harmonic_term", "expected", "circular_mean",
+           "sample_derivatives", "reduce_component", "gradient", "leverage", "fisher_matrix"]
 
 # --------------------------------------------------------------------------------------------------
 # Channels and design
@@ -326,17 +115,18 @@ def channels(params: dict[str, np.ndarray], *, x: np.ndarray, n_frames: int) -> 
     out = Channels(np.zeros((n_frames, C)), np.ones((n_frames, C)), np.ones(n_frames), np.zeros(3), np.zeros(2))
     for name, p in params.items():
         e = effect(name)
-        if e.channel in ("phase", "visibility"):
+        cid = _channel_id(name)
+        if cid in (kernels.PHASE, kernels.VISIBILITY):
             field_ = sum(p[:, m, None] * x[None, :] ** k for m, k in enumerate(e.powers))
-            if e.channel == "phase":
+            if cid == kernels.PHASE:
                 out.phase = out.phase + field_
             else:
                 out.vis = out.vis + field_ - e.neutral
-        elif e.channel == "dose":
+        elif cid == kernels.DOSE:
             out.dose = out.dose + p[:, 0] - e.neutral
-        elif e.channel == "background":
+        elif cid == kernels.BACKGROUND:
             out.background = out.background + p
-        elif e.channel == "harmonic":
+        else:
             out.harmonic = out.harmonic + p
     return out
 
@@ -365,17 +155,16 @@ def channel_adjoint(names: Sequence[str], grad: Channels, *, x: np.ndarray, squa
     out = {}
     for name in names:
         e = effect(name)
-        if e.channel in ("phase", "visibility"):
-            g = grad.phase if e.channel == "phase" else grad.vis
+        cid = _channel_id(name)
+        if cid in (kernels.PHASE, kernels.VISIBILITY):
+            g = grad.phase if cid == kernels.PHASE else grad.vis
             out[name] = np.stack([g @ x ** (power * k) for k in e.powers], axis=-1)
-        elif e.channel == "dose":
+        elif cid == kernels.DOSE:
             out[name] = np.asarray(grad.dose, dtype=np.float64)[:, None].copy()
-        elif e.channel == "background":
+        elif cid == kernels.BACKGROUND:
             out[name] = np.asarray(grad.background, dtype=np.float64).copy()
-        elif e.channel == "harmonic":
-            out[name] = np.asarray(grad.harmonic, dtype=np.float64).copy()
         else:
-            raise ValueError(f"effect {name!r} does not enter the expected count")
+            out[name] = np.asarray(grad.harmonic, dtype=np.float64).copy()
     return out
 
 
@@ -399,7 +188,7 @@ def component_table(names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, int, 
 
 
 def _channel_id(name: str) -> int:
-    """:data:`dfxcorr.kernels.CHANNEL_IDS` of an effect with parameters (those without a channel have none)."""
+    """:data:`dfxcorr.kernels.CHANNEL_IDS` of an effect of the model's catalogue."""
     channel = effect(name).channel
     if channel is None:
         raise ValueError(f"effect {name!r} does not enter the expected count")
@@ -669,6 +458,7 @@ def sample_derivatives(obs: Observations, dsg: Design, images: Images, name: str
     list of ndarray, one (K, C) array per component
     """
     e = effect(name)
+    cid = _channel_id(name)
     c = images.coef[obs.pixel]
     t, cc, ss = c[..., 0], c[..., 1], c[..., 2]
     x = obs.x[None, :]
@@ -684,25 +474,23 @@ def sample_derivatives(obs: Observations, dsg: Design, images: Images, name: str
     q2: np.ndarray | float
     ef = ff = g = k = p2 = q2 = 0.0
     # the harmonic's own derivatives need its factors even where it is absent (hc = hs = 0: a score test)
-    if hc or hs or e.channel == "harmonic":
+    if hc or hs or cid == kernels.HARMONIC:
         _, _, ef, ff = harmonic_factors(cc, ss)
         c2, s2 = np.cos(2 * dsg.theta), np.sin(2 * dsg.theta)
         g, k = c2 * ef - s2 * ff, s2 * ef + c2 * ff
         p2, q2 = hc * g - hs * k, hc * k + hs * g
     q = cc * np.cos(dsg.theta) - ss * np.sin(dsg.theta)
-    if e.channel == "phase":
+    if cid == kernels.PHASE:
         base = cc * dsg.Bs - ss * dsg.Bc - 2 * bv * q2
         return [base * x ** k_ for k_ in e.powers]
-    if e.channel == "visibility":
+    if cid == kernels.VISIBILITY:
         base = amp * obs.vf * (q + p2)
         return [base * x ** k_ for k_ in e.powers]
-    if e.channel == "dose":
+    if cid == kernels.DOSE:
         return [(t * dsg.A + cc * dsg.Bc + ss * dsg.Bs + (dsg.Hc * ef - dsg.Hs * ff)) / dsg.dose]
-    if e.channel == "background":
+    if cid == kernels.BACKGROUND:
         return background_basis(obs)
-    if e.channel == "harmonic":
-        return [bv * g, -bv * k]
-    raise ValueError(f"effect {name!r} does not enter the expected count")
+    return [bv * g, -bv * k]
 
 
 def reduce_component(obs: Observations, name: str, F: np.ndarray) -> np.ndarray:
@@ -798,107 +586,3 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
     kernels.set_threads()
     _, corr = kernels.fisher(obs, dsg.channels, weights, images.coef, images.inverse, component_table(names)[:3])
     return info - corr, index
-
-
-def variance(obs: Observations, ibar: np.ndarray, *, gain: float | None = None, floor: float = 1e-3) -> np.ndarray:
-    """Noise variance of each sample, f g (Ibar - dark) + electronic (f of ``obs.noise``), shape (K, C)."""
-    g = obs.gain if gain is None else gain
-    if obs.noise is not None:
-        g = g * obs.noise[obs.pixel]
-    return g * np.maximum(ibar - obs.dark, floor) + obs.electronic
-
-
-def pearson(obs: Observations, ibar: np.ndarray, *, gain: float | None = None,
-            floor: float = 1e-3) -> np.ndarray:
-    """Pearson residual squared (I - Ibar)^2 / variance per sample, shape (K, C)."""
-    return (obs.counts - ibar) ** 2 / variance(obs, ibar, gain=gain, floor=floor)
-
-
-def noise_weights(obs: Observations, ibar: np.ndarray, *, gain: float | None = None,
-                  floor: float = 1.0) -> np.ndarray:
-    """Inverse noise variance of the used samples (shot noise floored at ``floor`` counts), 0 elsewhere."""
-    return np.where(obs.use, 1.0 / variance(obs, ibar, gain=gain, floor=floor), 0.0)
-
-
-# --------------------------------------------------------------------------------------------------
-# Detector lag (a fraction of the previous frame's signal in the next)
-# --------------------------------------------------------------------------------------------------
-
-
-def previous_block(row: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """Index of the block (row, frame - 1) of each (row, frame) block sorted by row, frames ascending; -1 if none.
-
-    Parameters
-    ----------
-    row, frame : ndarray of int, shape (K,)
-
-    Returns
-    -------
-    ndarray of int, shape (K,)
-    """
-    k = np.arange(row.size)
-    prev = k - 1
-    ok = (k > 0) & (row[prev] == row) & (frame[prev] == frame - 1)
-    return np.where(ok, prev, -1)
-
-
-def lag_free(counts: np.ndarray, dark: np.ndarray, row: np.ndarray, frame: np.ndarray, fraction: float,
-             *, dtype: type = np.float32) -> np.ndarray:
-    """Undo detector lag recursively: S_j = (I_j - dark) - a S_(j-1), S = 0 where the pixel was not lit.
-
-    Parameters
-    ----------
-    counts : ndarray, shape (K, W)
-        Measured counts I of (row, frame) blocks sorted by row, frames ascending within a row.
-    dark : ndarray, shape (K, W)
-        Dark signal of each block's pixels (counts); it carries no lag.
-    row, frame : ndarray of int, shape (K,)
-    fraction : float
-        The lag fraction a (``spec/diagnosis.md``: I_j = S_j + a S_(j-1)).
-    dtype : numpy dtype
-        Of the result.
-
-    Returns
-    -------
-    ndarray, shape (K, W)
-        S + dark: the counts the detector would have given without lag. Where frame j - 1 did not
-        light the pixel the lag-free signal of j - 1 is 0 and I_j is returned unchanged.
-    """
-    out: np.ndarray = np.asarray(counts, dtype=dtype) - np.asarray(dark, dtype=dtype)
-    prev = previous_block(row, frame)
-    order = np.argsort(frame, kind="stable")
-    bounds = np.searchsorted(frame[order], np.arange(int(frame.max(initial=-1)) + 2))
-    # frame by frame: frame j - 1's blocks are lag-free before frame j's read them
-    for j in range(bounds.size - 1):
-        idx = order[bounds[j]:bounds[j + 1]]
-        idx = idx[prev[idx] >= 0]
-        if idx.size:
-            out[idx] -= fraction * out[prev[idx]]
-    out += dark
-    return out
-
-
-def lag_estimate(signal: np.ndarray, previous: np.ndarray) -> tuple[float, float]:
-    """The lag fraction from pixels the active area has just left: their signal is a times the previous frame's.
-
-    Parameters
-    ----------
-    signal : ndarray, shape (L, W)
-        I_j - dark of pixels lit in frame j - 1 but not in frame j.
-    previous : ndarray, shape (L, W)
-        Their lag-free signal S_(j-1) in frame j - 1 (counts above dark).
-
-    Returns
-    -------
-    a : float
-        sum signal / sum previous (the maximum-likelihood ratio when the signal is Poisson around a S).
-    se : float
-        Its standard error from the scatter of the samples around a S (sandwich, whatever the gain
-        and electronic noise); 0 when every sample is exactly a S (no noise at all).
-    """
-    total = float(np.sum(previous, dtype=np.float64))
-    if total <= 0:
-        return 0.0, np.inf
-    a = float(np.sum(signal, dtype=np.float64)) / total
-    se = float(np.sqrt(np.sum((signal - a * previous) ** 2, dtype=np.float64))) / total
-    return a, se

@@ -27,13 +27,15 @@ import numpy as np
 from . import __version__
 from . import config as C
 from . import model as M
-from .align import LitStore, collect_lit_rows, read_position_errors, subsample_columns, tilt_alias_period
-from .analysis.identify import resolve_effects
+from .align import LitStore, collect_lit_rows, subsample_columns, tilt_alias_period
 from .baselines import fit_alternating, fit_correlation
-from .errors import DfxcorrError
+from .effects import REGISTRY
+from .effects.base import Preparation
 from .fit import FitResult, fit_vibrations
 from .io import Reference, Scan, read_scan
 from .mask import mask_from_score, motion_statistics, pilot_vibrations, score_from_statistics
+from .observations import Noise
+from .planning import resolve_effects
 from .progress import Progress
 from .reference import auto_visibility_threshold, resolve_reference
 from .result import Result, paper_params
@@ -80,10 +82,8 @@ class Prepared:
     store : LitStore
     min_visibility : float
         Samples whose aligned reference visibility is below this carry no fringe (region of interest).
-    gain, electronic : float
-        Noise model of the configuration (``load.*``).
-    pixel_noise : ndarray, shape (H, W), or None
-        Variance factor of each pixel (``load.pixel_noise``); None: 1 everywhere.
+    noise : Noise
+        Noise model of the configuration (``load.*``: gain, electronic noise, per-pixel factors).
     """
 
     scan: Scan
@@ -92,9 +92,7 @@ class Prepared:
     reference: Reference
     store: LitStore
     min_visibility: float
-    gain: float
-    electronic: float
-    pixel_noise: np.ndarray | None = None
+    noise: Noise
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -107,22 +105,17 @@ class Prepared:
         return replace(self.reference, phase=np.unwrap(self.reference.phase, axis=0))
 
     def observations(self, *, columns: np.ndarray | None = None, rows: tuple[int, int] | None = None,
-                     dtype=np.float64) -> tuple[M.Observations, np.ndarray]:
-        """Observations of some columns and detector rows, and the region of interest of their samples.
+                     dtype=np.float64) -> M.Observations:
+        """Observations of some columns and detector rows, with the region of interest of their samples.
 
-        Samples without fringe (outside the region of interest) get v^f = 0: they yield no images, but
-        in the fit they still monitor dose and background. ``use`` is True everywhere.
-
-        Returns
-        -------
-        obs : Observations
-        roi : ndarray of bool, shape (K, C)
+        Samples without fringe (outside the region of interest, ``obs.roi`` False) get v^f = 0: they yield
+        no images, but in the fit they still monitor dose and background. ``use`` is True everywhere.
         """
-        obs = self.store.observations(self._unwrapped_reference, columns=columns, rows=rows, gain=self.gain,
-                                      electronic=self.electronic, noise=self.pixel_noise, dtype=dtype,
+        obs = self.store.observations(self._unwrapped_reference, columns=columns, rows=rows, gain=self.noise.gain,
+                                      electronic=self.noise.electronic, noise=self.noise.factors, dtype=dtype,
                                       phase_unwrapped=True)
         roi = obs.vf >= self.min_visibility
-        return replace(obs, vf=np.where(roi, obs.vf, 0).astype(obs.vf.dtype, copy=False)), roi
+        return replace(obs, vf=np.where(roi, obs.vf, 0).astype(obs.vf.dtype, copy=False), roi=roi)
 
 
 def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) -> Prepared:
@@ -148,58 +141,26 @@ def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) 
             scan = read_scan(path, allow_external=cfg["load"]["allow_external"])
             log.info("scan %s: %d frames of %d x %d, active area %d rows%s", path.name, *scan.shape,
                      scan.active_rows, ", phase stepping" if scan.is_stepping else "")
-    # a bad position-error file is refused before any computation
-    shift = cfg["align"]["reference_offset"] + (read_position_errors(cfg["align"]["position_errors"], scan.shape[0])
-                                                if cfg["align"]["position_errors"] is not None else 0.0)
-    pixel_noise = read_pixel_noise(cfg["load"]["pixel_noise"], scan.shape[1:])
+    # what the configuration asks of each effect (files it names included) is read and checked before any computation
+    settings = {e.name: e.configured(cfg, n_frames=scan.shape[0], detector=scan.shape[1:]) for e in REGISTRY.values()}
     with stage("align", timings):
-        step_effects = tuple(e for e, on in (("phase_offset", cfg["reference"]["step_errors"]),
-                                             ("dose", cfg["reference"]["dose"])) if on is not False)
-        reference = resolve_reference(scan, effects=step_effects,
-                                      optional=("dose",) if cfg["reference"]["dose"] == "auto" else ())
+        step_effects, optional = C.reference_effects(cfg)
+        reference = resolve_reference(scan, effects=step_effects, optional=optional)
         store = collect_lit_rows(scan, active_rows=reference.transmission.shape[0],
                                  min_frames=cfg["align"]["min_frames"])
-        if np.any(shift != 0):
-            store = store.shifted(shift)
-            log.info("flat field read off the recorded positions by %.3g rows on average (align.reference_offset, "
-                     "align.position_errors)", float(np.mean(shift)))
-        if cfg["load"]["detector_lag"]:
-            store = store.lag_free(cfg["load"]["detector_lag"])
-            log.info("detector lag %.4g taken out of the counts", cfg["load"]["detector_lag"])
+        made = Preparation(store=store, shift=np.zeros(scan.shape[0]),
+                           noise=Noise(cfg["load"]["gain"] or scan.gain, cfg["load"]["electronic"]))
+        for name, setting in settings.items():
+            if setting is not None:
+                made = REGISTRY[name].prepare(made, setting)
+                log.info("%s: the configured correction is applied", name)
+        store = made.store.shifted(made.shift) if np.any(made.shift != 0) else made.store
         log.info("lit samples: %d rows x frames of %d columns (%.0f MB as %s)", store.row.size, scan.shape[2],
                  store.counts.nbytes / 1e6, store.counts.dtype)
         vmin = cfg["align"]["min_visibility"]
         vmin = auto_visibility_threshold(reference.visibility) if vmin == "auto" else float(vmin)
     return Prepared(scan=scan, name=path.name if path else "scan", path=path, reference=reference, store=store,
-                    min_visibility=vmin, gain=cfg["load"]["gain"] or scan.gain, electronic=cfg["load"]["electronic"],
-                    pixel_noise=pixel_noise)
-
-
-def read_pixel_noise(path: str | Path | None, shape: tuple[int, int]) -> np.ndarray | None:
-    """The variance factor map of ``load.pixel_noise`` (a TIFF of shape (H, W), e.g. diagnose's pixel_noise.tif).
-
-    Raises
-    ------
-    PixelNoiseError
-        If the file cannot be read, or its shape or values do not fit (positive and finite, one per pixel).
-    """
-    if path is None:
-        return None
-    import tifffile
-
-    try:
-        f = np.asarray(tifffile.imread(path), dtype=np.float64)
-    except (OSError, ValueError) as exc:
-        raise PixelNoiseError(f"{path}: cannot read the pixel noise map of load.pixel_noise ({exc})") from None
-    if f.shape != tuple(shape):
-        raise PixelNoiseError(f"{path}: load.pixel_noise map has shape {f.shape}, the detector {tuple(shape)}")
-    if not np.all(np.isfinite(f) & (f > 0)):
-        raise PixelNoiseError(f"{path}: load.pixel_noise map holds values that are not positive and finite")
-    return f
-
-
-class PixelNoiseError(DfxcorrError, ValueError):
-    """A pixel noise map (``load.pixel_noise``) that does not fit the scan."""
+                    min_visibility=vmin, noise=made.noise)
 
 
 #: Bytes per (pixel, frame) sample at the peak of a block's retrieval or motion statistics in float64: 153
@@ -343,16 +304,16 @@ def blocked_motion_mask(prep: Prepared, blocks: list[tuple[int, int]], *, column
     threshold : float
     """
     H, W = prep.shape[1:]
-    pilot = pilot_vibrations(prep.observations(columns=pilot_columns)[0])
+    pilot = pilot_vibrations(prep.observations(columns=pilot_columns))
     eps, q, dof = np.full((H, W), np.nan), np.full((H, W), np.nan), np.zeros((H, W))
     fringe = np.zeros((H, W), bool)
     for rows in blocks:
-        obs, roi = prep.observations(columns=columns, rows=rows)
+        obs = prep.observations(columns=columns, rows=rows)
         e, qq, d = motion_statistics(obs, pilot)
         _place(eps, obs, e)
         _place(q, obs, qq)
         _place(dof, obs, d)
-        _place(fringe, obs, obs.segment_sum(roi.astype(np.float64)) > 0)
+        _place(fringe, obs, obs.segment_sum(obs.in_roi.astype(np.float64)) > 0)
     # the score assumes a fringe; pixels without one only monitor dose and background
     score = np.where(fringe, score_from_statistics(eps, q), np.nan)
     return mask_from_score(score, dof=dof, threshold=threshold, sigma=sigma, dilate=dilate)
@@ -373,7 +334,8 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
     sums = np.zeros((len(params), 3))  # chi-square, samples, pixels
     left_out = 0
     for rows in blocks:
-        obs, roi = prep.observations(rows=rows)
+        obs = prep.observations(rows=rows)
+        roi = obs.in_roi
         obs = replace(obs, use=roi)
         for m, p, acc in zip(maps, params, sums, strict=True):
             rec = retrieve(obs, p, iterations=iterations, n_frame_params=0)
@@ -412,7 +374,7 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
     if method not in FIT_METHODS:
         raise C.ConfigError(f"fit.method={method!r} is not available; available: {', '.join(FIT_METHODS)}, none")
     cols = columns
-    fit_obs, _ = prep.observations(columns=cols, dtype=np.float32)
+    fit_obs = prep.observations(columns=cols, dtype=np.float32)
     fit_obs = replace(fit_obs, use=~moving[fit_obs.row][:, fit_obs.columns])
     effects = resolve_effects(cfg, prep.scan, prep.reference, fit_obs)
     used = fit_obs.segment_sum(fit_obs.use.astype(np.float64)) > 0

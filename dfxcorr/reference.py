@@ -12,8 +12,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from . import config as C
+from . import identify
 from .align import AlignmentError, build_observations, subsample_columns
-from .analysis import identify
+from .catalogue import effect
 from .fit import fit_vibrations, initial_weights
 from .io import FrameSource, Reference, Scan, SteppingReference
 from .model import Observations
@@ -64,8 +66,8 @@ class ReferenceFit:
     reduced_chi2: dict
 
 
-def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=("phase_offset", "dose"),
-                  optional=("dose",), min_visibility: float | str = "auto", subsample: int = 4) -> ReferenceFit:
+def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=None, optional=None,
+                  min_visibility: float | str = "auto", subsample: int = 4) -> ReferenceFit:
     """Flat-field maps from a stepping series, with per-step phase errors and dose estimated.
 
     The series is a phase-stepping recording of the unloaded interferometer: flat field 1, 1, 0 and the
@@ -73,7 +75,7 @@ def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=("phase_
     model, so the maximum-likelihood vibration fit estimates them. Per-step visibility loss is never
     identifiable here (paper Sec. II-F). Per-step dose is identifiable only where some pixels carry
     no fringe (outside the gratings): where every pixel is modulated, a dose modulation in step with
-    the phase trades off exactly against the maps (see :mod:`dfxcorr.analysis.identify`). Unmodulated pixels
+    the phase trades off exactly against the maps (see :mod:`dfxcorr.identify`). Unmodulated pixels
     therefore enter the step fit as dose monitors; the reduced chi-square is reported over the
     modulated ones.
 
@@ -81,11 +83,12 @@ def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=("phase_
     ----------
     ref : SteppingReference
     gain : float
-    effects : sequence of str
-        Per-step effects to estimate (phase_offset, tilt, dose); empty: nominal steps.
-    optional : sequence of str
+    effects : sequence of str, optional
+        Per-step effects to estimate (e.g. phase_offset, tilt, dose); empty: nominal steps. Default: those of
+        the default configuration (:func:`dfxcorr.config.reference_effects`).
+    optional : sequence of str, optional
         Effects of ``effects`` to leave out (with a log line) where not identifiable; the others are
-        refused with an error.
+        refused with an error. Default: as ``effects``.
     min_visibility : float or 'auto'
         Pixels below this visibility carry no fringe (chi-square region).
     subsample : int
@@ -102,10 +105,13 @@ def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=("phase_
         If fewer than 3 steps are given, the steps do not determine a sinusoid, or a required effect is
         not identifiable.
     """
+    asked, maybe = C.reference_effects(C.defaults())
+    effects, optional = asked if effects is None else effects, maybe if optional is None else optional
     S = ref.data.shape[0]
     if S < 3:
         raise AlignmentError(f"/entry/reference/stepping/data has {S} steps; at least 3 are needed")
-    unsupported = [e for e in effects if e not in ("phase_offset", "tilt", "dose")]
+    # the flat field is the same in every step: a per-step visibility trades off against the maps
+    unsupported = [e for e in effects if effect(e).channel == "visibility"]
     if unsupported:
         raise AlignmentError(f"{', '.join(unsupported)} cannot be estimated from a reference stepping series "
                              f"(not identifiable there, paper Sec. II-F)")
@@ -157,7 +163,7 @@ def auto_visibility_threshold(visibility: np.ndarray) -> float:
     return 0.25 * float(np.percentile(v, 95)) if v.size else 0.0
 
 
-def resolve_reference(scan: Scan, *, effects=("phase_offset", "dose"), optional=("dose",)) -> Reference:
+def resolve_reference(scan: Scan, *, effects=None, optional=None) -> Reference:
     """The scan's flat-field maps, retrieved from its stepping series if that is what it holds.
 
     Parameters

@@ -19,7 +19,8 @@ import numpy as np
 
 from dfxcorr import config as C
 from dfxcorr import pipeline, plots
-from dfxcorr.analysis.diagnose import diagnose, write_report
+from dfxcorr.analysis.diagnose import diagnose
+from dfxcorr.analysis.report import write_report
 from dfxcorr.importer import import_stepping
 from dfxcorr.reference import fit_reference
 

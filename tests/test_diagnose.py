@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from dfxcorr import config as C
-from dfxcorr.analysis.diagnose import diagnose, write_report
+from dfxcorr.analysis.diagnose import diagnose
+from dfxcorr.analysis.report import write_report
 from dfxcorr.sim import simulate as S
 
 from conftest import real_ipp_scan, sim_config

@@ -4,12 +4,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from dfxcorr import catalogue as catalogue_module
 from dfxcorr import config as C
 from dfxcorr import fit as F
 from dfxcorr import model as M
 from dfxcorr import pipeline
 from dfxcorr.analysis.evaluate import frames_lighting, gauge_median
-from dfxcorr.analysis.identify import IdentifiabilityError
+from dfxcorr.planning import IdentifiabilityError
 
 
 def standardized_errors(result, truth, scan, frames=None):
@@ -146,12 +147,12 @@ def test_a_bound_the_whitened_fit_crosses_is_kept(small_scan, monkeypatch, caplo
     """Whitened variables have no box bounds: a stage ending below a lower bound is finished under the
     diagonal scaling, which keeps it."""
     scan, _ = small_scan()
-    obs = pipeline.prepare(scan, C.load([], [])).observations(columns=np.arange(0, scan.shape[2], 2))[0]
+    obs = pipeline.prepare(scan, C.load([], [])).observations(columns=np.arange(0, scan.shape[2], 2))
     free = F.fit_vibrations(obs, prior=False, reweight=0)
     floor = 0.97
     assert np.mean(free.params["visibility_loss"] < floor) > 0.2  # the unbounded optimum is below it
     catalogue = {**M.CATALOGUE, "visibility_loss": replace(M.CATALOGUE["visibility_loss"], lower=floor)}
-    monkeypatch.setattr(M, "CATALOGUE", catalogue)
+    monkeypatch.setattr(catalogue_module, "CATALOGUE", catalogue)
     with caplog.at_level("DEBUG", logger="dfxcorr.fit"):
         params = F.minimise(obs, M.PAPER_MODEL, free.params, F.initial_weights(obs, free.params))[0]
     assert any("below their bounds" in r.getMessage() for r in caplog.records)

@@ -1,4 +1,6 @@
 """The compiled kernels against the numpy definition of the model (dfxcorr.model)."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from test_model import ALL, random_params, tiny_obs
@@ -14,13 +16,11 @@ def prepared(rng, *, masked=False, dtype=np.float64):
     """Observations with optional masked samples, a pixel without fringe and a pixel without used samples."""
     obs = tiny_obs(rng)
     if masked:
-        obs.use = rng.uniform(size=obs.use.shape) > 0.2
-        r0 = obs.starts[1]
-        obs.vf[r0:obs.starts[2], 2] = 0.0  # no fringe: only t is an unknown there
-        obs.use[obs.starts[2]:obs.starts[3], 3] = False  # nothing to solve for
-    for name in ("counts", "tf", "vf", "phif", "dark"):
-        setattr(obs, name, getattr(obs, name).astype(dtype))
-    return obs
+        use, vf = rng.uniform(size=obs.use.shape) > 0.2, obs.vf.copy()
+        vf[obs.starts[1]:obs.starts[2], 2] = 0.0  # no fringe: only t is an unknown there
+        use[obs.starts[2]:obs.starts[3], 3] = False  # nothing to solve for
+        obs = replace(obs, use=use, vf=vf)
+    return replace(obs, **{name: getattr(obs, name).astype(dtype) for name in ("counts", "tf", "vf", "phif", "dark")})
 
 
 def as_float64(obs):
@@ -65,7 +65,7 @@ def test_reduced_cost_and_gradient_match_the_model(rng, names, masked):
 
 def test_float32_samples_give_the_float64_result(rng):
     obs = prepared(rng, masked=True, dtype=np.float32)
-    obs.counts = np.rint(obs.counts).astype(np.uint16)
+    obs = replace(obs, counts=np.rint(obs.counts).astype(np.uint16))
     ref = as_float64(obs)
     params = random_params(rng, obs.n_frames, ALL)
     w = M.noise_weights(ref, ref.counts).astype(np.float32)
@@ -82,7 +82,7 @@ def test_float32_samples_give_the_float64_result(rng):
 @pytest.mark.parametrize("iterations", [1, 2])
 def test_retrieval_matches_the_model(rng, masked, iterations):
     obs = prepared(rng, masked=masked)
-    obs.electronic, obs.gain = 3.0, 1.5
+    obs = replace(obs, electronic=3.0, gain=1.5)
     params = random_params(rng, obs.n_frames, ALL)
     dsg = M.design(obs, params)
     w = M.noise_weights(obs, obs.counts)

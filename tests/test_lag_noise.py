@@ -9,8 +9,11 @@ from test_diagnose import chi2_tolerance
 from dfxcorr import config as C
 from dfxcorr import pipeline
 from dfxcorr.align import collect_lit_rows
-from dfxcorr.analysis.diagnose import class_chi2, diagnose, reconstruct_settings, write_report
+from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.analysis.evaluate import image_rmse
+from dfxcorr.analysis.report import reconstruct_settings, write_report
+from dfxcorr.effects.detector_lag import measured_lag, without_lag
+from dfxcorr.effects.pixel_noise import PixelNoiseError, class_chi2
 from dfxcorr.retrieve import retrieve
 from dfxcorr.sim import simulate as S
 
@@ -35,11 +38,11 @@ def test_lag_free_counts_are_the_lag_free_frames():
     a, b = collect_lit_rows(lagged), collect_lit_rows(clean)
     assert np.array_equal(a.row, b.row) and np.array_equal(a.frame, b.frame)
     assert not np.allclose(a.counts, b.counts, rtol=1e-3)
-    np.testing.assert_allclose(a.lag_free(0.05).counts, b.counts, rtol=1e-5, atol=1e-2)
-    fraction, se = a.lag_estimate()
+    np.testing.assert_allclose(without_lag(a, 0.05).counts, b.counts, rtol=1e-5, atol=1e-2)
+    fraction, se = measured_lag(a)
     assert fraction == pytest.approx(0.05, rel=1e-5)
     # the rows just left carry the lag and nothing else: zero without it
-    assert b.lag_estimate()[0] == 0.0 and np.all(b.left_counts == 0)
+    assert measured_lag(b)[0] == 0.0 and np.all(b.left_counts == 0)
 
 
 @pytest.mark.parametrize("amplitude", [0.03, pytest.param(0.001, marks=pytest.mark.slow)])
@@ -114,8 +117,8 @@ def test_reconstruct_with_the_pixel_noise_map_brings_each_class_to_one(tmp_path)
     for name, sets in (("plain", []), ("map", [f"load.pixel_noise={tmp_path / 'f.tif'}"])):
         prep = pipeline.prepare(scan, C.load([], sets))
         result = pipeline.reconstruct(prep, C.load([], sets))
-        obs, roi = prep.observations()
-        obs.use = roi
+        obs = prep.observations()
+        obs = replace(obs, use=obs.roi)
         rec = retrieve(obs, result.params)
         chi2[name] = class_chi2(obs, rec.expected, rec.images.valid, classes)
     dof = 12 * classes.sum()
@@ -127,7 +130,7 @@ def test_reconstruct_with_the_pixel_noise_map_brings_each_class_to_one(tmp_path)
 def test_pixel_noise_map_of_the_wrong_shape_is_refused(tmp_path):
     scan, _ = S.simulate(sim_config())
     tifffile.imwrite(tmp_path / "f.tif", np.ones((3, 4), np.float32))
-    with pytest.raises(pipeline.PixelNoiseError, match="load.pixel_noise"):
+    with pytest.raises(PixelNoiseError, match="load.pixel_noise"):
         pipeline.prepare(scan, C.load([], [f"load.pixel_noise={tmp_path / 'f.tif'}"]))
 
 
@@ -144,8 +147,8 @@ def test_real_recording_pixel_classes_come_to_one(tmp_path):
     labels = labels.reshape(diag.pixel_noise.shape)
     prep = pipeline.prepare(path, C.defaults())
     for noise, expect_one in ((None, False), (diag.pixel_noise, True)):
-        obs, roi = replace(prep, pixel_noise=noise).observations()
-        obs.use = roi
+        obs = replace(prep, noise=replace(prep.noise, factors=noise)).observations()
+        obs = replace(obs, use=obs.roi)
         rec = retrieve(obs, diag.params)
         per_class = class_chi2(obs, rec.expected, rec.images.valid, labels)
         dof = {k: 8 * int((labels == k).sum()) for k in per_class}  # 11 steps, 3 unknowns per pixel

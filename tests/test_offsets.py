@@ -7,7 +7,8 @@ from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr import pipeline as P
 from dfxcorr.align import AlignmentError
-from dfxcorr.analysis.diagnose import diagnose, reconstruct_settings, write_report
+from dfxcorr.analysis.diagnose import diagnose
+from dfxcorr.analysis.report import reconstruct_settings, write_report
 from dfxcorr.sim import simulate as S
 
 from conftest import sim_config

@@ -5,9 +5,9 @@ import tifffile
 
 from dfxcorr import config as C
 from dfxcorr import pipeline
-from dfxcorr.analysis.identify import IdentifiabilityError
 from dfxcorr.importer import import_stepping
 from dfxcorr.io import read_scan
+from dfxcorr.planning import IdentifiabilityError
 from dfxcorr.reference import fit_reference
 from dfxcorr.sim import simulate as S
 

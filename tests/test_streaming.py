@@ -99,9 +99,9 @@ def test_row_blocks_give_the_images_of_one_pass(prepared_scan):
     assert tiny.reduced_chi2 == pytest.approx(huge.reduced_chi2, rel=1e-10)
     # and both equal one retrieval holding every sample, with reduced_chi2's own degrees of freedom
     prep = pipeline.prepare(scan, C.defaults())
-    obs, roi = prep.observations()
+    obs = prep.observations()
     fitted = {k: v for k, v in tiny.params.items() if tiny.estimated[k]}
-    whole = retrieve(replace(obs, use=roi), fitted)
+    whole = retrieve(replace(obs, use=obs.roi), fitted)
     assert tiny.reduced_chi2 == pytest.approx(whole.reduced_chi2, rel=1e-10)
     np.testing.assert_allclose(tiny.dark_field, obs.to_image(whole.images.v * np.where(whole.images.valid, 1, np.nan)),
                                rtol=1e-10, equal_nan=True)
@@ -113,7 +113,7 @@ def test_observations_are_c_ordered_whatever_the_store(prepared_scan):
     prep = pipeline.prepare(scan, C.defaults())
     prep.store.counts = np.asfortranarray(prep.store.counts)
     for columns in (None, np.arange(0, scan.shape[2], 3)):
-        obs, _ = prep.observations(columns=columns, dtype=np.float32)
+        obs = prep.observations(columns=columns, dtype=np.float32)
         assert all(getattr(obs, n).flags["C_CONTIGUOUS"] for n in ("counts", "tf", "vf", "phif", "dark", "use"))
 
 
@@ -135,7 +135,7 @@ def test_float32_fit_agrees_with_float64_within_its_uncertainty(prepared_scan):
     scan, _ = prepared_scan
     prep = pipeline.prepare(scan, C.defaults())
     cols = np.arange(1, scan.shape[2], 3)
-    fits = {dt: fit_vibrations(prep.observations(columns=cols, dtype=dt)[0], effects=M.PAPER_MODEL)
+    fits = {dt: fit_vibrations(prep.observations(columns=cols, dtype=dt), effects=M.PAPER_MODEL)
             for dt in (np.float32, np.float64)}
     assert fits[np.float32].converged and fits[np.float64].converged
     good = fits[np.float64].well_determined
@@ -162,15 +162,15 @@ def test_diagnose_and_reconstruct_see_the_same_data(monkeypatch):
     pipeline.reconstruct(scan, cfg)
     D.diagnose(scan, cfg)
     assert len(seen) == 2
-    (a, roi_a), (b, roi_b) = (p.observations() for p in seen)
+    a, b = (p.observations() for p in seen)
     for name in ("counts", "tf", "vf", "phif", "dark", "row", "frame", "columns"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
-    np.testing.assert_array_equal(roi_a, roi_b)
+    np.testing.assert_array_equal(a.roi, b.roi)
     assert a.gain == b.gain and a.electronic == b.electronic
     # the options took effect: another reference (nominal steps) and a region of interest cut by v^f
     default = pipeline.prepare(scan, C.defaults())
     assert not np.allclose(default.reference.phase, seen[0].reference.phase)
-    assert 0 < roi_a.mean() < 1 and np.all(a.vf[~roi_a] == 0)
+    assert 0 < a.roi.mean() < 1 and np.all(a.vf[~a.roi] == 0)
 
 
 @pytest.mark.parametrize("width, samples_per_column, budget, expected", [

@@ -1,0 +1,184 @@
+"""The decision loop of the diagnosis: test, rank, trial refit, accept or reject, stop.
+
+Each round tests every effect that applies and is not in the model yet (:meth:`EffectBase.test`). A
+significant effect that the acquisition cannot identify is tried first: if a trial refit with it explains
+the misfit, nothing is named in its place and the diagnosis stops there. Otherwise the significant
+identifiable candidates (Holm's first threshold over the effects tested in the round) are tried in
+turn (:func:`ranked`): each gets a trial refit (:meth:`EffectBase.trial`), and is added only if it explains
+the misfit's signature (:func:`accepts`). The loop stops when no candidate qualifies.
+
+Everything here is a decision on values: the fits are done by the ``fit`` the caller passes, so the
+rules can be tested with made-up effects and fits.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..effects.base import Context, EffectBase, Hypothesis, State, Test
+
+log = logging.getLogger(__name__)
+
+#: fit(hypothesis, start parameters (empty: from scratch), label) -> the fitted state.
+Fit = Callable[[Hypothesis, dict, str], State]
+
+
+@dataclass(frozen=True)
+class Step:
+    """One effect added: its test, the fits before and after, and the share of the signatures' excess it removed."""
+
+    name: str
+    test: Test
+    before: State
+    after: State
+    share: float | None
+
+
+@dataclass
+class Outcome:
+    """What the loop decided.
+
+    Attributes
+    ----------
+    state : State
+        The final fit.
+    steps : list of Step
+        The effects added, in order.
+    tests : dict
+        The last test of every effect tested, in the order first tested.
+    rejected : dict
+        Candidates a trial refit did not justify in the last round: the share it explained.
+    blind : dict
+        Unidentifiable effects tried: whether and how far a trial refit with them explained the misfit.
+    rounds : list of dict
+    """
+
+    state: State
+    steps: list[Step] = field(default_factory=list)
+    tests: dict[str, Test] = field(default_factory=dict)
+    rejected: dict[str, float | None] = field(default_factory=dict)
+    blind: dict[str, dict] = field(default_factory=dict)
+    rounds: list[dict] = field(default_factory=list)
+
+
+def significant(tests: Mapping[str, Test], alpha: float) -> list[str]:
+    """The candidates whose test beats Holm's first threshold alpha / m (m = candidates tested in the round)."""
+    return [k for k, t in tests.items() if t.log_p < np.log(alpha / len(tests))]
+
+
+def ranked(tests: Mapping[str, Test], effects: Mapping[str, EffectBase], alpha: float) -> list[str]:
+    """Significant, identifiable and material candidates in the order they are tried.
+
+    By tier, then by the chi-square they explain; the noise effects (by tier) just before the first
+    localised one ('pixels'): a global variance excess is modelled after the mean effects that explain
+    more, and before localised outliers are judged against it.
+    """
+    sig = [k for k in significant(tests, alpha) if tests[k].identifiable and tests[k].material]
+    main = sorted((k for k in sig if effects[k].role != "noise"), key=lambda k: (effects[k].tier, -tests[k].explains))
+    noise = sorted((k for k in sig if effects[k].role == "noise"), key=lambda k: effects[k].tier)
+    at = next((i for i, k in enumerate(main) if effects[k].role == "pixels"), len(main))
+    return main[:at] + noise + main[at:]
+
+
+def strongest_unidentifiable(tests: Mapping[str, Test], effects: Mapping[str, EffectBase], alpha: float,
+                             tried: Mapping[str, dict]) -> str | None:
+    """The significant mean effect this acquisition cannot identify, not tried yet, that explains the most; or None."""
+    cands = [k for k in significant(tests, alpha) if not tests[k].identifiable and k not in tried
+             and effects[k].role == "mean"]
+    return max(cands, key=lambda k: tests[k].explains) if cands else None
+
+
+def _excess(sigs: list[dict], keys: set) -> float:
+    return sum(max(s["statistic"] - s["dof"], 0.0) for s in sigs if (s["axis"], s["kind"]) in keys)
+
+
+def explained_share(before: list[dict], after: list[dict]) -> float | None:
+    """Share of the significant signatures' excess chi-square that a change removed (None: none significant)."""
+    keys = {(s["axis"], s["kind"]) for s in before if s["significant"]}
+    if not keys:
+        return None
+    return 1.0 - _excess(after, keys) / _excess(before, keys)
+
+
+def silences(before: list[dict], after: list[dict]) -> bool:
+    """Whether a significant signature became insignificant (the candidate explains that signature)."""
+    now = {(s["axis"], s["kind"]): s["significant"] for s in after}
+    return any(s["significant"] and not now.get((s["axis"], s["kind"]), False) for s in before)
+
+
+def accepts(before: list[dict], after: list[dict], *, explain_share: float) -> bool:
+    """The acceptance rule: the trial removes at least ``explain_share`` of the significant signatures' excess,
+    or silences one of them without adding excess (or nothing was significant to begin with)."""
+    share = explained_share(before, after)
+    return share is None or share >= explain_share or (share >= 0 and silences(before, after))
+
+
+def round_tests(effects: Mapping[str, EffectBase], ctx: Context, state: State, done: list[str]) -> dict[str, Test]:
+    """Every applicable effect's test at ``state``, those in ``done`` left out, in the registry's order.
+
+    The localised effects ('pixels') are tested first: what they flag is left out of the others' tests.
+    """
+    localised = {n: e.test(ctx, state, state.hypothesis.motion) for n, e in effects.items()
+                 if e.role == "pixels" and n not in done}
+    masks = [t.payload["mask"] for t in localised.values() if t is not None]
+    flagged = np.logical_or.reduce(masks) if masks else state.hypothesis.motion
+    tests = {}
+    for n, e in effects.items():
+        t = localised.get(n) if n in localised else (e.test(ctx, state, flagged) if n not in done else None)
+        if t is not None:
+            tests[n] = t
+    return tests
+
+
+def run(effects: Mapping[str, EffectBase], ctx: Context, start: State, *, fit: Fit, alpha: float,
+        explain_share: float, max_rounds: int) -> Outcome:
+    """Add effects to the model of ``start`` until no candidate explains what is left (see the module's text)."""
+    out = Outcome(state=start)
+    for rnd in range(max_rounds):
+        state = out.state
+        tests = round_tests(effects, ctx, state, [s.name for s in out.steps])
+        out.tests.update(tests)
+        log.info("round %d: reduced chi-square %.4f; %s", rnd, state.reduced_chi2,
+                 ", ".join(f"{k} S={t.statistic:.4g} (dof {t.dof}{'' if t.identifiable else ', n.i.'})"
+                           for k, t in sorted(tests.items(), key=lambda kv: -kv[1].statistic)))
+        while (suspect := strongest_unidentifiable(tests, effects, alpha, out.blind)) is not None:
+            # an effect this acquisition cannot determine may still be what the data show: if a trial refit with
+            # it explains the misfit, no identifiable proxy may be named for it
+            trial = fit(effects[suspect].trial(ctx, state, tests[suspect]), state.params,
+                        f"round {rnd}: trial {suspect} (not identifiable)")
+            share = explained_share(state.signatures, trial.signatures)
+            explains = share is None or share >= explain_share
+            out.blind[suspect] = {"explains_misfit": explains, "explained_share": share,
+                                  "reduced_chi2_with": trial.reduced_chi2}
+            if explains:
+                log.warning("round %d: the misfit is what %s explains (reduced chi-square %.4f with it), which this "
+                            "acquisition cannot identify: nothing else is named in its place", rnd, suspect,
+                            trial.reduced_chi2)
+                return out
+        step = None
+        for name in ranked(tests, effects, alpha):
+            if name in out.rejected:
+                continue
+            effect = effects[name]
+            trial = fit(effect.trial(ctx, state, tests[name]), {} if effect.fresh_start else state.params,
+                        f"round {rnd}: trial {name}")
+            share = explained_share(state.signatures, trial.signatures)
+            if accepts(state.signatures, trial.signatures, explain_share=explain_share):
+                step = Step(name, tests[name], state, trial, share)
+                break
+            log.info("round %d: %s removes %.0f %% of the significant residual signatures' excess: rejected",
+                     rnd, name, 100 * (share or 0.0))
+            out.rejected[name] = share
+        if step is None:
+            break
+        out.rejected.clear()  # a candidate that did not explain the misfit then may, now that the model changed
+        out.steps.append(step)
+        out.rounds.append({"round": rnd, "added": step.name, "chi2_before": state.chi2,
+                           "reduced_chi2_before": state.reduced_chi2, "reduced_chi2_after": step.after.reduced_chi2,
+                           "delta_chi2": state.chi2 - step.after.chi2, "explained_share": step.share})
+        log.info("round %d: adding %s", rnd, step.name)
+        out.state = step.after
+    return out

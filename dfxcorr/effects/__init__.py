@@ -1,0 +1,22 @@
+"""Every effect of ``spec/diagnosis.md`` behind one interface (:class:`~dfxcorr.effects.base.EffectBase`).
+
+The registry :data:`REGISTRY` holds them in the order the diagnosis tests them and the preparation
+applies their configured corrections: the model's channel effects (one implementation over the
+catalogue, :mod:`dfxcorr.effects.channel`), then one module per effect that acts on the pixel set, the
+noise model, the alignment or the counts. Adding an effect is adding a module and a line here.
+"""
+from __future__ import annotations
+
+from . import channel, detector_gain, detector_lag, pixel_noise, position_error, reference_offset, sample_motion
+from .base import EffectBase
+
+#: Effect name -> its implementation, in the order they are tested.
+REGISTRY: dict[str, EffectBase] = {e.name: e for e in (
+    *channel.EFFECTS,
+    sample_motion.EFFECT,
+    detector_gain.EFFECT,
+    reference_offset.EFFECT,
+    position_error.EFFECT,
+    detector_lag.EFFECT,
+    pixel_noise.EFFECT,
+)}

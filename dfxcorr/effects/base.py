@@ -1,0 +1,294 @@
+"""The one interface of a catalogue effect, and the values the diagnosis passes between effects.
+
+Every effect of ``spec/diagnosis.md`` is one object of a subclass of :class:`EffectBase`, in its own
+module of this package (the model's channel effects share one, :mod:`dfxcorr.effects.channel`). It
+says, for itself:
+
+- what a configuration asks of it and how the one preparation applies that (:meth:`EffectBase.configured`,
+  :meth:`EffectBase.prepare`): a correction of the counts, of the alignment, of the noise model;
+- whether it applies to an acquisition and its test at the current fit (:meth:`EffectBase.test`): statistic,
+  dof, identifiability, what it would explain;
+- how it changes a hypothesis for the trial refit (:meth:`EffectBase.trial`);
+- its report: where, the estimate, the keys of ``diagnosis.json``, the ``reconstruct`` settings that put it
+  in the model, and the files it writes (:meth:`EffectBase.accepted`, :meth:`EffectBase.where`,
+  :meth:`EffectBase.estimate`, :meth:`EffectBase.settings`, :meth:`EffectBase.artefacts`).
+
+A :class:`Hypothesis` is a value: what the model holds (its channel effects), the noise model, the pixels
+left out, where the flat field is read and the detector lag taken out. A trial returns a new one; a
+rejected trial is dropped, never undone.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+from scipy import stats
+
+from ..align import LitStore
+from ..catalogue import Effect
+from ..observations import Noise, Observations
+from ..retrieve import Retrieval
+
+if TYPE_CHECKING:
+    from ..pipeline import Prepared
+
+
+@dataclass(frozen=True)
+class Test:
+    """An effect's test at the current fit.
+
+    Attributes
+    ----------
+    statistic : float
+        Chi-square-like statistic (what noise alone gives about ``dof`` of).
+    dof : int
+    p_value, log_p : float
+        Its tail probability under noise alone, and the log of it (exact where the p-value underflows).
+    identifiable : bool
+        Whether this acquisition can determine the effect at all.
+    excess : int
+        Information-free directions of its parameters beyond its gauge (0 where identifiable).
+    explains : float
+        About how much chi-square adding it would remove (ranks candidates).
+    material : bool
+        Whether the change it would make matters (a gain within the practical floor does not).
+    payload : mapping
+        What its trial and report need (a pixel mask, a factor map, an estimate, ...).
+    """
+
+    statistic: float
+    dof: int
+    p_value: float
+    log_p: float
+    identifiable: bool = True
+    excess: int = 0
+    explains: float = 0.0
+    material: bool = True
+    payload: Mapping[str, Any] = field(default_factory=dict)
+
+
+def chi2_test(statistic: float, dof: int, **kw: Any) -> Test:
+    """A :class:`Test` whose statistic is chi-square with ``dof`` degrees of freedom under noise (1 where dof = 0)."""
+    if dof <= 0:
+        return Test(statistic, dof, 1.0, 0.0, **kw)
+    log_p = float(stats.chi2.logsf(statistic, dof)) if np.isfinite(statistic) else -np.inf
+    return Test(float(statistic), int(dof), float(stats.chi2.sf(statistic, dof)), log_p, **kw)
+
+
+def holm(log_p: list[float], alpha: float) -> list[bool]:
+    """Holm's step-down verdicts at family-wise level ``alpha`` for tests with these log p-values."""
+    order = sorted(range(len(log_p)), key=lambda i: log_p[i])
+    out = [False] * len(log_p)
+    for rank, i in enumerate(order):
+        if not log_p[i] < np.log(alpha / (len(log_p) - rank)):
+            break
+        out[i] = True
+    return out
+
+
+def ranges(values: np.ndarray, limit: int = 4) -> str:
+    """'3-7, 12, 40-60' for sorted integers (at most ``limit`` runs, then '...')."""
+    runs, start = [], None
+    for a, b in zip(values, [*list(values[1:]), None], strict=True):
+        start = a if start is None else start
+        if b is None or b != a + 1:
+            runs.append(f"{start}-{a}" if a != start else f"{a}")
+            start = None
+    return ", ".join(runs[:limit]) + (", ..." if len(runs) > limit else "")
+
+
+def frames_where(share: np.ndarray, n_frames: int) -> str:
+    """Where a per-frame statistic sits: the fewest frames that carry half of it (``share``, shape (J,))."""
+    share = np.clip(share, 0, None)
+    if share.sum() <= 0:
+        return "no frame in particular"
+    order = np.argsort(share)[::-1]
+    top = np.sort(order[: max(1, int(np.searchsorted(np.cumsum(share[order]) / share.sum(), 0.5)) + 1)])
+    spread = "all frames" if top.size > 0.3 * n_frames else "few frames"
+    return f"{spread}; half of the statistic in {top.size} frames, {top.min()}-{top.max()}"
+
+
+@dataclass(frozen=True, eq=False)
+class Hypothesis:
+    """What a fit of the diagnosis assumes beyond the prepared scan.
+
+    Attributes
+    ----------
+    effects : tuple of str
+        Channel effects in the model (:mod:`dfxcorr.catalogue`).
+    noise : Noise
+        The noise model (gain, electronic variance, per-pixel factors).
+    motion : ndarray of bool, shape (H, W)
+        Pixels left out (sample motion).
+    shift : ndarray, shape (J,)
+        Rows by which each frame reads the flat field off the prepared alignment.
+    lag : float
+        Detector lag fraction taken out of the counts beyond the prepared (configured) one.
+    """
+
+    effects: tuple[str, ...]
+    noise: Noise
+    motion: np.ndarray
+    shift: np.ndarray
+    lag: float = 0.0
+
+    def but(self, **changes: Any) -> Hypothesis:
+        """The same hypothesis with some fields changed."""
+        return replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class Preparation:
+    """What the configured corrections make of a scan's lit samples before any fit.
+
+    Attributes
+    ----------
+    store : LitStore
+    shift : ndarray, shape (J,)
+        Rows by which each frame reads the flat field off its recorded position.
+    noise : Noise
+    """
+
+    store: LitStore
+    shift: np.ndarray
+    noise: Noise
+
+
+class State(Protocol):
+    """A fitted hypothesis, as effects see it: the hypothesis, its parameters, chi-square (sum and reduced),
+    residual signatures, the retrieval of every column, and the samples of every column and of the fit's
+    columns under it."""
+
+    @property
+    def hypothesis(self) -> Hypothesis: ...
+    @property
+    def params(self) -> dict: ...
+    @property
+    def chi2(self) -> float: ...
+    @property
+    def reduced_chi2(self) -> float: ...
+    @property
+    def signatures(self) -> list: ...
+    @property
+    def rec(self) -> Retrieval: ...
+    @property
+    def obs(self) -> Observations: ...
+    @property
+    def fit_obs(self) -> Observations: ...
+
+
+#: (observations, shift (J,) rows) -> the same samples with the flat field read that far off the prepared alignment.
+Realign = Callable[[Observations, "np.ndarray | float"], Observations]
+
+
+class Context(Protocol):
+    """What a diagnosis offers the effects it tests."""
+
+    cfg: dict
+    #: Columns of the observations that the per-frame parameters are fitted on, (C,) bool.
+    fitted: np.ndarray
+    #: Frames that set the gauge (:func:`dfxcorr.fit.well_determined`), (J,) bool.
+    good_frames: np.ndarray
+    #: A phase-stepping recording (no scan positions).
+    stepping: bool
+    #: Why visibility effects cannot be determined here (paper Sec. II-F), or None.
+    visibility_why: str | None
+    #: Results effects share within a diagnosis (computed once for the state they belong to).
+    memo: dict
+
+    def prepared(self, hypothesis: Hypothesis) -> Prepared:
+        """The preparation with the hypothesis's detector lag taken out."""
+        ...
+
+    def realigner(self, hypothesis: Hypothesis) -> Realign:
+        """Realignment of samples of the hypothesis's preparation."""
+        ...
+
+
+#: Writes one file of a report to the path given.
+Writer = Callable[[Path], None]
+
+
+class EffectBase:
+    """An effect of the catalogue: its entry, and what it does in the preparation, the diagnosis and the report.
+
+    Attributes
+    ----------
+    entry : Effect
+        The catalogue entry (name, parameters, metadata).
+    role : str
+        'mean' (a term of the expected count), 'noise' (the noise model), 'pixels' (which pixels count),
+        'alignment' (where the flat field is read), 'counts' (a correction of the data).
+    tier : int
+        Candidates are tried by tier, then by the chi-square they explain; noise effects by tier just
+        before the first localised one ('pixels'): a global variance excess is modelled before outliers are
+        judged against it, and after the mean effects that explain more.
+    fresh_start : bool
+        Its trial changes the data themselves: the trial fit starts afresh, as the first round did.
+    """
+
+    entry: Effect
+    role: str = "mean"
+    tier: int = 2
+    fresh_start: bool = False
+
+    @property
+    def name(self) -> str:
+        return self.entry.name
+
+    # ---- preparation -----------------------------------------------------------------------------
+
+    def configured(self, cfg: dict, *, n_frames: int, detector: tuple[int, int]) -> Any:
+        """What the configuration asks of this effect, read and checked before any computation (None: nothing)."""
+        return None
+
+    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
+        """Apply the configured ``setting`` (not None) to the preparation."""
+        return prep
+
+    # ---- diagnosis -------------------------------------------------------------------------------
+
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
+        """The effect's test at the fit ``state`` (None: does not apply to this acquisition or hypothesis).
+
+        ``flagged`` (H, W) bool: pixels that a localised effect flagged in this round (left out of global
+        variance tests: a localised misfit must not pose as a global one).
+        """
+        return None
+
+    def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
+        """The hypothesis a trial refit with this effect fits."""
+        raise NotImplementedError(f"{self.name} has no trial")
+
+    def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
+        """The keys of its ``diagnosis.json`` entry once added (beyond the common ones)."""
+        return {}
+
+    def where(self, test: Test, obs: Observations) -> str:
+        """Where in the recording its signature sits."""
+        return "the whole detector"
+
+    def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
+        """One line: the estimated size of the effect."""
+        return ""
+
+    def per_frame(self, extra: dict, params: dict) -> np.ndarray | None:
+        """Its per-frame estimate (J, n) for the report's picture, where it has one."""
+        return None
+
+    def unexplained(self, test: Test) -> dict | None:
+        """The ``unexplained`` entry of a significant test of it that was not added (a localised misfit), or None."""
+        return None
+
+    # ---- report ----------------------------------------------------------------------------------
+
+    def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
+        """``--set`` options that make ``reconstruct`` use the diagnosis's final model (``extra`` None: not added)."""
+        return []
+
+    def artefacts(self, final: Hypothesis, extra: dict | None, cfg: dict) -> dict[str, Writer]:
+        """Files the report writes for it: name -> writer (``extra`` None: not added)."""
+        return {}

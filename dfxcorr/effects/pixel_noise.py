@@ -1,0 +1,246 @@
+"""``pixel_noise``: the noise variance differs from pixel to pixel (e.g. the module-boundary pixels of hybrid detectors).
+
+variance_i = f_i * g * mean (+ electronic), f a per-pixel factor map, one factor per pixel class. Read from
+``load.pixel_noise`` (a TIFF of factors, such as the ``pixel_noise.tif`` that the diagnosis writes), it
+scales each pixel's noise variance in the fit's and the retrieval's weights.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from .. import model as M
+from ..catalogue import Effect
+from ..errors import DfxcorrError
+from ..observations import Observations
+from .base import Context, EffectBase, Hypothesis, Preparation, State, Test, Writer, chi2_test, holm, ranges
+
+
+def read_pixel_noise(path: str | Path | None, shape: tuple[int, int]) -> np.ndarray | None:
+    """The variance factor map of ``load.pixel_noise`` (a TIFF of shape (H, W), e.g. diagnose's pixel_noise.tif).
+
+    Raises
+    ------
+    PixelNoiseError
+        If the file cannot be read, or its shape or values do not fit (positive and finite, one per pixel).
+    """
+    if path is None:
+        return None
+    import tifffile
+
+    try:
+        f = np.asarray(tifffile.imread(path), dtype=np.float64)
+    except (OSError, ValueError) as exc:
+        raise PixelNoiseError(f"{path}: cannot read the pixel noise map of load.pixel_noise ({exc})") from None
+    if f.shape != tuple(shape):
+        raise PixelNoiseError(f"{path}: load.pixel_noise map has shape {f.shape}, the detector {tuple(shape)}")
+    if not np.all(np.isfinite(f) & (f > 0)):
+        raise PixelNoiseError(f"{path}: load.pixel_noise map holds values that are not positive and finite")
+    return f
+
+
+class PixelNoiseError(DfxcorrError, ValueError):
+    """A pixel noise map (``load.pixel_noise``) that does not fit the scan."""
+
+
+
+def pixel_noise_test(obs: Observations, ibar: np.ndarray, valid: np.ndarray, *, alpha: float,
+                     exclude: np.ndarray | None = None, fitted: np.ndarray | None = None) -> Test:
+    """Pixel classes whose noise variance differs from the rest: found by detector column and row, factor per class.
+
+    Per pixel, the Pearson chi-square X_i of its samples under the current noise model, each sample's z^2
+    divided by the regular pixels' dispersion at its expected count (12 bins: a variance misfit that follows
+    the count, a detector nonlinearity say, is no pixel class), and its degrees of freedom n_i - 3 (3 image
+    unknowns). Per detector column (and row) the sum X against c times its dof,
+    c the overall dispersion: z = (X - c dof) / (c sqrt(V)), V the variance of the summed z^2 (2 + g / mu
+    per sample: scaled Poisson noise); columns and rows significant after Holm (alpha over all of them)
+    are anomalous, and grouped by their variance ratio (:func:`_variance_groups`: lines whose ratios agree
+    within noise). Classes: pixels sharing (column group, row group), group 0 regular; the regular class is
+    the reference. Each other class gets the factor
+    f = (X / dof of the class) / (X / dof of the regular class), so that its reduced chi-square becomes that
+    of the rest (a global gain stays detector_gain's); where no pixel is regular (every row anomalous, say)
+    the factors are against the stated noise model. Statistic: the Gaussian likelihood ratio of a
+    variance scale per class, sum dof (f - 1 - ln f), chi-square with one dof per class.
+
+    ``fitted`` (C,) marks the columns the per-frame parameters were fitted on: their residuals are smaller
+    (the parameters took some of their variance, and of any misfit), so their dispersion reference is that
+    of the regular fitted columns, per count bin like the rest.
+
+    Returns
+    -------
+    Test
+        Payload 'map' (H, W) factors (relative to the current ones), 'classes' (list of dict: 'columns', 'rows',
+        'pixels', 'factor').
+    """
+    sel = obs.use & valid[obs.pixel]
+    if exclude is not None:
+        sel &= ~exclude
+    z2 = np.where(sel, M.pearson(obs, ibar), 0.0)
+    g = obs.pixel_gain()[obs.pixel]
+    kv = np.where(sel, 2.0 + g / np.maximum(ibar - obs.dark, 1e-3), 0.0)
+    n = obs.segment_sum(sel.astype(float))
+    dof = np.maximum(n - 3, 0.0)
+    share = np.where(sel, (dof / np.maximum(n, 1))[obs.pixel], 0.0)  # a sample's share of its pixel's dof
+    V = np.where(dof > 0, obs.segment_sum(kv) * dof / np.maximum(n, 1), 0.0)
+    img = {k: obs.to_image(v, fill=0.0) for k, v in (("dof", dof), ("V", V))}
+    H, W = obs.shape[1:]
+    fmap = np.ones((H, W))
+    none = Test(0.0, 0, 1.0, 0.0, payload={"map": fmap, "classes": []})
+    if img["dof"].sum() <= 0:
+        return none
+    # a variance misfit that depends on the expected count (detector nonlinearity, say) is not a pixel class:
+    # z^2 is measured against the regular pixels' dispersion at the same count (12 bins of equal size)
+    edges = np.quantile(ibar[sel], np.linspace(0, 1, 13)[1:-1])
+    kind = np.zeros(obs.columns.size, int) if fitted is None else np.asarray(fitted, int)
+    cbin = 2 * np.digitize(ibar, edges) + kind[None, :]
+    groups = [np.zeros(W, int), np.zeros(H, int)]
+    # the dispersion of the regular pixels, the anomalous columns and rows found against it: repeated until
+    # they stay the same (anomalous lines would otherwise pull the reference and make the rest look anomalous)
+    for _ in range(5):
+        regular = (groups[1][:, None] == 0) & (groups[0][None, :] == 0)
+        reg = sel & regular[obs.row][:, obs.columns]
+        num = np.bincount(cbin[reg], weights=z2[reg], minlength=24)
+        den = np.bincount(cbin[reg], weights=share[reg], minlength=24)
+        per_count = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
+        img["X"] = obs.to_image(np.where(dof > 0, obs.segment_sum(z2 / per_count[cbin]), 0.0), fill=0.0)
+        c = _dispersion(img, regular)
+        tests, lines = [], []
+        for axis in (0, 1):
+            # a column's sum over the regular rows, a row's over the regular columns
+            keep = (groups[1][:, None] == 0) if axis == 0 else (groups[0][None, :] == 0)
+            Xa, Da, Va = (np.where(keep, img[k], 0.0).sum(axis=axis) for k in ("X", "dof", "V"))
+            ok = Da > 0
+            z = np.where(ok, (Xa - c * Da) / (c * np.sqrt(np.where(ok, Va, 1.0))), 0.0)
+            lines.append((Xa, Da, Va))
+            tests += [(float(np.log(2) + stats.norm.logsf(abs(v))), axis, i) for i, v in enumerate(z) if ok[i]]
+        significant = holm([t[0] for t in tests], alpha)
+        new = []
+        for axis in (0, 1):
+            idx = np.array([i for (_, a, i), s in zip(tests, significant, strict=True) if a == axis and s], int)
+            Xa, Da, Va = lines[axis]
+            new.append(_variance_groups(Xa[idx], Da[idx], Va[idx], idx, c=c, size=(W, H)[axis]))
+        if all(np.array_equal(a, b) for a, b in zip(new, groups, strict=True)):
+            break
+        groups = new
+    label = groups[1][:, None] * (groups[0].max() + 1) + groups[0][None, :]
+    regular = label == 0
+    if regular.all():
+        return none
+    c0 = _dispersion(img, regular)
+    classes, stat = [], 0.0
+    for k in np.unique(label[~regular]):
+        m = label == k
+        d = img["dof"][m].sum()
+        if d <= 0:
+            continue
+        f = img["X"][m].sum() / d / c0
+        fmap[m] = f
+        stat += float(d * (f - 1 - np.log(f)))
+        r_idx, c_idx = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+        classes.append({"rows": ranges(r_idx, limit=8), "columns": ranges(c_idx, limit=8),
+                        "pixels": int(m.sum()), "factor": float(f), "dof": float(d)})
+    if not classes:
+        return none
+    return chi2_test(stat, len(classes), explains=stat, payload={"map": fmap, "classes": classes})
+
+
+def _dispersion(img: dict, regular: np.ndarray) -> float:
+    """Reduced chi-square of the regular pixels; 1 (the stated noise model) when every line is anomalous."""
+    dof = img["dof"][regular].sum()
+    return float(img["X"][regular].sum() / dof) if dof > 0 else 1.0
+
+
+def _variance_groups(X: np.ndarray, dof: np.ndarray, V: np.ndarray, idx: np.ndarray, *, c: float, size: int,
+                     z_split: float = 5.0) -> np.ndarray:
+    """Group anomalous detector lines (columns or rows) whose variance ratios agree: 0 regular, 1, 2, ... groups.
+
+    The lines ``idx`` (their chi-square sums X, dof and variances V), sorted by their ratio X / (c dof), join
+    the current group while they lie within ``z_split`` standard deviations of its pooled ratio.
+    """
+    out = np.zeros(size, int)
+    if idx.size == 0:
+        return out
+    ratio = X / (c * dof)
+    order = np.argsort(ratio)
+    g, Xg, Dg, Vg = 0, 0.0, 0.0, 0.0
+    for i in order:
+        if g and abs(ratio[i] - Xg / (c * Dg)) > z_split * np.sqrt(V[i] / dof[i] ** 2 + Vg / Dg ** 2):
+            g, Xg, Dg, Vg = g + 1, 0.0, 0.0, 0.0
+        g = max(g, 1)
+        out[idx[i]] = g
+        Xg, Dg, Vg = Xg + X[i], Dg + dof[i], Vg + V[i]
+    return out
+
+
+def class_chi2(obs: Observations, ibar: np.ndarray, valid: np.ndarray, classes: np.ndarray) -> dict[int, float]:
+    """Reduced chi-square per pixel class: sum of Pearson residuals over sum of (samples - 3) per pixel.
+
+    ``classes`` (H, W) int labels; returns label -> reduced chi-square (under the noise model of ``obs``).
+    """
+    sel = obs.use & valid[obs.pixel]
+    n = obs.segment_sum(sel.astype(float))
+    X = obs.to_image(obs.segment_sum(np.where(sel, M.pearson(obs, ibar), 0.0)), fill=0.0)
+    dof = obs.to_image(np.maximum(n - 3, 0.0), fill=0.0)
+    return {int(k): float(X[classes == k].sum() / dof[classes == k].sum()) for k in np.unique(classes)
+            if dof[classes == k].sum() > 0}
+
+
+
+
+class PixelNoise(EffectBase):
+    entry = Effect("pixel_noise", None, False, (), 1.0, "none",
+                   "the noise variance differs from pixel to pixel: variance_i = f_i * g * mean (+ electronic)")
+    role = "noise"
+    # a variance pattern before a global gain: its factors are relative to the regular pixels, so a gain fitted
+    # first would be pulled by the anomalous ones
+    tier = 0
+
+    def configured(self, cfg: dict, *, n_frames: int, detector: tuple[int, int]) -> Any:
+        return read_pixel_noise(cfg["load"]["pixel_noise"], detector)
+
+    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
+        return replace(prep, noise=replace(prep.noise, factors=setting))
+
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
+        from scipy import ndimage
+
+        obs, rec = state.obs, state.rec
+        return pixel_noise_test(obs, rec.expected, rec.images.valid, alpha=ctx.cfg["diagnose"]["alpha"],
+                                fitted=ctx.fitted, exclude=obs.pixel_mask(ndimage.binary_dilation(flagged)))
+
+    def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
+        noise = state.hypothesis.noise
+        # the test's factors are relative to the current ones
+        factors = test.payload["map"] * (1.0 if noise.factors is None else noise.factors)
+        return state.hypothesis.but(noise=replace(noise, factors=factors))
+
+    def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
+        return {"classes": test.payload["classes"]}
+
+    def where(self, test: Test, obs: Observations) -> str:
+        return "; ".join(f"rows {c['rows']} x columns {c['columns']}" for c in test.payload["classes"][:3])
+
+    def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
+        return ", ".join(f"f = {c['factor']:.3g} ({c['pixels']} pixels)" for c in extra["classes"])
+
+    def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
+        return [f"load.pixel_noise={out_dir / 'pixel_noise.tif'}"] if extra is not None else []
+
+    def artefacts(self, final: Hypothesis, extra: dict | None, cfg: dict) -> dict[str, Writer]:
+        if extra is None or final.noise.factors is None:
+            return {}
+        factors = final.noise.factors
+
+        def write(path: Path) -> None:
+            import tifffile
+
+            tifffile.imwrite(path, factors.astype(np.float32))
+
+        return {"pixel_noise.tif": write}
+
+
+EFFECT = PixelNoise()

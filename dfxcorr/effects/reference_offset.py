@@ -1,0 +1,174 @@
+"""``reference_offset``: the whole interferometer sat delta rows off during the scan, relative to the reference scan.
+
+Every frame reads the flat-field maps at u - delta (paper Sec. III-B: phase ramps at the G2 tile
+boundaries). Every derivative with respect to delta here is a finite difference of the one alignment
+(:func:`dfxcorr.align.realign`) pushed through the one model (:mod:`dfxcorr.model`): no second copy of either.
+
+It is estimated from the differential-phase image, not from the likelihood. Where the flat-field phase
+is linear along the scan, a global offset shifts every exposure of a pixel by the same k delta (k =
+d phi^f / du of that pixel): the pixel's phase image absorbs it exactly and the likelihood does not
+change. It is identifiable in the likelihood only through the flat field's departure from linearity
+along u, which is small in real flat fields (the chi-square moves by noise). The image however steps by
+-(jump of k) delta at every boundary of the grating tiles, where the sample has no reason to step.
+:func:`offset_test` fits that step pattern, one parameter against all boundaries and rows, and tests it
+against noise.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import model as M
+from ..catalogue import Effect
+from ..observations import Observations
+from ..retrieve import retrieve
+from .base import Context, EffectBase, Hypothesis, Preparation, Realign, State, Test, chi2_test
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return np.angle(np.exp(1j * a))
+
+
+def _third_difference(a: np.ndarray) -> np.ndarray:
+    """a[c+2] - 3 a[c+1] + 3 a[c] - a[c-1] along columns, shape (R, C - 3): zero for any quadratic in c."""
+    return a[:, 3:] - 3 * a[:, 2:-1] + 3 * a[:, 1:-2] - a[:, :-3]
+
+
+def phase_variance(images: M.Images, dispersion: float = 1.0) -> np.ndarray:
+    """Variance (rad^2) of each pixel's phase phi = atan2(s, c) from the inverse normal matrix, (R, C)."""
+    c, s = images.coef[..., 1], images.coef[..., 2]
+    inv = images.inverse
+    if inv is None:
+        raise ValueError("the phase variance needs the inverse normal matrices (solve_images(..., keep_inverse=True))")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        var = (s ** 2 * inv[..., 1, 1] + c ** 2 * inv[..., 2, 2] - 2 * c * s * inv[..., 1, 2]) / (c ** 2 + s ** 2) ** 2
+    return np.where(images.valid, var * dispersion, np.nan)
+
+
+def offset_test(realigned: Realign, obs: Observations, params: dict, shift: np.ndarray | float = 0.0, *,
+                step: float = 0.5, clip: float = 5.0, min_precision: float = 0.1) -> Test:
+    """Test for, and estimate, a reference offset from the steps of the differential-phase image.
+
+    With the flat field read at u - delta for every frame, the retrieved phase image is
+    phi_hat = phi - s delta, s = d phi_hat / d delta the pixel's sensitivity (its flat field's k =
+    d phi^f / du averaged over its frames, less what the per-frame parameters absorb); s is the
+    central difference of two retrievals with the flat field read ``step`` rows either way. The third
+    difference along columns, D3, annihilates any sample structure quadratic over four columns, and
+    s's smooth part; it leaves the jumps of k at the tile boundaries. delta is the weighted least-squares
+    fit of D3(phi_hat) = -D3(s) delta over all rows and boundaries, weights the inverse noise variances
+    of D3(phi_hat) (pixels independent); stencils beyond ``clip`` standard deviations from the fit (edges
+    in the sample) are left out, iteratively. Its variance is exact for independent pixel noise
+    (the estimator is linear in the phase image), scaled by the residual dispersion of all stencils
+    where that exceeds 1: stencils away from the boundaries measure the noise.
+
+    Parameters
+    ----------
+    realigned : callable
+        (observations, shift) -> the same samples with the flat field read ``shift`` rows off the prepared
+        alignment (:func:`dfxcorr.align.realign`).
+    obs : Observations
+        Every column of the detector (contiguous), as prepared, at the current alignment.
+    params : dict
+        Current effect parameters.
+    shift : float or ndarray, shape (J,)
+        Rows by which ``obs`` is already read off the prepared alignment.
+    step : float
+        Rows of the finite difference.
+    clip : float
+        Outlier threshold (standard deviations).
+    min_precision : float
+        The offset is identifiable where its standard error is below this (rows): the flat field's k
+        must jump between columns (tiled gratings); a smooth flat field has no boundary to step at.
+
+    Returns
+    -------
+    Test
+        Statistic z^2 with 1 dof; payload 'value' (delta beyond ``shift``, rows), 'sigma' (its standard error).
+    """
+    rec = retrieve(obs, params)
+    images = M.solve_images(obs, M.design(obs, params), rec.weights, keep_inverse=True)
+    phi, var = images.phi, phase_variance(images, max(rec.reduced_chi2, 1.0))
+    plus, minus = (retrieve(realigned(obs, shift + d), params).images for d in (step, -step))
+    sens = _wrap(plus.phi - minus.phi) / (2 * step)
+    ok4 = images.valid & plus.valid & minus.valid & np.isfinite(var)
+    ok = ok4[:, 3:] & ok4[:, 2:-1] & ok4[:, 1:-2] & ok4[:, :-3]
+    f_phi = np.where(ok, _wrap(_third_difference(np.where(ok4, phi, 0.0))), 0.0)
+    f_s = np.where(ok, _third_difference(np.where(ok4, sens, 0.0)), 0.0)
+    v = np.nan_to_num(var)
+    f_var = np.where(ok, v[:, 3:] + 9 * v[:, 2:-1] + 9 * v[:, 1:-2] + v[:, :-3], np.inf)
+    keep, delta = ok.copy(), 0.0
+    for _ in range(5):
+        w = np.where(keep, 1.0 / f_var, 0.0)
+        info = float(np.sum(w * f_s ** 2))
+        if info <= 0:
+            break
+        delta = -float(np.sum(w * f_phi * f_s)) / info
+        e = np.where(ok, (f_phi + f_s * delta) / np.sqrt(f_var), 0.0)
+        new = ok & (np.abs(e) < clip)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    w = np.where(keep, 1.0 / f_var, 0.0)
+    info = float(np.sum(w * f_s ** 2))
+    if info <= 0:
+        return Test(0.0, 1, 1.0, 0.0, identifiable=False, excess=1, payload={"value": 0.0, "sigma": np.inf})
+    # the estimator's coefficients on the phase image: the adjoint of the stencil applied to -w D3(s) / info
+    a = -w * f_s / info
+    coef = np.zeros_like(phi)
+    for at, factor in ((3, 1.0), (2, -3.0), (1, 3.0), (0, -1.0)):
+        coef[:, at:at + a.shape[1]] += factor * a
+    sigma2 = float(np.sum(coef ** 2 * v))
+    dispersion = max(float(np.sum(w * (f_phi + f_s * delta) ** 2) / max(int(keep.sum()) - 1, 1)), 1.0)
+    sigma = np.sqrt(sigma2 * dispersion)
+    stat = delta ** 2 / sigma ** 2
+    return chi2_test(stat, 1, identifiable=bool(np.sqrt(sigma2) < min_precision), explains=stat,
+                     payload={"value": delta, "sigma": float(sigma)})
+
+
+class ReferenceOffset(EffectBase):
+    entry = Effect("reference_offset", None, False, ("delta",), 0.0, "none",
+                   "the interferometer sat delta rows off during the scan: the flat field is read at u - delta",
+                   unit="rows")
+    role = "alignment"
+    # its statistic comes from the image, not the likelihood (which barely sees it); its step signature at the
+    # tile boundaries is specific, while mean-effect proxies would soak up what it does to the fit
+    tier = 1
+
+    def configured(self, cfg: dict, *, n_frames: int, detector: tuple[int, int]) -> Any:
+        return cfg["align"]["reference_offset"] or None
+
+    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
+        return replace(prep, shift=prep.shift + setting)
+
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
+        # a phase-stepping recording has no scan positions to be off
+        if ctx.stepping:
+            return None
+        return offset_test(ctx.realigner(state.hypothesis), state.obs, state.params, state.hypothesis.shift)
+
+    def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
+        realigned = ctx.realigner(state.hypothesis)
+        found = state.hypothesis.shift + test.payload["value"]
+        # one refinement at the corrected alignment: the step's sensitivity is a linearisation
+        found = found + offset_test(realigned, realigned(state.obs, found), state.params, found).payload["value"]
+        return state.hypothesis.but(shift=found)
+
+    def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
+        return {"value": float(np.mean(after.hypothesis.shift - before.hypothesis.shift))}
+
+    def where(self, test: Test, obs: Observations) -> str:
+        return "steps of the differential phase at the flat field's tile boundaries, all rows"
+
+    def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
+        return f"delta = {extra['value']:.3f} rows"
+
+    def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
+        # the configured offset stays in the recommended command
+        offset = cfg["align"]["reference_offset"] + (0.0 if extra is None else extra["value"])
+        return [f"align.reference_offset={offset:.4g}"] if offset else []
+
+
+EFFECT = ReferenceOffset()

@@ -1,0 +1,102 @@
+"""``sample_motion``: part of the sample moved during the scan; its pixels' frames disagree.
+
+Localised, not per-frame: the pixels are left out of the fit (as the motion mask of the paper's
+Sec. II-E leaves them out of a reconstruction's vibration fit).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage, stats
+
+from ..catalogue import Effect
+from ..mask import motion_score
+from ..observations import Observations
+from .base import Context, EffectBase, Hypothesis, State, Test, Writer
+
+
+def motion_test(obs: Observations, params: dict, *, p_pixel: float = 1e-6, min_pixels: int = 5) -> Test:
+    """Pixels whose frames disagree beyond noise and remaining vibration misfit, in clusters.
+
+    The per-pixel score is :func:`dfxcorr.mask.motion_score` at the current model (a reduced
+    chi-square once what the fringe sensitivity explains is divided out); a pixel is flagged when that
+    score is in the chi-square tail beyond ``p_pixel``, and counts only in a cluster of three or more.
+
+    Returns
+    -------
+    Test
+        Statistic: chi-square in excess of its dof over the flagged pixels; dof: flagged pixels; log_p:
+        binomial (that many pixels below ``p_pixel`` by chance); payload 'mask' (H, W) bool.
+    """
+    score = motion_score(obs, params)
+    dof = np.maximum(obs.segment_sum(obs.use.astype(float)) - 3, 1)
+    ok = np.isfinite(score)
+    logp = np.where(ok, stats.chi2.logsf(np.nan_to_num(score) * dof, dof), 0.0)
+    flag = obs.to_image(ok & (logp < np.log(p_pixel)), fill=False).astype(bool)
+    labels, count = ndimage.label(flag)
+    if count:
+        # a moving sample covers neighbouring pixels; isolated tail pixels are noise or outliers
+        sizes = ndimage.sum(flag, labels, index=np.arange(1, count + 1))
+        flag = np.isin(labels, 1 + np.flatnonzero(sizes >= 3))
+    k = int(flag.sum())
+    excess = obs.to_image(np.nan_to_num(score - 1) * dof, fill=0.0)
+    log_p = float(stats.binom.logsf(k - 1, int(ok.sum()), p_pixel)) if k >= min_pixels else 0.0
+    stat = float(excess[flag].sum())
+    return Test(stat, k, float(np.exp(log_p)), log_p, explains=stat, payload={"mask": flag})
+
+
+def where_pixels(mask: np.ndarray) -> str:
+    """'N pixels in rows a-b, columns c-d' of a detector mask."""
+    rows, cols = np.nonzero(mask)
+    return (f"{rows.size} pixels in rows {rows.min()}-{rows.max()}, columns {cols.min()}-{cols.max()}"
+            if rows.size else "nowhere")
+
+
+class SampleMotion(EffectBase):
+    entry = Effect("sample_motion", None, False, (), 0.0, "none",
+                   "part of the sample moved during the scan: pixels whose frames disagree")
+    role = "pixels"
+
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
+        if state.hypothesis.motion.any():
+            return None
+        d = ctx.cfg["diagnose"]
+        return motion_test(state.obs, state.params, p_pixel=d["motion_p"], min_pixels=d["min_pixels"])
+
+    def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
+        # the rim of a moving region is partly affected too
+        return state.hypothesis.but(motion=ndimage.binary_dilation(test.payload["mask"], iterations=1))
+
+    def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
+        return {"pixels": int(after.hypothesis.motion.sum())}
+
+    def where(self, test: Test, obs: Observations) -> str:
+        return where_pixels(test.payload["mask"])
+
+    def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
+        return f"{extra['pixels']} pixels"
+
+    def unexplained(self, test: Test) -> dict:
+        """The ``unexplained`` entry of pixels that disagree although masking them did not explain the misfit."""
+        return {"axis": "pixel", "statistic": test.statistic, "dof": test.dof, "p_value": test.p_value,
+                "where": where_pixels(test.payload["mask"]),
+                "description": f"{int(test.payload['mask'].sum())} pixels whose frames disagree beyond noise, in "
+                               f"clusters; masking them does not explain the misfit"}
+
+    def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
+        return ["mask.enabled=true"] if extra is not None else []
+
+    def artefacts(self, final: Hypothesis, extra: dict | None, cfg: dict) -> dict[str, Writer]:
+        if extra is None:
+            return {}
+
+        def write(path: Path) -> None:
+            import tifffile
+
+            tifffile.imwrite(path, final.motion.astype(np.uint8))
+
+        return {"motion_mask.tif": write}
+
+
+EFFECT = SampleMotion()

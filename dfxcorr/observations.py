@@ -1,0 +1,159 @@
+"""The aligned data every stage works on: illuminated samples of a scan with their flat field, and the noise model.
+
+A scan is handled as an :class:`Observations` stack: one block per (illuminated detector row, frame)
+pair, ``K`` blocks sorted by row, each holding the ``C`` selected detector columns. Per-pixel sums are
+segment sums over the blocks of one row; per-frame sums are bincounts over the blocks' frames.
+
+Observations are values: frozen, never changed after they are made. Another noise model, pixel set or
+alignment is another :class:`Observations` (``dataclasses.replace``, :meth:`Observations.with_noise`),
+sharing the arrays that stay the same.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+
+def lateral_coordinate(columns: np.ndarray, width: int) -> np.ndarray:
+    """x = (2c + 1) / W - 1: -1 and +1 at the outer edges of the first and last column."""
+    return (2.0 * np.asarray(columns, dtype=np.float64) + 1.0) / width - 1.0
+
+
+@dataclass(frozen=True)
+class Noise:
+    """The noise description of a detector: variance = f_i * gain * (Ibar - dark) + electronic.
+
+    Attributes
+    ----------
+    gain : float
+        Detector units per photon.
+    electronic : float
+        Electronic (readout) noise variance, counts^2.
+    factors : ndarray, shape (H, W), or None
+        Variance factor f of each detector pixel (``pixel_noise``); None: 1 everywhere.
+    """
+
+    gain: float = 1.0
+    electronic: float = 0.0
+    factors: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Observations:
+    """Illuminated samples of a scan with their flat field, as blocks of (row, frame).
+
+    Attributes
+    ----------
+    counts : ndarray, shape (K, C)
+        Measured counts (detector units).
+    tf, vf, phif : ndarray, shape (K, C)
+        Flat-field transmission (counts), visibility and phase (rad, the nominal phase step included)
+        at each sample, aligned to the frame's position. v^f is 0 where the flat field carries no fringe
+        (outside the region of interest): there the model has no modulation.
+    dark : ndarray, shape (K, C)
+        Dark signal (counts).
+    use : ndarray of bool, shape (K, C)
+        Samples that enter the fit or the retrieval (False for masked pixels).
+    row, frame : ndarray of int, shape (K,)
+        Detector row and frame of each block, sorted by row.
+    columns : ndarray of int, shape (C,)
+        Detector columns held.
+    shape : tuple
+        (J, H, W) of the scan.
+    gain : float
+        Detector units per photon.
+    electronic : float
+        Electronic noise variance (counts^2); the variance of a sample is gain * (Ibar - dark) + electronic.
+    noise : ndarray, shape (R, C), or None
+        Variance factor f of each pixel held (``pixel_noise``): the variance is f * gain * (Ibar - dark)
+        + electronic; None: 1 everywhere.
+    roi : ndarray of bool, shape (K, C), or None
+        The region of interest: samples whose flat field carries a fringe. None: every sample.
+    """
+
+    counts: np.ndarray
+    tf: np.ndarray
+    vf: np.ndarray
+    phif: np.ndarray
+    dark: np.ndarray
+    use: np.ndarray
+    row: np.ndarray
+    frame: np.ndarray
+    columns: np.ndarray
+    shape: tuple
+    gain: float = 1.0
+    electronic: float = 0.0
+    noise: np.ndarray | None = None
+    roi: np.ndarray | None = None
+    rows: np.ndarray = field(init=False)
+    starts: np.ndarray = field(init=False)
+    pixel: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        if np.any(np.diff(self.row) < 0):
+            raise ValueError("observation blocks must be sorted by row")
+        rows, starts, counts = np.unique(self.row, return_index=True, return_counts=True)
+        # derived once at construction: the dataclass is frozen
+        object.__setattr__(self, "rows", rows)
+        object.__setattr__(self, "starts", starts)
+        object.__setattr__(self, "pixel", np.repeat(np.arange(rows.size), counts))
+
+    @property
+    def x(self) -> np.ndarray:
+        """Lateral coordinate of the held columns, shape (C,)."""
+        return lateral_coordinate(self.columns, self.shape[2])
+
+    @property
+    def y(self) -> np.ndarray:
+        """Detector-row coordinate of each block in [-1, 1], shape (K,)."""
+        return (2.0 * self.row + 1.0) / self.shape[1] - 1.0
+
+    @property
+    def n_frames(self) -> int:
+        return self.shape[0]
+
+    @property
+    def in_roi(self) -> np.ndarray:
+        """The region of interest as an array, shape (K, C)."""
+        return np.ones(self.counts.shape, bool) if self.roi is None else self.roi
+
+    def segment_sum(self, a: np.ndarray) -> np.ndarray:
+        """Sum over the blocks of each row: (K, ...) -> (R, ...), R = number of rows held."""
+        return np.add.reduceat(a, self.starts, axis=0)
+
+    def frame_sum(self, a: np.ndarray) -> np.ndarray:
+        """Sum of per-block values (K,) over the blocks of each frame -> (J,)."""
+        return np.bincount(self.frame, weights=a, minlength=self.n_frames)
+
+    def to_image(self, values: np.ndarray, *, fill: float = np.nan) -> np.ndarray:
+        """Place per-pixel values (R, C) into a detector image (H, W), ``fill`` elsewhere."""
+        out = np.full(self.shape[1:], fill, dtype=np.result_type(values, type(fill)))
+        out[np.ix_(self.rows, self.columns)] = values
+        return out
+
+    def held(self, image: np.ndarray) -> np.ndarray:
+        """The values (R, C) of the held pixels in a detector image (H, W)."""
+        return image[np.ix_(self.rows, self.columns)]
+
+    def pixel_mask(self, image: np.ndarray) -> np.ndarray:
+        """A detector image of booleans (H, W) at every sample, shape (K, C)."""
+        return image[self.row][:, self.columns]
+
+    def subset(self, columns: np.ndarray) -> Observations:
+        """The same blocks restricted to the given positions of ``self.columns``."""
+        idx = np.asarray(columns)
+        return Observations(self.counts[:, idx], self.tf[:, idx], self.vf[:, idx], self.phif[:, idx],
+                            self.dark[:, idx], self.use[:, idx], self.row, self.frame, self.columns[idx],
+                            self.shape, self.gain, self.electronic, None if self.noise is None else self.noise[:, idx],
+                            None if self.roi is None else self.roi[:, idx])
+
+    def with_noise(self, noise: Noise) -> Observations:
+        """The same samples under another noise description (its factor map sliced to the held pixels)."""
+        return replace(self, gain=noise.gain, electronic=noise.electronic,
+                       noise=None if noise.factors is None else self.held(noise.factors))
+
+    def pixel_gain(self, gain: float | None = None) -> np.ndarray:
+        """Detector units per photon of each pixel held, f * gain (``pixel_noise``), shape (R, C)."""
+        g = self.gain if gain is None else gain
+        return g * (np.ones((self.rows.size, self.columns.size)) if self.noise is None else self.noise)
