@@ -455,7 +455,7 @@ def nps(scans, output_dir, methods, bins, config_files, sets, overwrite):
     ff = study["fringe_frequency"]
     click.echo(f"fringe frequency {ff:.4f} cycles/pixel (first harmonic {2 * ff:.4f})")
     for m, p in CMP.fringe_power(study).items():
-        click.echo(f"{m}: NPS at the fringe {p['fringe']:.3g}, at the harmonic {p['harmonic']:.3g}, "
+        click.echo(f"{m}: NPS at the fringe {p['fringe']:.3g}, at the harmonic {p['first_harmonic']:.3g}, "
                    f"elsewhere {p['other']:.3g} (pixel^2)")
     click.echo(f"wrote {', '.join(str(p) for p in paths.values())}")
 

@@ -113,10 +113,9 @@ def vibration_datasets(result: Result) -> list[VibrationDataset]:
 
 
 def units(effect: str) -> str | None:
+    """Unit of an effect's parameters (None: dimensionless, or not of the catalogue)."""
     e = CATALOGUE.get(effect)
-    if e is None or e.channel is None:
-        return None
-    return {"phase": "rad", "background": "counts"}.get(e.channel)
+    return e.unit or None if e is not None else None
 
 
 # --------------------------------------------------------------------------------------------------

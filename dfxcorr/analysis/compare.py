@@ -443,12 +443,12 @@ def fringe_power(study: dict) -> dict[str, dict[str, float]]:
     Returns
     -------
     dict
-        Method -> {'fringe', 'harmonic': mean NPS of the rings holding f and 2 f; 'other': median of
+        Method -> {'fringe', 'first_harmonic': mean NPS of the rings holding f and 2 f; 'other': median of
         the rings more than 1.5 ring widths from both} (pixel^2).
     """
     f, ff = study["frequency"], study["fringe_frequency"]
     step = f[1] - f[0]
     at = [int(np.argmin(np.abs(f - k * ff))) for k in (1, 2)]
     far = (np.abs(f - ff) > 1.5 * step) & (np.abs(f - 2 * ff) > 1.5 * step)
-    return {m: {"fringe": float(v[at[0]]), "harmonic": float(v[at[1]]), "other": float(np.nanmedian(v[far]))}
+    return {m: {"fringe": float(v[at[0]]), "first_harmonic": float(v[at[1]]), "other": float(np.nanmedian(v[far]))}
             for m, v in study["mean"].items()}

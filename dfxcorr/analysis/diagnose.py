@@ -15,6 +15,7 @@ the prepared scan, so a rejected trial leaves nothing to undo.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -24,7 +25,7 @@ from .. import config as C
 from .. import model as M
 from ..align import realign, subsample_columns
 from ..effects import REGISTRY
-from ..effects.base import Hypothesis, Realign
+from ..effects.base import EffectBase, Hypothesis, Preparation, Realign
 from ..fit import fit_vibrations, well_determined
 from ..io import Scan
 from ..observations import Observations
@@ -57,9 +58,9 @@ class Session:
     """One diagnosis of one prepared scan: what its effects may ask (:class:`~dfxcorr.effects.base.Context`) and
     the fits of the hypotheses the loop tries."""
 
-    def __init__(self, prep: Prepared, cfg: dict, timings: dict):
+    def __init__(self, prep: Prepared, cfg: dict, timings: dict, registry: Mapping[str, EffectBase]):
         d = cfg["diagnose"]
-        self.prep, self.cfg, self.timings = prep, cfg, timings
+        self.prep, self.cfg, self.timings, self.registry = prep, cfg, timings, registry
         # the tests need every pixel: the diagnosis holds the whole scan (the reconstruction streams it)
         self.obs = prep.observations()
         # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit
@@ -70,17 +71,17 @@ class Session:
         self.stepping = prep.scan.is_stepping
         self.visibility_why = visibility_unidentifiable(prep.scan, prep.reference)
         self.memo: dict = {}
-        self._prepared: dict[float, Prepared] = {}
+        self._prepared: dict[tuple, Prepared] = {}
         self._aligned: dict[tuple, Observations] = {}
 
     def prepared(self, hypothesis: Hypothesis) -> Prepared:
-        if hypothesis.lag not in self._prepared:
-            from ..effects.detector_lag import without_lag
-
-            prep = self.prep if not hypothesis.lag else replace(self.prep, store=without_lag(self.prep.store,
-                                                                                              hypothesis.lag))
-            self._prepared[hypothesis.lag] = prep
-        return self._prepared[hypothesis.lag]
+        key = hypothesis.corrections
+        if key not in self._prepared:
+            made = Preparation(self.prep.store, np.zeros(self.prep.shape[0]), self.prep.noise)
+            for name, setting in key:
+                made = self.registry[name].prepare(made, setting)
+            self._prepared[key] = replace(self.prep, store=made.store)
+        return self._prepared[key]
 
     def realigner(self, hypothesis: Hypothesis) -> Realign:
         prep = self.prepared(hypothesis)
@@ -92,9 +93,9 @@ class Session:
         As in reconstruct: the tests count the region of interest, the fit also the samples without fringe
         (they monitor dose and background); the hypothesis's moving pixels count in neither.
         """
-        key = (hypothesis.lag, hypothesis.shift.tobytes())
+        key = (hypothesis.corrections, hypothesis.shift.tobytes())
         if key not in self._aligned:
-            moved = hypothesis.lag or np.any(hypothesis.shift)
+            moved = hypothesis.corrections or np.any(hypothesis.shift)
             # the current alignment and a trial's: older ones are not asked for again
             self._aligned = {k: v for k, v in list(self._aligned.items())[-1:]}
             self._aligned[key] = self.realigner(hypothesis)(self.obs, hypothesis.shift) if moved else self.obs
@@ -125,7 +126,8 @@ class Session:
         return Fitted(hypothesis, params, rec.chi2_sum, rec.reduced_chi2, rec, sigs, obs, fit_obs)
 
 
-def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, base: str = "configured") -> Diagnosis:
+def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, base: str = "configured",
+             registry: Mapping[str, EffectBase] = REGISTRY) -> Diagnosis:
     """Locate model-data mismatch, name the missing effects, add them and refit until nothing is left.
 
     Parameters
@@ -138,6 +140,8 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
         test settings.
     base : {'configured', 'none'}
         Start from the configured model, or from plain retrieval with no per-frame terms.
+    registry : mapping
+        The effects to test (default every effect of :data:`dfxcorr.effects.REGISTRY`).
 
     Returns
     -------
@@ -147,25 +151,25 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     d = cfg["diagnose"]
     timings: dict = {}
     prep = scan if isinstance(scan, Prepared) else prepare(scan, cfg, timings=timings)
-    session = Session(prep, cfg, timings)
+    session = Session(prep, cfg, timings, registry)
     J, H, W = prep.shape
     model = list(resolve_effects(cfg, prep.scan, prep.reference, session.obs.subset(session.fit_columns))) \
         if base == "configured" else []
     start = Hypothesis(tuple(model), prep.noise, np.zeros((H, W), bool), np.zeros(J))
     first = session.fit(start, {}, "round 0")
     before = locate(first.obs, M.design(first.obs, first.params), first.rec.images, first.rec.expected)
-    out = loop.run(REGISTRY, session, first, fit=session.fit, alpha=d["alpha"], explain_share=d["explain_share"],
+    out = loop.run(registry, session, first, fit=session.fit, alpha=d["alpha"], explain_share=d["explain_share"],
                    max_rounds=d["max_rounds"])
     final = out.state
     effects, changes = [], []
     for step in out.steps:
-        e, t = REGISTRY[step.name], step.test
+        e, t = registry[step.name], step.test
         extra = e.accepted(session, step.before, step.after, t)
         effects.append(EffectReport(step.name, True, True, t.statistic, int(t.dof), t.p_value,
                                     delta_chi2=step.before.chi2 - step.after.chi2,
                                     reduced_chi2_after=step.after.reduced_chi2, where=e.where(t, step.after.fit_obs),
                                     estimate=e.estimate(extra, step.after.params, session.good_frames), extra=extra))
-        changes.append(change_picture(step.name, step.before, step.after, extra))
+        changes.append(change_picture(e, step.before, step.after, extra))
     added = {s.name for s in out.steps}
     for n, t in sorted(out.tests.items(), key=lambda kv: -kv[1].statistic):
         if n in added:
@@ -180,7 +184,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                    if s["significant"]]
     # localised misfits that masking did not explain
     unexplained += [u for n, t in out.tests.items() if n not in added and t.dof and t.log_p < np.log(d["alpha"])
-                    and (u := REGISTRY[n].unexplained(t)) is not None]
+                    and (u := registry[n].unexplained(t)) is not None]
     criterion = (f"an effect is detected when its p-value beats Holm's threshold alpha / m (alpha = {d['alpha']}, "
                  f"m = effects tested in the round), it is identifiable, and, among those, it explains the most "
                  f"chi-square; structured effects first, then detector_gain (when the gain moves by more than "
@@ -203,4 +207,5 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                      after=locate(final.obs, M.design(final.obs, final.params), final.rec.images, final.rec.expected),
                      params=final.params, criterion=criterion, rounds=out.rounds,
                      unexplained=sorted(unexplained, key=lambda u: u["p_value"]), signatures=final.signatures,
-                     shape=prep.shape, final=final.hypothesis, start=start, cfg=cfg, changes=changes)
+                     shape=prep.shape, final=final.hypothesis, start=start, cfg=cfg, registry=registry,
+                     changes=changes)

@@ -3,9 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..catalogue import effect, truth_keys
+
 #: Result effect name -> truth key (shared truth files and the simulator use these keys).
-TRUTH_KEYS = {"phase_offset": "vib_phase_offset", "tilt": "vib_tilt", "visibility_loss": "vib_visibility",
-              "curvature": "vib_curvature", "dose": "vib_dose"}
+TRUTH_KEYS = truth_keys()
 
 
 def gauge_median(p: np.ndarray, good: np.ndarray, *, scale: bool) -> np.ndarray:
@@ -27,7 +28,7 @@ def vibration_rmse(params: dict, truth: dict, good: np.ndarray) -> dict[str, flo
     for name, key in TRUTH_KEYS.items():
         if name not in params or key not in truth:
             continue
-        scale = name in ("visibility_loss", "dose")
+        scale = effect(name).gauge == "scale"
         est = gauge_median(np.asarray(params[name])[:, 0], good, scale=scale)
         tru = gauge_median(np.asarray(truth[key], dtype=float), good, scale=scale)
         out[name] = float(np.sqrt(np.mean((est - tru)[good] ** 2)))

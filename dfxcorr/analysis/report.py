@@ -3,6 +3,7 @@ the effects added, and the ``reconstruct`` command that uses the final model."""
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -11,8 +12,7 @@ import numpy as np
 
 from .. import plots
 from ..catalogue import PAPER_MODEL, effect
-from ..effects import REGISTRY
-from ..effects.base import Hypothesis
+from ..effects.base import EffectBase, Hypothesis
 from ..io import atomic_path
 from .signatures import Residuals
 
@@ -45,8 +45,8 @@ class Diagnosis:
     """The outcome of :func:`dfxcorr.analysis.diagnose.diagnose`.
 
     ``final`` is the final model's hypothesis (its effects, noise model, pixels left out, alignment and
-    detector lag); ``start`` the one the diagnosis began with (the configuration's); ``cfg`` the resolved
-    configuration it ran with.
+    corrections of the counts); ``start`` the one the diagnosis began with (the configuration's); ``cfg`` the
+    resolved configuration it ran with; ``registry`` the effects it tested.
     """
 
     scan: str
@@ -66,6 +66,7 @@ class Diagnosis:
     final: Hypothesis
     start: Hypothesis
     cfg: dict
+    registry: Mapping[str, EffectBase]
     changes: list = field(default_factory=list)
 
     @property
@@ -89,7 +90,7 @@ class Diagnosis:
     def extras(self) -> dict[str, dict | None]:
         """Every registered effect -> the report keys of its entry where it was added, else None."""
         found = {e.name: e.extra for e in self.effects if e.detected}
-        return {name: found.get(name) for name in REGISTRY}
+        return {name: found.get(name) for name in self.registry}
 
     def to_json(self) -> dict:
         """The ``diagnosis.json`` document of ``spec/diagnosis.md`` (version 2 keys)."""
@@ -99,7 +100,7 @@ class Diagnosis:
                 "unexplained": self.unexplained, "criterion": self.criterion, "rounds": self.rounds}
 
 
-def change_picture(name: str, before, after, extra: dict) -> dict:
+def change_picture(effect: EffectBase, before, after, extra: dict) -> dict:
     """What adding ``name`` changed, for its picture: images and residual maps of the fits ``before`` and
     ``after`` (each on its own observations: the change may alter the data or their noise model) (H, W), and
     its per-frame estimate (J, n) where it has one."""
@@ -107,13 +108,13 @@ def change_picture(name: str, before, after, extra: dict) -> dict:
     from ..retrieve import image_maps
     from .signatures import locate
 
-    out: dict[str, Any] = {"name": name, "reduced_chi2": (before.reduced_chi2, after.reduced_chi2)}
+    out: dict[str, Any] = {"name": effect.name, "reduced_chi2": (before.reduced_chi2, after.reduced_chi2)}
     for key, state in (("before", before), ("after", after)):
         rec = state.rec
         out[key] = image_maps(state.obs, rec.images)
         out[key]["residual"] = locate(state.obs, M.design(state.obs, state.params), rec.images, rec.expected).pixel
-    out["per_frame"] = REGISTRY[name].per_frame(extra, after.params)
-    out["components"] = REGISTRY[name].entry.components
+    out["per_frame"] = effect.per_frame(extra, after.params)
+    out["components"] = effect.entry.components
     return out
 
 
@@ -128,7 +129,7 @@ def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> 
     paths = {k: out_dir / k for k in ("diagnosis.json", "report.md", "residuals.png", "signatures.png")}
     paths.update({c["name"]: out_dir / _effect_picture(c["name"]) for c in diag.changes})
     files = {out_dir / file: writer for name, extra in diag.extras().items()
-             for file, writer in REGISTRY[name].artefacts(diag.final, extra, diag.cfg).items()}
+             for file, writer in diag.registry[name].artefacts(diag.final, extra, diag.cfg).items()}
     for p in [*paths.values(), *files]:
         check_output(p, overwrite=overwrite)
     with atomic_path(paths["diagnosis.json"], overwrite=overwrite) as tmp:
@@ -225,9 +226,9 @@ def reconstruct_settings(diag: Diagnosis, *, out_dir: Path | None = None) -> lis
     out_dir = Path(out_dir or ".")
     extras = diag.extras()
     # the channel effects in the order they were added, the paper's left out, then the others in registry order
-    added = [n for n in diag.final_model if n in extras and REGISTRY[n].role == "mean"]
-    sets = [s for n in added for s in REGISTRY[n].settings(diag.cfg, diag.final, extras[n], out_dir)]
+    added = [n for n in diag.final_model if n in extras and diag.registry[n].role == "mean"]
+    sets = [s for n in added for s in diag.registry[n].settings(diag.cfg, diag.final, extras[n], out_dir)]
     sets += [f"{effect(n).config}=false" for n in PAPER_MODEL if n not in diag.final_model]
-    sets += [s for n, e in REGISTRY.items() if e.role != "mean"
+    sets += [s for n, e in diag.registry.items() if e.role != "mean"
              for s in e.settings(diag.cfg, diag.final, extras[n], out_dir)]
     return sets

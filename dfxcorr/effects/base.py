@@ -125,15 +125,16 @@ class Hypothesis:
         Pixels left out (sample motion).
     shift : ndarray, shape (J,)
         Rows by which each frame reads the flat field off the prepared alignment.
-    lag : float
-        Detector lag fraction taken out of the counts beyond the prepared (configured) one.
+    corrections : tuple of (str, setting)
+        Corrections of the counts beyond the prepared (configured) ones, in order: each effect's
+        :meth:`EffectBase.prepare` with that setting (e.g. a detector lag fraction).
     """
 
     effects: tuple[str, ...]
     noise: Noise
     motion: np.ndarray
     shift: np.ndarray
-    lag: float = 0.0
+    corrections: tuple[tuple[str, Any], ...] = ()
 
     def but(self, **changes: Any) -> Hypothesis:
         """The same hypothesis with some fields changed."""
@@ -200,7 +201,7 @@ class Context(Protocol):
     memo: dict
 
     def prepared(self, hypothesis: Hypothesis) -> Prepared:
-        """The preparation with the hypothesis's detector lag taken out."""
+        """The preparation with the hypothesis's corrections of the counts applied."""
         ...
 
     def realigner(self, hypothesis: Hypothesis) -> Realign:

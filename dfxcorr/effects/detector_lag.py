@@ -169,7 +169,7 @@ class DetectorLag(EffectBase):
         return lag_test(ctx.prepared(state.hypothesis).store)
 
     def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
-        return state.hypothesis.but(lag=test.payload["value"])
+        return state.hypothesis.but(corrections=(*state.hypothesis.corrections, (self.name, test.payload["value"])))
 
     def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
         return {"value": test.payload["value"], "se": test.payload["se"]}
