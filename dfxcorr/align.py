@@ -66,6 +66,15 @@ def lit_blocks(position: np.ndarray, active_rows: int, height: int) -> tuple[np.
     return row, frame, u[row, frame]
 
 
+def gauge_frames(rows_per_frame: np.ndarray, fraction: float) -> np.ndarray:
+    """The frames that set the gauge (paper eq. 22): those lighting at least ``fraction`` of the rows the best-lit
+    frame lights, shape (J,) bool. Frames at the start and end of a scan light only a few rows; their
+    parameters are weakly determined by the data.
+    """
+    rows = np.asarray(rows_per_frame)
+    return rows >= fraction * rows.max(initial=0)
+
+
 @dataclass
 class LitStore:
     """Every lit sample of a scan in the frames' own dtype, as (row, frame) blocks sorted by row.

@@ -17,6 +17,7 @@ Both return a :class:`dfxcorr.fit.FitResult` with the gauge of paper eq. 22 (:fu
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import numpy as np
 from scipy import sparse
@@ -35,8 +36,8 @@ log = logging.getLogger(__name__)
 def fit_alternating(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | None = None,
                     weights: np.ndarray | None = None, maxiter: int = 300, gtol: float = 1e-3,
                     inner: int = 2, reweight: int = 1, visibility_gauge: str = "max",
-                    visibility_quantile: float = 0.99, gauge_fraction: float = 0.5, on_iteration=None,
-                    **_) -> FitResult:
+                    visibility_quantile: float = 0.99, gauge_fraction: float = 0.5,
+                    on_iteration: Callable[[str, float], None] | None = None) -> FitResult:
     """Estimate per-frame effect parameters by alternating between images and per-frame parameters.
 
     Parameters
@@ -259,8 +260,7 @@ def update_block(obs: M.Observations, names, params: dict, images: M.Images, wei
 
 
 def fit_correlation(obs: M.Observations, *, effects=M.PAPER_MODEL, grid: int = 360, bisquare: float = 4.685,
-                    min_rows: int = 3, irls_iterations: int = 200, gauge_fraction: float = 0.5,
-                    **_) -> FitResult:
+                    min_rows: int = 3, irls_iterations: int = 200, gauge_fraction: float = 0.5) -> FitResult:
     """Estimate grating phase per frame from column-wise correlation with the flat field (paper ref. [18]).
 
     Parameters

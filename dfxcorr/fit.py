@@ -26,6 +26,7 @@ from scipy.optimize import minimize
 
 from . import kernels as K
 from . import model as M
+from .align import gauge_frames
 
 log = logging.getLogger(__name__)
 
@@ -556,9 +557,9 @@ def frame_grid_cost(obs: M.Observations, ch: M.Channels, coef: np.ndarray, weigh
 
 
 def well_determined(obs: M.Observations, fraction: float) -> np.ndarray:
-    """Frames lighting at least ``fraction`` of the largest number of rows any frame lights, shape (J,)."""
-    rows_per_frame = np.bincount(obs.frame, minlength=obs.n_frames)
-    return rows_per_frame >= fraction * rows_per_frame.max()
+    """Frames lighting at least ``fraction`` of the largest number of rows any frame lights in ``obs``, (J,)
+    (:func:`dfxcorr.align.gauge_frames`)."""
+    return gauge_frames(np.bincount(obs.frame, minlength=obs.n_frames), fraction)
 
 
 def fix_gauge(params: dict, good: np.ndarray, *, visibility_gauge: str = "max",

@@ -12,6 +12,8 @@ q_i that sensitivity and gamma fitted robustly over all pixels, for what the pil
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 from scipy import ndimage, special
 
@@ -193,13 +195,22 @@ def mask_from_score(image: np.ndarray, *, dof: np.ndarray | None = None, thresho
     return moving, thr
 
 
-def motion_mask(obs: M.Observations, *, threshold: float | None = None, sigma: float = 6.0,
-                dilate: int = 1) -> tuple[np.ndarray, np.ndarray, float]:
-    """Pixels whose frames disagree beyond noise and vibrations.
+def motion_mask(blocks: Iterable[M.Observations], *, pilot: dict, threshold: float | None = None,
+                sigma: float = 6.0, dilate: int = 1) -> tuple[np.ndarray, np.ndarray, float]:
+    """Pixels whose frames disagree beyond noise and vibrations (paper Sec. II-E), block by block.
+
+    Pixels are independent here, so the observations may come in blocks of detector rows (a scan that does
+    not fit in memory at once): the per-pixel statistics (:func:`motion_statistics`) come block by block
+    against one per-frame ``pilot`` estimate, and are combined into one score and one threshold, equal to
+    one pass over all of them. Pixels without a fringe (outside the region of interest) only monitor dose
+    and background: they get no score.
 
     Parameters
     ----------
-    obs : Observations
+    blocks : iterable of Observations
+        The samples (e.g. of the fit's columns), in any number of row blocks.
+    pilot : dict
+        Per-frame parameters to compare with (:func:`pilot_vibrations`; ``{}``: paper eq. 35 as it stands).
     threshold : float, optional
         Absolute threshold on the score; default :func:`robust_threshold` with ``sigma``.
     sigma : float
@@ -215,7 +226,18 @@ def motion_mask(obs: M.Observations, *, threshold: float | None = None, sigma: f
     threshold : float
         The threshold used.
     """
-    eps, q, dof = motion_statistics(obs)
-    image = obs.to_image(score_from_statistics(eps, q))
-    moving, thr = mask_from_score(image, dof=obs.to_image(dof), threshold=threshold, sigma=sigma, dilate=dilate)
-    return moving, image, thr
+    images: dict[str, np.ndarray] = {}
+    for obs in blocks:
+        if not images:
+            H, W = obs.shape[1:]
+            images = {"eps": np.full((H, W), np.nan), "q": np.full((H, W), np.nan), "dof": np.zeros((H, W)),
+                      "fringe": np.zeros((H, W), bool)}
+        e, qq, d = motion_statistics(obs, pilot)
+        for key, values in (("eps", e), ("q", qq), ("dof", d),
+                            ("fringe", obs.segment_sum(obs.in_roi.astype(float)) > 0)):
+            images[key][np.ix_(obs.rows, obs.columns)] = values
+    if not images:
+        raise ValueError("the motion mask needs observations")
+    score = np.where(images["fringe"], score_from_statistics(images["eps"], images["q"]), np.nan)
+    moving, thr = mask_from_score(score, dof=images["dof"], threshold=threshold, sigma=sigma, dilate=dilate)
+    return moving, score, thr

@@ -28,12 +28,12 @@ from . import __version__
 from . import config as C
 from . import model as M
 from .align import LitStore, collect_lit_rows, subsample_columns, tilt_alias_period
-from .baselines import fit_alternating, fit_correlation
 from .effects import REGISTRY
 from .effects.base import Preparation
-from .fit import FitResult, fit_vibrations
+from .estimators import ESTIMATORS
+from .fit import FitResult
 from .io import Reference, Scan, read_scan
-from .mask import mask_from_score, motion_statistics, pilot_vibrations, score_from_statistics
+from .mask import motion_mask, pilot_vibrations
 from .observations import Noise
 from .planning import resolve_effects
 from .progress import Progress
@@ -257,8 +257,10 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
             # the pilot estimate needs columns enough whatever fit.subsample the fit itself uses
             auto = {**cfg, "fit": {**cfg["fit"], "subsample": "auto", "column_offset": None}}
             pilot = fit_columns(W, auto, prep.store.samples_per_column(), report=False)
-            moving, thr = blocked_motion_mask(prep, blocks, columns=columns, pilot_columns=pilot,
-                                              threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
+            # the per-pixel statistics of the fit's columns only (the others never enter the fit), block by block
+            moving, _, thr = motion_mask((prep.observations(columns=columns, rows=rows) for rows in blocks),
+                                         pilot=pilot_vibrations(prep.observations(columns=pilot)),
+                                         threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
             log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
     with stage("fit", timings):
         fitted, fit_mask, effects = run_fit(prep, cfg, moving, columns=columns, progress=progress)
@@ -286,37 +288,6 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
                   uncertainty=uncertainty, fit_mask=fit_mask, motion_mask=moving.astype(np.uint8),
                   cost=fitted.cost, cost_stage=fitted.stage, reduced_chi2=chi2, method=method,
                   config=cfg, provenance=provenance, uncorrected=uncorrected, timings=timings)
-
-
-def blocked_motion_mask(prep: Prepared, blocks: list[tuple[int, int]], *, columns: np.ndarray,
-                        pilot_columns: np.ndarray, threshold: float | None, sigma: float,
-                        dilate: int) -> tuple[np.ndarray, float]:
-    """The motion mask (paper Sec. II-E) of the fit's ``columns``, block by block; equal to one pass.
-
-    The mask only decides which pixels the vibration fit leaves out, so only the fit's columns are
-    scored (the other columns never enter the fit). The pilot vibration estimate that the score
-    compares with is per frame, so it comes once from ``pilot_columns``
-    (:func:`dfxcorr.mask.pilot_vibrations`); the per-pixel statistics then come block by block.
-
-    Returns
-    -------
-    moving : ndarray of bool, shape (H, W)
-    threshold : float
-    """
-    H, W = prep.shape[1:]
-    pilot = pilot_vibrations(prep.observations(columns=pilot_columns))
-    eps, q, dof = np.full((H, W), np.nan), np.full((H, W), np.nan), np.zeros((H, W))
-    fringe = np.zeros((H, W), bool)
-    for rows in blocks:
-        obs = prep.observations(columns=columns, rows=rows)
-        e, qq, d = motion_statistics(obs, pilot)
-        _place(eps, obs, e)
-        _place(q, obs, qq)
-        _place(dof, obs, d)
-        _place(fringe, obs, obs.segment_sum(obs.in_roi.astype(np.float64)) > 0)
-    # the score assumes a fringe; pixels without one only monitor dose and background
-    score = np.where(fringe, score_from_statistics(eps, q), np.nan)
-    return mask_from_score(score, dof=dof, threshold=threshold, sigma=sigma, dilate=dilate)
 
 
 def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: list[dict], *, iterations: int,
@@ -371,8 +342,8 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
         unc = {k: np.full_like(v, np.inf) for k, v in params.items()}
         return FitResult(params=params, uncertainty=unc, cost=np.zeros(0), stage=[], iterations=0,
                          converged=True), fit_mask, ()
-    if method not in FIT_METHODS:
-        raise C.ConfigError(f"fit.method={method!r} is not available; available: {', '.join(FIT_METHODS)}, none")
+    if method not in ESTIMATORS:
+        raise C.ConfigError(f"fit.method={method!r} is not available; available: {', '.join(ESTIMATORS)}, none")
     cols = columns
     fit_obs = prep.observations(columns=cols, dtype=np.float32)
     fit_obs = replace(fit_obs, use=~moving[fit_obs.row][:, fit_obs.columns])
@@ -385,13 +356,8 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
     with Progress("vibration fit", unit="iterations", enabled=progress) as bar:
         def tick(stage_name, cost):
             bar.update(1, status=f"{stage_name} cost {cost:.6g}")
-        result = FIT_METHODS[method](fit_obs, effects=effects, circmean_iterations=f["circmean_iterations"],
-                                     staged=f["staged"], maxiter=f["maxiter"], gtol=f["gtol"],
-                                     precondition=f["precondition"],
-                                     preconditioner=f["preconditioner"], reweight=f["reweight"],
-                                     visibility_gauge=f["visibility_gauge"],
-                                     visibility_quantile=f["visibility_quantile"],
-                                     gauge_fraction=f["gauge_fraction"], on_iteration=tick)
+        estimator = ESTIMATORS[method]
+        result = estimator.fit(fit_obs, effects=effects, **estimator.options(f, on_iteration=tick))
     if "tilt" in result.params and result.well_determined is not None:
         step = int(cols[1] - cols[0]) if cols.size > 1 else 1
         period = tilt_alias_period(W, step)
@@ -409,6 +375,3 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
                      float(np.median(result.uncertainty[name][good])))
     return result, fit_mask, effects
 
-
-#: The estimator of each ``fit.method`` (:data:`dfxcorr.config.METHODS`) but 'none'.
-FIT_METHODS = {"ml": fit_vibrations, "alternating": fit_alternating, "correlation": fit_correlation}

@@ -5,6 +5,8 @@ import pytest
 import yaml
 
 from dfxcorr import config as C
+from dfxcorr.analysis import compare
+from dfxcorr.estimators import ESTIMATORS
 from dfxcorr.sim import simulate as S
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -63,11 +65,9 @@ def test_bad_file_is_named(tmp_path):
 
 
 def test_one_list_of_estimators():
-    from dfxcorr import pipeline
-    from dfxcorr.analysis import compare
 
     assert C.SCHEMA["fit"]["method"].choices == C.METHODS
-    assert set(pipeline.FIT_METHODS) | {"none"} == set(C.METHODS) == set(compare.METHODS)
+    assert set(ESTIMATORS) | {"none"} == set(C.METHODS) == set(compare.METHODS)
 
 
 @pytest.mark.parametrize("text, value", [("1e-5", 1e-5), ("2E3", 2000.0), ("1.5e-3", 1.5e-3), ("1_000", 1000)])

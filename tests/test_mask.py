@@ -4,14 +4,14 @@ import numpy as np
 from dfxcorr import config as C
 from dfxcorr import pipeline
 from dfxcorr.align import build_observations
-from dfxcorr.mask import motion_mask
+from dfxcorr.mask import motion_mask, pilot_vibrations
 from dfxcorr.reference import resolve_reference
 
 
 def test_moving_region_is_flagged_and_little_else(small_scan):
     scan, truth = small_scan(**{"effects.sample_motion": 0.3})
     obs = build_observations(scan, resolve_reference(scan))
-    moving, _, _ = motion_mask(obs, dilate=0)
+    moving, _, _ = motion_mask([obs], pilot=pilot_vibrations(obs), dilate=0)
     region = truth["motion_mask"]
     lit_region = region & (truth["image_transmission"] > 0.01)
     assert moving[lit_region].mean() > 0.8
@@ -20,9 +20,11 @@ def test_moving_region_is_flagged_and_little_else(small_scan):
 
 def test_clean_scan_masks_almost_nothing(small_scan):
     scan, _ = small_scan()
-    moving, _, _ = motion_mask(build_observations(scan, resolve_reference(scan)), dilate=0)
+    obs = build_observations(scan, resolve_reference(scan))
+    pilot = pilot_vibrations(obs)
+    moving, _, _ = motion_mask([obs], pilot=pilot, dilate=0)
     assert moving.mean() < 0.01
-    moving, _, _ = motion_mask(build_observations(scan, resolve_reference(scan)), dilate=1)
+    moving, _, _ = motion_mask([obs], pilot=pilot, dilate=1)
     assert moving.mean() < 0.05  # the dilation grows each isolated false alarm to up to 5 pixels
 
 
@@ -39,7 +41,7 @@ def test_a_heart_that_moves_half_way_is_masked_where_its_data_disagree(small_sca
     # the heart shifts 8 mm from the middle frame on: only pixels lit both before and after saw two samples
     scan, truth = small_scan(**{"effects.heart_step_mm": 8.0, "simulate.seed": 5})
     obs = build_observations(scan, resolve_reference(scan))
-    moving, score, _ = motion_mask(obs, dilate=0)
+    moving, score, _ = motion_mask([obs], pilot=pilot_vibrations(obs), dilate=0)
     J, H, _ = scan.shape
     rows_before = np.isin(np.arange(H), obs.row[obs.frame < J // 2])
     rows_after = np.isin(np.arange(H), obs.row[obs.frame >= J // 2])
@@ -60,3 +62,17 @@ def test_chi2_tail_matches_scipy_stats():
     x = np.array([0.5, 3.0, 40.0, 180.0, 900.0])
     k = np.array([1, 4, 30, 30, 60])
     np.testing.assert_allclose(_chi2_logsf(x, k), stats.chi2.logsf(x, k), rtol=1e-10)
+
+
+def test_row_blocks_give_the_mask_of_one_pass(small_scan):
+    scan, _ = small_scan(**{"effects.sample_motion": 0.3})
+    prep = pipeline.prepare(scan, C.defaults())
+    columns = np.arange(1, scan.shape[2], 3)
+    pilot = pilot_vibrations(prep.observations(columns=columns))
+    whole = motion_mask([prep.observations(columns=columns)], pilot=pilot)
+    blocks = motion_mask((prep.observations(columns=columns, rows=r) for r in pipeline.row_blocks(prep.store, 0.05)),
+                         pilot=pilot)
+    assert len(pipeline.row_blocks(prep.store, 0.05)) > 3
+    np.testing.assert_array_equal(whole[0], blocks[0])
+    np.testing.assert_allclose(whole[1], blocks[1], rtol=1e-12, equal_nan=True)
+    assert whole[2] == blocks[2]

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..align import gauge_frames, lit_blocks
 from ..catalogue import effect, truth_keys
 
 #: Result effect name -> truth key (shared truth files and the simulator use these keys).
@@ -16,10 +17,10 @@ def gauge_median(p: np.ndarray, good: np.ndarray, *, scale: bool) -> np.ndarray:
 
 
 def frames_lighting(position: np.ndarray, active_rows: int, height: int, fraction: float = 0.5) -> np.ndarray:
-    """Frames lighting at least ``fraction`` of the active area's rows, shape (J,) bool."""
-    top = np.clip(np.asarray(position), 0, height)
-    bottom = np.clip(np.asarray(position) + active_rows, 0, height)
-    return (bottom - top) >= fraction * active_rows
+    """The frames that set the gauge, from the scan's geometry (:func:`dfxcorr.align.gauge_frames` of the rows each
+    frame lights, :func:`dfxcorr.align.lit_blocks`), shape (J,) bool."""
+    frame = lit_blocks(position, active_rows, height)[1]
+    return gauge_frames(np.bincount(frame, minlength=np.size(position)), fraction)
 
 
 def vibration_rmse(params: dict, truth: dict, good: np.ndarray) -> dict[str, float]:
