@@ -140,9 +140,8 @@ SCHEMA: dict[str, dict[str, Option]] = {
 }
 
 
-#: A flat panel (the issue's case): 2000 counts in the open beam, read noise
-#: sd 25 and a dark of 100 (detector units), every row read out. Add ``effects.detector_gain`` for counts
-#: that are not photons.
+#: A flat panel (the issue's case): 2000 counts in the open beam, read noise sd 25 and a dark of 100
+#: (detector units), every row read out. Add ``effects.detector_gain`` for counts that are not photons.
 FLAT_PANEL = {"simulate.flux": 2000.0, "effects.read_noise": 25.0, "effects.dark": 100.0,
               "effects.full_readout": True}
 
@@ -392,12 +391,12 @@ class Simulation:
         for j in range(self.shape[0]):
             r0, counts = detected = self.frame_counts(j)
             if lag:
-                r0, counts = _with_lag(detected, previous, lag)
+                r0, counts = _add_rows(detected, previous, lag)
                 previous = detected
             if e["ghost"]:
                 if len(earlier) == earlier.maxlen:
                     g0, ghost = earlier[0]
-                    r0, counts = _with_lag((r0, counts), (g0 + ghost_rows, ghost), e["ghost"], height=H)
+                    r0, counts = _add_rows((r0, counts), (g0 + ghost_rows, ghost), e["ghost"], height=H)
                 earlier.append(detected)
             r0, counts = self.readout(j, r0, counts)
             stored, n = _store(counts, self.dtype)
@@ -619,7 +618,7 @@ def _detect(mean: np.ndarray, cfg: dict, rng: np.random.Generator, *, factor: np
     return out
 
 
-def _with_lag(current: tuple[int, np.ndarray], previous: tuple[int, np.ndarray], fraction: float, *,
+def _add_rows(current: tuple[int, np.ndarray], other: tuple[int, np.ndarray], fraction: float, *,
               height: int | None = None) -> tuple[int, np.ndarray]:
     """Detected rows (r0, counts) of a frame plus ``fraction`` times rows (r0, counts) of another, over both's rows.
 
@@ -627,17 +626,17 @@ def _with_lag(current: tuple[int, np.ndarray], previous: tuple[int, np.ndarray],
     those outside the detector's rows [0, height) are dropped.
     """
     if height is not None:
-        p0, c = previous
-        lo, hi = min(max(p0, 0), height), min(max(p0 + c.shape[0], 0), height)
-        previous = (lo, c[lo - p0:hi - p0])
-    spans = [(r0, c) for r0, c in (current, previous) if c.shape[0]]
+        o0, c = other
+        lo, hi = min(max(o0, 0), height), min(max(o0 + c.shape[0], 0), height)
+        other = (lo, c[lo - o0:hi - o0])
+    spans = [(r0, c) for r0, c in (current, other) if c.shape[0]]
     if len(spans) < 2:
-        return current if current[1].shape[0] else (previous[0], fraction * previous[1])
+        return current if current[1].shape[0] else (other[0], fraction * other[1])
     lo = min(r0 for r0, _ in spans)
     hi = max(r0 + c.shape[0] for r0, c in spans)
     out = np.zeros((hi - lo, current[1].shape[1]))
     out[current[0] - lo:current[0] - lo + current[1].shape[0]] += current[1]
-    out[previous[0] - lo:previous[0] - lo + previous[1].shape[0]] += fraction * previous[1]
+    out[other[0] - lo:other[0] - lo + other[1].shape[0]] += fraction * other[1]
     return lo, out
 
 
