@@ -165,3 +165,24 @@ def test_concealment_tables_are_valid_and_change_the_counts(name):
     section, option = key.split(".")
     off = S.SCHEMA[section][option].default
     assert not np.array_equal(counts(**{**extra, key: realistic}), counts(**{**extra, key: off}))
+
+
+def test_a_flat_panel_fits_to_the_noise_once_its_read_noise_is_stated():
+    from dfxcorr.pipeline import reconstruct
+
+    scan, _ = S.simulate(sim_config(**S.FLAT_PANEL))
+    stated = reconstruct(scan, C.load([], S.FLAT_PANEL_STATED), progress=False)
+    # the file's dark is the one added and the variance g (Ibar - dark) + sigma_e^2 holds
+    assert stated.reduced_chi2 == pytest.approx(1.0, abs=0.03)
+
+
+def test_scatter_fakes_a_dark_field_signal():
+    from dfxcorr.pipeline import reconstruct
+
+    def lung_dark_field(scatter):
+        scan, truth = S.simulate(sim_config(**{"effects.scatter": scatter}))
+        v, vt = reconstruct(scan, C.defaults(), progress=False).image("dark_field"), truth["image_dark_field"]
+        return np.nanmedian((v / vt)[vt < 0.9])
+
+    assert lung_dark_field(0.0) == pytest.approx(1.0, abs=0.02)
+    assert lung_dark_field(0.1) < 0.9
