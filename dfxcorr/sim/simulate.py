@@ -1,14 +1,17 @@
 """The simulator: scans of the paper's simulation study (Sec. III-A) with every catalogue effect switchable.
 
 Expected counts come from :mod:`dfxcorr.model` (the one forward model); the simulator adds what the
-model leaves out on purpose: photon noise, detector gain and electronic noise, and a sample region
-that changes during the scan (``sample_motion``). The truth is returned beside the scan with the
-same keys as the shared truth files (``image_*``, ``vib_*``).
+model leaves out on purpose: photon noise, detector gain, electronic noise and a dark offset (a flat
+panel in detector units), Compton scatter, a sample region that changes during the scan
+(``sample_motion``), and detector effects that no catalogue names (a non-linearity, a ghost of an
+earlier frame, line noise). The truth is returned beside the scan with the same keys as the shared
+truth files (``image_*``, ``vib_*``).
 """
 from __future__ import annotations
 
 import json
 import logging
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -91,7 +94,35 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                 check=_positive),
         "declare_gain": Option(True, "write the true gain into the file (false conceals it: readers assume 1)",
                                bool),
-        "read_noise": Option(0.0, "electronic noise std (detector units)", _NUM, check=_nonneg),
+        "read_noise": Option(0.0, "electronic (readout) noise std, Gaussian, on every sample read (detector units); "
+                                  "also on unlit rows with full_readout", _NUM, check=_nonneg),
+        "dark": Option(0.0, "dark offset added to every sample read and written as the file's dark (detector "
+                            "units): a flat panel's offset that keeps read noise at zero signal above 0; 0: none",
+                       _NUM, check=_nonneg),
+        "full_readout": Option(False, "the detector reads every row of every frame (a flat panel): rows outside "
+                                      "the active area hold the dark, read noise and line noise (and any lag or "
+                                      "ghost); false: only the lit rows are written, zeros elsewhere", bool),
+        "scatter": Option(0.0, "Compton scatter-to-primary ratio s: each frame gains an unmodulated count, its "
+                               "primary (dose x t^f x t) blurred within its lit rows by a Gaussian of "
+                               "scatter_width_mm, scaled so that it totals s times the primary over those "
+                               "samples; 0: none", _NUM, check=_nonneg),
+        "scatter_width_mm": Option(50.0, "std of the scatter's Gaussian kernel at the detector (mm)", _NUM,
+                                   check=_positive),
+        "detector_nonlinearity": Option(0.0, "relative count loss beta at the flat-field level simulate.flux: a "
+                                             "dark-free signal c is recorded as c (1 - beta c / flux) (the "
+                                             "readout's quadratic integral non-linearity); 0: linear", _NUM,
+                                        check=lambda v: None if 0 <= v <= 0.25
+                                        else "must lie in [0, 0.25] (monotone up to twice the flux)"),
+        "ghost": Option(0.0, "fraction of frame j - ghost_frames's detected counts that frame j records "
+                             "ghost_shift_mm further along the rows (a displaced ghost image: on other pixels, "
+                             "unlike detector_lag); 0: none", _NUM,
+                        check=lambda v: None if 0 <= v < 1 else "must lie in [0, 1)"),
+        "ghost_frames": Option(1, "how many frames earlier the ghost was recorded", int, check=_positive),
+        "ghost_shift_mm": Option(20.0, "displacement of the ghost along the rows at the detector (mm, positive "
+                                       "towards higher rows; rounded to whole pixels)", _NUM,
+                                 check=lambda v: None if np.isfinite(v) else "must be finite"),
+        "line_noise": Option(0.0, "std of an offset common to all columns of one row in one frame (detector "
+                                  "units): flat-panel line noise; 0: none", _NUM, check=_nonneg),
         "reference_offset": Option(0.0, "the whole interferometer sat this many rows off during the scan: every "
                                         "frame reads the flat-field maps at u - offset, the file's reference stays "
                                         "unshifted", _NUM,
@@ -108,6 +139,21 @@ SCHEMA: dict[str, dict[str, Option]] = {
     },
 }
 
+
+#: A flat panel (the issue's case): 2000 counts in the open beam, read noise sd 25 and a dark of 100
+#: (detector units), every row read out. Add ``effects.detector_gain`` for counts that are not photons.
+FLAT_PANEL = {"simulate.flux": 2000.0, "effects.read_noise": 25.0, "effects.dark": 100.0,
+              "effects.full_readout": True}
+
+#: Reconstruct settings that state the flat panel's read noise (variance, detector units squared).
+FLAT_PANEL_STATED = [f"load.electronic={FLAT_PANEL['effects.read_noise'] ** 2:g}"]
+
+#: A 5-step phase-stepping recording on that flat panel in detector units (gain 0.5, not stated in the
+#: file) with per-step phase errors (std 0.1 rad) and nothing else: no grating rotation, no visibility
+#: change between steps (not identifiable in phase stepping, paper Sec. II-F).
+FLAT_PANEL_STEPPING = {**FLAT_PANEL, "simulate.geometry": "stepping", "simulate.steps": 5,
+                       "simulate.steps_per_period": 5, "effects.phase_offset": 0.1, "effects.tilt": 0.0,
+                       "effects.visibility_loss": 0.0, "effects.detector_gain": 0.5, "effects.declare_gain": False}
 
 #: Each catalogue effect as the simulator makes it: the setting that switches it on, a realistic amplitude,
 #: smaller ones (for detection limits), further simulator settings it needs, and the reconstruct settings
@@ -132,6 +178,18 @@ CONCEALED = {
                        {"simulate.tiles": 8, "simulate.flat_nonlinearity": 1.0}, []),
     "detector_lag": ("effects.detector_lag", 0.03, [0.01, 0.003, 0.001, 0.0003], {}, []),
     "pixel_noise": ("effects.pixel_noise", 1 / 3, [0.6, 0.8, 0.9, 0.95], {}, []),
+    # a flat panel at 2000 counts with a dark of 100 (the issue's case); the file states the dark, not the noise
+    "electronic_noise": ("effects.read_noise", 25.0, [10.0, 5.0, 2.0, 1.0], FLAT_PANEL, []),
+    "scatter": ("effects.scatter", 0.1, [0.05, 0.02, 0.01, 0.005], {}, []),
+}
+
+#: Detector effects in no catalogue, in the format of :data:`CONCEALED` (the last entry: reconstruct
+#: settings, here what the user knows of the detector): the diagnosis must locate them, not explain them.
+UNCATALOGUED = {
+    "detector_nonlinearity": ("effects.detector_nonlinearity", 0.02, [0.01, 0.005, 0.002, 0.001], {}, []),
+    "ghost": ("effects.ghost", 0.01, [0.005, 0.002, 0.001, 0.0005], {}, []),
+    # a flat panel's artefact: on the flat panel, its read noise stated in the configuration
+    "line_noise": ("effects.line_noise", 5.0, [2.0, 1.0, 0.5, 0.2], FLAT_PANEL, FLAT_PANEL_STATED),
 }
 
 
@@ -268,7 +326,7 @@ class Simulation:
         self.reference: Reference | SteppingReference
         self.reference, self.reference_steps = self.flat, np.zeros(0)
         if s["reference_steps"]:
-            self.reference, self.reference_steps = _reference_series(self.flat, s, rng)
+            self.reference, self.reference_steps = _reference_series(self.flat, s, rng, dark=e["dark"])
         self.noise_factor = pixel_noise_map(H, W, factor=e["pixel_noise"], module=e["module_pixels"])
         self._streams = np.random.SeedSequence(s["seed"]).spawn(J)
         self.dtype = np.dtype(s["dtype"])
@@ -277,6 +335,9 @@ class Simulation:
             if e["position_error"] else np.zeros(J)
         #: Rows by which frame j reads the flat-field maps off its nominal local rows (maps at u - shift[j]).
         self.shift = e["reference_offset"] + self.jitter
+        #: Line noise: the offset of each (frame, detector row), shape (J, H), from a stream of its own.
+        self.line_offset = np.random.default_rng([s["seed"], 3]).normal(0, e["line_noise"], (J, H)) \
+            if e["line_noise"] else np.zeros((J, H))
 
     def frame_counts(self, j: int) -> tuple[int, np.ndarray]:
         """Detected counts (float64, before storage) of frame j's lit rows: (r0, array (n, W))."""
@@ -300,10 +361,16 @@ class Simulation:
         images = M.Images(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], axis=-1), np.ones(t.shape, bool))
         dsg = M.design(obs, self.params)
         ibar = M.expected(obs, dsg, images)
+        # the unmodulated primary (dose x t^f x t), the source of the scatter
+        primary = dsg.A * t
         if e["sample_motion"]:
             # the region's transmission beats about 7 times over the scan, like a heart during a 7 s scan
             swing = 1 + e["sample_motion"] * np.sin(2 * np.pi * 7 * j / J)
             ibar = np.where(self.moving[row], (ibar - dsg.offset) * swing + dsg.offset, ibar)
+            primary = np.where(self.moving[row], primary * swing, primary)
+        if e["scatter"]:
+            ibar = ibar + scatter(primary, ratio=e["scatter"],
+                                  width=e["scatter_width_mm"] / self.cfg["simulate"]["pixel_mm"])
         return int(row[0]), _detect(ibar, self.cfg, np.random.default_rng(self._streams[j]),
                                     factor=self.noise_factor[row])
 
@@ -311,21 +378,66 @@ class Simulation:
         """Yield (j, r0, counts (n, W)) in the stored dtype for every frame; warns once if counts are clipped.
 
         With ``effects.detector_lag`` = a, frame j records its detected counts plus a times those of
-        frame j - 1, over the rows lit in either.
+        frame j - 1, over the rows lit in either. With ``effects.ghost`` = q, it also records q times the
+        detected counts of frame j - k (k = ``ghost_frames``) ``ghost_shift_mm`` further along the rows,
+        over its own rows and those the ghost lands on. Then :meth:`readout` adds what the readout does.
         """
         clipped = 0
-        lag = self.cfg["effects"]["detector_lag"]
+        e = self.cfg["effects"]
+        lag, H = e["detector_lag"], self.shape[1]
+        ghost_rows = int(round(e["ghost_shift_mm"] / self.cfg["simulate"]["pixel_mm"]))
         previous = (0, np.zeros((0, self.shape[2])))
+        earlier: deque[tuple[int, np.ndarray]] = deque(maxlen=e["ghost_frames"])
         for j in range(self.shape[0]):
             r0, counts = detected = self.frame_counts(j)
             if lag:
-                r0, counts = _with_lag(detected, previous, lag)
+                r0, counts = _add_rows(detected, previous, lag)
                 previous = detected
+            if e["ghost"]:
+                if len(earlier) == earlier.maxlen:
+                    g0, ghost = earlier[0]
+                    r0, counts = _add_rows((r0, counts), (g0 + ghost_rows, ghost), e["ghost"], height=H)
+                earlier.append(detected)
+            r0, counts = self.readout(j, r0, counts)
             stored, n = _store(counts, self.dtype)
             clipped += n
             yield j, r0, stored
         if clipped:
             log.warning("%d counts above the range of %s were clipped", clipped, self.dtype)
+
+    def readout(self, j: int, r0: int, counts: np.ndarray) -> tuple[int, np.ndarray]:
+        """What reading frame j adds to its detected rows (r0, counts (n, W)), all in detector units.
+
+        In this order: the non-linearity c (1 - beta c / flux) (``effects.detector_nonlinearity``); with
+        ``effects.full_readout`` the whole frame, whose rows outside the lit ones get read noise of their own
+        (the lit rows have theirs from detection); the line noise of frame j's rows; the dark.
+
+        Returns
+        -------
+        r0 : int
+            First row (0 with ``full_readout``).
+        counts : ndarray, shape (n, W) or (H, W)
+        """
+        s, e = self.cfg["simulate"], self.cfg["effects"]
+        beta = e["detector_nonlinearity"]
+        if beta:
+            counts = counts * (1 - beta * counts / s["flux"])
+        if e["full_readout"]:
+            H, W = self.shape[1:]
+            frame = np.zeros((H, W))
+            frame[r0:r0 + counts.shape[0]] = counts
+            if e["read_noise"]:
+                lit, _, _ = lit_blocks(self.geometry["position"][j:j + 1], self.geometry["A"], H)
+                dark_rows = np.setdiff1d(np.arange(H), lit)
+                # a stream of its own (seed, 4, frame): the lit rows' noise stays as without full_readout
+                noise = np.random.default_rng([s["seed"], 4, j]).normal(0, e["read_noise"], (dark_rows.size, W))
+                frame[dark_rows] += noise
+            r0, counts = 0, frame
+        if e["line_noise"]:
+            counts = counts + self.line_offset[j, r0:r0 + counts.shape[0], None]
+        if e["dark"]:
+            counts = counts + e["dark"]
+        return r0, counts
 
     def scan(self, data=None) -> Scan:
         """The acquisition with ``data`` as frames (default: all zero, a placeholder to write frames into)."""
@@ -334,6 +446,7 @@ class Simulation:
         J = self.shape[0]
         data = np.broadcast_to(np.zeros((), self.dtype), self.shape) if data is None else data
         return Scan(data=data, position=g["position"], reference=self.reference, phase_step=g["phase_step"],
+                    dark=np.full(self.shape[1:], float(e["dark"])) if e["dark"] else None,
                     gain=e["detector_gain"] if e["declare_gain"] else 1.0, exposure_time=np.full(J, 0.033),
                     pixel_size=(s["pixel_mm"] * 1e-3, s["pixel_mm"] * 1e-3))
 
@@ -356,7 +469,9 @@ class Simulation:
                      reference_steps=self.reference_steps, reference_transmission=ref.transmission,
                      reference_visibility=ref.visibility, reference_phase=ref.phase,
                      reference_offset=np.float64(e["reference_offset"]), vib_position_jitter=self.jitter,
-                     config=json.dumps(self.cfg))
+                     electronic_noise=np.float64(e["read_noise"]), dark=np.float64(e["dark"]),
+                     scatter=np.float64(e["scatter"]), detector_nonlinearity=np.float64(e["detector_nonlinearity"]),
+                     ghost=np.float64(e["ghost"]), line_offset=self.line_offset, config=json.dumps(self.cfg))
         return truth
 
 
@@ -378,8 +493,11 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
         ``motion_mask`` (H, W), ``gain``, ``detector_lag`` (the fraction a), ``pixel_noise`` (H, W)
         variance factors; ``reference_offset`` (rows) and ``vib_position_jitter`` (J, rows: frame j read
         the flat-field maps at u - reference_offset - vib_position_jitter[j]); ``reference_steps`` (actual
-        step phases of a simulated
-        reference series, else empty) and the exact flat-field maps ``reference_*``; ``config`` (JSON).
+        step phases of a simulated reference series, else empty) and the exact flat-field maps
+        ``reference_*``; ``electronic_noise`` (read noise std) and ``dark`` (detector units);
+        ``scatter`` (the scatter-to-primary ratio s: total scatter / total primary over each frame's lit
+        samples); ``detector_nonlinearity`` (beta), ``ghost`` (the fraction) and ``line_offset`` (J, H)
+        (detector units); ``config`` (JSON, every setting).
     """
     sim = Simulation(cfg)
     data = np.zeros(sim.shape, sim.dtype)
@@ -447,6 +565,42 @@ def pixel_noise_map(height: int, width: int, *, factor: float, module: int) -> n
     return np.where(edge(height)[:, None] | edge(width)[None, :], float(factor), 1.0)
 
 
+def scatter(primary: np.ndarray, *, ratio: float, width: float) -> np.ndarray:
+    """Compton scatter of one frame: its primary blurred within its lit rows, scaled to a scatter-to-primary ratio.
+
+    Photons scattered in the sample reach the detector without the gratings' modulation, spread over a
+    wide area around where the primary went. The blur is a normalised convolution with a Gaussian
+    (zero outside the frame's lit rows and the detector, the kernel renormalised to what is inside), so
+    the scatter keeps its level up to the edges; it is then scaled so that its total over the samples is
+    ``ratio`` times the primary's: the mean scatter-to-primary ratio over the lit samples (the ratio of
+    the means; the per-sample ratio is larger behind dense parts of the sample and smaller in air).
+
+    Parameters
+    ----------
+    primary : ndarray, shape (n, W)
+        The unmodulated primary (dose x t^f x t) of the frame's lit rows (detector units).
+    ratio : float
+        Scatter-to-primary ratio s.
+    width : float
+        Standard deviation of the Gaussian kernel along rows and columns (pixels).
+
+    Returns
+    -------
+    ndarray, shape (n, W)
+        The scatter (detector units).
+    """
+    from scipy import signal
+
+    # the kernel, truncated at 4 std and never longer than the frame (entries beyond it touch nothing)
+    g = [np.exp(-0.5 * (np.arange(-r, r + 1) / width) ** 2)
+         for r in (min(int(np.ceil(4 * width)), n - 1) for n in primary.shape)]
+    # a wide kernel: the FFT's cost does not grow with it
+    blurred = signal.fftconvolve(primary, np.outer(*g), mode="same")
+    inside = np.outer(*(signal.convolve(np.ones(n), k, mode="same") for n, k in zip(primary.shape, g, strict=True)))
+    spread = blurred / inside
+    return ratio * spread * (primary.sum() / spread.sum())
+
+
 def _detect(mean: np.ndarray, cfg: dict, rng: np.random.Generator, *, factor: np.ndarray | None = None) -> np.ndarray:
     """Detector response to a mean signal in detector units: g * Poisson(mean / g) + electronic noise.
 
@@ -464,24 +618,34 @@ def _detect(mean: np.ndarray, cfg: dict, rng: np.random.Generator, *, factor: np
     return out
 
 
-def _with_lag(current: tuple[int, np.ndarray], previous: tuple[int, np.ndarray], fraction: float
-              ) -> tuple[int, np.ndarray]:
-    """Detected rows (r0, counts) of a frame plus ``fraction`` times those of the previous frame, over both's rows."""
-    spans = [(r0, c) for r0, c in (current, previous) if c.shape[0]]
+def _add_rows(current: tuple[int, np.ndarray], other: tuple[int, np.ndarray], fraction: float, *,
+              height: int | None = None) -> tuple[int, np.ndarray]:
+    """Detected rows (r0, counts) of a frame plus ``fraction`` times rows (r0, counts) of another, over both's rows.
+
+    The other rows are the previous frame's (lag) or an earlier frame's, displaced (ghost); with ``height``
+    those outside the detector's rows [0, height) are dropped.
+    """
+    if height is not None:
+        o0, c = other
+        lo, hi = min(max(o0, 0), height), min(max(o0 + c.shape[0], 0), height)
+        other = (lo, c[lo - o0:hi - o0])
+    spans = [(r0, c) for r0, c in (current, other) if c.shape[0]]
     if len(spans) < 2:
-        return current if current[1].shape[0] else (previous[0], fraction * previous[1])
+        return current if current[1].shape[0] else (other[0], fraction * other[1])
     lo = min(r0 for r0, _ in spans)
     hi = max(r0 + c.shape[0] for r0, c in spans)
     out = np.zeros((hi - lo, current[1].shape[1]))
     out[current[0] - lo:current[0] - lo + current[1].shape[0]] += current[1]
-    out[previous[0] - lo:previous[0] - lo + previous[1].shape[0]] += fraction * previous[1]
+    out[other[0] - lo:other[0] - lo + other[1].shape[0]] += fraction * other[1]
     return lo, out
 
 
-def _reference_series(ref: Reference, s: dict, rng: np.random.Generator) -> tuple[SteppingReference, np.ndarray]:
+def _reference_series(ref: Reference, s: dict, rng: np.random.Generator, *, dark: float = 0.0
+                      ) -> tuple[SteppingReference, np.ndarray]:
     """A noisy S-step series of the unloaded interferometer (the average of ``reference_frames`` frames).
 
-    Returns the series (with nominal steps) and the actual step phases (rad).
+    ``dark`` (detector units) is added to every frame and stated as the series' dark. Returns the series
+    (with nominal steps) and the actual step phases (rad).
     """
     S = s["reference_steps"]
     steps = 2 * np.pi * np.arange(S) / S
@@ -493,7 +657,8 @@ def _reference_series(ref: Reference, s: dict, rng: np.random.Generator) -> tupl
     mean[obs.frame[:, None], obs.row[:, None], obs.columns[None, :]] = M.expected(obs, M.design(obs, {}), images)
     n = s["reference_frames"]
     data = rng.poisson(mean * n) / n if s["noise"] else mean
-    return SteppingReference(data=data.astype(np.float64), phase_step=steps), actual
+    return SteppingReference(data=data.astype(np.float64) + dark, phase_step=steps,
+                             dark=np.full(mean.shape[1:], dark) if dark else None), actual
 
 
 def _store(frames: np.ndarray, dtype: np.dtype) -> tuple[np.ndarray, int]:

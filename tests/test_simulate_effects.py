@@ -1,0 +1,188 @@
+"""The simulator's detector and scatter options: each changes the counts as documented, the defaults not at all."""
+import hashlib
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from dfxcorr import config as C
+from dfxcorr.align import lit_blocks
+from dfxcorr.io import read_scan
+from dfxcorr.sim import simulate as S
+
+from conftest import sim_config
+
+EXACT = {"simulate.noise": False, "simulate.dtype": "float64"}
+
+# sha256 of scan.data.tobytes() of sim_config(**settings), computed on main at 24fe9e2 (before these options
+# existed) with S.simulate; scans made with the earlier options must stay bit-identical.
+EARLIER = {
+    "default": ({}, "2884401680639ec4cf64e13e15eb883ff9348e3b567a89463fbd30f80c8be15f"),
+    "earlier options": ({"effects.read_noise": 25.0, "effects.detector_lag": 0.03, "effects.detector_gain": 2.0,
+                         "effects.pixel_noise": 0.5, "effects.position_error": 0.3, "effects.dose": 0.02,
+                         "effects.background": 0.05, "simulate.reference_steps": 5, "simulate.tiles": 4},
+                        "60b6cdc591adf30faa506a8899c6b86d743e352cf658bab225464e8c984c7513"),
+    "stepping": ({"simulate.geometry": "stepping", "simulate.steps": 5, "simulate.steps_per_period": 5,
+                  "effects.read_noise": 25.0, "simulate.flux": 2000.0},
+                 "5ea67bd999f193e0612031f029ef503bf827fc1a68bab8eb0c510fe3ebafcd51"),
+}
+
+
+def counts(**settings) -> np.ndarray:
+    return S.simulate(sim_config(**settings))[0].data
+
+
+def lit_rows(scan, j: int) -> np.ndarray:
+    return lit_blocks(scan.position[j:j + 1], scan.reference.transmission.shape[0], scan.shape[1])[0]
+
+
+@pytest.mark.parametrize("case", list(EARLIER))
+def test_earlier_scans_are_bit_identical(case):
+    settings, digest = EARLIER[case]
+    assert hashlib.sha256(counts(**settings).tobytes()).hexdigest() == digest
+
+
+def test_dark_is_added_to_every_read_sample_and_stated_in_the_file(tmp_path):
+    base = counts(**EXACT)
+    with_dark = counts(**EXACT, **{"effects.dark": 100.0})
+    lit = base > 0
+    np.testing.assert_array_equal(with_dark[lit], base[lit] + 100.0)
+    assert (with_dark[~lit] == 0).all()  # only the lit rows are read without full_readout
+    full = counts(**EXACT, **{"effects.dark": 100.0, "effects.full_readout": True})
+    np.testing.assert_array_equal(full, base + 100.0)
+    cfg = sim_config(**{"effects.dark": 100.0, "simulate.reference_steps": 5})
+    scan, truth = S.simulate_file(cfg, tmp_path / "scan.h5")
+    back = read_scan(tmp_path / "scan.h5")
+    assert (back.dark == 100.0).all() and back.dark.shape == scan.shape[1:] and truth["dark"] == 100.0
+    assert (back.reference.dark == 100.0).all() and back.reference.data.min() > 50
+    S.simulate_file(sim_config(), tmp_path / "plain.h5")
+    assert not read_scan(tmp_path / "plain.h5").dark.any()
+
+
+def test_read_noise_adds_its_variance_on_a_flat_panel_in_detector_units():
+    sets = {**S.FLAT_PANEL_STEPPING, "simulate.dtype": "float64"}
+    scan, truth = S.simulate(sim_config(**sets))
+    mean = counts(**{**sets, "simulate.noise": False, "effects.read_noise": 0.0})
+    assert scan.gain == 1.0 and truth["gain"] == 0.5 and truth["electronic_noise"] == 25.0
+    assert (scan.dark == 100.0).all() and np.std(truth["vib_phase_offset"]) > 0.03 and not truth["vib_tilt"].any()
+    # variance g (Ibar - dark) + sigma_e^2 in every sample, from photons and readout
+    ratio = (scan.data - mean) ** 2 / (0.5 * (mean - 100.0) + 25.0 ** 2)
+    assert ratio.mean() == pytest.approx(1.0, abs=0.03)
+
+
+def test_full_readout_reads_zero_signal_rows_at_the_dark_with_the_read_noise():
+    sets = {**S.FLAT_PANEL, "simulate.dtype": "float64"}
+    scan, _ = S.simulate(sim_config(**sets))
+    partial = counts(**{**sets, "effects.full_readout": False})
+    unlit = np.ones(scan.shape, bool)
+    for j in range(scan.shape[0]):
+        unlit[j, lit_rows(scan, j)] = False
+    zero = scan.data[unlit]
+    assert zero.size > 1e5 and zero.mean() == pytest.approx(100.0, abs=0.3)
+    assert zero.var() == pytest.approx(625.0, rel=0.02)
+    # the lit rows are the same samples as without full readout: their noise is drawn as before
+    np.testing.assert_array_equal(scan.data[~unlit], partial[~unlit])
+
+
+def test_scatter_totals_the_ratio_of_each_frames_primary_and_follows_it_blurred():
+    sets = {**EXACT, "effects.scatter": 0.1}
+    scan, truth = S.simulate(sim_config(**sets))
+    scatter = scan.data - counts(**EXACT)
+    # with no visibility the counts are the primary, dose x t^f x t
+    primary = counts(**EXACT, **{"simulate.visibility": 1e-12})
+    width = 50.0 / 5.0  # scatter_width_mm / pixel_mm
+    assert truth["scatter"] == 0.1
+    for j in range(10, scan.shape[0] - 10, 7):
+        rows = lit_rows(scan, j)
+        s, p = scatter[j, rows], primary[j, rows]
+        assert s.sum() / p.sum() == pytest.approx(0.1, rel=1e-6)  # the mean SPR over the lit samples
+        # an independent normalised convolution (a different Gaussian filter) over the lit rows
+        blur = ndimage.gaussian_filter(p, width, mode="constant") / ndimage.gaussian_filter(np.ones_like(p), width,
+                                                                                           mode="constant")
+        np.testing.assert_allclose(s, 0.1 * blur * p.sum() / blur.sum(), rtol=1e-6)
+        assert (scatter[j, np.setdiff1d(np.arange(scan.shape[1]), rows)] == 0).all()
+    # the per-sample ratio: well above the mean behind the densest parts (the spine), below it in air
+    ratio = scatter[primary > 0] / primary[primary > 0]
+    t = np.broadcast_to(truth["image_transmission"], scan.shape)[primary > 0]
+    assert np.median(ratio[t < 0.01]) > 0.2 and np.median(ratio[t == 1.0]) < 0.1
+
+
+def test_scatter_in_a_noisy_scan_adds_the_ratio_of_the_primary():
+    noisy = counts(**{"effects.scatter": 0.1}).astype(float)
+    clean = counts().astype(float)
+    primary = counts(**EXACT, **{"simulate.visibility": 1e-12})
+    lit = primary > 0
+    assert (noisy[lit].sum() - clean[lit].sum()) / primary[lit].sum() == pytest.approx(0.1, rel=0.03)
+
+
+@pytest.mark.parametrize("dark", [0.0, 100.0])
+def test_nonlinearity_compresses_the_dark_free_signal(dark):
+    linear = counts(**EXACT)
+    bent = counts(**EXACT, **{"effects.detector_nonlinearity": 0.02, "effects.dark": dark})
+    lit = linear > 0
+    np.testing.assert_allclose(bent[lit] - dark, linear[lit] * (1 - 0.02 * linear[lit] / 2e4), rtol=1e-12)
+    # 2 % lost at the flat field's level
+    level = np.abs(linear / 2e4 - 1) < 0.01
+    assert level.any() and np.all(np.abs((bent[level] - dark) / linear[level] - 0.98) < 3e-4)
+
+
+@pytest.mark.parametrize("shift_mm", [20.0, -20.0])
+def test_ghost_of_an_earlier_frame_lands_shifted_by_its_rows(shift_mm):
+    sets = {"effects.ghost": 0.01, "effects.ghost_frames": 2, "effects.ghost_shift_mm": shift_mm}
+    base = counts(**EXACT)
+    ghosted = counts(**EXACT, **sets)
+    d = int(shift_mm / 5.0)
+    expected = np.zeros_like(base)
+    if d > 0:
+        expected[2:, d:] = 0.01 * base[:-2, :-d]
+    else:
+        expected[2:, :d] = 0.01 * base[:-2, -d:]
+    np.testing.assert_allclose(ghosted - base, expected, rtol=1e-12, atol=1e-9)
+    # not at the same pixel: the ghost is no lag
+    j = 50
+    assert np.abs(ghosted[j] - base[j] - 0.01 * base[j - 2]).max() > 10
+
+
+def test_line_noise_is_one_offset_per_frame_and_row():
+    sets = {**S.FLAT_PANEL, "simulate.dtype": "float64"}
+    scan, truth = S.simulate(sim_config(**sets, **{"effects.line_noise": 5.0}))
+    plain = counts(**sets)
+    offset = truth["line_offset"]
+    assert offset.shape == scan.shape[:2] and offset.std() == pytest.approx(5.0, rel=0.05)
+    # every row of every frame (full readout), all columns alike, the noise of the rest unchanged (but where
+    # the read noise took a sample below 0, which the file stores as 0)
+    stored = (scan.data > 0) & (plain > 0)
+    assert stored.mean() > 0.999
+    np.testing.assert_allclose((scan.data - plain)[stored], np.broadcast_to(offset[:, :, None], scan.shape)[stored],
+                               atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["electronic_noise", "scatter", *S.UNCATALOGUED])
+def test_concealment_tables_are_valid_and_change_the_counts(name):
+    key, realistic, smaller, extra, conceal = {**S.CONCEALED, **S.UNCATALOGUED}[name]
+    assert all(0 < a < realistic for a in smaller) and smaller == sorted(smaller, reverse=True)
+    C.load([], conceal)  # valid reconstruct settings
+    section, option = key.split(".")
+    off = S.SCHEMA[section][option].default
+    assert not np.array_equal(counts(**{**extra, key: realistic}), counts(**{**extra, key: off}))
+
+
+def test_a_flat_panel_fits_to_the_noise_once_its_read_noise_is_stated():
+    from dfxcorr.pipeline import reconstruct
+
+    scan, _ = S.simulate(sim_config(**S.FLAT_PANEL))
+    stated = reconstruct(scan, C.load([], S.FLAT_PANEL_STATED), progress=False)
+    # the file's dark is the one added and the variance g (Ibar - dark) + sigma_e^2 holds
+    assert stated.reduced_chi2 == pytest.approx(1.0, abs=0.03)
+
+
+def test_scatter_fakes_a_dark_field_signal():
+    from dfxcorr.pipeline import reconstruct
+
+    def lung_dark_field(scatter):
+        scan, truth = S.simulate(sim_config(**{"effects.scatter": scatter}))
+        v, vt = reconstruct(scan, C.defaults(), progress=False).image("dark_field"), truth["image_dark_field"]
+        return np.nanmedian((v / vt)[vt < 0.9])
+
+    assert lung_dark_field(0.0) == pytest.approx(1.0, abs=0.02)
+    assert lung_dark_field(0.1) < 0.9
