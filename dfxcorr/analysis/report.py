@@ -210,8 +210,9 @@ def _markdown(diag: Diagnosis, out_dir: Path | None = None) -> str:
 def _verdict_where(e: EffectReport) -> str:
     if e.extra.get("explains_misfit"):
         return (f"explains the misfit (a trial refit with it reaches reduced chi-square "
-                f"{e.extra['reduced_chi2_with']:.4f}), but this acquisition cannot identify it: nothing else is "
-                f"named in its place")
+                f"{e.extra['reduced_chi2_with']:.4f}), but this acquisition cannot identify it: "
+                + ("nothing else is named in its place" if e.extra.get("stopped") else
+                   "an identifiable effect explained as much"))
     if "explained_share" in e.extra:
         return (f"significant, but a trial refit removes only {100 * e.extra['explained_share']:.0f} % of the "
                 f"signatures' excess: not added")

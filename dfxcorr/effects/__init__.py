@@ -7,7 +7,16 @@ noise model, the alignment or the counts. Adding an effect is adding a module an
 """
 from __future__ import annotations
 
-from . import channel, detector_gain, detector_lag, pixel_noise, position_error, reference_offset, sample_motion
+from . import (
+               channel,
+               detector_gain,
+               detector_lag,
+               electronic_noise,
+               pixel_noise,
+               position_error,
+               reference_offset,
+               sample_motion,
+)
 from .base import EffectBase
 
 #: Effect name -> its implementation, in the order they are tested.
@@ -15,6 +24,7 @@ REGISTRY: dict[str, EffectBase] = {e.name: e for e in (
     *channel.EFFECTS,
     sample_motion.EFFECT,
     detector_gain.EFFECT,
+    electronic_noise.EFFECT,
     reference_offset.EFFECT,
     position_error.EFFECT,
     detector_lag.EFFECT,
