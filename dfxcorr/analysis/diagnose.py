@@ -159,7 +159,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     first = session.fit(start, {}, "round 0")
     before = locate(first.obs, M.design(first.obs, first.params), first.rec.images, first.rec.expected)
     out = loop.run(registry, session, first, fit=session.fit, alpha=d["alpha"], explain_share=d["explain_share"],
-                   max_rounds=d["max_rounds"])
+                   max_rounds=d["max_rounds"], timings=timings)
     final = out.state
     effects, changes = [], []
     for step in out.steps:
@@ -208,4 +208,4 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                      params=final.params, criterion=criterion, rounds=out.rounds,
                      unexplained=sorted(unexplained, key=lambda u: u["p_value"]), signatures=final.signatures,
                      shape=prep.shape, final=final.hypothesis, start=start, cfg=cfg, registry=registry,
-                     changes=changes)
+                     changes=changes, timings=timings)

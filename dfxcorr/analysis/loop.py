@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..effects.base import Context, EffectBase, Hypothesis, State, Test
+from ..pipeline import stage
 
 log = logging.getLogger(__name__)
 
@@ -183,12 +184,15 @@ def _best_of(first: Step, others: list[str], tests: Mapping[str, Test], effects:
 
 
 def run(effects: Mapping[str, EffectBase], ctx: Context, start: State, *, fit: Fit, alpha: float,
-        explain_share: float, max_rounds: int) -> Outcome:
-    """Add effects to the model of ``start`` until no candidate explains what is left (see the module's text)."""
+        explain_share: float, max_rounds: int, timings: dict | None = None) -> Outcome:
+    """Add effects to the model of ``start`` until no candidate explains what is left (see the module's text).
+
+    ``timings`` receives the seconds of each round's tests."""
     out = Outcome(state=start)
     for rnd in range(max_rounds):
         state = out.state
-        tests, flagged = round_tests(effects, ctx, state, [s.name for s in out.steps])
+        with stage(f"round {rnd}: tests", {} if timings is None else timings):
+            tests, flagged = round_tests(effects, ctx, state, [s.name for s in out.steps])
         out.tests.update(tests)
         log.info("round %d: reduced chi-square %.4f; %s", rnd, state.reduced_chi2,
                  ", ".join(f"{k} S={t.statistic:.4g} (dof {t.dof}{'' if t.identifiable else ', n.i.'})"

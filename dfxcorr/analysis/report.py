@@ -68,6 +68,8 @@ class Diagnosis:
     cfg: dict
     registry: Mapping[str, EffectBase]
     changes: list = field(default_factory=list)
+    #: Seconds of each stage (load, align, every fit and its tests), as logged.
+    timings: dict = field(default_factory=dict)
 
     @property
     def gain(self) -> float:
