@@ -91,7 +91,8 @@ class Session:
         """The samples of every column and of the fit's columns under a hypothesis.
 
         As in reconstruct: the tests count the region of interest, the fit also the samples without fringe
-        (they monitor dose and background); the hypothesis's moving pixels count in neither.
+        (they monitor dose and background); the hypothesis's moving pixels count in neither, nor do the samples
+        the preparation left out (detector faults).
         """
         key = (hypothesis.corrections, hypothesis.shift.tobytes())
         if key not in self._aligned:
@@ -99,10 +100,10 @@ class Session:
             # the current alignment and a trial's: older ones are not asked for again
             self._aligned = {k: v for k, v in list(self._aligned.items())[-1:]}
             self._aligned[key] = self.realigner(hypothesis)(self.obs, hypothesis.shift) if moved else self.obs
-        obs = self._aligned[key].with_noise(hypothesis.noise)
-        obs = replace(obs, use=obs.in_roi & ~obs.pixel_mask(hypothesis.motion))
-        fit_obs = obs.subset(self.fit_columns)
-        return obs, replace(fit_obs, use=~fit_obs.pixel_mask(hypothesis.motion))
+        base = self._aligned[key].with_noise(hypothesis.noise)
+        obs = replace(base, use=base.use & base.in_roi & ~base.pixel_mask(hypothesis.motion))
+        fit_obs = base.subset(self.fit_columns)
+        return obs, replace(fit_obs, use=fit_obs.use & ~fit_obs.pixel_mask(hypothesis.motion))
 
     def fit(self, hypothesis: Hypothesis, start: dict, label: str) -> Fitted:
         """Fit a hypothesis (from ``start``, or afresh where empty): its chi-square and residual signatures."""

@@ -180,6 +180,10 @@ def _markdown(diag: Diagnosis, out_dir: Path | None = None) -> str:
                "information beyond its gauge: the acquisition cannot tell it from the images or the model's other "
                "effects (paper Sec. II-F), so it is never reported as detected."), "",
               "## Unexplained", ""]
+    if diag.unexplained and diag.final_chi2 > GROSS:
+        lines += [(f"**The misfit is gross**: the final model leaves a reduced chi-square of {diag.final_chi2:.4g}, "
+                   f"and no effect of the catalogue explains it. It is located below along its own axes; the physics "
+                   "behind it is not named here (an effect that would only shave a little off it is not added)."), ""]
     if diag.unexplained:
         lines += [(f"The final model still leaves {len(diag.unexplained)} significant residual signature(s) that no "
                    "catalogue effect explains (significant after Holm's correction over the signatures tested; the "
@@ -207,6 +211,10 @@ def _markdown(diag: Diagnosis, out_dir: Path | None = None) -> str:
     lines += ["To reconstruct with the final model:", "",
               f"    dfxcorr reconstruct {diag.scan} -o result.h5" + "".join(f" --set {s}" for s in sets), ""]
     return "\n".join(lines)
+
+
+#: A final reduced chi-square beyond this, with signatures left unexplained, is reported as a gross misfit.
+GROSS = 2.0
 
 
 def _verdict_where(e: EffectReport) -> str:
