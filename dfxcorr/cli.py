@@ -37,6 +37,14 @@ def friendly(func):
         except OSError as exc:
             click.echo(f"error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), err=True)
             sys.exit(EXIT_INPUT)
+        except SystemError as exc:
+            # a signal handler's SystemExit raised while a compiled (numba) kernel returned comes wrapped
+            stop: BaseException | None = exc
+            while isinstance(stop, SystemError):
+                stop = stop.__cause__ or stop.__context__
+            if isinstance(stop, SystemExit):
+                raise stop from None
+            raise
 
     return wrapper
 
@@ -139,9 +147,9 @@ def _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, pre
     """Check a reconstruction's outputs and configuration before any work; the output, configuration, outputs."""
     out = Path(output) if output else Path(f"{Path(scan).stem}_result.h5")
     outputs = _reconstruct_outputs(out, tiff_dir=tiff_dir, preview=preview)
-    _guard(outputs, inputs=[scan, *config_files], overwrite=overwrite)
     cfg = C.load(config_files, list(sets) + ([f"fit.method={method}"] if method else [])
                  + (["retrieve.uncorrected=true"] if preview else []))
+    _guard(outputs, inputs=[scan, *config_files, *C.input_files(cfg)], overwrite=overwrite)
     return out, cfg, outputs
 
 
@@ -246,9 +254,12 @@ def diagnose(scan, out_dir, config_files, sets, base, overwrite):
     from .analysis.diagnose import write_report
 
     out = Path(out_dir)
-    _guard([out / name for name in ("diagnosis.json", "report.md", "residuals.png", "motion_mask.tif")],
-           inputs=[scan, *config_files], overwrite=overwrite)
     cfg = C.load(config_files, sets)
+    # every file of a fixed name the report may write: the iterative workflow feeds pixel_noise.tif and
+    # position_errors.txt back, and a run must not replace the map it reads
+    _guard([out / name for name in ("diagnosis.json", "report.md", "residuals.png", "signatures.png",
+                                    "motion_mask.tif", "pixel_noise.tif", "position_errors.txt")],
+           inputs=[scan, *config_files, *C.input_files(cfg)], overwrite=overwrite)
     # plain retrieval (--base none) fits no configured effect
     check.plan(check.read_header(scan), C.merge(cfg, {"fit": {"method": "none"}}) if base == "none" else cfg,
                name=scan, diagnose=True)
@@ -411,9 +422,9 @@ def compare(scan, output_dir, truth, methods, config_files, sets, overwrite):
     from .io import read_scan
 
     methods = CMP.parse_methods(methods)
-    _guard(CMP.comparison_paths(Path(output_dir), methods).values(), inputs=[scan, *config_files]
-           + ([truth] if truth else []), overwrite=overwrite)
     cfg = C.load(config_files, sets)
+    _guard(CMP.comparison_paths(Path(output_dir), methods).values(), inputs=[scan, *config_files,
+           *C.input_files(cfg)] + ([truth] if truth else []), overwrite=overwrite)
     header = check.read_header(scan)
     for m in methods:
         check.plan(header, C.merge(cfg, {"fit": {"method": m}}), name=scan)
@@ -444,8 +455,9 @@ def nps(scans, output_dir, methods, bins, config_files, sets, overwrite):
     from .analysis import compare as CMP
 
     methods = CMP.parse_methods(methods)
-    _guard(CMP.nps_paths(Path(output_dir)).values(), inputs=[*scans, *config_files], overwrite=overwrite)
     cfg = C.load(config_files, sets)
+    _guard(CMP.nps_paths(Path(output_dir)).values(), inputs=[*scans, *config_files, *C.input_files(cfg)],
+           overwrite=overwrite)
     for scan in scans:
         header = check.read_header(scan)
         for m in methods:
