@@ -17,7 +17,7 @@ from numpy.typing import DTypeLike
 
 from . import kernels as K
 from .errors import DfxcorrError
-from .io import Reference, Scan, frame_rows
+from .io import Reference, Scan, frame_rows, lit_rows
 from .model import Observations, lag_estimate, lag_free, lateral_coordinate
 
 log = logging.getLogger(__name__)
@@ -61,9 +61,15 @@ def lit_blocks(position: np.ndarray, active_rows: int, height: int) -> tuple[np.
     u : ndarray, shape (K,)
         Local interferometer row of each pair.
     """
-    u = np.arange(height)[:, None] + 0.5 - np.asarray(position, dtype=np.float64)[None, :]
-    row, frame = np.nonzero((u >= 0) & (u < active_rows))
-    return row, frame, u[row, frame]
+    position = np.asarray(position, dtype=np.float64)
+    # frame by frame (a (H, J) grid of a file declaring 100000 x 100000 unlit frames asked for 74.5 GiB)
+    r0, r1 = lit_rows(position, active_rows, height).T
+    n = r1 - r0
+    frame = np.repeat(np.arange(position.size), n)
+    row = np.repeat(r0, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
+    order = np.lexsort((frame, row))
+    row, frame = row[order], frame[order]
+    return row, frame, row + 0.5 - position[frame]
 
 
 @dataclass

@@ -13,13 +13,12 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from . import config as C
 from . import io
 from .align import lit_blocks
-from .errors import DfxcorrError, OutputExistsError
+from .errors import DfxcorrError, OutputExistsError, require_regular_file
 
 #: Name length limit where the file system does not tell (bytes; ext4, XFS, Lustre, GPFS).
 NAME_MAX = 255
@@ -118,6 +117,7 @@ def check_outputs(outputs, *, inputs=(), overwrite: bool = False, appended=()) -
     known = {}
     for p in inputs:
         _require_utf8(p, "input")
+        require_regular_file(p)
         ident = _identity(p)
         if ident is not None:
             known[ident] = p
@@ -140,6 +140,8 @@ def check_outputs(outputs, *, inputs=(), overwrite: bool = False, appended=()) -
         folder = _existing_folder(p.parent)
         if append and folder != Path(os.path.abspath(p.parent)):
             raise OutputError(f"{_name(p)}: folder {_name(p.parent)} does not exist")
+        if append:
+            require_regular_file(p, "log file")  # appending to a FIFO waits for a reader
         extra = 0 if append else io.TEMP_NAME_OVERHEAD
         if len(os.fsencode(p.name)) + extra > _name_max(folder):
             raise OutputError(f"{_name(p)}: the name is too long ({len(os.fsencode(p.name))} bytes; with the "
@@ -226,44 +228,6 @@ def memory_estimate(shape, *, itemsize: int, lit_samples: int, fit_samples: int,
                + BASE_BYTES)
 
 
-def read_header(path, *, allow_external: bool = False) -> io.Scan:
-    """A scan's geometry and reference without reading its frames (their dtype and shape only).
-
-    The returned :class:`~dfxcorr.io.Scan` holds a zero-stride view as ``data`` (and as the reference
-    series of a phase-stepping recording). Anything unexpected is left to :func:`dfxcorr.io.read_scan`,
-    which refuses it naming the dataset.
-    """
-    try:
-        with h5py.File(path, "r") as f:
-            io.validate_file(f, allow_external=allow_external)
-            dset = f["entry/instrument/detector/data"]
-            J, H, W = dset.shape
-            dtype = dset.dtype
-            position = np.asarray(f["entry/scan/position"][()], dtype=np.float64)
-            if position.shape != (J,) or not np.all(np.isfinite(position)):
-                raise ValueError("position")
-            reference: io.Reference | io.SteppingReference
-            if "entry/reference/stepping" in f:
-                st = f["entry/reference/stepping"]
-                if st["data"].ndim != 3 or st["data"].shape[2] != W:
-                    raise ValueError("reference")
-                # its counts matter only to a scan that is not itself phase stepping (flat-field separability)
-                stepping = st["data"].shape[1] == H and not np.any(position)
-                data = np.broadcast_to(np.zeros((), st["data"].dtype), st["data"].shape) if stepping else st["data"][()]
-                reference = io.SteppingReference(data=data, phase_step=st["phase_step"][()])
-            else:
-                t, v, p = (np.asarray(f[f"entry/reference/{m}"][()], np.float64)
-                           for m in ("transmission", "visibility", "phase"))
-                if t.ndim != 2 or t.shape[1] != W or v.shape != t.shape or p.shape != t.shape:
-                    raise ValueError("reference")
-                reference = io.Reference(t, v, p)
-    except io.ScanFormatError:
-        raise
-    except Exception:  # noqa: BLE001 - whatever is wrong, the full reader names it
-        return io.read_scan(path, allow_external=allow_external)
-    return io.Scan(data=np.broadcast_to(np.zeros((), dtype), (J, H, W)), position=position, reference=reference)
-
-
 def _columns(width: int, cfg: dict, samples_per_column: int) -> np.ndarray:
     from .pipeline import fit_columns
 
@@ -297,7 +261,7 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     Parameters
     ----------
     scan : Scan
-        From :func:`read_header` or :func:`dfxcorr.io.read_scan`.
+        From :func:`dfxcorr.io.read_scan` (``header_only`` is enough).
     cfg : dict
         Resolved configuration.
     name : str

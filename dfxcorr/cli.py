@@ -167,9 +167,10 @@ def _reconstruct_outputs(out: Path, *, tiff_dir=None, preview=False) -> list[Pat
 def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite):
     """Reconstruct vibration-corrected images from SCAN (dfxcorr scan format)."""
     from . import check, pipeline
+    from .io import read_scan
 
     out, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
-    header = check.read_header(scan, allow_external=cfg["load"]["allow_external"])
+    header = read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True)
     check.plan(header, cfg, name=scan, outputs=outputs)
     t0 = time.perf_counter()
     result = pipeline.reconstruct(scan, cfg, command_line=_command_line())
@@ -191,7 +192,8 @@ def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overw
     from .io import read_scan
 
     _, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
-    click.echo(check.plan(read_scan(scan), cfg, name=scan, outputs=outputs, diagnose=True).summary())
+    scan_read = read_scan(scan, allow_external=cfg["load"]["allow_external"])
+    click.echo(check.plan(scan_read, cfg, name=scan, outputs=outputs, diagnose=True).summary())
     click.echo("ok: reconstruct would run")
 
 
@@ -252,6 +254,7 @@ def diagnose(scan, out_dir, config_files, sets, base, overwrite):
     from . import check
     from .analysis.diagnose import diagnose as run
     from .analysis.diagnose import write_report
+    from .io import read_scan
 
     out = Path(out_dir)
     cfg = C.load(config_files, sets)
@@ -261,7 +264,8 @@ def diagnose(scan, out_dir, config_files, sets, base, overwrite):
                                     "motion_mask.tif", "pixel_noise.tif", "position_errors.txt")],
            inputs=[scan, *config_files, *C.input_files(cfg)], overwrite=overwrite)
     # plain retrieval (--base none) fits no configured effect
-    check.plan(check.read_header(scan), C.merge(cfg, {"fit": {"method": "none"}}) if base == "none" else cfg,
+    header = read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True)
+    check.plan(header, C.merge(cfg, {"fit": {"method": "none"}}) if base == "none" else cfg,
                name=scan, diagnose=True)
     diag = run(scan, cfg, base=base)
     write_report(diag, out, overwrite=overwrite)
@@ -425,11 +429,11 @@ def compare(scan, output_dir, truth, methods, config_files, sets, overwrite):
     cfg = C.load(config_files, sets)
     _guard(CMP.comparison_paths(Path(output_dir), methods).values(), inputs=[scan, *config_files,
            *C.input_files(cfg)] + ([truth] if truth else []), overwrite=overwrite)
-    header = check.read_header(scan)
+    header = read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True)
     for m in methods:
         check.plan(header, C.merge(cfg, {"fit": {"method": m}}), name=scan)
     true = CMP.load_truth(truth, header.shape) if truth else None
-    data = read_scan(scan)
+    data = read_scan(scan, allow_external=cfg["load"]["allow_external"])
     cfg = C.merge(cfg, {"retrieve": {"uncorrected": False}})
     results, runtimes = CMP.run_methods(scan, cfg, methods=methods, command_line=_command_line())
     paths = CMP.write_comparison(output_dir, data, results, runtimes, truth=true, source=scan, overwrite=overwrite)
@@ -453,13 +457,14 @@ def nps(scans, output_dir, methods, bins, config_files, sets, overwrite):
     """Noise power spectra of the dark-field images of blank SCANS (no sample), per estimator."""
     from . import check
     from .analysis import compare as CMP
+    from .io import read_scan
 
     methods = CMP.parse_methods(methods)
     cfg = C.load(config_files, sets)
     _guard(CMP.nps_paths(Path(output_dir)).values(), inputs=[*scans, *config_files, *C.input_files(cfg)],
            overwrite=overwrite)
     for scan in scans:
-        header = check.read_header(scan)
+        header = read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True)
         for m in methods:
             check.plan(header, C.merge(cfg, {"fit": {"method": m}}), name=scan)
     study = CMP.nps_study(scans, cfg, methods=methods, bins=bins, command_line=_command_line())

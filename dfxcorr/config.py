@@ -17,7 +17,7 @@ from typing import Any
 
 import yaml
 
-from .errors import DfxcorrError
+from .errors import DfxcorrError, require_regular_file
 
 
 class ConfigError(DfxcorrError, ValueError):
@@ -341,6 +341,7 @@ def load(files=(), sets=(), *, schema: dict = SCHEMA) -> dict:
     cfg = defaults(schema)
     for f in files:
         path = Path(f)
+        require_regular_file(path, "configuration")
         try:
             with open(path, "rb") as fh:
                 raw = fh.read(MAX_FILE_BYTES + 1)

@@ -8,8 +8,9 @@ from typing import Any
 import h5py
 import numpy as np
 
+from ..errors import require_regular_file
 from .types import DET as _DET
-from .types import FrameSource, H5Frames, Reference, Scan, ScanFormatError, SteppingReference
+from .types import FrameSource, H5Frames, Reference, Scan, ScanFormatError, SteppingReference, lit_rows
 from .validate import validate_file
 
 
@@ -40,6 +41,7 @@ def _check_finite(name: str, arr: np.ndarray) -> None:
 def _open(path: str | os.PathLike) -> h5py.File:
     """The scan file opened for reading, or a refusal naming it."""
     path = Path(path)
+    require_regular_file(path, "scan")
     if not path.is_file():
         raise ScanFormatError(f"{path}: no such file")
     if not h5py.is_hdf5(path):
@@ -50,7 +52,7 @@ def _open(path: str | os.PathLike) -> h5py.File:
         raise ScanFormatError(f"{path}: cannot open as HDF5 ({exc})") from None
 
 
-def read_scan(path: str | os.PathLike, *, allow_external: bool = False) -> Scan:
+def read_scan(path: str | os.PathLike, *, allow_external: bool = False, header_only: bool = False) -> Scan:
     """Read and validate a dfxcorr scan file.
 
     Parameters
@@ -60,12 +62,17 @@ def read_scan(path: str | os.PathLike, *, allow_external: bool = False) -> Scan:
     allow_external : bool
         Follow external links, external raw storage and virtual datasets (see :func:`validate_file`);
         the files followed are listed in ``Scan.external_files``.
+    header_only : bool
+        The geometry and reference only, in a fraction of a second (``dfxcorr check``'s look before a run):
+        the frames' counts are not checked, and a phase-stepping recording's reference series is not read
+        (its ``data`` is then a zero-stride view of its shape and dtype).
 
     Returns
     -------
     Scan
-        Its ``data`` is an :class:`H5Frames`: the frames stay in the file. Float frames are checked
-        for NaN and negative counts here, one frame at a time.
+        Its ``data`` is an :class:`H5Frames`: the frames stay in the file. The lit rows of float frames are
+        checked for NaN, negative and impossibly large counts here, one frame at a time (unlit rows are never
+        read by the pipeline, so their declared size costs nothing).
 
     Raises
     ------
@@ -78,10 +85,11 @@ def read_scan(path: str | os.PathLike, *, allow_external: bool = False) -> Scan:
         dset = _require(f, f"{_DET}/data")
         J, H, W = dset.shape
         data = H5Frames(path, f"{_DET}/data", dset.shape, dset.dtype)
-        _check_counts(f"{_DET}/data", dset)
         position = np.asarray(_require(f, "entry/scan/position")[()], dtype=np.float64)
         _check_shape("entry/scan/position", position, (J,), "one per frame of /entry/instrument/detector/data")
         _check_finite("entry/scan/position", position)
+        if not header_only:
+            _check_counts(f"{_DET}/data", dset, lit_rows(position, layout.A, H))
         phase_step = _optional(f, "entry/scan/phase_step")
         if phase_step is not None:
             phase_step = np.asarray(phase_step, dtype=np.float64)
@@ -105,14 +113,16 @@ def read_scan(path: str | os.PathLike, *, allow_external: bool = False) -> Scan:
         if all(p is not None for p in px):
             size_y, size_x = (float(np.asarray(p).reshape(-1)[0]) for p in px)
             pixel_size = (size_y, size_x)
-        reference = _read_reference(f, W)
+        # a phase-stepping recording's own series is resolved by the run; the header needs its shape only
+        series_unread = header_only and layout.A == H and not np.any(position)
+        reference = _read_reference(f, W, series_unread=series_unread)
         attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     return Scan(data=data, position=position, reference=reference, phase_step=phase_step, dark=dark,
                 gain=gain, exposure_time=exposure, pixel_size=pixel_size, attrs=attrs,
                 external_files=layout.external_files)
 
 
-def _read_reference(f: h5py.File, W: int) -> Reference | SteppingReference:
+def _read_reference(f: h5py.File, W: int, *, series_unread: bool = False) -> Reference | SteppingReference:
     maps = ("transmission", "visibility", "phase")
     have = [f"entry/reference/{m}" in f for m in maps]
     if all(have):
@@ -130,7 +140,8 @@ def _read_reference(f: h5py.File, W: int) -> Reference | SteppingReference:
         return Reference(t, v, p)
     if "entry/reference/stepping" in f:
         base = "entry/reference/stepping"
-        data = _require(f, f"{base}/data")[()]
+        dset = _require(f, f"{base}/data")
+        data = np.broadcast_to(np.zeros((), dset.dtype), dset.shape) if series_unread else dset[()]
         if data.ndim != 3 or data.shape[2] != W:
             raise ScanFormatError(f"/{base}/data has shape {data.shape}, expected [S, A, {W}]")
         S, A, _ = data.shape
@@ -141,22 +152,37 @@ def _read_reference(f: h5py.File, W: int) -> Reference | SteppingReference:
         if dark is not None:
             dark = np.asarray(dark, dtype=np.float64)
             _check_shape(f"{base}/dark", dark, (A, W), "one value per pixel of the active area")
+            _check_finite(f"{base}/dark", dark)
         _check_counts(f"{base}/data", data)
         return SteppingReference(data=data, phase_step=steps, dark=dark)
     missing = [f"/entry/reference/{m}" for m, h in zip(maps, have, strict=True) if not h]
     raise ScanFormatError(f"missing required dataset {missing[0]} (or /entry/reference/stepping/data)")
 
 
-def _check_counts(name: str, data: FrameSource) -> None:
-    """NaN or negative counts in float frames (array or HDF5 dataset), read one frame at a time."""
+#: Counts above this are no detector's (uint32's maximum): float frames beyond it would overflow the float32
+#: fit's squares (1e300 made every image NaN with a reduced chi-square of 0).
+MAX_COUNT = 2.0 ** 32 - 1
+
+
+def _check_counts(name: str, data: FrameSource, rows: np.ndarray | None = None) -> None:
+    """NaN, negative or impossibly large counts in float frames (array or HDF5 dataset), one frame at a time.
+
+    ``rows`` (J, 2): only these rows of each frame are read (:func:`lit_rows`); default all.
+    """
     if data.dtype.kind != "f":
         return
     for j in range(data.shape[0]):  # frame by frame keeps memory bounded
-        frame = data[j]
+        r0, r1 = rows[j] if rows is not None else (0, data.shape[1])
+        if r1 <= r0:
+            continue
+        frame = data[j, r0:r1]
         if not np.all(np.isfinite(frame)):
             raise ScanFormatError(f"/{name} frame {j} holds NaN or infinite counts")
         if np.any(frame < 0):
             raise ScanFormatError(f"/{name} frame {j} holds negative counts")
+        if np.any(frame > MAX_COUNT):
+            raise ScanFormatError(f"/{name} frame {j} holds counts above {MAX_COUNT:.0f} (up to {frame.max():.3g}), "
+                                  f"more than any detector records")
 
 
 def read_reference(path: str | os.PathLike, *, allow_external: bool = False) -> Reference | SteppingReference:

@@ -119,6 +119,14 @@ def frame_rows(data: FrameSource, j: int, r0: int, r1: int) -> np.ndarray:
     return np.asarray(data[j, r0:r1])
 
 
+def lit_rows(position: np.ndarray, active_rows: int, height: int) -> np.ndarray:
+    """First and last + 1 detector row lit in each frame, shape (J, 2) (r0 == r1: none), as ``spec/scan-format.md``
+    says (0 <= r + 0.5 - position[j] < A); sized by the frames, never by the detector."""
+    r0 = np.clip(np.ceil(position - 0.5), 0, height)
+    r1 = np.clip(np.ceil(position + active_rows - 0.5), 0, height)
+    return np.stack([r0, np.maximum(r1, r0)], axis=1).astype(np.int64)
+
+
 @dataclass
 class Scan:
     """One acquisition as in ``spec/scan-format.md``.

@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 
 from .types import DET as _DET
-from .types import FORMAT, FORMAT_VERSION, ScanFormatError
+from .types import FORMAT, FORMAT_VERSION, ScanFormatError, lit_rows
 from .types import FRAME_DTYPES as _FRAME_DTYPES
 
 _MAPS = ("transmission", "visibility", "phase")
@@ -287,8 +287,7 @@ def _lit_chunks(shape: tuple, chunks: tuple, position: np.ndarray, active_rows: 
     """Chunks of frames [J, H, W] that hold at least one lit row (0 <= r + 0.5 - position[j] < A)."""
     J, H, W = shape
     cj, ch, cw = chunks
-    r0 = np.clip(np.ceil(position - 0.5), 0, H).astype(np.int64)
-    r1 = np.clip(np.ceil(position + active_rows - 0.5), 0, H).astype(np.int64)
+    r0, r1 = lit_rows(position, active_rows, H).T
     lit = r1 > r0
     blocks = {(int(j) // cj, c) for j in np.flatnonzero(lit)
               for c in range(int(r0[j]) // ch, (int(r1[j]) - 1) // ch + 1)}
