@@ -27,6 +27,13 @@ class AlignmentError(DfxcorrError, ValueError):
     """No usable pixel, or a reference that cannot be aligned."""
 
 
+def no_lit_rows(min_frames: int) -> AlignmentError:
+    """The refusal of a scan in which no detector row is lit in ``min_frames`` frames (``dfxcorr check`` says it
+    in the same words as the run)."""
+    return AlignmentError(f"no detector row is lit in at least {min_frames} frames: nothing to fit "
+                          f"(dataset /entry/scan/position)")
+
+
 def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, dtype: DTypeLike = np.float64) -> np.ndarray:
     """Linear interpolation of row-sampled maps at continuous local rows.
 
@@ -246,8 +253,7 @@ def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: 
         keep = n_lit[row] >= min_frames
         row, frame, u = row[keep], frame[keep], u[keep]
     if row.size == 0:
-        raise AlignmentError(f"no detector row is lit in at least {min_frames} frames: nothing to fit "
-                             f"(dataset /entry/scan/position)")
+        raise no_lit_rows(min_frames)
     counts = np.empty((row.size, W), dtype=scan.data.dtype)
     by_frame = np.argsort(frame, kind="stable")  # within a frame, rows stay ascending
     bounds = np.searchsorted(frame[by_frame], np.arange(J + 1))
@@ -338,5 +344,5 @@ def _ranges(idx: np.ndarray) -> str:
 
 
 __all__ = ["AlignmentError", "LitStore", "build_observations", "collect_lit_rows", "interpolate_rows", "lit_blocks",
-           "read_position_errors",
+           "no_lit_rows", "read_position_errors",
            "subsample_columns", "tilt_alias_period", "lateral_coordinate"]

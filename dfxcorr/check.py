@@ -17,7 +17,7 @@ import numpy as np
 
 from . import config as C
 from . import io
-from .align import lit_blocks
+from .align import lit_blocks, no_lit_rows, read_position_errors
 from .errors import DfxcorrError, OutputExistsError, require_regular_file
 
 #: Name length limit where the file system does not tell (bytes; ext4, XFS, Lustre, GPFS).
@@ -280,6 +280,7 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
         A visibility effect set to true that this acquisition cannot determine.
     """
     from .analysis.identify import drop_visibility
+    from .pipeline import read_pixel_noise
 
     J, H, W = scan.shape
     method = cfg["fit"]["method"]
@@ -292,6 +293,12 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
                             f"use at most {2 * W - 1}")
     count = np.bincount(lit_blocks(scan.position, scan.active_rows, H)[0], minlength=H)
     used = count >= cfg["align"]["min_frames"]
+    if not used.any():  # what collect_lit_rows refuses, in its words
+        raise no_lit_rows(cfg["align"]["min_frames"])
+    # the files the configuration names, checked against the scan as the run's preparation does
+    if cfg["align"]["position_errors"] is not None:
+        read_position_errors(cfg["align"]["position_errors"], J)
+    read_pixel_noise(cfg["load"]["pixel_noise"], (H, W))
     lit = int(count[used].sum()) * W
     columns = np.zeros(0, int) if method == "none" else _columns(W, cfg, lit // W)
     effects = C.effects_of(cfg) if method != "none" else ()

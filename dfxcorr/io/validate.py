@@ -228,9 +228,14 @@ def validate_file(f: h5py.File, *, allow_external: bool = False) -> Layout:
         try:
             if f.attrs.get_id(key).get_storage_size() > _MAX_ATTRIBUTE_BYTES:
                 raise ScanFormatError(f"/ attribute {key!r} is larger than {_MAX_ATTRIBUTE_BYTES} bytes")
-            f.attrs[key]
+            value = f.attrs[key]
         except (OSError, TypeError, ValueError, KeyError) as exc:
             raise ScanFormatError(f"/ attribute {key!r} cannot be read ({exc})") from None
+        if isinstance(value, bytes):
+            try:
+                value.decode("utf-8")
+            except UnicodeDecodeError:
+                raise ScanFormatError(f"/ attribute {key!r} is not UTF-8 text") from None
     walk = _Walker(f, allow_external)
     name = f"{_DET}/data"
     dset = walk.get(name)
