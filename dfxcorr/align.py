@@ -8,6 +8,7 @@ interpolation of wrapped values would put a wrong phase into every sample near a
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -17,6 +18,7 @@ from numpy.typing import DTypeLike
 
 from . import kernels as K
 from .errors import DfxcorrError
+from .faults import Faults, ranges, saturated
 from .io import Reference, Scan, frame_rows, lit_rows
 from .model import Observations, lag_estimate, lag_free, lateral_coordinate
 
@@ -107,6 +109,8 @@ class LitStore:
         Index of the block (row, j - 1) of each of them.
     lag : float
         Detector lag fraction already taken out of ``counts`` (:meth:`lag_free`).
+    good : ndarray of bool, shape (K, W), or None
+        False for samples left out as detector faults (:meth:`without`); None: every sample is good.
     """
 
     counts: np.ndarray
@@ -120,6 +124,24 @@ class LitStore:
     left_counts: np.ndarray | None = None
     left_prev: np.ndarray | None = None
     lag: float = 0.0
+    good: np.ndarray | None = None
+
+    def frame_blocks(self) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        """(j, rows, counts) of each frame that lights a held row, frames ascending (rows ascending within)."""
+        order = np.argsort(self.frame, kind="stable")
+        bounds = np.searchsorted(self.frame[order], np.arange(self.shape[0] + 1))
+        for j in range(self.shape[0]):
+            idx = order[bounds[j]:bounds[j + 1]]
+            if idx.size:
+                yield j, self.row[idx], self.counts[idx]
+
+    def without(self, faults: Faults, *, margin: float = 0.0) -> LitStore:
+        """The same samples with the saturated ones (:func:`dfxcorr.faults.saturated`, ``margin`` counts) and
+        every sample of the bad frames marked not good."""
+        good = np.ones(self.counts.shape, bool) if faults.level is None else \
+            ~saturated(self.counts, faults.level, margin=margin)
+        good[np.isin(self.frame, list(faults.bad_frames))] = False
+        return replace(self, good=good)
 
     def lag_free(self, fraction: float) -> LitStore:
         """The same samples with detector lag ``fraction`` taken out (:func:`dfxcorr.model.lag_free`), float32.
@@ -217,6 +239,8 @@ class LitStore:
         counts = (self.counts[lo:hi] if columns is None else self.counts[lo:hi, cols]).astype(dtype, order="C")
         dark = self.dark[row[:, None], cols[None, :]].astype(dtype, copy=False)
         use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
+        if self.good is not None:
+            use &= self.good[lo:hi] if columns is None else self.good[lo:hi, cols]
         return Observations(counts=counts, tf=tf, vf=vf, phif=phif.astype(dtype, copy=False), dark=dark, use=use,
                             row=row, frame=frame, columns=cols, shape=(J, H, W),
                             gain=self.gain if gain is None else gain, electronic=electronic,
@@ -249,7 +273,7 @@ def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: 
     short = (n_lit > 0) & (n_lit < min_frames)
     if np.any(short):
         log.warning("%d detector rows are lit in fewer than %d frames and are left out (rows %s)",
-                    int(short.sum()), min_frames, _ranges(np.flatnonzero(short)))
+                    int(short.sum()), min_frames, ranges(np.flatnonzero(short)))
         keep = n_lit[row] >= min_frames
         row, frame, u = row[keep], frame[keep], u[keep]
     if row.size == 0:
@@ -332,15 +356,6 @@ def tilt_alias_period(width: int, n: int) -> float:
     a multiple of 2 pi at every held column up to a constant that the phase offset absorbs.
     """
     return np.pi * width / n
-
-
-def _ranges(idx: np.ndarray) -> str:
-    if idx.size == 0:
-        return ""
-    breaks = np.flatnonzero(np.diff(idx) > 1)
-    starts = np.r_[idx[0], idx[breaks + 1]]
-    ends = np.r_[idx[breaks], idx[-1]]
-    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends, strict=True))
 
 
 __all__ = ["AlignmentError", "LitStore", "build_observations", "collect_lit_rows", "interpolate_rows", "lit_blocks",

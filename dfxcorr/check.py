@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from . import config as C
 from . import io
 from .align import lit_blocks, no_lit_rows, read_position_errors
 from .errors import DfxcorrError, OutputExistsError, require_regular_file
+from .faults import Faults, find_faults, saturation_level
 
 #: Name length limit where the file system does not tell (bytes; ext4, XFS, Lustre, GPFS).
 NAME_MAX = 255
@@ -312,3 +314,25 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
                                              fit_samples=columns.size * (lit // W),
                                              block_mb=cfg["retrieve"]["block_mb"]),
                 outputs=[Path(p) for p in outputs])
+
+
+def detector_faults(scan: io.Scan, cfg: dict) -> Faults:
+    """The detector faults ``reconstruct`` will leave out (:mod:`dfxcorr.faults`), from the lit rows of each frame.
+
+    Reads each frame's rows lit in at least ``align.min_frames`` frames once, one frame at a time.
+    """
+    J, H, _ = scan.shape
+    used = np.bincount(lit_blocks(scan.position, scan.active_rows, H)[0], minlength=H) >= cfg["align"]["min_frames"]
+    bounds = io.lit_rows(scan.position, scan.active_rows, H)
+
+    def blocks():
+        opener = scan.data.open() if isinstance(scan.data, io.H5Frames) else nullcontext(scan.data)
+        with opener as data:
+            for j, (r0, r1) in enumerate(bounds):
+                rows = np.arange(r0, r1)[used[r0:r1]]
+                if rows.size:
+                    yield j, rows, np.asarray(data[j, r0:r1])[rows - r0]
+
+    assert scan.dark is not None  # Scan.__post_init__ fills it
+    return find_faults(blocks(), shape=scan.shape, dark=scan.dark,
+                       level=saturation_level(scan.data.dtype, cfg["load"]["saturation"]))

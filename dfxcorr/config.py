@@ -83,6 +83,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "pixel_noise": Option(None, "TIFF of per-pixel noise variance factors f (variance f * gain * mean + "
                                     "electronic), e.g. the pixel_noise.tif that dfxcorr diagnose writes; null: 1",
                               str, nullable=True),
+        "saturation": Option(None, "counts at or above this are saturated (the panel's direct beam) and left out of "
+                                   "the fit and the images, with a warning; null: the frames' integer maximum "
+                                   "(65535 for uint16), none for float frames", _NUM, check=_positive,
+                             nullable=True),
         "allow_external": Option(False, "follow HDF5 external links, external raw storage and virtual datasets of "
                                         "the scan file (each file read is hashed into the provenance); false "
                                         "refuses them", bool),

@@ -31,6 +31,7 @@ from .align import LitStore, collect_lit_rows, read_position_errors, subsample_c
 from .analysis.identify import resolve_effects
 from .baselines import fit_alternating, fit_correlation
 from .errors import DfxcorrError
+from .faults import MIN_KEPT_SHARE, find_faults, saturation_level
 from .fit import FitResult, fit_vibrations
 from .io import Reference, Scan, read_scan
 from .mask import mask_from_score, motion_statistics, pilot_vibrations, score_from_statistics
@@ -111,7 +112,8 @@ class Prepared:
         """Observations of some columns and detector rows, and the region of interest of their samples.
 
         Samples without fringe (outside the region of interest) get v^f = 0: they yield no images, but
-        in the fit they still monitor dose and background. ``use`` is True everywhere.
+        in the fit they still monitor dose and background. ``use`` is False for the detector faults only
+        (saturated samples, bad frames: :mod:`dfxcorr.faults`).
 
         Returns
         -------
@@ -159,6 +161,14 @@ def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) 
                                       optional=("dose",) if cfg["reference"]["dose"] == "auto" else ())
         store = collect_lit_rows(scan, active_rows=reference.transmission.shape[0],
                                  min_frames=cfg["align"]["min_frames"])
+        faults = find_faults(store.frame_blocks(), shape=scan.shape, dark=store.dark,
+                             level=saturation_level(store.counts.dtype, cfg["load"]["saturation"]))
+        if faults.any:
+            log.warning("%s", faults.summary())
+            # noise of a sample at the level: what a neighbour's count may differ by from its own expectation
+            gain = cfg["load"]["gain"] or scan.gain
+            store = store.without(faults, margin=SATURATION_SIGMAS * np.sqrt(gain * (faults.level or 0.0)
+                                                                           + cfg["load"]["electronic"]))
         if np.any(shift != 0):
             store = store.shifted(shift)
             log.info("flat field read off the recorded positions by %.3g rows on average (align.reference_offset, "
@@ -173,6 +183,10 @@ def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) 
     return Prepared(scan=scan, name=path.name if path else "scan", path=path, reference=reference, store=store,
                     min_visibility=vmin, gain=cfg["load"]["gain"] or scan.gain, electronic=cfg["load"]["electronic"],
                     pixel_noise=pixel_noise)
+
+
+#: Noise standard deviations below the saturation level within which a neighbour's count leaves a sample out.
+SATURATION_SIGMAS = 3.0
 
 
 def read_pixel_noise(path: str | Path | None, shape: tuple[int, int]) -> np.ndarray | None:
@@ -374,7 +388,9 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
     left_out = 0
     for rows in blocks:
         obs, roi = prep.observations(rows=rows)
-        obs = replace(obs, use=roi)
+        with np.errstate(invalid="ignore"):
+            kept = obs.segment_sum(obs.use.astype(np.float64)) / obs.segment_sum(np.ones(obs.use.shape))
+        obs = replace(obs, use=obs.use & roi & (kept >= MIN_KEPT_SHARE)[obs.pixel])
         for m, p, acc in zip(maps, params, sums, strict=True):
             rec = retrieve(obs, p, iterations=iterations, n_frame_params=0)
             for k, v in image_values(rec.images).items():
@@ -413,7 +429,7 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
         raise C.ConfigError(f"fit.method={method!r} is not available; available: {', '.join(FIT_METHODS)}, none")
     cols = columns
     fit_obs, _ = prep.observations(columns=cols, dtype=np.float32)
-    fit_obs = replace(fit_obs, use=~moving[fit_obs.row][:, fit_obs.columns])
+    fit_obs = replace(fit_obs, use=fit_obs.use & ~moving[fit_obs.row][:, fit_obs.columns])
     effects = resolve_effects(cfg, prep.scan, prep.reference, fit_obs)
     used = fit_obs.segment_sum(fit_obs.use.astype(np.float64)) > 0
     fit_mask[np.ix_(fit_obs.rows, fit_obs.columns)] = used

@@ -851,6 +851,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit
     fit_cols = subsample_columns(scan.shape[2], d["subsample"])
     fit_obs = obs.subset(fit_cols)
+    usable = obs.use, fit_obs.use  # the prepared samples: detector faults (saturated, bad frames) stay out
     fitted = np.zeros(obs.columns.size, bool)
     fitted[fit_cols] = True
     shift = np.zeros(scan.shape[0])  # rows by which obs reads the flat field off the prepared alignment
@@ -867,7 +868,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     changes: list[dict] = []
     blind: dict[str, dict] = {}  # unidentifiable effects tried: what a trial refit with them explained
     paper_why = visibility_unidentifiable(scan, reference)
-    state = _fit_state(obs, fit_obs, model, {}, motion, cfg, timings, "round 0")
+    state = _fit_state(obs, fit_obs, model, {}, motion, cfg, timings, "round 0", usable=usable)
     initial = state["reduced_chi2"]
     before = locate(obs, M.design(obs, state["params"]), state["rec"].images, state["rec"].expected)
     for rnd in range(d["max_rounds"]):
@@ -909,7 +910,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
             # an effect this acquisition cannot determine may still be what the data show: if a trial refit with
             # it explains the misfit, no identifiable proxy may be named for it
             trial = _fit_state(obs, fit_obs, model + [suspect], params, motion, cfg, timings,
-                               f"round {rnd}: trial {suspect} (not identifiable)")
+                               f"round {rnd}: trial {suspect} (not identifiable)", usable=usable)
             share = _explained_share(state["signatures"], trial["signatures"])
             _restore(obs, fit_obs, state)
             blind[suspect] = {"explains_misfit": share is None or share >= d["explain_share"],
@@ -942,7 +943,8 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                 noise_map = t["map"] * (1.0 if prep.pixel_noise is None else prep.pixel_noise)
                 _set_pixel_noise(obs, fit_obs, noise_map)
             trial = _fit_state(*on, model + [candidate] if M.effect(candidate).channel is not None else model,
-                               start, mask, cfg, timings, f"round {rnd}: trial {candidate}", noise=noise)
+                               start, mask, cfg, timings, f"round {rnd}: trial {candidate}", noise=noise,
+                               usable=usable)
             share = _explained_share(state["signatures"], trial["signatures"])
             if share is None or share >= d["explain_share"] or (share >= 0 and _silences(state["signatures"],
                                                                                           trial["signatures"])):
@@ -1067,23 +1069,26 @@ def _set_noise(obs: M.Observations, fit_obs: M.Observations, noise: tuple[float,
 def _restore(obs: M.Observations, fit_obs: M.Observations, state: dict) -> None:
     """Undo a rejected trial: the noise model and the masked pixels of ``state``."""
     _set_noise(obs, fit_obs, (state["gain"], state["electronic"]))
-    _set_use(obs, fit_obs, state["motion"])
+    _set_use(obs, fit_obs, state["motion"], state["usable"])
 
 
-def _set_use(obs: M.Observations, fit_obs: M.Observations, motion: np.ndarray) -> None:
+def _set_use(obs: M.Observations, fit_obs: M.Observations, motion: np.ndarray,
+             usable: tuple[np.ndarray, np.ndarray]) -> None:
     """As in reconstruct: the tests count the region of interest, the fit also the samples without fringe
-    (they monitor dose and background); ``motion`` pixels count in neither. The preparation zeroes v^f
-    outside the region of interest, and the reference visibility is positive everywhere else."""
-    obs.use = (obs.vf > 0) & ~motion[obs.row][:, obs.columns]
-    fit_obs.use = ~motion[fit_obs.row][:, fit_obs.columns]
+    (they monitor dose and background); ``motion`` pixels count in neither, nor samples outside ``usable``
+    (the prepared ``use`` of each). The preparation zeroes v^f outside the region of interest, and the
+    reference visibility is positive everywhere else."""
+    obs.use = usable[0] & (obs.vf > 0) & ~motion[obs.row][:, obs.columns]
+    fit_obs.use = usable[1] & ~motion[fit_obs.row][:, fit_obs.columns]
 
 
 def _fit_state(obs: M.Observations, fit_obs: M.Observations, model: list, start: dict, motion: np.ndarray,
-               cfg: dict, timings: dict, label: str, *, noise: tuple[float, float] | None = None) -> dict:
+               cfg: dict, timings: dict, label: str, *, noise: tuple[float, float] | None = None,
+               usable: tuple[np.ndarray, np.ndarray]) -> dict:
     """Fit ``model`` with ``motion`` pixels left out (and the noise model ``noise``); chi-square and signatures."""
     if noise is not None:
         _set_noise(obs, fit_obs, noise)
-    _set_use(obs, fit_obs, motion)
+    _set_use(obs, fit_obs, motion, usable)
     params = {}
     with stage(f"{label}: fit {'+'.join(model) or 'images only'}", timings):
         if model:
@@ -1101,7 +1106,7 @@ def _fit_state(obs: M.Observations, fit_obs: M.Observations, model: list, start:
         chi2_sum, chi2_red, rec = _chi2(obs, params, n_params=n_par)
         sigs = signatures(fit_obs, params, n_params=n_par, alpha=cfg["diagnose"]["alpha"])
     return {"params": params, "chi2": chi2_sum, "reduced_chi2": chi2_red, "rec": rec, "signatures": sigs,
-            "motion": motion, "gain": obs.gain, "electronic": obs.electronic}
+            "motion": motion, "usable": usable, "gain": obs.gain, "electronic": obs.electronic}
 
 
 def _realigned(prep: Prepared, obs: M.Observations, fit_obs: M.Observations, fit_cols: np.ndarray, params: dict,

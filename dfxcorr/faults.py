@@ -1,0 +1,155 @@
+"""Detector faults as data: saturated samples and frames that are empty or repeat their predecessor.
+
+Every clinical radiograph has them: the direct beam beside the body saturates the panel, and now and then
+a frame is read out as zeros or read twice. Such samples carry no information the model could explain;
+fitted, they dominate the fit (a saturated area's chi-square) or take a frame's vibration estimate with
+them. They are found from the lit rows of each frame and left out of the vibration fit, the motion mask and
+the retrieval (the observations' ``use``), with a warning that says how many and where.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: A frame whose mean signal above the dark over its lit samples is below this share of the median frame's is
+#: empty (read out as zeros or as dark): a body attenuates a frame's whole width by far less.
+EMPTY_SHARE = 0.01
+#: A pixel that keeps less than this share of its samples has no image: left with the fringe's dark half alone
+#: (its bright half saturated) it cannot separate transmission from visibility. Its samples still enter the fit.
+MIN_KEPT_SHARE = 0.5
+#: A frame is a repeat of its predecessor when at least this many of the samples that both light (saturated ones
+#: aside) are compared and every one is equal: with photon noise, equal counts in so many samples do not happen.
+MIN_REPEAT_SAMPLES = 16
+
+
+def saturated(counts: np.ndarray, level: float, *, margin: float) -> np.ndarray:
+    """Samples to leave out for saturation: at or above ``level``, or beside a pixel (same frame and row, the
+    next column either side) within ``margin`` of it.
+
+    Leaving out only the samples above the level would keep those of a pixel near it that noise pushed down,
+    and bias its images (and the fit through them) low. A neighbour sees nearly the same expected count with
+    noise of its own, so choosing by it keeps only samples whose expectation lies well below the level
+    (margin: a few noise standard deviations) without selecting on their own noise.
+
+    Parameters
+    ----------
+    counts : ndarray, shape (K, W)
+        Rows of frames (one detector row of one frame each), all W columns.
+    level, margin : float
+
+    Returns
+    -------
+    ndarray of bool, shape (K, W)
+    """
+    near = counts >= level - margin
+    beside = np.zeros_like(near)
+    beside[:, 1:] |= near[:, :-1]
+    beside[:, :-1] |= near[:, 1:]
+    return (counts >= level) | beside
+
+
+def saturation_level(dtype: np.dtype, configured: float | None) -> float | None:
+    """Counts at or above which a sample is saturated: ``load.saturation``, else an integer dtype's maximum
+    (65535 for uint16); None for float frames without a configured level."""
+    if configured is not None:
+        return float(configured)
+    return float(np.iinfo(dtype).max) if np.dtype(dtype).kind in "iu" else None
+
+
+@dataclass
+class Faults:
+    """What :func:`find_faults` found.
+
+    Attributes
+    ----------
+    level : float or None
+        Saturation level (None: not checked).
+    saturated : ndarray of int, shape (J,)
+        Saturated samples per frame (in the frames' lit rows).
+    saturated_rows : ndarray of int, shape (H,)
+        Saturated samples per detector row.
+    bad_frames : dict
+        Frame -> why it is left out ('empty', 'a repeat of frame j - 1').
+    """
+
+    level: float | None
+    saturated: np.ndarray
+    saturated_rows: np.ndarray
+    bad_frames: dict = field(default_factory=dict)
+
+    @property
+    def any(self) -> bool:
+        return bool(self.saturated.sum()) or bool(self.bad_frames)
+
+    def summary(self) -> str:
+        """One line: how many samples and frames are left out, and where."""
+        parts = []
+        n = int(self.saturated.sum())
+        if n:
+            parts.append(f"{n} saturated samples (counts >= {self.level:g}) in frames "
+                         f"{ranges(np.flatnonzero(self.saturated))}, detector rows "
+                         f"{ranges(np.flatnonzero(self.saturated_rows))}")
+        if self.bad_frames:
+            parts.append(f"{len(self.bad_frames)} frame(s) " + ", ".join(f"{j} ({why})" for j, why in
+                                                                         sorted(self.bad_frames.items())))
+        return "detector faults left out of the fit and the images: " + "; ".join(parts)
+
+
+def find_faults(blocks: Iterable[tuple[int, np.ndarray, np.ndarray]], *, shape: tuple[int, int, int],
+                dark: np.ndarray, level: float | None) -> Faults:
+    """Saturated samples, empty frames and repeated frames, from each frame's lit rows in frame order.
+
+    Parameters
+    ----------
+    blocks : iterable of (j, rows, counts)
+        Frame j's lit detector rows (ascending, shape (n,)) and their counts (n, W), frames ascending; frames
+        that light no row may be left out.
+    shape : (J, H, W)
+    dark : ndarray, shape (H, W)
+    level : float or None
+        Saturation level (:func:`saturation_level`).
+
+    Returns
+    -------
+    Faults
+    """
+    J, H, _ = shape
+    saturated, saturated_rows = np.zeros(J, np.int64), np.zeros(H, np.int64)
+    signal = np.full(J, np.nan)
+    repeats: dict[int, str] = {}
+    previous: tuple[int, np.ndarray, np.ndarray] | None = None
+    for j, rows, counts in blocks:
+        sat = counts >= level if level is not None else np.zeros(counts.shape, bool)
+        saturated[j] = int(sat.sum())
+        saturated_rows[rows] += sat.sum(axis=1)
+        ok = ~sat
+        if ok.any():
+            signal[j] = float(np.mean((counts - dark[rows])[ok]))
+        if previous is not None and previous[0] == j - 1:
+            _, prev_rows, prev_counts = previous
+            both, here, there = np.intersect1d(rows, prev_rows, return_indices=True)
+            same = ok[here] & (prev_counts[there] < level if level is not None else True)
+            if both.size and same.sum() >= MIN_REPEAT_SAMPLES and np.array_equal(counts[here][same],
+                                                                                prev_counts[there][same]):
+                repeats[j] = f"a repeat of frame {j - 1}"
+        previous = j, rows, counts
+    typical = np.nanmedian(signal) if np.any(np.isfinite(signal)) else np.nan
+    bad = {int(j): "empty" for j in np.flatnonzero(np.isfinite(signal) & (signal <= EMPTY_SHARE * typical))}
+    for j, why in repeats.items():
+        bad.setdefault(j, why)
+    return Faults(level=level, saturated=saturated, saturated_rows=saturated_rows, bad_frames=bad)
+
+
+def ranges(idx: np.ndarray) -> str:
+    """Sorted indices as ranges, '3-7, 9'."""
+    if idx.size == 0:
+        return ""
+    breaks = np.flatnonzero(np.diff(idx) > 1)
+    starts = np.r_[idx[0], idx[breaks + 1]]
+    ends = np.r_[idx[breaks], idx[-1]]
+    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends, strict=True))
