@@ -79,6 +79,17 @@ def test_a_bad_frame_is_left_out_within_noise_of_the_twin(twin, caplog, kind):
     assert result.reduced_chi2 == pytest.approx(1.0, abs=0.03)
 
 
+def test_half_the_detector_saturated_leaves_the_other_half_fitted(twin):
+    scan, truth, cfg, base = twin
+    data = np.array(scan.data)
+    data[:, :, :51] = 65535  # the direct beam beside the body, at the panel's maximum
+    result = pipeline.reconstruct(replace(scan, data=data), cfg)
+    # before: the motion mask's threshold fell to 3e-10 and masked every informative pixel, the fit ran 0 iterations
+    assert result.motion_mask.sum() < 20 and result.fit_mask[:, 51:].sum() > 1000 and len(result.cost) > 10
+    assert np.all(np.isnan(result.transmission[:, :51])) and np.all(np.isfinite(result.transmission[:, 52:]))
+    assert result.reduced_chi2 == pytest.approx(1.0, abs=0.03)
+
+
 def test_the_dtype_maximum_is_saturation_by_default(rng):
     counts = rng.poisson(1000, (6, 4, 5)).astype(np.uint16)
     counts[2, 1, 3] = 65535
@@ -103,7 +114,6 @@ def test_check_reports_the_faults(twin, tmp_path):
     assert "saturated" not in clean.stdout.split("detector faults")[1].split("\n")[0].replace("no saturated", "")
 
 
-@pytest.mark.slow
 def test_diagnose_names_no_effect_for_saturation(twin):
     from dfxcorr.analysis.diagnose import diagnose
 
