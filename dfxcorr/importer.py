@@ -41,8 +41,9 @@ class StackImportError(DfxcorrError, ValueError):
 
 
 def _natural_key(text: str) -> list:
-    # Alternating text/int parts, so that step_2 sorts before step_10.
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", text)]
+    # Alternating text/int parts, so that step_2 sorts before step_10; ASCII digits only (str.isdigit() is also
+    # true of superscripts, which int() refuses)
+    return [int(part) if k % 2 else part for k, part in enumerate(re.split(r"([0-9]+)", text))]
 
 
 def _resolve_files(source) -> list[Path]:
@@ -654,7 +655,8 @@ class _Counts:
             self.dtype = frame_dtype(np.zeros(1, src), name).dtype
 
     def __getitem__(self, k: int) -> np.ndarray:
-        return frame_dtype(self.series[k][self.rows], f"{self.name} frame {k}").astype(self.dtype, copy=False)
+        # the whole frame is checked: counts outside the crop also tell whether the file holds counts at all
+        return frame_dtype(self.series[k], f"{self.name} frame {k}")[self.rows].astype(self.dtype, copy=False)
 
 
 #: Largest position log read (a number per frame per line: tens of millions of frames).
@@ -668,7 +670,9 @@ def read_positions(path, n: int, *, column: str | None = None) -> np.ndarray:
     ----------
     path : str or path-like
         Text file. Blank lines and lines starting with ``#`` are skipped. A first line that is not a number is
-        a header; columns are separated by commas, semicolons, tabs or blanks.
+        a header; columns are separated by semicolons, tabs, commas or blanks (the first of these the first line
+        holds separates every line). With semicolons or tabs a decimal comma is read as a decimal point
+        (``0;-14,0``).
     n : int
         Number of frames: the log must hold exactly one value per frame.
     column : str, optional
@@ -681,8 +685,8 @@ def read_positions(path, n: int, *, column: str | None = None) -> np.ndarray:
     Raises
     ------
     StackImportError
-        Unreadable or oversized file, unknown column, a value that is not a finite number (naming the line),
-        or a count other than ``n``.
+        Unreadable or oversized file, unknown or repeated column, a value that is not a finite number (naming
+        the line), or a count other than ``n``.
     """
     path = Path(os.path.expanduser(os.fspath(path)))
     if not path.is_file():
@@ -698,13 +702,15 @@ def read_positions(path, n: int, *, column: str | None = None) -> np.ndarray:
     if not lines:
         raise StackImportError(f"position log {path}: holds no values")
 
+    # one separator for the whole file: a semicolon file's decimal commas must not split its cells
+    sep = next((s for s in (";", "\t", ",") if s in lines[0][1]), None)
+
     def split(line):
-        for sep in (",", ";", "\t"):
-            if sep in line:
-                return [c.strip() for c in line.split(sep)]
-        return line.split()
+        return line.split() if sep is None else [c.strip() for c in line.split(sep)]
 
     def number(text, k):
+        if sep in (";", "\t") and text.count(",") == 1 and "." not in text:
+            text = text.replace(",", ".")
         try:
             value = float(text)
         except ValueError:
@@ -715,15 +721,19 @@ def read_positions(path, n: int, *, column: str | None = None) -> np.ndarray:
 
     head = split(lines[0][1])
     try:
-        float(head[0])
+        number(head[0], lines[0][0])
         names = None
-    except ValueError:
+    except StackImportError:
         names = head
         lines = lines[1:]
     if names is None:
         if column is not None:
             raise StackImportError(f"position log {path}: has no header, so no column {column!r}")
         index = 0
+    elif len(set(names)) != len(names):
+        twice = sorted({c for c in names if names.count(c) > 1})
+        raise StackImportError(f"position log {path}: the header names column(s) {twice} more than once; "
+                               f"which one is meant is ambiguous")
     elif column is None:
         if len(names) != 1:
             raise StackImportError(f"position log {path}: has columns {names}; name one (--position-column)")
@@ -863,9 +873,11 @@ def import_scanning(output, *, frames, positions, position_units: str = "pixel",
             extra[f"{_IMPORT_GROUP}/reference_file"] = _strings([reference])
         else:
             ref_series = stack.enter_context(Series(reference_stepping, **raw))
-            if ref_series.shape[1:] != (H, W):
+            A_ref = ref_series.shape[1]
+            if ref_series.shape[2] != W or A_ref > H:
                 raise StackImportError(f"reference_stepping {_describe(reference_stepping)} has frames "
-                                       f"{ref_series.shape[1:]}, the frames have {(H, W)}")
+                                       f"{ref_series.shape[1:]}, the frames have {(H, W)} (a reference series is "
+                                       f"recorded on the detector, or already cropped to the active area)")
             if len(ref_series) < 3:
                 raise StackImportError(f"reference_stepping {_describe(reference_stepping)} has {len(ref_series)} "
                                        "steps; phase stepping needs at least 3")
@@ -875,14 +887,20 @@ def import_scanning(output, *, frames, positions, position_units: str = "pixel",
                 raise StackImportError(f"reference_stepping {_describe(reference_stepping)}: {exc}") from None
             ref_dark = dark_frame
             if reference_dark is not None:
-                ref_dark, files = _read_dark(reference_dark, "reference_dark", (H, W), **raw)
+                ref_dark, files = _read_dark(reference_dark, "reference_dark", (A_ref, W), **raw)
                 extra[f"{_IMPORT_GROUP}/reference_dark_files"] = _strings(files)
-            first, rows = _active_rows(ref_series, ref_dark, active_first_row, active_rows,
-                                       _describe(reference_stepping))
-            crop = slice(first, first + rows)
+            if A_ref < H:
+                first, rows, ref_dark = _cropped(A_ref, H, dark_frame if reference_dark is None else None, ref_dark,
+                                                 active_first_row, active_rows, _describe(reference_stepping))
+                crop = slice(0, rows)
+            else:
+                first, rows = _active_rows(ref_series, ref_dark, active_first_row, active_rows,
+                                           _describe(reference_stepping))
+                crop = slice(first, first + rows)
             ref = SteppingReference(data=_Counts(ref_series, f"reference_stepping {_describe(reference_stepping)}",
                                                  crop),
-                                    phase_step=steps, dark=None if ref_dark is None else ref_dark[crop])
+                                    phase_step=steps,
+                                    dark=None if ref_dark is None else ref_dark[crop] if A_ref == H else ref_dark)
             extra.update({f"{_IMPORT_GROUP}/reference_files": _strings(ref_series.files),
                           f"{_IMPORT_GROUP}/active_first_row": first})
             if steps_per_period is not None:
@@ -890,6 +908,29 @@ def import_scanning(output, *, frames, positions, position_units: str = "pixel",
         scan = Scan(data=data, position=position, dark=dark_frame, gain=gain_value, pixel_size=px, reference=ref)
         write_scan(output, scan, extra=extra, overwrite=overwrite)
     return scan
+
+
+def _cropped(A: int, H: int, frames_dark, ref_dark, first: int | None, rows: int | None,
+             name: str) -> tuple[int, int, np.ndarray | None]:
+    """A reference series of A < H rows, already cropped to the active area: its first row on the detector (for
+    the record, and to crop the frames' dark to it), its height and its dark (A, W).
+
+    ``frames_dark`` (H, W), the frames' dark standing in for a missing reference dark, needs ``first``.
+    """
+    if rows is not None and rows != A:
+        raise StackImportError(f"reference_stepping {name} has {A} rows, already cropped to the active area; "
+                               f"active_rows={rows} differs")
+    if frames_dark is not None:
+        if first is None:
+            raise StackImportError(f"reference_stepping {name} is already cropped to {A} rows: give the active "
+                                   f"area's first detector row (active_first_row) to crop the dark to it, or a "
+                                   f"reference_dark of {A} rows")
+        if not 0 <= first <= H - A:
+            raise StackImportError(f"active_first_row={first}: {A} rows from there do not lie within the {H} "
+                                   f"detector rows")
+        ref_dark = frames_dark[first:first + A]
+    log.info("reference %s: %d rows, taken as already cropped to the active area", name, A)
+    return (0 if first is None else int(first)), A, ref_dark
 
 
 def _active_rows(series: Series, dark, first: int | None, rows: int | None, name: str) -> tuple[int, int]:

@@ -253,3 +253,88 @@ def test_check_refuses_configured_files_that_do_not_fit(tmp_path, rng, setting, 
     np.savetxt(tmp_path / "pe.txt", np.zeros(5))
     tifffile.imwrite(tmp_path / "pn.tif", np.ones((3, 3), np.float32))
     refused(run("check", path, "-o", tmp_path / "r.h5", "--set", setting.format(tmp=tmp_path)), *words)
+
+
+# --------------------------------------------------------------------------------------------------
+# Import
+# --------------------------------------------------------------------------------------------------
+
+
+def test_semicolon_log_with_decimal_commas_is_read_right(tmp_path):
+    from dfxcorr.importer import StackImportError, read_positions
+
+    (tmp_path / "log.csv").write_text("frame;y\n0;-14,0\n1;-13,5\n2;2,25\n")
+    np.testing.assert_array_equal(read_positions(tmp_path / "log.csv", 3, column="y"), [-14.0, -13.5, 2.25])
+    (tmp_path / "bare.csv").write_text("0;-14,0\n1;-13,5\n2;2,25\n")  # no header: two columns, refused
+    with pytest.raises(StackImportError, match="line 1.*not one number"):
+        read_positions(tmp_path / "bare.csv", 3)
+
+
+def test_repeated_column_names_are_refused(tmp_path):
+    from dfxcorr.importer import StackImportError, read_positions
+
+    (tmp_path / "log.csv").write_text("y,y\n1,5\n2,6\n3,7\n")
+    with pytest.raises(StackImportError, match=r"\['y'\] more than once"):
+        read_positions(tmp_path / "log.csv", 3, column="y")
+
+
+def test_glob_with_non_ascii_digits_sorts_without_a_traceback(tmp_path, rng):
+    from dfxcorr.importer import read_stack
+
+    # superscript two (a digit to str.isdigit, not to int), Arabic-Indic three
+    for k, name in enumerate(["f_²", "f_1", "f_٣", "f_10", "f_2", "f_1²2"]):
+        np.save(tmp_path / f"{name}.npy", np.full((2, 3), k, np.uint16))
+    assert read_stack(str(tmp_path / "f_*.npy"))[:, 0, 0].tolist() == [1, 5, 4, 3, 0, 2]
+
+
+def test_a_reference_series_already_cropped_to_the_active_area_is_accepted(tmp_path, scan_file):
+    from dfxcorr.importer import import_scanning
+
+    scan = io.read_scan(scan_file)
+    frames = np.asarray(scan.data[:])
+    np.save(tmp_path / "stack.npy", frames)
+    np.savetxt(tmp_path / "positions.txt", scan.position)
+    rng = np.random.default_rng(5)
+    phases = 2 * np.pi * np.arange(5) / 5
+    ref = scan.reference
+    for k, p in enumerate(phases):  # 15 rows: the active area's size, not the detector's 90
+        flat = ref.transmission * (1 + ref.visibility * np.cos(ref.phase + p))
+        np.save(tmp_path / f"flat_{k}.npy", rng.poisson(flat).astype(np.uint16))
+    out = import_scanning(tmp_path / "s.h5", frames=tmp_path / "stack.npy", positions=tmp_path / "positions.txt",
+                          reference_stepping=str(tmp_path / "flat_*.npy"), steps_per_period=5)
+    assert out.active_rows == 15
+    back = io.read_scan(tmp_path / "s.h5")
+    assert back.reference.data.shape == (5, 15, 102)
+    # the frames' dark cannot be cropped without knowing where the area sat
+    np.save(tmp_path / "dark.npy", np.zeros((90, 102)))
+    res = run("import", "scanning", "--frames", tmp_path / "stack.npy", "--positions", tmp_path / "positions.txt",
+              "--reference-stepping", tmp_path / "flat_*.npy", "--steps-per-period", "5", "--dark",
+              tmp_path / "dark.npy", "-o", tmp_path / "d.h5")
+    refused(res, "already cropped", "active_first_row")
+
+
+def test_negative_int32_reference_counts_are_refused_outside_the_area_too(tmp_path, scan_file):
+    scan = io.read_scan(scan_file)
+    np.save(tmp_path / "stack.npy", np.asarray(scan.data[:]))
+    np.savetxt(tmp_path / "positions.txt", scan.position)
+    rng = np.random.default_rng(6)
+    for k in range(5):
+        flat = rng.poisson(100, (90, 102)).astype(np.int32)
+        flat[30:45] += 1000
+        flat[80, 7] = -3  # outside the active area
+        np.save(tmp_path / f"flat_{k}.npy", flat)
+    res = run("import", "scanning", "--frames", tmp_path / "stack.npy", "--positions", tmp_path / "positions.txt",
+              "--reference-stepping", tmp_path / "flat_*.npy", "--steps-per-period", "5", "-o", tmp_path / "s.h5")
+    refused(res, "negative")
+    assert not (tmp_path / "s.h5").exists()
+
+
+def test_non_finite_stepping_dark_in_a_scan_file_is_refused(tmp_path, rng):
+    path = tmp_path / "s.h5"
+    H, W = 8, 5
+    data = rng.poisson(80, (12, H, W)).astype(np.uint16)
+    dark = np.zeros((H, W))
+    dark[1, 1] = np.nan
+    write_scan(path, Scan(data=data, position=np.zeros(12), reference=io.SteppingReference(
+        data=rng.poisson(80, (5, H, W)).astype(np.uint16), phase_step=np.arange(5.0), dark=dark)))
+    refused(run("check", path, "-o", tmp_path / "r.h5"), "/entry/reference/stepping/dark", "not finite")
