@@ -16,12 +16,36 @@ import numpy as np
 
 from . import __version__
 from . import config as C
-from .errors import DfxcorrError
+from .errors import DfxcorrError, WriteError
 
 log = logging.getLogger(__name__)
 
 #: Exit code for refused input (bad file, bad configuration, existing output).
 EXIT_INPUT = 2
+
+
+def _exit_input(exc: Exception) -> None:
+    """Exit with :data:`EXIT_INPUT`; without the interpreter's teardown after a failed HDF5 write.
+
+    After a failed write (a full disk) HDF5 cannot release the file: its flushes at teardown fail again, print
+    tracebacks and end in a segmentation fault. The temporary file is removed by then; logs are flushed first.
+    """
+    import h5py
+
+    if isinstance(exc, WriteError) or h5py.h5f.get_obj_ids(types=h5py.h5f.OBJ_FILE):
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(EXIT_INPUT)
+    sys.exit(EXIT_INPUT)
+
+
+def _quiet_hdf5(unraisable) -> None:
+    """Drop the errors HDF5 raises while h5py releases the objects of a file it could not flush (a full disk):
+    the write's own error says it once."""
+    if type(unraisable.exc_value) in (OSError, RuntimeError) and "h5py" in repr(unraisable.object):
+        return
+    sys.__unraisablehook__(unraisable)
 
 
 def friendly(func):
@@ -33,10 +57,10 @@ def friendly(func):
             return func(*args, **kwargs)
         except DfxcorrError as exc:
             click.echo(f"error: {exc}", err=True)
-            sys.exit(EXIT_INPUT)
+            _exit_input(exc)
         except OSError as exc:
             click.echo(f"error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), err=True)
-            sys.exit(EXIT_INPUT)
+            _exit_input(exc)
         except SystemError as exc:
             # a signal handler's SystemExit raised while a compiled (numba) kernel returned comes wrapped
             stop: BaseException | None = exc
@@ -124,6 +148,7 @@ def main(ctx, verbose, quiet, log_file):
     """
     _setup_logging(verbose, quiet)
     _install_signal_handlers()
+    sys.unraisablehook = _quiet_hdf5
     ctx.obj = {"log_file": log_file}
 
 

@@ -18,6 +18,10 @@ class OutputExistsError(DfxcorrError, FileExistsError):
         self.path = Path(path)
 
 
+class WriteError(DfxcorrError, OSError):
+    """An output could not be written (a full disk, a quota); the message names it."""
+
+
 class InputFileError(DfxcorrError, OSError):
     """An input that is not a regular file (a FIFO, a device, a folder): reading it could block or never end."""
 

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import zlib
 from pathlib import Path
 
 import h5py
@@ -18,6 +19,7 @@ import tifffile
 from capped import cli_capped, one_error_line
 from click.testing import CliRunner
 
+import dfxcorr
 from dfxcorr import io
 from dfxcorr.cli import main
 from dfxcorr.io import Reference, Scan, write_scan
@@ -26,7 +28,7 @@ from dfxcorr.sim import simulate as S
 from conftest import sim_config
 
 DET = "entry/instrument/detector"
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(dfxcorr.__file__).resolve().parents[1]  # of the dfxcorr imported here, for the subprocesses
 
 
 def run(*args):
@@ -211,13 +213,13 @@ def test_sigterm_inside_a_compiled_kernel_ends_cleanly(tmp_path):
         @friendly
         def run():
             threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGTERM)).start()
-            spin(10 ** 9)
+            spin(3 * 10 ** 7)  # about a second: the handler runs when the kernel returns
 
         run()
     """)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=120,
-                         check=False)
+                         check=False, cwd=tmp_path)
     assert res.returncode == 128 + signal.SIGTERM, res.stderr
     assert "SIGTERM" in res.stderr and "Traceback" not in res.stderr
 
@@ -338,3 +340,44 @@ def test_non_finite_stepping_dark_in_a_scan_file_is_refused(tmp_path, rng):
     write_scan(path, Scan(data=data, position=np.zeros(12), reference=io.SteppingReference(
         data=rng.poisson(80, (5, H, W)).astype(np.uint16), phase_step=np.arange(5.0), dark=dark)))
     refused(run("check", path, "-o", tmp_path / "r.h5"), "/entry/reference/stepping/dark", "not finite")
+
+
+def test_a_compressed_dark_map_that_expands_to_gigabytes_is_refused_within_the_cap(tmp_path):
+    path = tmp_path / "bomb.h5"
+    H, W = 20000, 20000  # 3.2 GB of float64 zeros, stored in a few MB
+    with h5py.File(path, "w") as f:
+        f.attrs["format"], f.attrs["format_version"] = "dfxcorr-scan", 1
+        f.create_dataset(f"{DET}/data", shape=(6, H, W), dtype=np.uint16, chunks=(1, 64, 2000), compression="gzip")
+        f.create_dataset("entry/scan/position", data=np.full(6, H + 10.0))
+        dark = f.create_dataset(f"{DET}/dark", shape=(H, W), dtype=np.float64, chunks=(1000, 1000),
+                                compression="gzip", compression_opts=9)
+        chunk = zlib.compress(np.zeros((1000, 1000)).tobytes(), 9)  # compressed once, stored 400 times
+        for r in range(0, H, 1000):
+            for c in range(0, W, 1000):
+                dark.id.write_direct_chunk((r, c), chunk)
+        for m, value in (("transmission", 1e4), ("visibility", 0.3), ("phase", 0.0)):
+            f.create_dataset(f"entry/reference/{m}", data=np.full((3, W), value))
+    assert path.stat().st_size < 20e6
+    res = cli_capped("check", path, "-o", tmp_path / "r.h5")
+    assert res.exit_code == 2 and one_error_line(res.stderr, "/entry/instrument/detector/dark", "expands"), \
+        res.stderr + res.traceback
+
+
+def test_disk_full_ends_in_one_line_and_keeps_the_old_result(scan_file, tmp_path):
+    out = tmp_path / "r.h5"
+    assert run("reconstruct", scan_file, "-o", out).exit_code == 0
+    before = digest(out)
+    # a file size limit makes writes fail as a full disk does (EFBIG instead of ENOSPC)
+    script = textwrap.dedent("""
+        import resource, signal, sys
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (50000, 50000))
+        from dfxcorr.cli import main
+        main(sys.argv[1:])
+    """)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    res = subprocess.run([sys.executable, "-c", script, "reconstruct", str(scan_file), "-o", str(out), "--overwrite"],
+                         capture_output=True, text=True, env=env, timeout=120, check=False, cwd=tmp_path)
+    assert res.returncode == 2, res.stderr  # was a segmentation fault after HDF5's tracebacks
+    assert one_error_line(res.stderr, "r.h5", "cannot write", "File too large") and "h5py" not in res.stderr
+    assert digest(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["r.h5"]

@@ -23,6 +23,10 @@ from .types import FRAME_DTYPES as _FRAME_DTYPES
 _MAPS = ("transmission", "visibility", "phase")
 # HDF5 itself gives up after 16 nested soft links; a walk of our own stops at the same depth.
 _MAX_LINK_DEPTH = 16
+# A dataset read whole (dark, reference maps or series) larger than this must store at least 1/_MAX_EXPANSION of its
+# bytes: a gzip dark map of a few MB expanded to 3 GB. Noisy counts compress a few times at most.
+_MAX_EXPANDED = 256 << 20
+_MAX_EXPANSION = 100
 # Root attributes are read into Scan.attrs; real ones are short strings and numbers.
 _MAX_ATTRIBUTE_BYTES = 1 << 20
 
@@ -174,6 +178,12 @@ class _Walker:
             if stored < expected:
                 raise ScanFormatError(f"/{path} declares {dset.shape} in {expected} chunks of {dset.chunks} but "
                                       f"stores {stored}: the data is not in the file")
+            size = dset.id.get_storage_size()
+            if lit is None and declared > _MAX_EXPANDED and declared > _MAX_EXPANSION * size:
+                # read whole (the frames are read row block by row block): memory must follow the file's bytes
+                raise ScanFormatError(f"/{path} expands from {size} stored bytes to {declared} ({dset.shape} "
+                                      f"{dset.dtype}): refused, real detector data does not compress "
+                                      f"{_MAX_EXPANSION} times")
         else:
             stored = dset.id.get_storage_size()
             if stored < declared:

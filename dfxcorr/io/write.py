@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import os
+import re
 import secrets
+import sys
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -11,7 +13,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from ..errors import OutputExistsError
+from ..errors import OutputExistsError, WriteError
 from .types import FORMAT, FORMAT_VERSION, FrameSource, Scan, SteppingReference
 
 #: Bytes a temporary name adds to the output's name: ``.<name>.<8 hex digits>.part``.
@@ -67,6 +69,33 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator
         raise
 
 
+@contextmanager
+def h5_output(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[h5py.File]:
+    """An HDF5 file open for writing under :func:`atomic_path`; a failed write (a full disk) ends in one error.
+
+    When HDF5 cannot write, every object h5py releases afterwards fails to flush again and h5py prints each
+    failure as a traceback (on ``sys.stderr``, silenced while the file is written: nothing else writes there
+    meanwhile, and the log's handlers keep the stream they were given). The first error is raised as a
+    :class:`WriteError` naming the output; the temporary file is removed and an earlier ``path`` stays as it
+    was. HDF5 cannot release such a file: the command line then exits without the interpreter's teardown.
+    """
+    with atomic_path(path, overwrite=overwrite) as tmp, open(os.devnull, "w") as quiet:
+        stderr, sys.stderr = sys.stderr, quiet
+        try:
+            with h5py.File(tmp, "w") as f:
+                yield f
+        except OSError as exc:
+            raise WriteError(f"{path}: cannot write ({_reason(exc)}); nothing was replaced") from None
+        finally:
+            sys.stderr = stderr
+
+
+def _reason(exc: OSError) -> str:
+    """The operating system's reason behind an HDF5 write error ('No space left on device'), else its first line."""
+    found = re.search(r"errno = (\d+)", str(exc))
+    return os.strerror(int(found.group(1))) if found else str(exc).splitlines()[0]
+
+
 #: Detector rows per HDF5 chunk of the frames: reading a frame's lit rows decompresses little beyond them.
 CHUNK_ROWS = 64
 
@@ -92,7 +121,7 @@ def write_scan(path: str | os.PathLike, scan: Scan, *, extra: dict[str, Any] | N
     overwrite : bool
         Replace an existing file (otherwise :class:`OutputExistsError`).
     """
-    with atomic_path(path, overwrite=overwrite) as tmp, h5py.File(tmp, "w") as f:
+    with h5_output(path, overwrite=overwrite) as f:
         f.attrs["format"] = FORMAT
         f.attrs["format_version"] = FORMAT_VERSION
         entry = f.create_group("entry")
