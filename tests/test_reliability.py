@@ -381,3 +381,29 @@ def test_disk_full_ends_in_one_line_and_keeps_the_old_result(scan_file, tmp_path
     assert res.returncode == 2, res.stderr  # was a segmentation fault after HDF5's tracebacks
     assert one_error_line(res.stderr, "r.h5", "cannot write", "File too large") and "h5py" not in res.stderr
     assert digest(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["r.h5"]
+
+
+_IMAGES = {f"image_{k}": np.ones((90, 102)) for k in ("transmission", "dark_field", "differential_phase")}
+
+
+@pytest.mark.parametrize("arrays,words", [
+    ({"image_transmission": np.ones((90, 102))}, ["no image_dark_field"]),
+    ({**_IMAGES, "image_transmission": np.full((90, 102), "a")}, ["image_transmission", "not finite real"]),
+    ({**_IMAGES, "image_dark_field": np.full((90, 102), np.nan)}, ["image_dark_field", "not finite real"]),
+    ({**_IMAGES, "vib_phase_offset": np.ones((104, 0))}, ["vib_phase_offset", "(104, 0)"]),
+    ({**_IMAGES, "extra": np.zeros((4000, 4000), np.uint8)}, ["extra.npy", "expands beyond"]),
+])
+def test_degenerate_truth_files_are_refused(scan_file, tmp_path, arrays, words):
+    np.savez_compressed(tmp_path / "t.npz", **arrays)
+    res = run("compare", scan_file, "-o", tmp_path / "cmp", "--truth", tmp_path / "t.npz", "--methods", "none")
+    refused(res, "t.npz", *words)
+    assert not (tmp_path / "cmp").exists()
+
+
+def test_nps_of_a_scan_without_phase_variation_is_refused(tmp_path, rng):
+    J, H, W, A = 30, 20, 16, 6
+    ref = Reference(np.full((A, W), 1000.0), np.full((A, W), 0.3), np.zeros((A, W)))  # no fringe along the scan
+    write_scan(tmp_path / "flat.h5", Scan(data=rng.poisson(1000, (J, H, W)).astype(np.uint16),
+                                          position=np.linspace(-A, H, J), reference=ref))
+    # the fringe frequency is 0: the default rings divided by it
+    refused(run("nps", tmp_path / "flat.h5", "-o", tmp_path / "nps", "--methods", "none"), "flat.h5", "no finite pixel")
