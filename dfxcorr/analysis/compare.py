@@ -158,12 +158,12 @@ def load_truth(path: str | Path, shape: tuple) -> dict:
         raise TruthError(f"{path}: not a truth file of dfxcorr simulate ({C.show(str(exc), quote=False)})") from None
     if truth is None:
         raise TruthError(f"{path}: a single array, not the .npz archive of dfxcorr simulate")
-    missing = [f"image_{k}" for k in Result.IMAGES if f"image_{k}" not in truth]
-    if missing:
-        raise TruthError(f"{path} holds no {' / '.join(missing)} (dfxcorr simulate writes every image)")
     for k in (k for k in truth if k.startswith("image_")):
         if truth[k].shape != (H, W):
             raise TruthError(f"{path}: {k} has shape {truth[k].shape}, the scan's images are {(H, W)}")
+    missing = [f"image_{k}" for k in Result.IMAGES if f"image_{k}" not in truth]
+    if missing:
+        raise TruthError(f"{path} holds no {' / '.join(missing)} (dfxcorr simulate writes every image)")
     for k in (k for k in truth if k.startswith("vib_")):
         if truth[k].shape[:1] != (J,) or truth[k].size == 0:
             raise TruthError(f"{path}: {k} has shape {truth[k].shape}, expected one value per frame of the scan's "
