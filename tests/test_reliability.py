@@ -407,3 +407,16 @@ def test_nps_of_a_scan_without_phase_variation_is_refused(tmp_path, rng):
                                           position=np.linspace(-A, H, J), reference=ref))
     # the fringe frequency is 0: the default rings divided by it
     refused(run("nps", tmp_path / "flat.h5", "-o", tmp_path / "nps", "--methods", "none"), "flat.h5", "no finite pixel")
+
+
+@pytest.mark.parametrize("setting,words", [
+    ("simulate.height_mm=1e300", ["more than", "samples"]), ("simulate.pixel_mm=1e-300", ["more than"]),
+    ("simulate.step_mm=1e-9", ["5.25e+11 frames"]), ("simulate.width_mm=1e-9", ["450 x 0 pixels"]),
+    ("simulate.active_mm=1e-9", ["active area of 0 rows"]), ("simulate.flux=1e300", ["simulate.flux"]),
+    ("effects.dose=1e300", ["effects.dose"]), ("simulate.reference_steps=1000000000", ["reference_steps"]),
+    ("simulate.steps=1000000000", ["simulate.steps"]),
+])
+def test_simulate_at_extreme_settings_is_refused_before_allocating(tmp_path, setting, words):
+    res = cli_capped("simulate", "-o", tmp_path / "s.h5", "--set", setting, timeout=60)
+    assert res.exit_code == 2 and one_error_line(res.stderr, *words), res.stderr + res.traceback
+    assert list(tmp_path.iterdir()) == []
