@@ -220,6 +220,7 @@ def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overw
     scan_read = read_scan(scan, allow_external=cfg["load"]["allow_external"])
     click.echo(check.plan(scan_read, cfg, name=scan, outputs=outputs, diagnose=True).summary())
     faults = check.detector_faults(scan_read, cfg)
+    faults.require_data()
     click.echo(faults.summary() if faults.any else "detector faults: none (no saturated sample, no empty or repeated "
                                                    "frame)")
     click.echo("ok: reconstruct would run")

@@ -14,7 +14,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import DfxcorrError
+
 log = logging.getLogger(__name__)
+
+
+class FaultError(DfxcorrError, ValueError):
+    """A scan that holds nothing but detector faults."""
 
 #: A frame whose mean signal above the dark over its lit samples is below this share of the median frame's is
 #: empty (read out as zeros or as dark): a body attenuates a frame's whole width by far less.
@@ -75,12 +81,30 @@ class Faults:
         Saturated samples per detector row.
     bad_frames : dict
         Frame -> why it is left out ('empty', 'a repeat of frame j - 1').
+    samples : ndarray of int, shape (J,)
+        Lit samples per frame.
     """
 
     level: float | None
     saturated: np.ndarray
     saturated_rows: np.ndarray
     bad_frames: dict = field(default_factory=dict)
+    samples: np.ndarray | None = None
+
+    def require_data(self) -> None:
+        """Refuse a scan in which every lit sample is a fault (``reconstruct`` and ``check`` alike).
+
+        Raises
+        ------
+        FaultError
+        """
+        if self.samples is None:
+            return
+        kept = self.samples - self.saturated
+        kept[list(self.bad_frames)] = 0
+        if not kept.any():
+            raise FaultError(f"every lit sample is a detector fault: nothing to fit (dataset "
+                             f"/entry/instrument/detector/data; {self.summary().split(': ', 1)[1]})")
 
     @property
     def any(self) -> bool:
@@ -119,13 +143,13 @@ def find_faults(blocks: Iterable[tuple[int, np.ndarray, np.ndarray]], *, shape: 
     Faults
     """
     J, H, _ = shape
-    saturated, saturated_rows = np.zeros(J, np.int64), np.zeros(H, np.int64)
+    saturated, saturated_rows, samples = np.zeros(J, np.int64), np.zeros(H, np.int64), np.zeros(J, np.int64)
     signal = np.full(J, np.nan)
     repeats: dict[int, str] = {}
     previous: tuple[int, np.ndarray, np.ndarray] | None = None
     for j, rows, counts in blocks:
         sat = counts >= level if level is not None else np.zeros(counts.shape, bool)
-        saturated[j] = int(sat.sum())
+        saturated[j], samples[j] = int(sat.sum()), sat.size
         saturated_rows[rows] += sat.sum(axis=1)
         ok = ~sat
         if ok.any():
@@ -142,7 +166,7 @@ def find_faults(blocks: Iterable[tuple[int, np.ndarray, np.ndarray]], *, shape: 
     bad = {int(j): "empty" for j in np.flatnonzero(np.isfinite(signal) & (signal <= EMPTY_SHARE * typical))}
     for j, why in repeats.items():
         bad.setdefault(j, why)
-    return Faults(level=level, saturated=saturated, saturated_rows=saturated_rows, bad_frames=bad)
+    return Faults(level=level, saturated=saturated, saturated_rows=saturated_rows, bad_frames=bad, samples=samples)
 
 
 def ranges(idx: np.ndarray) -> str:

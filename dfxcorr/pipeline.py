@@ -163,6 +163,7 @@ def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) 
                                  min_frames=cfg["align"]["min_frames"])
         faults = find_faults(store.frame_blocks(), shape=scan.shape, dark=store.dark,
                              level=saturation_level(store.counts.dtype, cfg["load"]["saturation"]))
+        faults.require_data()
         if faults.any:
             log.warning("%s", faults.summary())
             # noise of a sample at the level: what a neighbour's count may differ by from its own expectation

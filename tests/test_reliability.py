@@ -247,6 +247,16 @@ def test_check_refuses_what_reconstruct_refuses(tmp_path, rng, kind):
     assert not (tmp_path / "r.h5").exists()
 
 
+@pytest.mark.parametrize("value", [0, 65535])
+def test_check_refuses_a_scan_of_nothing_but_faults(tmp_path, rng, value):
+    scan = tiny_scan(rng)
+    path = tmp_path / "s.h5"
+    write_scan(path, Scan(data=np.full(scan.data.shape, value, np.uint16), position=scan.position,
+                          reference=scan.reference))
+    for command in ("check", "reconstruct"):  # check said ok, reconstruct refused (phase_offset not identifiable)
+        refused(run(command, path, "-o", tmp_path / "r.h5"), "every lit sample is a detector fault")
+
+
 @pytest.mark.parametrize("setting,words", [("align.position_errors={tmp}/pe.txt", ["pe.txt", "expected 12"]),
                                            ("load.pixel_noise={tmp}/pn.tif", ["pn.tif", "shape"])])
 def test_check_refuses_configured_files_that_do_not_fit(tmp_path, rng, setting, words):

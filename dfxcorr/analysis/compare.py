@@ -144,7 +144,7 @@ def load_truth(path: str | Path, shape: tuple) -> dict:
     try:
         with open(path, "rb") as fh:
             f = np.load(fh, allow_pickle=False)
-            if isinstance(f, np.lib.npyio.NpzFile):
+            if isinstance(f, np.lib.npyio.NpzFile) and f.zip is not None:
                 big = [i.filename for i in f.zip.infolist() if i.file_size > limit]
                 if big:
                     raise TruthError(f"{path}: {big[0]} expands beyond {limit} bytes, more than the scan's "
