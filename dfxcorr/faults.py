@@ -147,26 +147,38 @@ def find_faults(blocks: Iterable[tuple[int, np.ndarray, np.ndarray]], *, shape: 
     signal = np.full(J, np.nan)
     repeats: dict[int, str] = {}
     previous: tuple[int, np.ndarray, np.ndarray] | None = None
+    dark_rows = dark.mean(axis=1)
     for j, rows, counts in blocks:
-        sat = counts >= level if level is not None else np.zeros(counts.shape, bool)
-        saturated[j], samples[j] = int(sat.sum()), sat.size
-        saturated_rows[rows] += sat.sum(axis=1)
-        ok = ~sat
-        if ok.any():
-            signal[j] = float(np.mean((counts - dark[rows])[ok]))
-        if previous is not None and previous[0] == j - 1:
-            _, prev_rows, prev_counts = previous
-            both, here, there = np.intersect1d(rows, prev_rows, return_indices=True)
-            same = ok[here] & (prev_counts[there] < level if level is not None else True)
-            if both.size and same.sum() >= MIN_REPEAT_SAMPLES and np.array_equal(counts[here][same],
-                                                                                prev_counts[there][same]):
-                repeats[j] = f"a repeat of frame {j - 1}"
+        samples[j] = counts.size
+        sat = counts >= level if level is not None else np.zeros((0, 0), bool)
+        n_sat = int(np.count_nonzero(sat))
+        if n_sat:
+            saturated[j] = n_sat
+            saturated_rows[rows] += sat.sum(axis=1)
+            ok = ~sat
+            if ok.any():
+                signal[j] = float(np.mean(counts[ok], dtype=np.float64) - np.mean(dark[rows][ok]))
+        else:  # the common case, without a temporary of the block's size in float64
+            signal[j] = float(np.mean(counts, dtype=np.float64) - np.mean(dark_rows[rows]))
+        if previous is not None and previous[0] == j - 1 and _repeats(rows, counts, *previous[1:], level):
+            repeats[j] = f"a repeat of frame {j - 1}"
         previous = j, rows, counts
     typical = np.nanmedian(signal) if np.any(np.isfinite(signal)) else np.nan
     bad = {int(j): "empty" for j in np.flatnonzero(np.isfinite(signal) & (signal <= EMPTY_SHARE * typical))}
     for j, why in repeats.items():
         bad.setdefault(j, why)
     return Faults(level=level, saturated=saturated, saturated_rows=saturated_rows, bad_frames=bad, samples=samples)
+
+
+def _repeats(rows: np.ndarray, counts: np.ndarray, prev_rows: np.ndarray, prev_counts: np.ndarray,
+             level: float | None) -> bool:
+    """Whether the rows two frames both light hold equal counts (saturated ones aside) in enough samples."""
+    both, here, there = np.intersect1d(rows, prev_rows, return_indices=True)
+    if both.size == 0 or not np.array_equal(counts[here[0]], prev_counts[there[0]]):
+        return False  # a first row that differs settles it for nearly every frame
+    a, b = counts[here], prev_counts[there]
+    same = (a < level) & (b < level) if level is not None else np.ones(a.shape, bool)
+    return int(same.sum()) >= MIN_REPEAT_SAMPLES and np.array_equal(a[same], b[same])
 
 
 def ranges(idx: np.ndarray) -> str:
