@@ -40,14 +40,6 @@ def _exit_input(exc: Exception) -> None:
     sys.exit(EXIT_INPUT)
 
 
-def _quiet_hdf5(unraisable) -> None:
-    """Drop the errors HDF5 raises while h5py releases the objects of a file it could not flush (a full disk):
-    the write's own error says it once."""
-    if type(unraisable.exc_value) in (OSError, RuntimeError) and "h5py" in repr(unraisable.object):
-        return
-    sys.__unraisablehook__(unraisable)
-
-
 def friendly(func):
     """Turn the library's refusals into one line on stderr and exit code 2."""
 
@@ -148,7 +140,6 @@ def main(ctx, verbose, quiet, log_file):
     """
     _setup_logging(verbose, quiet)
     _install_signal_handlers()
-    sys.unraisablehook = _quiet_hdf5
     ctx.obj = {"log_file": log_file}
 
 

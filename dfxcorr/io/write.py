@@ -8,6 +8,7 @@ import sys
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from types import TracebackType
 from typing import Any
 
 import h5py
@@ -73,21 +74,29 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator
 def h5_output(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[h5py.File]:
     """An HDF5 file open for writing under :func:`atomic_path`; a failed write (a full disk) ends in one error.
 
-    When HDF5 cannot write, every object h5py releases afterwards fails to flush again and h5py prints each
-    failure as a traceback (on ``sys.stderr``, silenced while the file is written: nothing else writes there
-    meanwhile, and the log's handlers keep the stream they were given). The first error is raised as a
-    :class:`WriteError` naming the output; the temporary file is removed and an earlier ``path`` stays as it
-    was. HDF5 cannot release such a file: the command line then exits without the interpreter's teardown.
+    When HDF5 cannot write, every object h5py releases afterwards fails to flush again and h5py reports each
+    failure as a traceback (through ``sys.excepthook`` and ``sys.unraisablehook``, which drop those while the
+    file is written). The first error is raised as a :class:`WriteError` naming the output; the temporary file
+    is removed and an earlier ``path`` stays as it was. HDF5 cannot release such a file: the command line
+    then exits without the interpreter's teardown.
     """
-    with atomic_path(path, overwrite=overwrite) as tmp, open(os.devnull, "w") as quiet:
-        stderr, sys.stderr = sys.stderr, quiet
-        try:
-            with h5py.File(tmp, "w") as f:
-                yield f
-        except OSError as exc:
-            raise WriteError(f"{path}: cannot write ({_reason(exc)}); nothing was replaced") from None
-        finally:
-            sys.stderr = stderr
+    hooks = sys.excepthook, sys.unraisablehook
+    sys.excepthook = lambda kind, value, tb: None if _from_h5py(tb) else hooks[0](kind, value, tb)
+    sys.unraisablehook = lambda u: None if _from_h5py(u.exc_traceback) else hooks[1](u)
+    try:
+        with atomic_path(path, overwrite=overwrite) as tmp, h5py.File(tmp, "w") as f:
+            yield f
+    except OSError as exc:
+        raise WriteError(f"{path}: cannot write ({_reason(exc)}); nothing was replaced") from None
+    finally:
+        sys.excepthook, sys.unraisablehook = hooks
+
+
+def _from_h5py(tb: TracebackType | None) -> bool:
+    """Whether a traceback ends in h5py's release of an object (``_objects.pyx``)."""
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return tb is not None and tb.tb_frame.f_code.co_filename.endswith("_objects.pyx")
 
 
 def _reason(exc: OSError) -> str:
