@@ -111,6 +111,8 @@ class LitStore:
         Detector lag fraction already taken out of ``counts`` (:meth:`lag_free`).
     good : ndarray of bool, shape (K, W), or None
         False for samples left out as detector faults (:meth:`without`); None: every sample is good.
+    bad_frames : tuple of int
+        Frames left out whole as detector faults.
     """
 
     counts: np.ndarray
@@ -125,6 +127,7 @@ class LitStore:
     left_prev: np.ndarray | None = None
     lag: float = 0.0
     good: np.ndarray | None = None
+    bad_frames: tuple[int, ...] = ()
 
     def frame_blocks(self) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
         """(j, rows, counts) of each frame that lights a held row, frames ascending (rows ascending within)."""
@@ -140,8 +143,9 @@ class LitStore:
         every sample of the bad frames marked not good."""
         good = np.ones(self.counts.shape, bool) if faults.level is None else \
             ~saturated(self.counts, faults.level, margin=margin)
-        good[np.isin(self.frame, list(faults.bad_frames))] = False
-        return replace(self, good=good)
+        bad = tuple(sorted(faults.bad_frames))
+        good[np.isin(self.frame, bad)] = False
+        return replace(self, good=good, bad_frames=bad)
 
     def lag_free(self, fraction: float) -> LitStore:
         """The same samples with detector lag ``fraction`` taken out (:func:`dfxcorr.model.lag_free`), float32.
@@ -165,11 +169,14 @@ class LitStore:
         if self.left_counts is None or self.left_prev is None or self.left_prev.size == 0:
             return float("nan"), float("inf")
         prev_row = self.row[self.left_prev]
-        signal = self.left_counts.astype(np.float64) - self.dark[prev_row]
+        # detector faults take no part: a frame read twice would read as a lag of 1
+        keep = np.ones(self.left_counts.shape, bool) if self.good is None else self.good[self.left_prev].copy()
+        keep[np.isin(self.frame[self.left_prev] + 1, self.bad_frames)] = False
+        signal = np.where(keep, self.left_counts.astype(np.float64) - self.dark[prev_row], 0.0)
         a, se = 0.0, float("inf")
         for _ in range(4):
             prev = lag_free(self.counts, self.dark[self.row], self.row, self.frame, self.lag or a)[self.left_prev]
-            a, se = lag_estimate(signal, prev - self.dark[prev_row])
+            a, se = lag_estimate(signal, np.where(keep, prev - self.dark[prev_row], 0.0))
             if self.lag:
                 break
         return a, se

@@ -122,3 +122,14 @@ def test_diagnose_names_no_effect_for_saturation(twin):
     diag = diagnose(sat, C.merge(C.defaults(), {"load": {"saturation": level}}))
     assert [e.name for e in diag.effects if e.detected] == []
     assert diag.final_chi2 == pytest.approx(1.0, abs=0.05)
+
+
+@pytest.mark.parametrize("kind", ["zeros", "read twice"])
+def test_diagnose_names_no_effect_for_a_bad_frame(twin, kind):
+    from dfxcorr.analysis.diagnose import diagnose
+
+    scan, *_ = twin
+    data = np.array(scan.data)
+    data[DROPPED] = 0 if kind == "zeros" else data[DROPPED - 1]
+    diag = diagnose(replace(scan, data=data), C.defaults())
+    assert [e.name for e in diag.effects if e.detected] == []
