@@ -178,7 +178,7 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                      "it doubles the retrieval's time", bool),
         "block_mb": Option(256, "memory for one block of detector rows in the retrieval and the motion mask (MB): "
                                 "pixels are independent there, so the scan is processed in blocks that fit",
-                           _NUM, check=_within(1e-3, 1e6)),
+                           _NUM, check=_within(1e-9, 1e6)),
     },
     "diagnose": {
         "alpha": Option(0.01, "family-wise false-alarm probability per round (Holm over the effects tried)", _NUM,
