@@ -8,7 +8,6 @@ the retrieval (the observations' ``use``), with a warning that says how many and
 """
 from __future__ import annotations
 
-import logging
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -16,11 +15,10 @@ import numpy as np
 
 from .errors import DfxcorrError
 
-log = logging.getLogger(__name__)
-
 
 class FaultError(DfxcorrError, ValueError):
     """A scan that holds nothing but detector faults."""
+
 
 #: A frame whose mean signal above the dark over its lit samples is below this share of the median frame's is
 #: empty (read out as zeros or as dark): a body attenuates a frame's whole width by far less.
@@ -28,6 +26,8 @@ EMPTY_SHARE = 0.01
 #: A pixel that keeps less than this share of its samples has no image: left with the fringe's dark half alone
 #: (its bright half saturated) it cannot separate transmission from visibility. Its samples still enter the fit.
 MIN_KEPT_SHARE = 0.5
+#: Bad frames named one by one in the warning; the rest are counted.
+SHOW_FRAMES = 10
 #: A frame is a repeat of its predecessor when at least this many of the samples that both light (saturated ones
 #: aside) are compared and every one is equal: with photon noise, equal counts in so many samples do not happen.
 MIN_REPEAT_SAMPLES = 16
@@ -88,8 +88,8 @@ class Faults:
     level: float | None
     saturated: np.ndarray
     saturated_rows: np.ndarray
+    samples: np.ndarray
     bad_frames: dict = field(default_factory=dict)
-    samples: np.ndarray | None = None
 
     def require_data(self) -> None:
         """Refuse a scan in which every lit sample is a fault (``reconstruct`` and ``check`` alike).
@@ -98,8 +98,6 @@ class Faults:
         ------
         FaultError
         """
-        if self.samples is None:
-            return
         kept = self.samples - self.saturated
         kept[list(self.bad_frames)] = 0
         if not kept.any():
@@ -108,6 +106,7 @@ class Faults:
 
     @property
     def any(self) -> bool:
+        """Whether anything is left out."""
         return bool(self.saturated.sum()) or bool(self.bad_frames)
 
     def summary(self) -> str:
@@ -119,8 +118,9 @@ class Faults:
                          f"{ranges(np.flatnonzero(self.saturated))}, detector rows "
                          f"{ranges(np.flatnonzero(self.saturated_rows))}")
         if self.bad_frames:
-            parts.append(f"{len(self.bad_frames)} frame(s) " + ", ".join(f"{j} ({why})" for j, why in
-                                                                         sorted(self.bad_frames.items())))
+            listed = sorted(self.bad_frames.items())
+            parts.append(f"{len(listed)} frame(s) " + ", ".join(f"{j} ({why})" for j, why in listed[:SHOW_FRAMES])
+                         + (f" and {len(listed) - SHOW_FRAMES} more" if len(listed) > SHOW_FRAMES else ""))
         return "detector faults left out of the fit and the images: " + "; ".join(parts)
 
 
@@ -167,7 +167,7 @@ def find_faults(blocks: Iterable[tuple[int, np.ndarray, np.ndarray]], *, shape: 
     bad = {int(j): "empty" for j in np.flatnonzero(np.isfinite(signal) & (signal <= EMPTY_SHARE * typical))}
     for j, why in repeats.items():
         bad.setdefault(j, why)
-    return Faults(level=level, saturated=saturated, saturated_rows=saturated_rows, bad_frames=bad, samples=samples)
+    return Faults(level=level, saturated=saturated, saturated_rows=saturated_rows, samples=samples, bad_frames=bad)
 
 
 def _repeats(rows: np.ndarray, counts: np.ndarray, prev_rows: np.ndarray, prev_counts: np.ndarray,
