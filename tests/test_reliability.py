@@ -106,6 +106,18 @@ def test_iterative_diagnosis_never_replaces_its_own_map(scan_file, tmp_path):
     assert digest(pn) == before and sorted(p.name for p in out.iterdir()) == ["pixel_noise.tif"]
 
 
+def test_import_never_replaces_its_reference_scan(scan_file, tmp_path):
+    ref = tmp_path / "ref.h5"
+    ref.write_bytes(scan_file.read_bytes())
+    scan = io.read_scan(scan_file)
+    np.save(tmp_path / "stack.npy", np.asarray(scan.data[:]))
+    np.savetxt(tmp_path / "positions.txt", scan.position)
+    before = digest(ref)
+    refused(run("import", "scanning", "--frames", tmp_path / "stack.npy", "--positions", tmp_path / "positions.txt",
+                "--reference", ref, "-o", ref, "--overwrite"), "ref.h5", "also an input")
+    assert digest(ref) == before
+
+
 # --------------------------------------------------------------------------------------------------
 # No traceback, no hang
 # --------------------------------------------------------------------------------------------------
