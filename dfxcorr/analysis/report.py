@@ -12,6 +12,7 @@ import numpy as np
 
 from .. import plots
 from ..catalogue import PAPER_MODEL, effect
+from ..effects import REGISTRY
 from ..effects.base import EffectBase, Hypothesis
 from ..io import atomic_path
 from .signatures import Residuals
@@ -100,6 +101,11 @@ class Diagnosis:
                 "reduced_chi2": {"initial": self.initial_chi2, "final": self.final_chi2},
                 "effects": [e.to_json() for e in self.effects], "final_model": self.final_model,
                 "unexplained": self.unexplained, "criterion": self.criterion, "rounds": self.rounds}
+
+
+#: Every file of a fixed name the report may write: its own, and those the effects write when added.
+FIXED_FILES = ("diagnosis.json", "report.md", "residuals.png", "signatures.png",
+               *(f for e in REGISTRY.values() for f in e.files))
 
 
 def change_picture(effect: EffectBase, before, after, extra: dict) -> dict:

@@ -231,6 +231,8 @@ class EffectBase:
         Its trial changes the data or their relative weights: the trial fit starts afresh, as the first round did.
     refinements : int
         Refits after the trial, each at the estimate its test gives on the previous refit.
+    files : tuple of str
+        Names of the files its report writes when it is added (:meth:`artefacts`).
     """
 
     entry: Effect
@@ -238,6 +240,7 @@ class EffectBase:
     tier: int = 2
     fresh_start: bool = False
     refinements: int = 0
+    files: tuple[str, ...] = ()
 
     @property
     def name(self) -> str:

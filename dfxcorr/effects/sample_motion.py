@@ -64,6 +64,7 @@ class SampleMotion(EffectBase):
     entry = Effect("sample_motion", None, False, (), 0.0, "none",
                    "part of the sample moved during the scan: pixels whose frames disagree")
     role = "pixels"
+    files = ("motion_mask.tif",)
 
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
         if state.hypothesis.motion.any():
@@ -105,7 +106,7 @@ class SampleMotion(EffectBase):
 
             tifffile.imwrite(path, final.motion.astype(np.uint8))
 
-        return {"motion_mask.tif": write}
+        return {self.files[0]: write}
 
 
 EFFECT = SampleMotion()
