@@ -143,7 +143,8 @@ SCHEMA: dict[str, dict[str, Option]] = {
                               int, check=_positive),
         "column_offset": Option(None, "first column of the subsampled grid; null: subsample // 2", int,
                                 check=_nonneg, nullable=True),
-        "maxiter": Option(300, "L-BFGS iterations per stage", int, check=_positive),
+        "maxiter": Option(300, "iterations (Gauss-Newton trial steps or L-BFGS iterations) per stage", int,
+                          check=_positive),
         "gtol": Option(1e-3, "stop when the preconditioned gradient is below this (cost per parameter sigma)",
                        _NUM, check=_positive),
         "circmean_iterations": Option(10, "first iterations with the phase image at its circular mean (eq. 36)",
@@ -153,6 +154,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "preconditioner": Option("profiled", "profiled: whiten by the whole profiled Fisher information (same "
                                              "minimum, far fewer iterations); diagonal: its plain diagonal, the "
                                              "paper's eq. 34", str, choices=("profiled", "diagonal")),
+        "optimizer": Option("gauss-newton", "gauss-newton: Levenberg-Marquardt steps on the profiled Fisher "
+                                            "information (a handful of cost evaluations per stage, L-BFGS where "
+                                            "they stall); lbfgs: L-BFGS alone (the same minimum)", str,
+                            choices=("gauss-newton", "lbfgs")),
         "reweight": Option(1, "refits with noise weights from the fitted model", int, check=_nonneg),
         "visibility_gauge": Option("max", "normalise v^s to a robust maximum of 1 (max) or a median of 1 "
                                           "(median, eq. 22)", str, choices=("max", "median")),

@@ -426,7 +426,8 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
         result = FIT_METHODS[method](fit_obs, effects=effects, circmean_iterations=f["circmean_iterations"],
                                      staged=f["staged"], maxiter=f["maxiter"], gtol=f["gtol"],
                                      precondition=f["precondition"],
-                                     preconditioner=f["preconditioner"], reweight=f["reweight"],
+                                     preconditioner=f["preconditioner"], optimizer=f["optimizer"],
+                                     reweight=f["reweight"],
                                      visibility_gauge=f["visibility_gauge"],
                                      visibility_quantile=f["visibility_quantile"],
                                      gauge_fraction=f["gauge_fraction"], on_iteration=tick)
@@ -437,6 +438,8 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
         if worst > period / 4:
             log.warning("fitted tilts reach %.2f rad, a quarter of the alias period %.2f rad of every %d-th "
                         "column: reduce fit.subsample", worst, period, step)
+    log.info("vibration fit: %d iterations, %d evaluations of the cost over %d samples", result.iterations,
+             result.evaluations, fit_obs.counts.size)
     if not result.converged:
         log.warning("the vibration fit stopped before converging (%s)", "; ".join(result.messages))
     for name in result.params:
