@@ -183,7 +183,7 @@ def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overw
     from .io import read_scan
 
     _, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
-    click.echo(check.plan(read_scan(scan), cfg, name=scan, outputs=outputs, diagnose=True).summary())
+    click.echo(check.plan(read_scan(scan), cfg, name=scan, outputs=outputs, diagnose=True, pilot=True).summary())
     click.echo("ok: reconstruct would run")
 
 

@@ -131,16 +131,19 @@ SCHEMA: dict[str, dict[str, Option]] = {
     "fit": {
         "method": Option("ml", "vibration estimator: ml (this paper), alternating, correlation, none", str,
                          choices=METHODS),
-        "subsample": Option("auto", "fit on every n-th detector column (paper Sec. II-D.1); auto: every column "
-                                    "unless that exceeds fit.max_samples, then the smallest n that stays within it "
-                                    "(never beyond the alias limit W / 4)", (int, str),
+        "subsample": Option("auto", "fit on every n-th detector column (paper Sec. II-D.1); auto: the fewest "
+                                    "columns predicted (from a pilot's Fisher information) to reach "
+                                    "fit.target_uncertainty, or the most within fit.time_budget (never beyond "
+                                    "fit.max_samples nor the alias limit W / 4)", (int, str),
                             check=lambda v: None if v == "auto" or (not isinstance(v, str) and v > 0)
                             else "must be auto or a positive integer"),
-        "max_samples": Option(2_000_000, "subsample auto: most lit samples (rows x frames x columns) the fit may "
-                                         "hold; the fit's time grows with them (about 3 s per million samples "
-                                         "on 2 cores) and 2e6 keeps phi0 and phi1 within the paper's 0.004 rad "
-                                         "on a clinical scan (measured: scripts/benchmark.py clinical)",
-                              int, check=_positive),
+        "target_uncertainty": Option(0.0025, "subsample auto: predicted median one-sigma uncertainty of phi0 and "
+                                              "phi1 (rad) to reach", _NUM, check=_positive),
+        "time_budget": Option(None, "subsample auto: instead of fit.target_uncertainty, the most columns whose "
+                                    "fit is predicted to take at most this many seconds", _NUM, check=_positive,
+                              nullable=True),
+        "max_samples": Option(10_000_000, "subsample auto: most lit samples (rows x frames x columns) the fit "
+                                          "may hold (memory: about 100 bytes each)", int, check=_positive),
         "column_offset": Option(None, "first column of the subsampled grid; null: subsample // 2", int,
                                 check=_nonneg, nullable=True),
         "maxiter": Option(300, "iterations (Gauss-Newton trial steps or L-BFGS iterations) per stage", int,

@@ -627,14 +627,15 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
                             Y[3 * c + 1, s1] += wf * xc
                             Y[3 * c + 2, s1] += wf * xs
             if profiled:
-                # sum over the row's columns of Y^T N^-1 Y = Z^T Z, Z = L^T Y with N^-1 = L L^T (upper triangle)
-                rc = np.zeros((m, m))
-                z = np.empty((3, m))
+                # sum over the row's columns of Y^T N^-1 Y = Z^T Z, Z = L^T Y with N^-1 = L L^T: Y becomes Z in place
+                # (each column's three rows), then one matrix product (BLAS; the scalar triple loop it replaces
+                # took 0.49 s per call on 64 columns of the binned clinical scan)
                 for c in range(C):
                     i00, i01, i02 = inverse[r, c, 0, 0], inverse[r, c, 0, 1], inverse[r, c, 0, 2]
                     i11, i12, i22 = inverse[r, c, 1, 1], inverse[r, c, 1, 2], inverse[r, c, 2, 2]
                     if i00 <= 0:
-                        continue  # not solvable: the images are not profiled there
+                        Y[3 * c:3 * c + 3, :] = 0.0  # not solvable: the images are not profiled there
+                        continue
                     l00 = np.sqrt(i00)
                     l10, l20 = i01 / l00, i02 / l00
                     d11 = i11 - l10 * l10
@@ -644,20 +645,13 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
                     l22 = np.sqrt(d22) if d22 > 0 else 0.0
                     for col in range(m):
                         y0, y1, y2 = Y[3 * c, col], Y[3 * c + 1, col], Y[3 * c + 2, col]
-                        z[0, col] = l00 * y0 + l10 * y1 + l20 * y2
-                        z[1, col] = l11 * y1 + l21 * y2
-                        z[2, col] = l22 * y2
-                    for i in range(3):
-                        for a1 in range(m):
-                            za = z[i, a1]
-                            if za != 0:
-                                for a2 in range(a1, m):
-                                    rc[a1, a2] += za * z[i, a2]
+                        Y[3 * c, col] = l00 * y0 + l10 * y1 + l20 * y2
+                        Y[3 * c + 1, col] = l11 * y1 + l21 * y2
+                        Y[3 * c + 2, col] = l22 * y2
+                rc = np.dot(Y.T, Y)
                 for a1 in range(m):
-                    corr[t, idx[a1], idx[a1]] += rc[a1, a1]
-                    for a2 in range(a1 + 1, m):
+                    for a2 in range(m):
                         corr[t, idx[a1], idx[a2]] += rc[a1, a2]
-                        corr[t, idx[a2], idx[a1]] += rc[a1, a2]
             for a1 in range(m):
                 for a2 in range(m):
                     plain[t, idx[a1], idx[a2]] += local[a1, a2]
