@@ -85,9 +85,9 @@ FACTOR_MIN_COLUMNS = 16
 FACTOR_MAX_PARAMETERS = 3000
 PRECONDITIONERS = ("profiled", "diagonal")
 #: Gauss-Newton steps predicted to lower the cost (a chi-square) by more than this are followed by a fresh
-#: Hessian; smaller ones keep the last (paper study, every column: a threshold of 0 -> 1, 76 -> 17 Hessians; a
-#: full-resolution clinical fit, 1 -> 100: the same 59 evaluations, fit 8.9 -> 7.7 s; the same minimum).
-REFRESH_DECREASE = 100.0
+#: Hessian; smaller ones keep the last (paper study, every column: a threshold of 0 -> 1, 76 -> 17 Hessians, the
+#: same minimum; 100 saved a few Hessians at full resolution but cost evaluations on a small scan, 93 -> 138).
+REFRESH_DECREASE = 1.0
 #: Gauss-Newton trial steps per stage before L-BFGS takes over: where the Gauss-Newton Hessian misses the
 #: curvature (frames lighting a few rows, whose cost is not near-quadratic) the steps crawl, and L-BFGS learns
 #: that curvature (a small scan of 17 columns with many edge frames crawled for 256 steps, each lowering the

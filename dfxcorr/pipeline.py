@@ -235,9 +235,10 @@ def _place(image: np.ndarray, obs: M.Observations, values: np.ndarray) -> None:
 #: Evenly spread columns of the pilot that predicts the fit's uncertainty (``fit.subsample: auto``): its profiled
 #: Fisher information costs a fraction of a second even at full resolution.
 PILOT_COLUMNS = 16
-#: Wall seconds of the vibration fit per sample it holds on 2 cores, all stages and the uncertainty included (the
-#: predicted time; measured with scripts/benchmark.py: paper study every column ...).
-FIT_SECONDS_PER_SAMPLE = 1.7e-6
+#: Wall seconds of the vibration fit per sample it holds, all stages and the uncertainty included (the predicted
+#: time): 1.7 us on the paper study at every column, 2.2 on a binned and 3.2 on a full-resolution clinical scan
+#: (the Hessians' share grows with the rows), on the 2-core machine under load 1.5-2.5.
+FIT_SECONDS_PER_SAMPLE = 2.5e-6
 #: Samples of the motion mask's pilot vibration estimate (its columns need not be the fit's).
 MASK_PILOT_SAMPLES = 2_000_000
 
