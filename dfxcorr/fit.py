@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -612,7 +612,11 @@ def spread_columns(obs: M.Observations, weights: np.ndarray, *, most: int) -> tu
     if obs.columns.size <= most:
         return obs, weights
     keep = np.unique(np.linspace(0, obs.columns.size - 1, most).astype(int))
-    return obs.subset(keep), weights[:, keep]
+    sub = obs.subset(keep)
+    # C-ordered once here, rather than by the kernels at every refresh of the Hessian
+    c = np.ascontiguousarray
+    return (replace(sub, counts=c(sub.counts), tf=c(sub.tf), vf=c(sub.vf), phif=c(sub.phif), dark=c(sub.dark),
+                    use=c(sub.use)), c(weights[:, keep]))
 
 
 def initial_weights(obs: M.Observations, params: dict) -> np.ndarray:

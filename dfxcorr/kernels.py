@@ -111,6 +111,13 @@ def row_chunks(starts: np.ndarray, n_blocks: int, *, per_thread: int = 4) -> np.
     return np.unique(rows).astype(np.int64)
 
 
+def _c(a: np.ndarray, dtype=None) -> np.ndarray:
+    """``a`` C-ordered (copied only if it is not, or not of ``dtype``): numba compiles a kernel once per layout
+    and dtype of its arguments, and observations of a column subset are not C-ordered (a first demo run compiled
+    the retrieval five times, about 6 s each), nor fast to walk a sample row at a time."""
+    return np.ascontiguousarray(a, dtype=dtype)
+
+
 def _bounds(obs) -> np.ndarray:
     """Block boundaries of the rows, shape (R + 1,)."""
     return np.append(obs.starts, obs.frame.size).astype(np.int64)
@@ -419,9 +426,12 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
     hold = np.eye(2) if phase is None else np.array([[np.cos(phase), np.sin(phase)], [0.0, 0.0]])
     need = np.isin(list(CHANNEL_IDS), list(channels))
     bounds = _bounds(obs)
-    out = _reduced_cost(obs.counts, obs.tf, obs.vf, cos_phif, sin_phif, obs.dark, weights, obs.frame, obs.y, obs.x,
-                        bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase), np.sin(ch.phase),
-                        ch.vis, ch.dose, ch.background, ch.harmonic, hold, square, need, FIT_TILE)
+    # the weights and fringe in float64 whatever the caller's dtype: fewer compiled specialisations
+    weights, cos_phif, sin_phif = (_c(a, np.float64) for a in (weights, cos_phif, sin_phif))
+    out = _reduced_cost(_c(obs.counts), _c(obs.tf), _c(obs.vf), cos_phif, sin_phif, _c(obs.dark), weights, obs.frame,
+                        obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase),
+                        np.sin(ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, hold, square,
+                        need, FIT_TILE)
     cost, g_phase, g_vis, g_dose, g_bg, g_harm = (a.sum(axis=0) for a in out)
     return float(cost.sum()), (g_phase, g_vis, g_dose.sum(axis=1), g_bg.sum(axis=1), g_harm.sum(axis=1))
 
@@ -563,11 +573,13 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         raise ValueError("iterations must be at least 1")
     g = obs.pixel_gain(gain)
     bounds = _bounds(obs)
-    start = np.zeros((0, 0)) if weights is None else weights
+    # weights in float64 whatever the caller's dtype: one compiled specialisation fewer (about 6 s of a first run)
+    start = np.zeros((0, 0)) if weights is None else _c(weights, np.float64)
     coef, valid, inverse, ibar, w, chi2, n_sel = _retrieve(
-        obs.counts, obs.tf, obs.vf, obs.phif, obs.dark, obs.use, start, obs.frame, obs.y, obs.x, bounds,
-        row_chunks(bounds[:-1], obs.frame.size), ch.phase, ch.vis, ch.dose, ch.background, ch.harmonic,
-        g, float(obs.electronic), int(iterations), weights is None, keep_inverse, TILE)
+        _c(obs.counts), _c(obs.tf), _c(obs.vf), _c(obs.phif), _c(obs.dark), _c(obs.use), start, obs.frame, obs.y, obs.x,
+        bounds, row_chunks(bounds[:-1], obs.frame.size), _c(ch.phase, np.float64), _c(ch.vis, np.float64), ch.dose,
+        ch.background, ch.harmonic, _c(g, np.float64), float(obs.electronic), int(iterations), weights is None,
+        keep_inverse, TILE)
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
 
@@ -711,8 +723,10 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray |
     bounds = _bounds(obs)
     inv = np.zeros((0, 0, 3, 3)) if inverse is None else inverse
     # one chunk per thread: the accumulators are (P, P) each
-    plain, corr = _fisher(obs.tf, obs.vf, obs.phif, weights, obs.frame, obs.y, obs.x, bounds,
-                   row_chunks(bounds[:-1], obs.frame.size, per_thread=1), ch.phase, ch.vis, ch.dose, ch.harmonic,
+    weights = _c(weights, np.float64)  # one compiled specialisation whatever the caller's dtype
+    plain, corr = _fisher(_c(obs.tf), _c(obs.vf), _c(obs.phif), weights, obs.frame, obs.y, obs.x, bounds,
+                   row_chunks(bounds[:-1], obs.frame.size, per_thread=1), _c(ch.phase, np.float64),
+                   _c(ch.vis, np.float64), ch.dose, ch.harmonic,
                    coef, inv, np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64),
                    int(n_per_frame), int(obs.n_frames), bool(profiled and inverse is not None))
     return plain.sum(axis=0), corr.sum(axis=0)
