@@ -306,11 +306,11 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
 
     ``auto`` predicts the uncertainty from a pilot: the profiled Fisher information of :data:`PILOT_COLUMNS`
     evenly spread columns at the vibrations ``pilot`` (default :func:`pilot_estimate`) by
-    :func:`dfxcorr.fit.pilot_uncertainty`; columns add
-    information independently, so n columns give sigma_pilot sqrt(pilot columns / n). It takes the fewest
-    evenly spaced columns predicted to reach ``fit.target_uncertainty``, or with ``fit.time_budget`` the most
-    predicted to fit in that time; never more than ``fit.max_samples`` samples (memory) nor a spacing beyond
-    the alias limit W / 4. Logged when ``report``.
+    :func:`dfxcorr.fit.pilot_uncertainty`; columns add information independently, so n columns give
+    sigma_pilot sqrt(pilot columns / n). It takes the fewest evenly spaced columns predicted to reach
+    ``fit.target_uncertainty``, or with ``fit.time_budget`` the most predicted to fit in that time
+    (:data:`FIT_SECONDS_PER_SAMPLE`); never more than ``fit.max_samples`` samples (memory) nor a spacing
+    beyond the alias limit W / 4. Logged when ``report``.
     """
     f = cfg["fit"]
     W = prep.shape[2]
@@ -318,20 +318,20 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
     n, why = f["subsample"], "fit.subsample"
     sigma, size = float("nan"), 0
     if n == "auto":
+        spread = subsample_columns(W, max(W // PILOT_COLUMNS, 1))
+        size = spread.size
+        pilot = pilot_estimate(prep) if pilot is None else pilot
+        sigma = pilot_uncertainty(prep.observations(columns=spread, dtype=np.float32)[0], params=pilot,
+                                  gauge_fraction=f["gauge_fraction"])
         cap = column_step(W, per_column, most=f["max_samples"])
         if f["time_budget"] is not None:
             n = max(column_step(W, per_column, most=f["time_budget"] / FIT_SECONDS_PER_SAMPLE), cap)
             why = f"the most columns within fit.time_budget={f['time_budget']:g} s"
         else:
-            spread = subsample_columns(W, max(W // PILOT_COLUMNS, 1))
-            size = spread.size
-            pilot = pilot_estimate(prep) if pilot is None else pilot
-            sigma = pilot_uncertainty(prep.observations(columns=spread, dtype=np.float32)[0], params=pilot,
-                                      gauge_fraction=f["gauge_fraction"])
             need = size * (sigma / f["target_uncertainty"]) ** 2
             n = max(min(max(int(W / max(need, 1.0)), 1), max(W // 4, 1)), cap)
-            why = (f"fit.target_uncertainty={f['target_uncertainty']:g} rad: pilot of {size} columns "
-                   f"{sigma:.2g} rad")
+            why = f"fit.target_uncertainty={f['target_uncertainty']:g} rad"
+        why += f"; pilot of {size} columns {sigma:.2g} rad"
         if n == cap and cap > 1:
             why += f"; held at fit.max_samples={f['max_samples']:g}"
     cols = fit_columns(W, cfg, n)

@@ -205,6 +205,7 @@ def test_subsample_auto_reaches_the_target_uncertainty_it_predicts(small_scan, c
     assert 0.75 * plan.uncertainty < reported < 1.1 * plan.uncertainty
     budget = pipeline.plan_columns(prep, C.load([], [f"fit.time_budget={plan.seconds / 2}"]))
     assert budget.seconds <= plan.seconds / 2 and budget.columns.size >= plan.columns.size // 2 - 1
+    assert budget.uncertainty == pytest.approx(plan.uncertainty * np.sqrt(plan.columns.size / budget.columns.size))
 
 
 @pytest.mark.slow
