@@ -11,10 +11,10 @@ from .observations import Observations
 
 
 def variance(obs: Observations, ibar: np.ndarray, *, gain: float | None = None, floor: float = 1e-3) -> np.ndarray:
-    """Noise variance of each sample, f g (Ibar - dark) + electronic (f of ``obs.noise``), shape (K, C)."""
-    g = obs.gain if gain is None else gain
-    if obs.noise is not None:
-        g = g * obs.noise[obs.pixel]
+    """Noise variance of each sample, f g (Ibar - dark) + electronic (f g: :meth:`Observations.pixel_gain`), (K, C)."""
+    g: np.ndarray | float = obs.gain if gain is None else gain
+    if obs.noise is not None or obs.offset_noise is not None:
+        g = obs.pixel_gain(gain)[obs.pixel]
     return g * np.maximum(ibar - obs.dark, floor) + obs.electronic
 
 

@@ -7,7 +7,16 @@ noise model, the alignment or the counts. Adding an effect is adding a module an
 """
 from __future__ import annotations
 
-from . import channel, detector_gain, detector_lag, pixel_noise, position_error, reference_offset, sample_motion
+from . import (
+               channel,
+               detector_gain,
+               detector_lag,
+               pixel_noise,
+               position_error,
+               reference_offset,
+               sample_motion,
+               scatter,
+)
 from .base import EffectBase
 
 #: Effect name -> its implementation, in the order they are tested.
@@ -19,4 +28,5 @@ REGISTRY: dict[str, EffectBase] = {e.name: e for e in (
     position_error.EFFECT,
     detector_lag.EFFECT,
     pixel_noise.EFFECT,
+    scatter.EFFECT,
 )}
