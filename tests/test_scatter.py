@@ -94,9 +94,11 @@ def test_diagnose_names_scatter_first_and_estimates_s_within_its_noise():
     found = [e.name for e in diag.effects if e.detected]
     assert found == ["scatter"], [(e.name, e.statistic) for e in diag.effects]
     extra = diag.effects[0].extra
-    # measured: 0.0998 (se 0.0007) against 0.1; the fit's reduced chi-square 1.170 -> 1.012
-    assert abs(extra["value"] - truth["scatter"]) < 3 * extra["se"] and extra["se"] < 0.002, extra
-    assert diag.final_chi2 < 1.02 < diag.initial_chi2
+    # measured: 0.0999 (se 0.0007) against 0.1, the fit's reduced chi-square 1.170 -> 1.008. Seeds 12-14 gave
+    # 0.0968, 0.0988, 0.0981: their spread is about twice the se (the se counts neither the noise of the t
+    # behind S nor the per-pixel approximation of the scatter's shot noise), hence 4 se
+    assert abs(extra["value"] - truth["scatter"]) < 4 * extra["se"] and extra["se"] < 0.002, extra
+    assert diag.final_chi2 < 1.015 < diag.initial_chi2
     settings = diag.registry["scatter"].settings(C.defaults(), diag.final, extra, Path("."))
     assert settings == [f"load.scatter={extra['value']:.6g}", "load.scatter_width_mm=50"]
 
