@@ -8,6 +8,7 @@ interpolation of wrapped values would put a wrong phase into every sample near a
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -17,7 +18,8 @@ from numpy.typing import DTypeLike
 
 from . import kernels as K
 from .errors import DfxcorrError
-from .io import Reference, Scan, frame_rows
+from .faults import Faults, ranges, saturated
+from .io import Reference, Scan, frame_rows, lit_rows
 from .observations import Observations, lateral_coordinate
 
 log = logging.getLogger(__name__)
@@ -25,6 +27,13 @@ log = logging.getLogger(__name__)
 
 class AlignmentError(DfxcorrError, ValueError):
     """No usable pixel, or a reference that cannot be aligned."""
+
+
+def no_lit_rows(min_frames: int) -> AlignmentError:
+    """The refusal of a scan in which no detector row is lit in ``min_frames`` frames (``dfxcorr check`` says it
+    in the same words as the run)."""
+    return AlignmentError(f"no detector row is lit in at least {min_frames} frames: nothing to fit "
+                          f"(dataset /entry/scan/position)")
 
 
 def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, dtype: DTypeLike = np.float64) -> np.ndarray:
@@ -66,9 +75,15 @@ def lit_blocks(position: np.ndarray, active_rows: int, height: int) -> tuple[np.
     u : ndarray, shape (K,)
         Local interferometer row of each pair.
     """
-    u = np.arange(height)[:, None] + 0.5 - np.asarray(position, dtype=np.float64)[None, :]
-    row, frame = np.nonzero((u >= 0) & (u < active_rows))
-    return row, frame, u[row, frame]
+    position = np.asarray(position, dtype=np.float64)
+    # frame by frame (a (H, J) grid of a file declaring 100000 x 100000 unlit frames asked for 74.5 GiB)
+    r0, r1 = lit_rows(position, active_rows, height).T
+    n = r1 - r0
+    frame = np.repeat(np.arange(position.size), n)
+    row = np.repeat(r0, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
+    order = np.lexsort((frame, row))
+    row, frame = row[order], frame[order]
+    return row, frame, row + 0.5 - position[frame]
 
 
 def gauge_frames(rows_per_frame: np.ndarray, fraction: float) -> np.ndarray:
@@ -116,6 +131,10 @@ class LitStore:
     offset_noise : ndarray, shape (H, W), or None
         The per-pixel factor on the photon variance that those photons' shot noise makes
         (:attr:`Observations.offset_noise <dfxcorr.observations.Observations>`); None: 1.
+    good : ndarray of bool, shape (K, W), or None
+        False for samples left out as detector faults (:meth:`without`); None: every sample is good.
+    bad_frames : tuple of int
+        Frames left out whole as detector faults.
     """
 
     counts: np.ndarray
@@ -131,6 +150,26 @@ class LitStore:
     lag: float = 0.0
     offset: np.ndarray | None = None
     offset_noise: np.ndarray | None = None
+    good: np.ndarray | None = None
+    bad_frames: tuple[int, ...] = ()
+
+    def frame_blocks(self) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        """(j, rows, counts) of each frame that lights a held row, frames ascending (rows ascending within)."""
+        order = np.argsort(self.frame, kind="stable")
+        bounds = np.searchsorted(self.frame[order], np.arange(self.shape[0] + 1))
+        for j in range(self.shape[0]):
+            idx = order[bounds[j]:bounds[j + 1]]
+            if idx.size:
+                yield j, self.row[idx], self.counts[idx]
+
+    def without(self, faults: Faults, *, margin: float = 0.0) -> LitStore:
+        """The same samples with the saturated ones (:func:`dfxcorr.faults.saturated`, ``margin`` counts) and
+        every sample of the bad frames marked not good."""
+        good = np.ones(self.counts.shape, bool) if faults.level is None else \
+            ~saturated(self.counts, faults.level, margin=margin)
+        bad = tuple(sorted(faults.bad_frames))
+        good[np.isin(self.frame, bad)] = False
+        return replace(self, good=good, bad_frames=bad)
 
     @property
     def rows(self) -> np.ndarray:
@@ -200,6 +239,8 @@ class LitStore:
             dark = dark + (self.offset[lo:hi] if columns is None else self.offset[lo:hi, cols])
         use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
         held = np.ix_(np.unique(row), cols)
+        if self.good is not None:
+            use &= self.good[lo:hi] if columns is None else self.good[lo:hi, cols]
         return Observations(counts=counts, tf=tf, vf=vf, phif=phif.astype(dtype, copy=False), dark=dark, use=use,
                             row=row, frame=frame, columns=cols, shape=(J, H, W),
                             gain=self.gain if gain is None else gain, electronic=electronic,
@@ -233,12 +274,11 @@ def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: 
     short = (n_lit > 0) & (n_lit < min_frames)
     if np.any(short):
         log.warning("%d detector rows are lit in fewer than %d frames and are left out (rows %s)",
-                    int(short.sum()), min_frames, _ranges(np.flatnonzero(short)))
+                    int(short.sum()), min_frames, ranges(np.flatnonzero(short)))
         keep = n_lit[row] >= min_frames
         row, frame, u = row[keep], frame[keep], u[keep]
     if row.size == 0:
-        raise AlignmentError(f"no detector row is lit in at least {min_frames} frames: nothing to fit "
-                             f"(dataset /entry/scan/position)")
+        raise no_lit_rows(min_frames)
     counts = np.empty((row.size, W), dtype=scan.data.dtype)
     by_frame = np.argsort(frame, kind="stable")  # within a frame, rows stay ascending
     bounds = np.searchsorted(frame[by_frame], np.arange(J + 1))
@@ -332,15 +372,6 @@ def tilt_alias_period(width: int, n: int) -> float:
     return np.pi * width / n
 
 
-def _ranges(idx: np.ndarray) -> str:
-    if idx.size == 0:
-        return ""
-    breaks = np.flatnonzero(np.diff(idx) > 1)
-    starts = np.r_[idx[0], idx[breaks + 1]]
-    ends = np.r_[idx[breaks], idx[-1]]
-    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends, strict=True))
-
-
 __all__ = ["AlignmentError", "LitStore", "build_observations", "collect_lit_rows", "interpolate_rows", "lit_blocks",
-           "read_position_errors",
+           "no_lit_rows", "read_position_errors",
            "subsample_columns", "tilt_alias_period", "lateral_coordinate"]

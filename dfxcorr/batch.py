@@ -23,7 +23,7 @@ from pathlib import Path
 
 import h5py
 
-from .errors import DfxcorrError
+from .errors import DfxcorrError, require_regular_file
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +73,7 @@ def read_list(path: str | os.PathLike) -> list[tuple[int, str]]:
         If the file cannot be read as UTF-8 text or names no scan.
     """
     path = Path(path)
+    require_regular_file(path, "scan list")
     try:
         lines = path.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as exc:

@@ -10,16 +10,17 @@ from __future__ import annotations
 
 import os
 import tempfile
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from . import config as C
 from . import io
-from .align import lit_blocks
-from .errors import DfxcorrError, OutputExistsError
+from .align import lit_blocks, no_lit_rows
+from .errors import DfxcorrError, OutputExistsError, require_regular_file
+from .faults import Faults, find_faults, saturation_level
 
 #: Name length limit where the file system does not tell (bytes; ext4, XFS, Lustre, GPFS).
 NAME_MAX = 255
@@ -118,6 +119,7 @@ def check_outputs(outputs, *, inputs=(), overwrite: bool = False, appended=()) -
     known = {}
     for p in inputs:
         _require_utf8(p, "input")
+        require_regular_file(p)
         ident = _identity(p)
         if ident is not None:
             known[ident] = p
@@ -140,6 +142,8 @@ def check_outputs(outputs, *, inputs=(), overwrite: bool = False, appended=()) -
         folder = _existing_folder(p.parent)
         if append and folder != Path(os.path.abspath(p.parent)):
             raise OutputError(f"{_name(p)}: folder {_name(p.parent)} does not exist")
+        if append:
+            require_regular_file(p, "log file")  # appending to a FIFO waits for a reader
         extra = 0 if append else io.TEMP_NAME_OVERHEAD
         if len(os.fsencode(p.name)) + extra > _name_max(folder):
             raise OutputError(f"{_name(p)}: the name is too long ({len(os.fsencode(p.name))} bytes; with the "
@@ -226,44 +230,6 @@ def memory_estimate(shape, *, itemsize: int, lit_samples: int, fit_samples: int,
                + BASE_BYTES)
 
 
-def read_header(path, *, allow_external: bool = False) -> io.Scan:
-    """A scan's geometry and reference without reading its frames (their dtype and shape only).
-
-    The returned :class:`~dfxcorr.io.Scan` holds a zero-stride view as ``data`` (and as the reference
-    series of a phase-stepping recording). Anything unexpected is left to :func:`dfxcorr.io.read_scan`,
-    which refuses it naming the dataset.
-    """
-    try:
-        with h5py.File(path, "r") as f:
-            io.validate_file(f, allow_external=allow_external)
-            dset = f["entry/instrument/detector/data"]
-            J, H, W = dset.shape
-            dtype = dset.dtype
-            position = np.asarray(f["entry/scan/position"][()], dtype=np.float64)
-            if position.shape != (J,) or not np.all(np.isfinite(position)):
-                raise ValueError("position")
-            reference: io.Reference | io.SteppingReference
-            if "entry/reference/stepping" in f:
-                st = f["entry/reference/stepping"]
-                if st["data"].ndim != 3 or st["data"].shape[2] != W:
-                    raise ValueError("reference")
-                # its counts matter only to a scan that is not itself phase stepping (flat-field separability)
-                stepping = st["data"].shape[1] == H and not np.any(position)
-                data = np.broadcast_to(np.zeros((), st["data"].dtype), st["data"].shape) if stepping else st["data"][()]
-                reference = io.SteppingReference(data=data, phase_step=st["phase_step"][()])
-            else:
-                t, v, p = (np.asarray(f[f"entry/reference/{m}"][()], np.float64)
-                           for m in ("transmission", "visibility", "phase"))
-                if t.ndim != 2 or t.shape[1] != W or v.shape != t.shape or p.shape != t.shape:
-                    raise ValueError("reference")
-                reference = io.Reference(t, v, p)
-    except io.ScanFormatError:
-        raise
-    except Exception:  # noqa: BLE001 - whatever is wrong, the full reader names it
-        return io.read_scan(path, allow_external=allow_external)
-    return io.Scan(data=np.broadcast_to(np.zeros((), dtype), (J, H, W)), position=position, reference=reference)
-
-
 def _columns(width: int, cfg: dict, samples_per_column: int) -> np.ndarray:
     from .pipeline import fit_columns
 
@@ -297,7 +263,7 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     Parameters
     ----------
     scan : Scan
-        From :func:`read_header` or :func:`dfxcorr.io.read_scan`.
+        From :func:`dfxcorr.io.read_scan` (``header_only`` is enough).
     cfg : dict
         Resolved configuration.
     name : str
@@ -315,6 +281,7 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     IdentifiabilityError
         A visibility effect set to true that this acquisition cannot determine.
     """
+    from .effects import REGISTRY
     from .planning import VISIBILITY_EFFECTS, drop_visibility
 
     J, H, W = scan.shape
@@ -328,6 +295,12 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
                             f"use at most {2 * W - 1}")
     count = np.bincount(lit_blocks(scan.position, scan.active_rows, H)[0], minlength=H)
     used = count >= cfg["align"]["min_frames"]
+    if not used.any():  # what collect_lit_rows refuses, in its words
+        raise no_lit_rows(cfg["align"]["min_frames"])
+    # what the configuration asks of each effect (the files it names), checked against the scan as the run's
+    # preparation does
+    for effect in REGISTRY.values():
+        effect.configured(cfg, n_frames=J, detector=(H, W))
     lit = int(count[used].sum()) * W
     columns = np.zeros(0, int) if method == "none" else _columns(W, cfg, lit // W)
     effects = C.effects_of(cfg) if method != "none" else ()
@@ -341,3 +314,25 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
                                              fit_samples=columns.size * (lit // W),
                                              block_mb=cfg["retrieve"]["block_mb"]),
                 outputs=[Path(p) for p in outputs])
+
+
+def detector_faults(scan: io.Scan, cfg: dict) -> Faults:
+    """The detector faults ``reconstruct`` will leave out (:mod:`dfxcorr.faults`), from the lit rows of each frame.
+
+    Reads each frame's rows lit in at least ``align.min_frames`` frames once, one frame at a time.
+    """
+    J, H, _ = scan.shape
+    used = np.bincount(lit_blocks(scan.position, scan.active_rows, H)[0], minlength=H) >= cfg["align"]["min_frames"]
+    bounds = io.lit_rows(scan.position, scan.active_rows, H)
+
+    def blocks():
+        opener = scan.data.open() if isinstance(scan.data, io.H5Frames) else nullcontext(scan.data)
+        with opener as data:
+            for j, (r0, r1) in enumerate(bounds):
+                rows = np.arange(r0, r1)[used[r0:r1]]
+                if rows.size:
+                    yield j, rows, np.asarray(data[j, r0:r1])[rows - r0]
+
+    assert scan.dark is not None  # Scan.__post_init__ fills it
+    return find_faults(blocks(), shape=scan.shape, dark=scan.dark,
+                       level=saturation_level(scan.data.dtype, cfg["load"]["saturation"]))

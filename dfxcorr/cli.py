@@ -16,12 +16,28 @@ import numpy as np
 
 from . import __version__
 from . import config as C
-from .errors import DfxcorrError
+from .errors import DfxcorrError, WriteError
 
 log = logging.getLogger(__name__)
 
 #: Exit code for refused input (bad file, bad configuration, existing output).
 EXIT_INPUT = 2
+
+
+def _exit_input(exc: Exception) -> None:
+    """Exit with :data:`EXIT_INPUT`; without the interpreter's teardown after a failed HDF5 write.
+
+    After a failed write (a full disk) HDF5 cannot release the file: its flushes at teardown fail again, print
+    tracebacks and end in a segmentation fault. The temporary file is removed by then; logs are flushed first.
+    """
+    import h5py
+
+    if isinstance(exc, WriteError) or h5py.h5f.get_obj_ids(types=h5py.h5f.OBJ_FILE):
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(EXIT_INPUT)
+    sys.exit(EXIT_INPUT)
 
 
 def friendly(func):
@@ -33,10 +49,18 @@ def friendly(func):
             return func(*args, **kwargs)
         except DfxcorrError as exc:
             click.echo(f"error: {exc}", err=True)
-            sys.exit(EXIT_INPUT)
+            _exit_input(exc)
         except OSError as exc:
             click.echo(f"error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), err=True)
-            sys.exit(EXIT_INPUT)
+            _exit_input(exc)
+        except SystemError as exc:
+            # a signal handler's SystemExit raised while a compiled (numba) kernel returned comes wrapped
+            stop: BaseException | None = exc
+            while isinstance(stop, SystemError):
+                stop = stop.__cause__ or stop.__context__
+            if isinstance(stop, SystemExit):
+                raise stop from None
+            raise
 
     return wrapper
 
@@ -139,9 +163,9 @@ def _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, pre
     """Check a reconstruction's outputs and configuration before any work; the output, configuration, outputs."""
     out = Path(output) if output else Path(f"{Path(scan).stem}_result.h5")
     outputs = _reconstruct_outputs(out, tiff_dir=tiff_dir, preview=preview)
-    _guard(outputs, inputs=[scan, *config_files], overwrite=overwrite)
     cfg = C.load(config_files, list(sets) + ([f"fit.method={method}"] if method else [])
                  + (["retrieve.uncorrected=true"] if preview else []))
+    _guard(outputs, inputs=[scan, *config_files, *C.input_files(cfg)], overwrite=overwrite)
     return out, cfg, outputs
 
 
@@ -159,9 +183,10 @@ def _reconstruct_outputs(out: Path, *, tiff_dir=None, preview=False) -> list[Pat
 def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite):
     """Reconstruct vibration-corrected images from SCAN (dfxcorr scan format)."""
     from . import check, pipeline
+    from .io import read_scan
 
     out, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
-    header = check.read_header(scan, allow_external=cfg["load"]["allow_external"])
+    header = read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True)
     check.plan(header, cfg, name=scan, outputs=outputs)
     t0 = time.perf_counter()
     result = pipeline.reconstruct(scan, cfg, command_line=_command_line())
@@ -183,7 +208,12 @@ def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overw
     from .io import read_scan
 
     _, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
-    click.echo(check.plan(read_scan(scan), cfg, name=scan, outputs=outputs, diagnose=True).summary())
+    scan_read = read_scan(scan, allow_external=cfg["load"]["allow_external"])
+    click.echo(check.plan(scan_read, cfg, name=scan, outputs=outputs, diagnose=True).summary())
+    faults = check.detector_faults(scan_read, cfg)
+    faults.require_data()
+    click.echo(faults.summary() if faults.any else "detector faults: none (no saturated sample, no empty or repeated "
+                                                   "frame)")
     click.echo("ok: reconstruct would run")
 
 
@@ -243,14 +273,18 @@ def diagnose(scan, out_dir, config_files, sets, base, overwrite):
     """Find where SCAN and the model disagree, name the missing physics, add it and refit."""
     from . import check
     from .analysis.diagnose import diagnose as run
-    from .analysis.report import write_report
+    from .analysis.report import FIXED_FILES, write_report
+    from .io import read_scan
 
     out = Path(out_dir)
-    _guard([out / name for name in ("diagnosis.json", "report.md", "residuals.png", "motion_mask.tif")],
-           inputs=[scan, *config_files], overwrite=overwrite)
     cfg = C.load(config_files, sets)
+    # every file of a fixed name the report may write: the iterative workflow feeds pixel_noise.tif and
+    # position_errors.txt back, and a run must not replace the map it reads
+    _guard([out / name for name in FIXED_FILES],
+           inputs=[scan, *config_files, *C.input_files(cfg)], overwrite=overwrite)
     # plain retrieval (--base none) fits no configured effect
-    check.plan(check.read_header(scan), C.merge(cfg, {"fit": {"method": "none"}}) if base == "none" else cfg,
+    header = read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True)
+    check.plan(header, C.merge(cfg, {"fit": {"method": "none"}}) if base == "none" else cfg,
                name=scan, diagnose=True)
     diag = run(scan, cfg, base=base)
     write_report(diag, out, overwrite=overwrite)
@@ -411,14 +445,14 @@ def compare(scan, output_dir, truth, methods, config_files, sets, overwrite):
     from .io import read_scan
 
     methods = CMP.parse_methods(methods)
-    _guard(CMP.comparison_paths(Path(output_dir), methods).values(), inputs=[scan, *config_files]
-           + ([truth] if truth else []), overwrite=overwrite)
     cfg = C.load(config_files, sets)
-    header = check.read_header(scan)
+    _guard(CMP.comparison_paths(Path(output_dir), methods).values(), inputs=[scan, *config_files,
+           *C.input_files(cfg)] + ([truth] if truth else []), overwrite=overwrite)
+    header = read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True)
     for m in methods:
         check.plan(header, C.merge(cfg, {"fit": {"method": m}}), name=scan)
     true = CMP.load_truth(truth, header.shape) if truth else None
-    data = read_scan(scan)
+    data = read_scan(scan, allow_external=cfg["load"]["allow_external"])
     cfg = C.merge(cfg, {"retrieve": {"uncorrected": False}})
     results, runtimes = CMP.run_methods(scan, cfg, methods=methods, command_line=_command_line())
     paths = CMP.write_comparison(output_dir, data, results, runtimes, truth=true, source=scan, overwrite=overwrite)
@@ -442,12 +476,14 @@ def nps(scans, output_dir, methods, bins, config_files, sets, overwrite):
     """Noise power spectra of the dark-field images of blank SCANS (no sample), per estimator."""
     from . import check
     from .analysis import compare as CMP
+    from .io import read_scan
 
     methods = CMP.parse_methods(methods)
-    _guard(CMP.nps_paths(Path(output_dir)).values(), inputs=[*scans, *config_files], overwrite=overwrite)
     cfg = C.load(config_files, sets)
+    _guard(CMP.nps_paths(Path(output_dir)).values(), inputs=[*scans, *config_files, *C.input_files(cfg)],
+           overwrite=overwrite)
     for scan in scans:
-        header = check.read_header(scan)
+        header = read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True)
         for m in methods:
             check.plan(header, C.merge(cfg, {"fit": {"method": m}}), name=scan)
     study = CMP.nps_study(scans, cfg, methods=methods, bins=bins, command_line=_command_line())

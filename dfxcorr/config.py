@@ -18,7 +18,7 @@ from typing import Any
 import yaml
 
 from .catalogue import config_keys
-from .errors import DfxcorrError
+from .errors import DfxcorrError, require_regular_file
 
 
 class ConfigError(DfxcorrError, ValueError):
@@ -61,6 +61,12 @@ def _fraction(v):
     return None if 0 < v <= 1 else "must lie in (0, 1]"
 
 
+def _within(lo, hi):
+    """A check for ``lo <= v <= hi``: counts and sizes beyond what any scan needs are typing errors (``10**31``
+    would overflow the arrays they size, or run for ever)."""
+    return lambda v: None if lo <= v <= hi else f"must lie in [{lo:g}, {hi:g}]"
+
+
 _NUM = (int, float)
 #: Vibration estimators (``fit.method``): this paper's, its two baselines, and no correction.
 METHODS = ("ml", "alternating", "correlation", "none")
@@ -84,13 +90,17 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                "as scatter); 0: none", _NUM, check=_nonneg),
         "scatter_width_mm": Option(50.0, "std of the scatter's Gaussian kernel at the detector (mm; the scan file's "
                                          "pixel size converts it to pixels)", _NUM, check=_positive),
+        "saturation": Option(None, "counts at or above this are saturated (the panel's direct beam) and left out of "
+                                   "the fit and the images, with a warning; null: the frames' integer maximum "
+                                   "(65535 for uint16), none for float frames", _NUM, check=_positive,
+                             nullable=True),
         "allow_external": Option(False, "follow HDF5 external links, external raw storage and virtual datasets of "
                                         "the scan file (each file read is hashed into the provenance); false "
                                         "refuses them", bool),
     },
     "align": {
         "min_frames": Option(3, "detector rows lit in fewer frames are left out (at least the per-pixel unknowns)",
-                             int, check=lambda v: None if v >= 3 else "must be at least 3"),
+                             int, check=_within(3, 1e6)),
         "min_visibility": Option("auto", "samples whose reference visibility is below this carry no fringe and are "
                                          "left out (region of interest, NaN in the images); auto: a quarter of the "
                                          "95th percentile of the reference visibility; 0 keeps all", (int, float, str),
@@ -99,7 +109,7 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "reference_offset": Option(0.0, "rows by which the whole interferometer sat off during the scan relative to "
                                         "the reference: the flat field is read at u - offset (reference_offset of "
                                         "dfxcorr diagnose)", _NUM,
-                                   check=lambda v: None if math.isfinite(v) else "must be finite"),
+                                   check=_within(-1e6, 1e6)),
         "position_errors": Option(None, "file (.npy, or text with one number per frame) of per-frame errors delta_j "
                                         "of the recorded positions (rows): frame j's flat field is read at "
                                         "u - delta_j (position_errors.txt of dfxcorr diagnose); null: none", str,
@@ -113,7 +123,7 @@ SCHEMA: dict[str, dict[str, Option]] = {
                             nullable=True),
         "sigma": Option(6.0, "data-driven threshold: median + sigma robust standard deviations of the score",
                         _NUM, check=_positive),
-        "dilate": Option(1, "grow the motion mask by this many pixels", int, check=_nonneg),
+        "dilate": Option(1, "grow the motion mask by this many pixels", int, check=_within(0, 1e6)),
     },
     "vibration": {
         "phase_offset": Option(True, "fit phi0_j, the grating shift between exposures", bool),
@@ -141,26 +151,26 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "subsample": Option("auto", "fit on every n-th detector column (paper Sec. II-D.1); auto: every column "
                                     "unless that exceeds fit.max_samples, then the smallest n that stays within it "
                                     "(never beyond the alias limit W / 4)", (int, str),
-                            check=lambda v: None if v == "auto" or (not isinstance(v, str) and v > 0)
-                            else "must be auto or a positive integer"),
+                            check=lambda v: None if v == "auto" or (not isinstance(v, str) and 0 < v <= 10 ** 6)
+                            else "must be auto or an integer in [1, 1e6]"),
         "max_samples": Option(2_000_000, "subsample auto: most lit samples (rows x frames x columns) the fit may "
                                          "hold; the fit's time grows with them (about 3 s per million samples "
                                          "on 2 cores) and 2e6 keeps phi0 and phi1 within the paper's 0.004 rad "
                                          "on a clinical scan (measured: scripts/benchmark.py clinical)",
-                              int, check=_positive),
+                              int, check=_within(1, 1e12)),
         "column_offset": Option(None, "first column of the subsampled grid; null: subsample // 2", int,
-                                check=_nonneg, nullable=True),
-        "maxiter": Option(300, "L-BFGS iterations per stage", int, check=_positive),
+                                check=_within(0, 1e6), nullable=True),
+        "maxiter": Option(300, "L-BFGS iterations per stage", int, check=_within(1, 1e5)),
         "gtol": Option(1e-3, "stop when the preconditioned gradient is below this (cost per parameter sigma)",
                        _NUM, check=_positive),
         "circmean_iterations": Option(10, "first iterations with the phase image at its circular mean (eq. 36)",
-                                      int, check=_nonneg),
+                                      int, check=_within(0, 1e5)),
         "staged": Option(True, "fit phases first, add visibility and other effects afterwards (Sec. II-E)", bool),
         "precondition": Option(True, "rescale the fit's variables by the Fisher information", bool),
         "preconditioner": Option("profiled", "profiled: whiten by the whole profiled Fisher information (same "
                                              "minimum, far fewer iterations); diagonal: its plain diagonal, the "
                                              "paper's eq. 34", str, choices=("profiled", "diagonal")),
-        "reweight": Option(1, "refits with noise weights from the fitted model", int, check=_nonneg),
+        "reweight": Option(1, "refits with noise weights from the fitted model", int, check=_within(0, 100)),
         "visibility_gauge": Option("max", "normalise v^s to a robust maximum of 1 (max) or a median of 1 "
                                           "(median, eq. 22)", str, choices=("max", "median")),
         "visibility_quantile": Option(0.99, "quantile of v^s set to 1 by the max gauge", _NUM, check=_fraction),
@@ -169,22 +179,22 @@ SCHEMA: dict[str, dict[str, Option]] = {
     },
     "retrieve": {
         "iterations": Option(2, "solves with noise weights from the previous model (1: data weights, eq. 6)",
-                             int, check=_positive),
+                             int, check=_within(1, 100)),
         "uncorrected": Option(False, "also retrieve the images without vibration correction (written to "
                                      "uncorrected/ and shown by --preview, which turns this on); off by default: "
                                      "it doubles the retrieval's time", bool),
         "block_mb": Option(256, "memory for one block of detector rows in the retrieval and the motion mask (MB): "
                                 "pixels are independent there, so the scan is processed in blocks that fit",
-                           _NUM, check=_positive),
+                           _NUM, check=_within(1e-9, 1e6)),
     },
     "diagnose": {
         "alpha": Option(0.01, "family-wise false-alarm probability per round (Holm over the effects tried)", _NUM,
                         check=_fraction),
         "subsample": Option(4, "the diagnosis fits and tests on every n-th column (finer than fit.subsample: the "
-                               "parameter noise of a coarse fit would read as misfit)", int, check=_positive),
-        "max_rounds": Option(8, "at most this many effects are added", int, check=_positive),
+                               "parameter noise of a coarse fit would read as misfit)", int, check=_within(1, 1e6)),
+        "max_rounds": Option(8, "at most this many effects are added", int, check=_within(1, 100)),
         "motion_p": Option(1e-6, "per-pixel p-value below which a pixel's frames disagree", _NUM, check=_fraction),
-        "min_pixels": Option(5, "sample_motion needs at least this many flagged pixels", int, check=_positive),
+        "min_pixels": Option(5, "sample_motion needs at least this many flagged pixels", int, check=_within(1, 1e9)),
         "explain_share": Option(0.25, "a significant candidate is added only if a trial refit with it removes at least "
                                       "this share of the excess chi-square of the residual signatures that were "
                                       "significant (it must explain the misfit's signature, not merely some of its "
@@ -359,6 +369,7 @@ def load(files=(), sets=(), *, schema: dict = SCHEMA) -> dict:
     cfg = defaults(schema)
     for f in files:
         path = Path(f)
+        require_regular_file(path, "configuration")
         try:
             with open(path, "rb") as fh:
                 raw = fh.read(MAX_FILE_BYTES + 1)
@@ -378,6 +389,12 @@ def load(files=(), sets=(), *, schema: dict = SCHEMA) -> dict:
     for item in sets:
         cfg = merge(cfg, parse_set(item), origin=f"--set {show(item, quote=False)}", schema=schema)
     return cfg
+
+
+def input_files(cfg: dict) -> list[str]:
+    """Files a resolved configuration names as inputs (``load.pixel_noise``, ``align.position_errors``): no output
+    may replace them."""
+    return [p for p in (cfg["load"]["pixel_noise"], cfg["align"]["position_errors"]) if p is not None]
 
 
 def effects_of(cfg: dict) -> tuple[str, ...]:

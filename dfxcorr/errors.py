@@ -1,6 +1,8 @@
 """The one base class of every refusal: the CLI turns a :class:`DfxcorrError` into one line and exit code 2."""
 from __future__ import annotations
 
+import os
+import stat
 from pathlib import Path
 
 
@@ -14,3 +16,27 @@ class OutputExistsError(DfxcorrError, FileExistsError):
     def __init__(self, path):
         super().__init__(f"{path} exists; use --overwrite to replace it")
         self.path = Path(path)
+
+
+class WriteError(DfxcorrError, OSError):
+    """An output could not be written (a full disk, a quota); the message names it."""
+
+
+class InputFileError(DfxcorrError, OSError):
+    """An input that is not a regular file (a FIFO, a device, a folder): reading it could block or never end."""
+
+
+def require_regular_file(path, what: str = "input") -> None:
+    """Refuse an existing ``path`` that is not a regular file (symbolic links followed), before anything opens it.
+
+    Opening a FIFO for reading waits for a writer, for ever if none comes; a device can be endless. A path that
+    does not exist is left to the reader, which names it.
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return
+    if not stat.S_ISREG(mode):
+        kind = "a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else "not a regular file"
+        name = os.fsencode(path).decode("utf-8", "backslashreplace")
+        raise InputFileError(f"{name}: the {what} is {kind}; give a regular file")

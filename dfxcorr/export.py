@@ -14,7 +14,7 @@ import numpy as np
 import yaml
 
 from .errors import OutputExistsError
-from .io import atomic_path
+from .io import atomic_path, h5_output
 from .model import CATALOGUE
 from .result import Result, paper_params
 
@@ -176,7 +176,7 @@ def write_result_h5(path, result: Result, *, overwrite: bool = False, compressio
     """
     check_output(path, overwrite=overwrite)
     vibration = vibration_datasets(result)
-    with atomic_path(path, overwrite=overwrite) as tmp, h5py.File(tmp, "w") as f:
+    with h5_output(path, overwrite=overwrite) as f:
         f.attrs["format"] = FORMAT
         f.attrs["format_version"] = np.int64(FORMAT_VERSION)
         entry = f.create_group("entry")

@@ -468,7 +468,7 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                             w[b, i] = start[k, c]
                 for it in range(iterations):
                     if it > 0:
-                        # weights from the previous model (noise_weights with its floor of 1 count)
+                        # weights from the previous model (noise.variance: its photon term at least one count)
                         for b in range(nb):
                             k = lo + b
                             for i in range(T):
@@ -506,8 +506,8 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                         ibar[k, c] = m
                         w_out[k, c] = w[b, i]
                         if valid[r, c] and use[k, c]:
-                            # Pearson residual with the variance floor of model.pearson
-                            chi2[t] += (counts[k, c] - m) ** 2 / (gain[r, c] * max(m - dark[k, c], 1e-3) + electronic)
+                            # Pearson residual with the variance of the weights (noise.variance)
+                            chi2[t] += (counts[k, c] - m) ** 2 / (gain[r, c] * max(m - dark[k, c], 1.0) + electronic)
                             n_sel[t] += 1.0
     return coef, valid, inverse, ibar, w_out, chi2, n_sel
 

@@ -1,7 +1,12 @@
 """The noise model: the variance of a sample, its Pearson residual and the weights of the fits.
 
 variance = f_i * g * (Ibar - dark) + sigma_e^2: scaled Poisson noise of the photons (g detector units per
-photon, f_i the pixel's variance factor, ``pixel_noise``) plus the detector's electronic noise.
+photon, f_i the pixel's variance factor, ``pixel_noise``) plus the detector's electronic (readout) noise.
+
+One variance serves the chi-square and the weights alike (and the compiled retrieval, :mod:`dfxcorr.kernels`):
+the photon term is taken at least at one count (:data:`MIN_SIGNAL`), so a sample whose expected count is at
+the dark level is neither weighted infinitely nor a 1e5 outlier when the electronic noise is not modelled
+(before, the chi-square took 1e-3 counts and the weights one).
 """
 from __future__ import annotations
 
@@ -9,22 +14,23 @@ import numpy as np
 
 from .observations import Observations
 
+#: The least signal (detector units above the dark) whose photon noise the variance counts.
+MIN_SIGNAL = 1.0
 
-def variance(obs: Observations, ibar: np.ndarray, *, gain: float | None = None, floor: float = 1e-3) -> np.ndarray:
-    """Noise variance of each sample, f g (Ibar - dark) + electronic (f g: :meth:`Observations.pixel_gain`), (K, C)."""
+
+def variance(obs: Observations, ibar: np.ndarray, *, gain: float | None = None) -> np.ndarray:
+    """Noise variance of each sample, f g max(Ibar - dark, 1) + electronic (f g: :meth:`Observations.pixel_gain`)."""
     g: np.ndarray | float = obs.gain if gain is None else gain
     if obs.noise is not None or obs.offset_noise is not None:
         g = obs.pixel_gain(gain)[obs.pixel]
-    return g * np.maximum(ibar - obs.dark, floor) + obs.electronic
+    return g * np.maximum(ibar - obs.dark, MIN_SIGNAL) + obs.electronic
 
 
-def pearson(obs: Observations, ibar: np.ndarray, *, gain: float | None = None,
-            floor: float = 1e-3) -> np.ndarray:
+def pearson(obs: Observations, ibar: np.ndarray, *, gain: float | None = None) -> np.ndarray:
     """Pearson residual squared (I - Ibar)^2 / variance per sample, shape (K, C)."""
-    return (obs.counts - ibar) ** 2 / variance(obs, ibar, gain=gain, floor=floor)
+    return (obs.counts - ibar) ** 2 / variance(obs, ibar, gain=gain)
 
 
-def noise_weights(obs: Observations, ibar: np.ndarray, *, gain: float | None = None,
-                  floor: float = 1.0) -> np.ndarray:
-    """Inverse noise variance of the used samples (shot noise floored at ``floor`` counts), 0 elsewhere."""
-    return np.where(obs.use, 1.0 / variance(obs, ibar, gain=gain, floor=floor), 0.0)
+def noise_weights(obs: Observations, ibar: np.ndarray, *, gain: float | None = None) -> np.ndarray:
+    """Inverse noise variance of the used samples, 0 elsewhere."""
+    return np.where(obs.use, 1.0 / variance(obs, ibar, gain=gain), 0.0)

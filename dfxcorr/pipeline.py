@@ -31,6 +31,7 @@ from .align import LitStore, collect_lit_rows, pixel_mm, subsample_columns, tilt
 from .effects import REGISTRY
 from .effects.base import Preparation
 from .estimators import ESTIMATORS
+from .faults import MIN_KEPT_SHARE, find_faults, saturation_level
 from .fit import FitResult
 from .io import Reference, Scan, read_scan
 from .mask import motion_mask, pilot_vibrations
@@ -109,7 +110,8 @@ class Prepared:
         """Observations of some columns and detector rows, with the region of interest of their samples.
 
         Samples without fringe (outside the region of interest, ``obs.roi`` False) get v^f = 0: they yield
-        no images, but in the fit they still monitor dose and background. ``use`` is True everywhere.
+        no images, but in the fit they still monitor dose and background. ``use`` is False for the detector
+        faults only (saturated samples, bad frames: :mod:`dfxcorr.faults`).
         """
         obs = self.store.observations(self._unwrapped_reference, columns=columns, rows=rows, gain=self.noise.gain,
                                       electronic=self.noise.electronic, noise=self.noise.factors, dtype=dtype,
@@ -148,6 +150,15 @@ def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) 
         reference = resolve_reference(scan, effects=step_effects, optional=optional)
         store = collect_lit_rows(scan, active_rows=reference.transmission.shape[0],
                                  min_frames=cfg["align"]["min_frames"])
+        faults = find_faults(store.frame_blocks(), shape=scan.shape, dark=store.dark,
+                             level=saturation_level(store.counts.dtype, cfg["load"]["saturation"]))
+        faults.require_data()
+        if faults.any:
+            log.warning("%s", faults.summary())
+            # noise of a sample at the level: what a neighbour's count may differ by from its own expectation
+            gain = cfg["load"]["gain"] or scan.gain
+            store = store.without(faults, margin=SATURATION_SIGMAS * np.sqrt(gain * (faults.level or 0.0)
+                                                                           + cfg["load"]["electronic"]))
         made = Preparation(store=store, shift=np.zeros(scan.shape[0]),
                            noise=Noise(cfg["load"]["gain"] or scan.gain, cfg["load"]["electronic"]),
                            reference=reference, pixel_mm=pixel_mm(scan))
@@ -162,6 +173,10 @@ def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) 
         vmin = auto_visibility_threshold(reference.visibility) if vmin == "auto" else float(vmin)
     return Prepared(scan=scan, name=path.name if path else "scan", path=path, reference=reference, store=store,
                     min_visibility=vmin, noise=made.noise)
+
+
+#: Noise standard deviations below the saturation level within which a neighbour's count leaves a sample out.
+SATURATION_SIGMAS = 3.0
 
 
 #: Bytes per (pixel, frame) sample at the peak of a block's retrieval or motion statistics in float64: 153
@@ -308,7 +323,9 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
     for rows in blocks:
         obs = prep.observations(rows=rows)
         roi = obs.in_roi
-        obs = replace(obs, use=roi)
+        with np.errstate(invalid="ignore"):
+            kept = obs.segment_sum(obs.use.astype(np.float64)) / obs.segment_sum(np.ones(obs.use.shape))
+        obs = replace(obs, use=obs.use & roi & (kept >= MIN_KEPT_SHARE)[obs.pixel])
         for m, p, acc in zip(maps, params, sums, strict=True):
             rec = retrieve(obs, p, iterations=iterations, n_frame_params=0)
             for k, v in image_values(rec.images).items():
@@ -347,7 +364,7 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
         raise C.ConfigError(f"fit.method={method!r} is not available; available: {', '.join(ESTIMATORS)}, none")
     cols = columns
     fit_obs = prep.observations(columns=cols, dtype=np.float32)
-    fit_obs = replace(fit_obs, use=~moving[fit_obs.row][:, fit_obs.columns])
+    fit_obs = replace(fit_obs, use=fit_obs.use & ~moving[fit_obs.row][:, fit_obs.columns])
     effects = resolve_effects(cfg, prep.scan, prep.reference, fit_obs)
     used = fit_obs.segment_sum(fit_obs.use.astype(np.float64)) > 0
     fit_mask[np.ix_(fit_obs.rows, fit_obs.columns)] = used

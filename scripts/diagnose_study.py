@@ -7,10 +7,13 @@ chi-square back to about 1. Per run: the estimate against the truth, and the err
 differential-phase and dark-field images against the truth before and after the effect was added
 (the images of the diagnosis's own fits). Amplitudes are lowered until the effect is no longer named
 first (the detection limit). Clean scans (both phantoms, smooth and tiled flat fields, gain 1 and 3
-stated in the file) give the false alarms; each run is timed against ``reconstruct`` of the same scan.
+stated in the file, a flat panel with its read noise stated) give the false alarms; each run is timed against
+``reconstruct`` of the same scan. Detector effects in no catalogue (``simulate.UNCATALOGUED``) must end in
+``unexplained`` with at most the noise model named on the way; pairs of concealed effects must each be named
+once and nothing else, down to their smaller amplitudes (the pairs' detection limits).
 Writes docs/diagnosis-study.json and docs/diagnosis-study.md.
 
-Usage: python scripts/diagnose_study.py [--pixel-mm 5] [--effects ...] [--clean 10] [--out docs/]
+Usage: python scripts/diagnose_study.py [--pixel-mm 5] [--effects ...] [--clean 12] [--pairs N] [--out docs/]
 """
 from __future__ import annotations
 
@@ -35,7 +38,15 @@ SCENARIOS = S.CONCEALED
 #: The clean scans: (phantom, flat-field settings, stated gain); seeds 100, 101, ...
 TILED = {"simulate.tiles": 8, "simulate.flat_nonlinearity": 1.0}
 CLEAN = [(phantom, flat, gain) for flat in ({}, TILED) for phantom, gain in
-         (("thorax", 1.0), ("slab", 1.0), ("thorax", 3.0), ("slab", 3.0), ("thorax", 1.0))]
+         (("thorax", 1.0), ("slab", 1.0), ("thorax", 3.0), ("slab", 3.0), ("thorax", 1.0))] + \
+    [(phantom, S.FLAT_PANEL, 1.0) for phantom in ("thorax", "slab")]
+
+#: Two effects concealed at once: mean with mean, noise with mean, alignment with mean, counts with mean.
+PAIRS = [("dose", "curvature"), ("detector_gain", "dose"), ("electronic_noise", "visibility_tilt"),
+         ("reference_offset", "curvature"), ("position_error", "dose"), ("detector_lag", "harmonic")]
+
+#: The noise model's effects: the only ones an effect outside the catalogue may add on the way.
+NOISE = {"detector_gain", "electronic_noise", "pixel_noise"}
 
 
 def simulation(pixel_mm: float, seed: int, settings: dict) -> dict:
@@ -105,13 +116,14 @@ def estimate_error(name: str, diag, truth: dict) -> dict:
     return {"rmse": float(np.sqrt(np.mean(d ** 2))), "truth_std": float(np.std(tru[full]))}
 
 
-def run(effect: str | None, amplitude: float | None, *, pixel_mm: float, seed: int, settings: dict | None = None
-        ) -> dict:
-    """Simulate with ``effect`` at ``amplitude`` (None: a clean scan with ``settings``), diagnose, summarise."""
-    settings, conceal = dict(settings or {}), []
+def run(effect: str | None, amplitude: float | None, *, pixel_mm: float, seed: int, settings: dict | None = None,
+        table: dict = SCENARIOS, sets: tuple = ()) -> dict:
+    """Simulate with ``effect`` of ``table`` at ``amplitude`` (None: a clean scan with ``settings``; ``sets``:
+    reconstruct settings, e.g. the read noise a user states), diagnose, summarise."""
+    settings, conceal = dict(settings or {}), list(sets)
     if effect is not None:
-        key, _, _, extra, conceal = SCENARIOS[effect]
-        settings = {**settings, **extra, key: amplitude}
+        key, _, _, extra, more = table[effect]
+        settings, conceal = {**settings, **extra, key: amplitude}, conceal + list(more)
     scan, truth = S.simulate(simulation(pixel_mm, seed, settings))
     cfg = C.load([], conceal)
     t0 = time.perf_counter()
@@ -131,6 +143,19 @@ def run(effect: str | None, amplitude: float | None, *, pixel_mm: float, seed: i
         out["images_before"] = image_errors(change["before"], truth)
         out["images_after"] = image_errors(change["after"], truth)
     return out
+
+
+def run_pair(a: str, b: str, level: int, *, pixel_mm: float, seed: int) -> dict:
+    """Both effects concealed at once, each at its ``level``-th amplitude (0: realistic, then the smaller ones)."""
+    amps, settings, sets = {}, {}, []
+    for name in (a, b):
+        key, realistic, smaller, extra, conceal = SCENARIOS[name]
+        amps[name] = ([realistic] + smaller)[level]
+        settings.update({**extra, key: amps[name]})
+        sets += conceal
+    r = run(None, None, pixel_mm=pixel_mm, seed=seed, settings=settings, sets=tuple(sets))
+    r.update(effect=f"{a} + {b}", amplitude=amps, ok=sorted(r["found"]) == sorted((a, b)))
+    return r
 
 
 def _fmt_estimate(r: dict) -> str:
@@ -163,18 +188,23 @@ def main():
     ap.add_argument("--pixel-mm", type=float, default=5.0)
     ap.add_argument("--clean", type=int, default=len(CLEAN), help=f"clean scans (at most {len(CLEAN)})")
     ap.add_argument("--effects", nargs="*", default=list(SCENARIOS))
+    ap.add_argument("--uncatalogued", nargs="*", default=list(S.UNCATALOGUED))
+    ap.add_argument("--pairs", type=int, default=len(PAIRS), help=f"pairs of concealed effects (at most {len(PAIRS)})")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
     ap.add_argument("--update", action="store_true",
                     help="keep the other effects' rows of an existing diagnosis-study.json (and its clean scans "
                          "when --clean 0): run the study in parts")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    results = {"machine": machine(), "pixel_mm": args.pixel_mm, "concealed": [], "limits": {}, "clean": []}
+    results = {"machine": machine(), "pixel_mm": args.pixel_mm, "concealed": [], "limits": {}, "clean": [],
+               "uncatalogued": [], "pairs": []}
     if args.update and (args.out / "diagnosis-study.json").exists():
         old = json.loads((args.out / "diagnosis-study.json").read_text())
         results["concealed"] = [r for r in old["concealed"] if r["effect"] not in args.effects]
         results["limits"] = {k: v for k, v in old["limits"].items() if k not in args.effects}
         results["clean"] = old["clean"] if args.clean == 0 else []
+        results["uncatalogued"] = old.get("uncatalogued", []) if not args.uncatalogued else []
+        results["pairs"] = old.get("pairs", []) if args.pairs == 0 else []
     for effect in args.effects:
         _, realistic, smaller, _, _ = SCENARIOS[effect]
         limit = None
@@ -188,10 +218,25 @@ def main():
         results["limits"][effect] = limit
     for i, (phantom, flat, gain) in enumerate(CLEAN[:args.clean]):
         settings = {"simulate.phantom": phantom, "effects.detector_gain": gain, **flat}
-        r = run(None, None, pixel_mm=args.pixel_mm, seed=100 + i, settings=settings)
-        r["scan"] = f"{phantom}, {'tiled' if flat else 'smooth'} flat field, gain {gain:g} stated"
+        panel = flat is S.FLAT_PANEL
+        r = run(None, None, pixel_mm=args.pixel_mm, seed=100 + i, settings=settings,
+                sets=tuple(S.FLAT_PANEL_STATED) if panel else ())
+        r["scan"] = (f"{phantom}, flat panel, read noise stated" if panel else
+                     f"{phantom}, {'tiled' if flat else 'smooth'} flat field, gain {gain:g} stated")
         results["clean"].append(r)
         print(json.dumps(r), flush=True)
+    for effect in args.uncatalogued:
+        r = run(effect, S.UNCATALOGUED[effect][1], pixel_mm=args.pixel_mm, seed=11, table=S.UNCATALOGUED)
+        r["ok"] = bool(r["unexplained"]) and set(r["found"]) <= NOISE
+        results["uncatalogued"].append(r)
+        print(json.dumps(r), flush=True)
+    for a, b in PAIRS[:args.pairs]:
+        for level in range(3):
+            r = run_pair(a, b, level, pixel_mm=args.pixel_mm, seed=11)
+            results["pairs"].append(r)
+            print(json.dumps(r), flush=True)
+            if not r["ok"]:
+                break
     order = {name: i for i, name in enumerate(SCENARIOS)}
     results["concealed"].sort(key=lambda r: order[r["effect"]])
     results["limits"] = dict(sorted(results["limits"].items(), key=lambda kv: order[kv[0]]))
@@ -216,6 +261,23 @@ def main():
               f"| {r['final_chi2']:.4f} | {r['cost_vs_reconstruct']:g} |" for r in results["clean"]]
     alarms = sum(bool(r["found"] or r["unexplained"]) for r in results["clean"])
     lines += ["", f"Clean scans: {alarms} of {len(results['clean'])} with any detection or unexplained signature."]
+    lines += ["", "## Detector effects in no catalogue", "",
+              "Each must end in `unexplained` along its own axes, with at most the noise model "
+              f"({', '.join(sorted(NOISE))}) named on the way.", "",
+              "| effect | amplitude | found | unexplained | reduced chi2 initial -> final | as required | cost |",
+              "|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['effect']} | {r['amplitude']:g} | {', '.join(r['found']) or '-'} | "
+              f"{', '.join(r['unexplained']) or '-'} | {r['initial_chi2']:.4f} -> {r['final_chi2']:.4f} | "
+              f"{'yes' if r['ok'] else 'no'} | {r['cost_vs_reconstruct']:g} |" for r in results["uncatalogued"]]
+    lines += ["", "## Two effects concealed at once", "",
+              "Amplitudes from each effect's realistic one down its list of smaller ones until the pair is no longer "
+              "named exactly (both, once, nothing else).", "",
+              "| pair | amplitudes | found | unexplained | reduced chi2 initial -> final | both and nothing else | cost |",
+              "|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['effect']} | {', '.join(f'{v:g}' for v in r['amplitude'].values())} | "
+              f"{', '.join(r['found']) or '-'} | {', '.join(r['unexplained']) or '-'} | "
+              f"{r['initial_chi2']:.4f} -> {r['final_chi2']:.4f} | {'yes' if r['ok'] else 'no'} | "
+              f"{r['cost_vs_reconstruct']:g} |" for r in results["pairs"]]
     (args.out / "diagnosis-study.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -42,7 +42,7 @@ def test_set_overrides_and_files_layer(tmp_path):
 @pytest.mark.parametrize("item,message", [
     ("fit.subsampel=3", "did you mean 'subsample'"),
     ("vibraton.tilt=false", "did you mean 'vibration'"),
-    ("fit.subsample=0", "fit.subsample must be auto or a positive integer"),
+    ("fit.subsample=0", "fit.subsample must be auto or an integer in"),
     ("fit.subsample=2.5", "fit.subsample must be int"),
     ("vibration.tilt=3", "vibration.tilt must be bool"),
     ("fit.method=mll", "fit.method must be one of"),

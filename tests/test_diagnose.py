@@ -246,3 +246,27 @@ def test_unidentifiable_effect_that_explains_the_misfit_stops_the_naming():
     assert diag.final_chi2 > 1.2
     # the misfit it leaves is still located
     assert diag.unexplained
+
+
+def test_a_flat_panel_in_detector_units_with_step_errors_names_the_steps_and_the_noise_model_only():
+    """5 phase steps, gain 0.5 and read noise 25 unstated, per-step phase errors, --base none: the step errors and
+    the noise model, nothing else; a wrong noise model (reduced chi-square ~200 before) must not make the step
+    errors look like they make things worse, nor let a proxy in."""
+    scan, truth = S.simulate(sim_config(**{**S.FLAT_PANEL_STEPPING, "simulate.seed": 11}))
+    diag = diagnose(scan, C.defaults(), base="none")
+    found = {e.name: e for e in diag.effects if e.detected}
+    assert set(found) == {"phase_offset", "electronic_noise", "detector_gain"}, list(found)
+    assert diag.initial_chi2 > 50 and diag.final_chi2 == pytest.approx(1.0, abs=0.06)
+    assert found["detector_gain"].extra["gain"] == pytest.approx(0.5, rel=0.1)
+    assert found["electronic_noise"].extra["value"] == pytest.approx(25.0, rel=0.1)
+    assert diag.unexplained == []
+
+
+def test_a_detector_artefact_in_no_catalogue_is_located_not_named():
+    """Line noise of a flat panel (one offset per frame and row, its read noise stated): no catalogue effect
+    explains it; the report locates it along the (frame, row) blocks."""
+    key, amplitude, _, extra, sets = S.UNCATALOGUED["line_noise"]
+    scan, _ = S.simulate(sim_config(**{**extra, key: amplitude, "simulate.seed": 11}))
+    diag = diagnose(scan, C.load([], sets))
+    assert not [e.name for e in diag.effects if e.detected]
+    assert "frame_row" in {u["axis"] for u in diag.unexplained}

@@ -221,7 +221,63 @@ def test_an_unidentifiable_effect_that_explains_the_misfit_stops_the_diagnosis_w
     out = _run([Fake("proxy", 100), Fake("blind", 400, identifiable=False)], world)
     assert out.steps == []
     assert out.blind["blind"]["explains_misfit"] and out.blind["blind"]["explained_share"] == pytest.approx(1.0)
-    assert [h for h, _ in world.fits] == [(), ("blind",)]
+    assert out.blind["blind"]["stopped"]
+    # the identifiable candidate was tried, explained less than the unidentifiable one, and was refused
+    assert [h for h, _ in world.fits] == [(), ("blind",), ("proxy",)] and "proxy" in out.rejected
+
+
+def test_an_identifiable_effect_that_explains_as_much_as_an_unidentifiable_one_is_named():
+    # a phase-stepping recording: per-step phase errors (identifiable) that a per-step visibility model
+    # (not identifiable there) also absorbs
+    world = World({"phase": {("frame", "mean"): 300.0}, "visibility": {}})
+    world.leaves["visibility"] = {}
+    fake_vis = Fake("visibility", 420, identifiable=False)
+    fake_vis.trial = lambda ctx, state, test: state.hypothesis.but(effects=(*state.hypothesis.effects, "phase"))
+    out = _run([Fake("phase", 400), fake_vis], world)
+    assert [s.name for s in out.steps] == ["phase"]
+    assert out.blind["visibility"]["explains_misfit"] and "stopped" not in out.blind["visibility"]
+
+
+def test_of_two_candidates_the_tests_cannot_tell_apart_the_better_fit_is_named():
+    world = World({"offset": {("frame", "mean"): 300.0}})
+
+    class Alike(Fake):
+        """A collinear proxy: its trial takes four fifths of the truth's signature."""
+
+        def trial(self, ctx, state, test):
+            return state.hypothesis.but(effects=(*state.hypothesis.effects, self.name))
+
+    world.leaves["curvature"] = {}
+    fit = world.fit
+
+    def partial(hyp, start, label):
+        state = fit(hyp, start, label)
+        if "curvature" in hyp.effects and "offset" not in hyp.effects:
+            sigs = [{**s, "statistic": s["dof"] + 60.0, "significant": True} if s["axis"] == "frame" else s
+                    for s in state.signatures]
+            return replace(state, signatures=sigs, chi2=state.chi2 + 60.0)
+        return state
+    world.fit = partial
+    out = _run([Fake("offset", 320, until="curvature"), Alike("curvature", 330, until="offset")], world)
+    assert [s.name for s in out.steps] == ["offset"]
+    # both were tried in the first round: the stronger test first, the better fit named
+    assert [h for h, _ in world.fits][1:3] == [("curvature",), ("offset",)]
+
+
+def test_a_refined_effect_refits_at_the_estimate_of_its_own_trial():
+    world = World({"noise": {("count", "variance"): 100.0}})
+
+    class Estimated(Fake):
+        """A noise-model effect: its test still gives an estimate once it is in the model."""
+
+        def test(self, ctx, state, flagged):
+            return self._test
+
+    effect = Estimated("noise", 500, role="noise")
+    effect.refinements = 1
+    out = _run([effect], world)
+    assert [s.name for s in out.steps] == ["noise"]
+    assert [h for h, _ in world.fits] == [(), ("noise",), ("noise", "noise")]
 
 
 def test_an_unidentifiable_effect_that_explains_nothing_does_not_stop_it():

@@ -60,7 +60,7 @@ def _values(shape, rng):
     return rng.uniform(0.2, 0.8, shape) if shape else 0.5
 
 
-SPECIAL = [np.nan, np.inf, -np.inf, -1.0, 0.0, 1e300, 1e-300, 2.0 ** 40]
+SPECIAL = [np.nan, np.inf, -np.inf, -1.0, 0.0, 1e300, 1e-300, 2.0 ** 40, 1e39]
 DTYPES = ["int8", "bool", "float16", "complex64", "uint64", "int64", "string", "compound"]
 VERSIONS = ["1", 1.5, 2, 0, -1, True, np.array([1, 1]), np.float64(1.0), b"1"]
 
@@ -115,16 +115,46 @@ def mutate(f, op, path, k, rng):
         _replace(f, path, lambda f, p: f.create_dataset(p, shape=old.shape, dtype=old.dtype,
                                                         external=[("frames.raw", 0, size)]))
     elif op == "attribute":
-        if k % 5 == 0:
+        if k % 6 == 0:
             f.attrs["format"] = "dfxcorr-result"
-        elif k % 5 == 1:
+        elif k % 6 == 1:
             del f.attrs["format_version"]
+        elif k % 6 == 2:
+            f.attrs["operator"] = np.bytes_(b"M\xfcller")  # not UTF-8
         else:
             f.attrs["format_version"] = VERSIONS[k % len(VERSIONS)]
+    elif op == "fault" and f"{DET}/data" in f and isinstance(f[f"{DET}/data"], h5py.Dataset):
+        fault(f[f"{DET}/data"], k, rng)
+    elif op == "unlit" and isinstance(old, h5py.Dataset) and old.shape:
+        # every position far off the detector (or a few frames only on it)
+        values = np.full(old.shape, 1e4 if k % 2 else -1e4)
+        values[:k % 3] = 0.0
+        _replace(f, path, lambda f, p: f.create_dataset(p, data=values))
+
+
+def fault(frames, k, rng):
+    """A detector fault in the frames: a frame of zeros, a frame read twice, saturated samples, a saturated half."""
+    if frames.ndim != 3 or frames.dtype.kind not in "uif" or 0 in frames.shape:
+        return
+    j = int(rng.integers(1, frames.shape[0])) if frames.shape[0] > 1 else 0
+    top = np.iinfo(frames.dtype).max if frames.dtype.kind in "ui" else 1e6
+    if k % 4 == 0:
+        frames[j] = 0
+    elif k % 4 == 1 and j:
+        frames[j] = frames[j - 1]
+    elif k % 4 == 2:
+        block = frames[j]
+        block[:, : max(block.shape[1] // 4, 1)] = top
+        frames[j] = block
+    else:
+        for i in range(frames.shape[0]):
+            block = frames[i]
+            block[:, block.shape[1] // 2:] = top
+            frames[i] = block
 
 
 OPS = ["delete", "shape", "dtype", "values", "unstored", "softlink", "extlink", "group", "empty", "external_raw",
-       "attribute"]
+       "attribute", "fault", "unlit"]
 mutations = st.lists(st.tuples(st.sampled_from(OPS), st.sampled_from(DATASETS + GROUPS), st.integers(0, 99)),
                      min_size=1, max_size=3)
 
@@ -190,3 +220,25 @@ def test_mutated_configs_end_cleanly(template, edits):
         assert outcome.exit_code in (0, 2), outcome
         if outcome.exit_code == 2:
             assert one_error_line(outcome.stderr), outcome.stderr
+
+
+#: Configuration numbers beyond what makes sense (fit.reweight=10**31 raised OverflowError).
+ABSURD = ["10000000000000000000000000000000", "-10000000000000000000000000000000", "1e300", "-1e300", "0", "-1",
+          "9223372036854775808", ".inf", "1e-300"]
+
+
+def _numeric_keys():
+    from dfxcorr import config as C
+
+    return sorted(f"{s}.{k}" for s, opts in C.SCHEMA.items() for k, o in opts.items()
+                  if int in (o.kind if isinstance(o.kind, tuple) else (o.kind,)))
+
+
+@settings(max_examples=200, **SETTINGS)
+@given(sets=st.lists(st.tuples(st.sampled_from(_numeric_keys()), st.sampled_from(ABSURD)), min_size=1, max_size=2))
+def test_absurd_configuration_numbers_end_cleanly(template, sets):
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "r.h5"
+        args = [a for key, value in sets for a in ("--set", f"{key}={value}")]
+        outcome = cli_capped("reconstruct", template, "-o", out, "--method", "none", *FAST, *args, timeout=60)
+        assert_clean(outcome, out)

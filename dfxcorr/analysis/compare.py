@@ -39,6 +39,10 @@ class TruthError(DfxcorrError, ValueError):
     """A ground-truth file that does not fit the scan."""
 
 
+class SpectrumError(DfxcorrError, ValueError):
+    """A scan whose dark-field image has nothing to take a noise power spectrum of."""
+
+
 def parse_methods(text: str) -> tuple[str, ...]:
     """Comma-separated ``fit.method`` values -> tuple, each validated (ConfigError names a bad one)."""
     methods = tuple(m.strip() for m in text.split(",") if m.strip())
@@ -131,29 +135,42 @@ def load_truth(path: str | Path, shape: tuple) -> dict:
     ------
     TruthError
         If the file cannot be read as an .npz archive of plain arrays (pickled objects are never loaded),
-        an image or per-frame array has the wrong shape, or no image is present.
+        an array would expand beyond what the scan's images and frames need, an image is missing, an image
+        or per-frame array has the wrong shape, or holds values that are not finite real numbers.
     """
+    J, H, W = shape
+    # a member's size is known from the archive's directory before it is read (a zip bomb is not expanded)
+    limit = 16 * (H * W + 8 * J) + (1 << 20)
     try:
         with open(path, "rb") as fh:
             f = np.load(fh, allow_pickle=False)
+            if isinstance(f, np.lib.npyio.NpzFile) and f.zip is not None:
+                big = [i.filename for i in f.zip.infolist() if i.file_size > limit]
+                if big:
+                    raise TruthError(f"{path}: {big[0]} expands beyond {limit} bytes, more than the scan's "
+                                     f"{H} x {W} images need")
             truth = {k: f[k] for k in f.files} if isinstance(f, np.lib.npyio.NpzFile) else None
+    except TruthError:
+        raise
     except OSError as exc:
         raise TruthError(f"{path}: cannot read ({exc.strerror or exc})") from None
     except (ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise TruthError(f"{path}: not a truth file of dfxcorr simulate ({C.show(str(exc), quote=False)})") from None
     if truth is None:
         raise TruthError(f"{path}: a single array, not the .npz archive of dfxcorr simulate")
-    J, H, W = shape
-    images = [k for k in truth if k.startswith("image_")]
-    if not images:
-        raise TruthError(f"{path} holds no image_transmission / image_dark_field / image_differential_phase")
-    for k in images:
+    for k in (k for k in truth if k.startswith("image_")):
         if truth[k].shape != (H, W):
             raise TruthError(f"{path}: {k} has shape {truth[k].shape}, the scan's images are {(H, W)}")
+    missing = [f"image_{k}" for k in Result.IMAGES if f"image_{k}" not in truth]
+    if missing:
+        raise TruthError(f"{path} holds no {' / '.join(missing)} (dfxcorr simulate writes every image)")
     for k in (k for k in truth if k.startswith("vib_")):
-        if truth[k].shape[:1] != (J,):
-            raise TruthError(f"{path}: {k} has {truth[k].shape[0] if truth[k].ndim else 0} entries, "
-                             f"the scan has {J} frames")
+        if truth[k].shape[:1] != (J,) or truth[k].size == 0:
+            raise TruthError(f"{path}: {k} has shape {truth[k].shape}, expected one value per frame of the scan's "
+                             f"{J}")
+    for k in (k for k in truth if k.startswith(("image_", "vib_"))):
+        if truth[k].dtype.kind not in "biuf" or not np.all(np.isfinite(truth[k])):
+            raise TruthError(f"{path}: {k} holds values that are not finite real numbers ({truth[k].dtype})")
     return truth
 
 
@@ -388,10 +405,14 @@ def nps_study(scans, cfg: dict, *, methods=NPS_METHODS, method_sets: dict | None
         prep = pipeline.prepare(item, cfg)
         names.append(str(item) if not isinstance(item, Scan) else f"scan {len(names)}")
         fringes.append(fringe_frequency(prep.reference.phase))
-        bins = bins or int(round(2 / fringes[0]))
+        # rings a quarter of the fringe frequency wide, within the command line's bounds (no fringe: 32)
+        bins = bins or (int(np.clip(round(2 / fringes[0]), 4, 1000)) if fringes[0] > 0 else 32)
         results, runtimes = run_methods(prep, cfg, methods=methods, method_sets=method_sets,
                                         command_line=command_line)
         for m, res in results.items():
+            if not np.any(np.isfinite(res.dark_field)):
+                raise SpectrumError(f"{names[-1]}: the dark-field image of method {m} has no finite pixel (no "
+                                    f"pixel's phase varies over its frames)")
             freq, p = radial_nps(res.dark_field, bins=bins)
             spectra[m].append(p)
             runtime[m] += runtimes[m]

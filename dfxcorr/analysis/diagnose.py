@@ -92,7 +92,8 @@ class Session:
         """The samples of every column and of the fit's columns under a hypothesis.
 
         As in reconstruct: the tests count the region of interest, the fit also the samples without fringe
-        (they monitor dose and background); the hypothesis's moving pixels count in neither.
+        (they monitor dose and background); the hypothesis's moving pixels count in neither, nor do the samples
+        the preparation left out (detector faults).
         """
         key = (hypothesis.corrections, hypothesis.shift.tobytes())
         if key not in self._aligned:
@@ -100,10 +101,10 @@ class Session:
             # the current alignment and a trial's: older ones are not asked for again
             self._aligned = {k: v for k, v in list(self._aligned.items())[-1:]}
             self._aligned[key] = self.realigner(hypothesis)(self.obs, hypothesis.shift) if moved else self.obs
-        obs = self._aligned[key].with_noise(hypothesis.noise)
-        obs = replace(obs, use=obs.in_roi & ~obs.pixel_mask(hypothesis.motion))
-        fit_obs = obs.subset(self.fit_columns)
-        return obs, replace(fit_obs, use=~fit_obs.pixel_mask(hypothesis.motion))
+        base = self._aligned[key].with_noise(hypothesis.noise)
+        obs = replace(base, use=base.use & base.in_roi & ~base.pixel_mask(hypothesis.motion))
+        fit_obs = base.subset(self.fit_columns)
+        return obs, replace(fit_obs, use=fit_obs.use & ~fit_obs.pixel_mask(hypothesis.motion))
 
     def fit(self, hypothesis: Hypothesis, start: dict, label: str) -> Fitted:
         """Fit a hypothesis (from ``start``, or afresh where empty): its chi-square and residual signatures."""
@@ -160,7 +161,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     first = session.fit(start, {}, "round 0")
     before = locate(first.obs, M.design(first.obs, first.params), first.rec.images, first.rec.expected)
     out = loop.run(registry, session, first, fit=session.fit, alpha=d["alpha"], explain_share=d["explain_share"],
-                   max_rounds=d["max_rounds"])
+                   max_rounds=d["max_rounds"], timings=timings)
     final = out.state
     effects, changes = [], []
     for step in out.steps:
@@ -209,4 +210,4 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                      params=final.params, criterion=criterion, rounds=out.rounds,
                      unexplained=sorted(unexplained, key=lambda u: u["p_value"]), signatures=final.signatures,
                      shape=prep.shape, final=final.hypothesis, start=start, cfg=cfg, registry=registry,
-                     changes=changes)
+                     changes=changes, timings=timings)

@@ -12,6 +12,7 @@ import numpy as np
 
 from .. import plots
 from ..catalogue import PAPER_MODEL, effect
+from ..effects import REGISTRY
 from ..effects.base import EffectBase, Hypothesis
 from ..io import atomic_path
 from .signatures import Residuals
@@ -68,6 +69,8 @@ class Diagnosis:
     cfg: dict
     registry: Mapping[str, EffectBase]
     changes: list = field(default_factory=list)
+    #: Seconds of each stage (load, align, every fit and its tests), as logged.
+    timings: dict = field(default_factory=dict)
 
     @property
     def gain(self) -> float:
@@ -98,6 +101,11 @@ class Diagnosis:
                 "reduced_chi2": {"initial": self.initial_chi2, "final": self.final_chi2},
                 "effects": [e.to_json() for e in self.effects], "final_model": self.final_model,
                 "unexplained": self.unexplained, "criterion": self.criterion, "rounds": self.rounds}
+
+
+#: Every file of a fixed name the report may write: its own, and those the effects write when added.
+FIXED_FILES = ("diagnosis.json", "report.md", "residuals.png", "signatures.png",
+               *(f for e in REGISTRY.values() for f in e.files))
 
 
 def change_picture(effect: EffectBase, before, after, extra: dict) -> dict:
@@ -178,6 +186,10 @@ def _markdown(diag: Diagnosis, out_dir: Path | None = None) -> str:
                "information beyond its gauge: the acquisition cannot tell it from the images or the model's other "
                "effects (paper Sec. II-F), so it is never reported as detected."), "",
               "## Unexplained", ""]
+    if diag.unexplained and diag.final_chi2 > GROSS:
+        lines += [(f"**The misfit is gross**: the final model leaves a reduced chi-square of {diag.final_chi2:.4g}, "
+                   f"and no effect of the catalogue explains it. It is located below along its own axes; the physics "
+                   "behind it is not named here (an effect that would only shave a little off it is not added)."), ""]
     if diag.unexplained:
         lines += [(f"The final model still leaves {len(diag.unexplained)} significant residual signature(s) that no "
                    "catalogue effect explains (significant after Holm's correction over the signatures tested; the "
@@ -207,11 +219,16 @@ def _markdown(diag: Diagnosis, out_dir: Path | None = None) -> str:
     return "\n".join(lines)
 
 
+#: A final reduced chi-square beyond this, with signatures left unexplained, is reported as a gross misfit.
+GROSS = 2.0
+
+
 def _verdict_where(e: EffectReport) -> str:
     if e.extra.get("explains_misfit"):
         return (f"explains the misfit (a trial refit with it reaches reduced chi-square "
-                f"{e.extra['reduced_chi2_with']:.4f}), but this acquisition cannot identify it: nothing else is "
-                f"named in its place")
+                f"{e.extra['reduced_chi2_with']:.4f}), but this acquisition cannot identify it: "
+                + ("nothing else is named in its place" if e.extra.get("stopped") else
+                   "an identifiable effect explained as much"))
     if "explained_share" in e.extra:
         return (f"significant, but a trial refit removes only {100 * e.extra['explained_share']:.0f} % of the "
                 f"signatures' excess: not added")

@@ -236,13 +236,19 @@ class EffectBase:
         before the first localised one ('pixels'): a global variance excess is modelled before outliers are
         judged against it, and after the mean effects that explain more.
     fresh_start : bool
-        Its trial changes the data themselves: the trial fit starts afresh, as the first round did.
+        Its trial changes the data or their relative weights: the trial fit starts afresh, as the first round did.
+    refinements : int
+        Refits after the trial, each at the estimate its test gives on the previous refit.
+    files : tuple of str
+        Names of the files its report writes when it is added (:meth:`artefacts`).
     """
 
     entry: Effect
     role: str = "mean"
     tier: int = 2
     fresh_start: bool = False
+    refinements: int = 0
+    files: tuple[str, ...] = ()
 
     @property
     def name(self) -> str:
@@ -287,6 +293,16 @@ class EffectBase:
     def per_frame(self, extra: dict, params: dict) -> np.ndarray | None:
         """Its per-frame estimate (J, n) for the report's picture, where it has one."""
         return None
+
+    def judged_on(self, signature: dict) -> bool:
+        """Whether a trial of this effect is judged on this residual signature (``axis``, ``kind``).
+
+        An effect must explain the signature that its own test is about, not just any misfit. The level of
+        the residuals against the stated noise model (kind 'level') is the noise model's business: a mean
+        effect is never judged on it (while the noise model is off, every mean effect that takes variance out
+        of the residuals would seem to make it worse, or a proxy would seem to explain it).
+        """
+        return self.role == "noise" or signature["kind"] != "level"
 
     def unexplained(self, test: Test) -> dict | None:
         """The ``unexplained`` entry of a significant test of it that was not added (a localised misfit), or None."""

@@ -1,7 +1,13 @@
-"""``detector_gain``: the noise is not Poisson in the file's units (variance g * mean + electronic noise)."""
+"""``detector_gain``: the noise is not Poisson in the file's units (variance g * mean + electronic noise).
+
+The noise model's two parameters, the gain g and the electronic variance sigma_e^2, are estimated together
+from the fit's residuals (:func:`noise_model`); each is tested with the other profiled (a partial
+likelihood-ratio test, 1 dof), so that a gain error is not named electronic noise nor the other way
+round. This module tests the gain; :mod:`dfxcorr.effects.electronic_noise` the electronic variance.
+"""
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -12,20 +18,74 @@ from ..catalogue import Effect
 from ..observations import Observations
 from .base import Context, EffectBase, Hypothesis, State, Test, chi2_test
 
+#: The least gain the regression returns (detector units per photon): a variance needs a photon term.
+MIN_GAIN = 1e-6
+
+
+@dataclass(frozen=True)
+class NoiseFit:
+    """Leverage-corrected squared residuals of the used samples and the noise models fitted to them.
+
+    Attributes
+    ----------
+    r2, mean, variance : ndarray, shape (N,)
+        (I - Ibar)^2 / (1 - h), the photon signal per unit gain (Ibar - dark times the pixel's factor) and the
+        current variance of each sample.
+    gain, electronic : float
+        The current noise model.
+    joint : (float, float)
+        Gain and electronic variance fitted together.
+    """
+
+    r2: np.ndarray
+    mean: np.ndarray
+    variance: np.ndarray
+    gain: float
+    electronic: float
+    joint: tuple[float, float]
+
+    def regression(self, *, gain: float | None = None, electronic: float | None = None) -> tuple[float, float]:
+        """(g, sigma_e^2) fitted to E[r2] = g mean + sigma_e^2, either held where given; g > 0, sigma_e^2 >= 0.
+
+        Weighted least squares with weights 1 / variance^2 (the variance of a squared Gaussian residual).
+        """
+        w = 1.0 / self.variance ** 2
+        if gain is not None:
+            return gain, max(float(np.sum(w * (self.r2 - gain * self.mean)) / np.sum(w)), 0.0)
+        if electronic is not None:
+            return max(float(np.sum(w * self.mean * (self.r2 - electronic)) / np.sum(w * self.mean ** 2)),
+                       MIN_GAIN), electronic
+        A = np.stack([self.mean, np.ones_like(self.mean)], axis=1) * np.sqrt(w)[:, None]
+        (g, e), *_ = np.linalg.lstsq(A, self.r2 * np.sqrt(w), rcond=None)
+        if e < 0:
+            return self.regression(electronic=0.0)
+        if g < MIN_GAIN:
+            return self.regression(gain=MIN_GAIN)
+        return float(g), float(e)
+
+    def deviance(self, gain: float, electronic: float) -> float:
+        """-2 log-likelihood of the residuals under a noise model (Gaussian), up to a constant."""
+        v = gain * self.mean + electronic
+        return float(np.sum(np.log(v) + self.r2 / v))
+
+    def partial_test(self, held: dict) -> Test:
+        """Likelihood ratio of the joint noise model against the current one with only ``held`` (the parameter
+        tested, at its current value) fixed and the other refitted; 1 dof. Payload: the joint 'gain' and
+        'electronic', and 'profiled': the tested parameter's estimate with the other at its current value."""
+        g1, e1 = self.joint
+        null = self.regression(**held)
+        stat = max(self.deviance(*null) - self.deviance(g1, e1), 0.0)
+        other = {"electronic": self.electronic} if "gain" in held else {"gain": self.gain}
+        return chi2_test(stat, 1, payload={"gain": g1, "electronic": e1, "profiled": self.regression(**other)})
+
 
 def noise_model(obs: Observations, ibar: np.ndarray, images: M.Images, dsg: M.Design,
-                weights: np.ndarray, *, exclude: np.ndarray | None = None) -> dict:
-    """Gain and electronic variance from the residuals: E[r^2 / (1 - h)] = g (Ibar - dark) + sigma_e^2.
+                weights: np.ndarray, *, exclude: np.ndarray | None = None) -> NoiseFit:
+    """The noise model fitted to the residuals: E[r^2 / (1 - h)] = g (Ibar - dark) + sigma_e^2.
 
     Squared residuals are divided by 1 - h (h the leverage of the sample in its pixel's image fit):
-    fitting the images removes that share of each sample's variance. Weighted least squares with
-    weights 1 / variance^2 (the variance of a squared Gaussian residual).
-
-    Returns
-    -------
-    dict
-        'gain', 'electronic', and the per-sample 'r2' (leverage-corrected), 'mean' (Ibar - dark) and
-        current 'variance' of the used samples.
+    fitting the images removes that share of each sample's variance. ``exclude`` (K, C) bool: samples left
+    out (pixels whose frames disagree: a localised misfit must not pose as a global variance excess).
     """
     h = M.leverage(obs, dsg, images, weights)
     sel = obs.use & (h < 0.99)
@@ -34,64 +94,53 @@ def noise_model(obs: Observations, ibar: np.ndarray, images: M.Images, dsg: M.De
     r2 = ((obs.counts - ibar) ** 2 / (1 - h))[sel]
     # the photon variance per unit gain: the mean times the pixel's variance factor (pixel_noise)
     mu = (np.maximum(ibar - obs.dark, 1e-3) * obs.pixel_gain(1.0)[obs.pixel])[sel]
-    v0 = M.variance(obs, ibar)[sel]
-    w = 1.0 / v0 ** 2
-    A = np.stack([mu, np.ones_like(mu)], axis=1) * np.sqrt(w)[:, None]
-    (g, e), *_ = np.linalg.lstsq(A, r2 * np.sqrt(w), rcond=None)
-    if e < 0:
-        g, e = float(np.sum(w * mu * r2) / np.sum(w * mu * mu)), 0.0
-    return {"gain": float(g), "electronic": float(e), "r2": r2, "mean": mu, "variance": v0}
+    fit = NoiseFit(r2, mu, M.variance(obs, ibar)[sel], obs.gain, obs.electronic, (obs.gain, obs.electronic))
+    return replace(fit, joint=fit.regression())
 
 
-def gain_test(obs: Observations, ibar: np.ndarray, images: M.Images, dsg: M.Design, weights: np.ndarray, *,
-              exclude: np.ndarray | None = None) -> Test:
-    """Likelihood-ratio test of the estimated noise model against the current one (Gaussian, 2 dof).
-
-    ``exclude`` (K, C) bool: samples left out (pixels whose frames disagree: a localised misfit must not
-    pose as a global variance excess). Payload: 'gain', 'electronic'.
-    """
-    fit = noise_model(obs, ibar, images, dsg, weights, exclude=exclude)
-    r2, v0 = fit["r2"], fit["variance"]
-    v1 = fit["gain"] * fit["mean"] + fit["electronic"]
-    stat = max(float(np.sum(np.log(v0 / v1) + r2 / v0 - r2 / v1)), 0.0)
-    return chi2_test(stat, 2, payload={"gain": fit["gain"], "electronic": fit["electronic"]})
+def noise_fit(ctx: Context, state: State, flagged: np.ndarray) -> NoiseFit:
+    """The noise model of the fit ``state`` (kept in the diagnosis's memo for the state last asked about)."""
+    held = ctx.memo.get("noise")
+    if held is None or held[0] is not state:
+        obs, rec = state.obs, state.rec
+        dsg = M.design(obs, state.params)
+        images = M.solve_images(obs, dsg, rec.weights, keep_inverse=True)
+        held = state, noise_model(obs, rec.expected, images, dsg, rec.weights,
+                                  exclude=obs.pixel_mask(ndimage.binary_dilation(flagged)))
+        ctx.memo["noise"] = held
+    return held[1]
 
 
 class DetectorGain(EffectBase):
     entry = Effect("detector_gain", None, False, (), 1.0, "none",
                    "noise is not Poisson in the file's units: variance = g * mean (+ electronic noise)")
     role = "noise"
-    tier = 1
+    tier = 2
 
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
-        obs, rec = state.obs, state.rec
-        dsg = M.design(obs, state.params)
-        images = M.solve_images(obs, dsg, rec.weights, keep_inverse=True)
-        t = gain_test(obs, rec.expected, images, dsg, rec.weights,
-                      exclude=obs.pixel_mask(ndimage.binary_dilation(flagged)))
+        t = noise_fit(ctx, state, flagged).partial_test({"gain": state.obs.gain})
         # the per-frame parameters, fitted on every n-th column, leave their noise in the other columns'
         # residuals: about n chi-square per parameter, an apparent gain that a stated one must not be taken for
         d = ctx.cfg["diagnose"]
         n_par = sum(np.size(p) for p in state.params.values())
-        apparent = obs.gain * (1 + d["subsample"] * n_par * state.reduced_chi2 / max(state.chi2, 1.0))
-        return replace(t, material=abs(t.payload["gain"] / apparent - 1) > d["min_gain_change"])
+        apparent = state.obs.gain * (1 + d["subsample"] * n_par * state.reduced_chi2 / max(state.chi2, 1.0))
+        return replace(t, explains=t.statistic,
+                       material=abs(t.payload["gain"] / apparent - 1) > d["min_gain_change"])
 
     def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
-        return state.hypothesis.but(noise=replace(state.hypothesis.noise, gain=test.payload["gain"],
-                                                  electronic=test.payload["electronic"]))
+        return state.hypothesis.but(noise=replace(state.hypothesis.noise, gain=test.payload["profiled"][0]))
 
     def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
-        return {"gain": test.payload["gain"], "electronic": test.payload["electronic"]}
+        return {"gain": after.hypothesis.noise.gain}
 
     def where(self, test: Test, obs: Observations) -> str:
         return "all pixels (noise, not the mean)"
 
     def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
-        return f"g = {extra['gain']:.3f}, electronic sigma = {np.sqrt(extra['electronic']):.3g} counts"
+        return f"g = {extra['gain']:.3f}"
 
     def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
-        return [f"load.gain={final.noise.gain:.4g}", f"load.electronic={final.noise.electronic:.4g}"] \
-            if extra is not None else []
+        return [f"load.gain={final.noise.gain:.4g}"] if extra is not None else []
 
 
 EFFECT = DetectorGain()

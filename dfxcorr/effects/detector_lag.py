@@ -125,11 +125,14 @@ def measured_lag(store: LitStore) -> tuple[float, float]:
     if store.left_counts is None or store.left_prev is None or store.left_prev.size == 0:
         return float("nan"), float("inf")
     prev_row = store.row[store.left_prev]
-    signal = store.left_counts.astype(np.float64) - store.dark[prev_row]
+    # detector faults take no part: a frame read twice would read as a lag of 1
+    keep = np.ones(store.left_counts.shape, bool) if store.good is None else store.good[store.left_prev].copy()
+    keep[np.isin(store.frame[store.left_prev] + 1, store.bad_frames)] = False
+    signal = np.where(keep, store.left_counts.astype(np.float64) - store.dark[prev_row], 0.0)
     a, se = 0.0, float("inf")
     for _ in range(4):
         prev = lag_free(store.counts, store.dark[store.row], store.row, store.frame, store.lag or a)[store.left_prev]
-        a, se = lag_estimate(signal, prev - store.dark[prev_row])
+        a, se = lag_estimate(signal, np.where(keep, prev - store.dark[prev_row], 0.0))
         if store.lag:
             break
     return a, se

@@ -195,6 +195,7 @@ class PixelNoise(EffectBase):
     entry = Effect("pixel_noise", None, False, (), 1.0, "none",
                    "the noise variance differs from pixel to pixel: variance_i = f_i * g * mean (+ electronic)")
     role = "noise"
+    files = ("pixel_noise.tif",)
     # a variance pattern before a global gain: its factors are relative to the regular pixels, so a gain fitted
     # first would be pulled by the anomalous ones
     tier = 0
@@ -240,7 +241,7 @@ class PixelNoise(EffectBase):
 
             tifffile.imwrite(path, factors.astype(np.float32))
 
-        return {"pixel_noise.tif": write}
+        return {self.files[0]: write}
 
 
 EFFECT = PixelNoise()

@@ -143,6 +143,7 @@ class PositionError(EffectBase):
                    "the recorded position of frame j is off by delta_j rows: its flat field is read at u - delta_j",
                    unit="rows")
     role = "alignment"
+    files = ("position_errors.txt",)
 
     def configured(self, cfg: dict, *, n_frames: int, detector: tuple[int, int]) -> Any:
         path = cfg["align"]["position_errors"]
@@ -191,7 +192,7 @@ class PositionError(EffectBase):
             np.savetxt(path, values, fmt="%.6f", header="position error delta_j of each frame (rows): dfxcorr "
                                                         "reconstruct --set align.position_errors=<this file>")
 
-        return {"position_errors.txt": write}
+        return {self.files[0]: write}
 
 
 EFFECT = PositionError()

@@ -16,6 +16,11 @@ from ..observations import Observations
 from .base import Context, EffectBase, Hypothesis, State, Test, Writer
 
 
+#: The largest share of the scored pixels that a moving part of the sample may cover: a misfit spread wider is
+#: not sample motion (a blanket mask hides a misfit of the whole detector), and is reported where it is.
+MAX_SHARE = 0.1
+
+
 def motion_test(obs: Observations, params: dict, *, p_pixel: float = 1e-6, min_pixels: int = 5) -> Test:
     """Pixels whose frames disagree beyond noise and remaining vibration misfit, in clusters.
 
@@ -27,7 +32,8 @@ def motion_test(obs: Observations, params: dict, *, p_pixel: float = 1e-6, min_p
     -------
     Test
         Statistic: chi-square in excess of its dof over the flagged pixels; dof: flagged pixels; log_p:
-        binomial (that many pixels below ``p_pixel`` by chance); payload 'mask' (H, W) bool.
+        binomial (that many pixels below ``p_pixel`` by chance); payload 'mask' (H, W) bool. Not material where
+        the flagged pixels are more than :data:`MAX_SHARE` of those scored.
     """
     score = motion_score(obs, params)
     dof = np.maximum(obs.segment_sum(obs.use.astype(float)) - 3, 1)
@@ -43,7 +49,8 @@ def motion_test(obs: Observations, params: dict, *, p_pixel: float = 1e-6, min_p
     excess = obs.to_image(np.nan_to_num(score - 1) * dof, fill=0.0)
     log_p = float(stats.binom.logsf(k - 1, int(ok.sum()), p_pixel)) if k >= min_pixels else 0.0
     stat = float(excess[flag].sum())
-    return Test(stat, k, float(np.exp(log_p)), log_p, explains=stat, payload={"mask": flag})
+    return Test(stat, k, float(np.exp(log_p)), log_p, explains=stat, material=k <= MAX_SHARE * ok.sum(),
+                payload={"mask": flag})
 
 
 def where_pixels(mask: np.ndarray) -> str:
@@ -57,6 +64,7 @@ class SampleMotion(EffectBase):
     entry = Effect("sample_motion", None, False, (), 0.0, "none",
                    "part of the sample moved during the scan: pixels whose frames disagree")
     role = "pixels"
+    files = ("motion_mask.tif",)
 
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
         if state.hypothesis.motion.any():
@@ -79,10 +87,12 @@ class SampleMotion(EffectBase):
 
     def unexplained(self, test: Test) -> dict:
         """The ``unexplained`` entry of pixels that disagree although masking them did not explain the misfit."""
+        why = "masking them does not explain the misfit" if test.material else \
+            f"more than {100 * MAX_SHARE:.0f} % of the pixels: no moving part of a sample"
         return {"axis": "pixel", "statistic": test.statistic, "dof": test.dof, "p_value": test.p_value,
                 "where": where_pixels(test.payload["mask"]),
                 "description": f"{int(test.payload['mask'].sum())} pixels whose frames disagree beyond noise, in "
-                               f"clusters; masking them does not explain the misfit"}
+                               f"clusters; {why}"}
 
     def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
         return ["mask.enabled=true"] if extra is not None else []
@@ -96,7 +106,7 @@ class SampleMotion(EffectBase):
 
             tifffile.imwrite(path, final.motion.astype(np.uint8))
 
-        return {"motion_mask.tif": write}
+        return {self.files[0]: write}
 
 
 EFFECT = SampleMotion()

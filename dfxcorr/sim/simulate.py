@@ -18,7 +18,7 @@ import numpy as np
 
 from .. import model as M
 from ..align import interpolate_rows, lit_blocks
-from ..config import Option, _fraction, _nonneg, _positive
+from ..config import ConfigError, Option, _fraction, _nonneg, _positive, _within
 from ..io import Reference, Scan, SteppingReference, write_scan
 from ..reference import stepping_observations
 
@@ -41,10 +41,9 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "step_mm": Option(2.5, "motion of the active area between exposures (mm)", _NUM, check=_positive),
         "magnification": Option(1.2, "source-detector / source-sample distance (1.8 m / 1.5 m)", _NUM,
                                 check=_positive),
-        "steps": Option(11, "stepping geometry: number of phase steps", int, check=lambda v: None if v >= 3
-                        else "must be at least 3"),
+        "steps": Option(11, "stepping geometry: number of phase steps", int, check=_within(3, 10000)),
         "steps_per_period": Option(11, "stepping geometry: steps per grating period", _NUM, check=_positive),
-        "flux": Option(2e4, "flat-field counts per pixel and frame, t^f", _NUM, check=_positive),
+        "flux": Option(2e4, "flat-field counts per pixel and frame, t^f", _NUM, check=_within(1e-3, 1e9)),
         "visibility": Option(0.3, "flat-field visibility v^f", _NUM, check=_fraction),
         "flat_gradient": Option(0.0, "relative change of t^f from the top to the bottom of the active area "
                                      "(heel effect, grating shadowing); 0: uniform", _NUM),
@@ -56,9 +55,9 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                      "3 ms, gzip in 20 ms (4 s more per clinical scan) but is readable outside "
                                      "h5py; none", str, choices=("lzf", "gzip", "none")),
         "reference_steps": Option(0, "0: exact reference maps; S > 2: a noisy S-step reference series", int,
-                                  check=_nonneg),
+                                  check=_within(0, 10000)),
         "reference_frames": Option(20, "frames averaged per reference step (its dose multiple)", int,
-                                   check=_positive),
+                                   check=_within(1, 1e6)),
         "reference_step_errors": Option(0.0, "std of the phase errors of the reference series' steps (rad)", _NUM,
                                         check=_nonneg),
         "tiles": Option(0, "grating tiles across the width (0: one seamless grating): the flat-field phase gradient "
@@ -80,7 +79,7 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "visibility_loss": Option(0.2, "std of u in v^s_j = |1 - |u||; 0: none", _NUM, check=_nonneg),
         "curvature": Option(0.0, "std of phi2_j (rad)", _NUM, check=_nonneg),
         "visibility_tilt": Option(0.0, "std of v1_j and v2_j (v2_j = -|.|)", _NUM, check=_nonneg),
-        "dose": Option(0.0, "relative std of the per-frame dose d_j", _NUM, check=_nonneg),
+        "dose": Option(0.0, "relative std of the per-frame dose d_j", _NUM, check=_within(0, 1)),
         "background": Option(0.0, "additive background at the detector centre, fraction of the flux", _NUM,
                              check=_nonneg),
         "harmonic": Option(0.0, "amplitude a2 of the stepping curve's second harmonic, fraction of the first's "
@@ -197,14 +196,33 @@ def geometry(cfg: dict) -> dict:
     """Detector and scan geometry in pixels: H, W, A, positions (J,), phase steps (J,)."""
     s = cfg["simulate"]
     px = s["pixel_mm"]
+    # sizes as floats first: 1e300 mm would not fit an int
+    _check_size(s["height_mm"] / px, s["width_mm"] / px, 1, 3)
     H, W = int(round(s["height_mm"] / px)), int(round(s["width_mm"] / px))
     if s["geometry"] == "stepping":
         J = s["steps"]
+        _check_size(H, W, H, J)
         return dict(H=H, W=W, A=H, position=np.zeros(J), phase_step=2 * np.pi * np.arange(J) / s["steps_per_period"])
     A, step = int(round(s["active_mm"] / px)), s["step_mm"] / px
     J = int(round((H + A) / step)) - 1
+    _check_size(H, W, A, J)
     position = -A + step * (np.arange(J) + 1)
     return dict(H=H, W=W, A=A, position=position, phase_step=np.zeros(J))
+
+
+#: Most samples (frames x rows x columns) a simulation holds: 4 GB of uint32 counts.
+MAX_SAMPLES = 10 ** 9
+
+
+def _check_size(H: float, W: float, A: float, J: float) -> None:
+    """Refuse geometries without a scan in them, or beyond :data:`MAX_SAMPLES`, before anything is allocated."""
+    if min(H, W) < 4 or A < 1 or J < 3:
+        raise ConfigError(f"simulate.height_mm, width_mm, active_mm, step_mm over pixel_mm give {int(J)} frames of "
+                          f"{int(H)} x {int(W)} pixels with an active area of {int(A)} rows; a scan needs at least 3 "
+                          f"frames of 4 x 4 pixels and 1 row")
+    if J * H * W > MAX_SAMPLES:
+        raise ConfigError(f"simulate.height_mm, width_mm, step_mm over pixel_mm give {J:.3g} frames of {H:.3g} x "
+                          f"{W:.3g} pixels, more than {MAX_SAMPLES:.0e} samples")
 
 
 #: Relative variation of t^f and v^f along the scan, and phase departure / 2 pi, of ``flat_nonlinearity: 1``.

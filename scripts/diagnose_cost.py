@@ -1,0 +1,99 @@
+#!/usr/bin/env python3
+"""What ``diagnose`` costs against ``reconstruct`` of the same scan: wall time and peak memory, and where the time goes.
+
+Each command runs in a process of its own (peak resident memory from getrusage); the scans are made here
+(the shared 11-step recording, imported; a 5-step 512 x 1536 flat-panel stepping simulation; the paper's
+study at 1 mm). Writes docs/diagnose-cost.json and prints a table.
+
+Usage: python scripts/diagnose_cost.py [--cases real stepping paper] [--out docs/]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: Runs one command on one scan in this process and prints its seconds, peak memory and stage timings.
+CHILD = """
+import json, resource, sys, time
+from dfxcorr import config as C
+from dfxcorr.pipeline import reconstruct
+from dfxcorr.analysis.diagnose import diagnose
+command, path, base = sys.argv[1:4]
+t0 = time.perf_counter()
+if command == "reconstruct":
+    timings = reconstruct(path, C.defaults(), progress=False).timings
+else:
+    timings = diagnose(path, C.defaults(), base=base).timings
+print(json.dumps({"seconds": time.perf_counter() - t0, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "timings": timings}))
+"""
+
+
+def make(case: str, folder: Path) -> tuple[Path, str]:
+    """The scan file of a case, and the diagnosis's base model."""
+    from dfxcorr import config as C
+    from dfxcorr.io import write_scan
+    from dfxcorr.sim import simulate as S
+
+    path = folder / f"{case}.h5"
+    if case == "real":
+        from dfxcorr.importer import import_stepping
+
+        data = ROOT.parent / "shared" / "data" / "real" / "tum-ipp-stepping"
+        import_stepping(path, sample=str(data / "data_stepping_*.npy"), reference=str(data / "flat_stepping_*.npy"),
+                        steps_per_period=11)
+        return path, "configured"
+    if case == "stepping":
+        cfg = C.load([], [f"{k}={v}" for k, v in {**S.FLAT_PANEL_STEPPING, "simulate.pixel_mm": 0.3,
+                                                   "simulate.height_mm": 153.6, "simulate.width_mm": 460.8}.items()],
+                     schema=S.SCHEMA)
+        base = "none"
+    else:
+        cfg = C.load([str(ROOT / "configs" / "paper-simulation.yaml")], schema=S.SCHEMA)
+        base = "configured"
+    scan, _ = S.simulate(cfg)
+    write_scan(path, scan)
+    return path, base
+
+
+def measure(command: str, path: Path, base: str) -> dict:
+    out = subprocess.run([sys.executable, "-c", CHILD, command, str(path), base], check=True, capture_output=True,
+                         text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cases", nargs="*", default=["real", "stepping", "paper"])
+    ap.add_argument("--out", type=Path, default=ROOT / "docs")
+    args = ap.parse_args()
+    from dfxcorr.analysis.compare import machine
+
+    rows = {"machine": machine(), "cases": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        for case in args.cases:
+            path, base = make(case, Path(tmp))
+            rec, diag = measure("reconstruct", path, base), measure("diagnose", path, base)
+            stages: dict[str, float] = {}
+            for name, seconds in diag["timings"].items():
+                kind = "tests" if name.endswith(": tests") else name.split(": fit")[0].split(": ")[-1] \
+                    if ": fit" in name else name
+                kind = "trial fits" if kind.startswith("trial") else ("fits" if kind.startswith("round") else kind)
+                stages[kind] = stages.get(kind, 0.0) + seconds
+            rows["cases"][case] = {"reconstruct_s": rec["seconds"], "diagnose_s": diag["seconds"],
+                                   "time_ratio": diag["seconds"] / rec["seconds"], "reconstruct_mb": rec["peak_mb"],
+                                   "diagnose_mb": diag["peak_mb"], "memory_ratio": diag["peak_mb"] / rec["peak_mb"],
+                                   "diagnose_stages_s": stages}
+            print(case, json.dumps(rows["cases"][case]), flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "diagnose-cost.json").write_text(json.dumps(rows, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
