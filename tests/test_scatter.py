@@ -10,6 +10,7 @@ from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.effects import scatter as SC
+from dfxcorr.noise import MIN_SIGNAL
 from dfxcorr.pipeline import prepare, reconstruct
 from dfxcorr.retrieve import reduced_chi2, retrieve
 from dfxcorr.sim import simulate as S
@@ -64,7 +65,7 @@ def test_one_model_in_kernels_and_numpy_oracle():
     assert reduced_chi2(obs, rec.expected, rec.images.valid, n_params=n_params) == pytest.approx(rec.reduced_chi2,
                                                                                                rel=1e-9)
     np.testing.assert_allclose(M.variance(obs, rec.expected),
-                               obs.pixel_gain()[obs.pixel] * np.maximum(rec.expected - obs.dark, 1e-3))
+                               obs.pixel_gain()[obs.pixel] * np.maximum(rec.expected - obs.dark, MIN_SIGNAL))
     # a subset of columns keeps each pixel's factor
     sub = obs.subset(np.arange(3, 40))
     np.testing.assert_array_equal(sub.pixel_gain(), obs.pixel_gain()[:, 3:40])
