@@ -36,7 +36,8 @@ def no_lit_rows(min_frames: int) -> AlignmentError:
                           f"(dataset /entry/scan/position)")
 
 
-def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, dtype: DTypeLike = np.float64) -> np.ndarray:
+def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | None = None,
+                     dtype: DTypeLike = np.float64) -> np.ndarray:
     """Linear interpolation of row-sampled maps at continuous local rows.
 
     With f = u - 0.5 and k0 = floor(f) clipped to [0, A - 2], the value is
@@ -48,17 +49,20 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, dtype: DTypeLike = np.f
         Values at the row centres u = k + 0.5.
     u : ndarray, shape (K,)
         Local rows (0 <= u < A for lit samples); the outer half rows are extrapolated linearly.
+    columns : ndarray of int, shape (C,), optional
+        Only these columns of the maps (default all).
     dtype : numpy dtype
         Of the result (computed in float64).
 
     Returns
     -------
-    ndarray, shape (K, W)
+    ndarray, shape (K, C)
     """
     if maps.shape[0] == 1:
-        return np.repeat(maps, np.size(u), axis=0).astype(dtype, copy=False)
+        picked = maps if columns is None else maps[:, columns]
+        return np.repeat(picked, np.size(u), axis=0).astype(dtype, copy=False)
     K.set_threads()
-    return K.interpolate_rows(maps, u, dtype=dtype)
+    return K.interpolate_rows(maps, u, columns=columns, dtype=dtype)
 
 
 def pixel_mm(scan: Scan) -> tuple[float, float] | None:
@@ -226,10 +230,10 @@ class LitStore:
         cols = np.arange(W) if columns is None else np.asarray(columns, dtype=np.int64)
         lo, hi = (0, self.row.size) if rows is None else np.searchsorted(self.row, rows)
         row, frame, u = self.row[lo:hi], self.frame[lo:hi], self.u[lo:hi]
-        phase = reference.phase[:, cols] if phase_unwrapped else np.unwrap(reference.phase[:, cols], axis=0)
-        tf = interpolate_rows(reference.transmission[:, cols], u, dtype=dtype)
-        vf = interpolate_rows(reference.visibility[:, cols], u, dtype=dtype)
-        phif = interpolate_rows(phase, u)
+        phase = reference.phase if phase_unwrapped else np.unwrap(reference.phase, axis=0)
+        tf = interpolate_rows(reference.transmission, u, columns=cols, dtype=dtype)
+        vf = interpolate_rows(reference.visibility, u, columns=cols, dtype=dtype)
+        phif = interpolate_rows(phase, u, columns=cols)
         phif += self.phase_step[frame][:, None]
         # C order whatever the store's: the kernels walk a sample row at a time (a Fortran-ordered copy made
         # every cost evaluation about 1.7x slower)

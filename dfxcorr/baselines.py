@@ -24,7 +24,8 @@ from scipy import sparse
 
 from . import model as M
 from .config import ConfigError
-from .fit import FitResult, fix_gauge, initial_weights, uncertainty, well_determined, wrap_phases
+from .fit import FitResult, initial_weights, uncertainty
+from .frames import fix_gauge, well_determined, wrap_phases
 
 log = logging.getLogger(__name__)
 

@@ -13,6 +13,7 @@ import tempfile
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -21,6 +22,9 @@ from . import io
 from .align import lit_blocks, no_lit_rows
 from .errors import DfxcorrError, OutputExistsError, require_regular_file
 from .faults import Faults, find_faults, saturation_level
+
+if TYPE_CHECKING:  # the pipeline (numba kernels) is imported only where a check runs the pilot
+    from .pipeline import ColumnPlan
 
 #: Name length limit where the file system does not tell (bytes; ext4, XFS, Lustre, GPFS).
 NAME_MAX = 255
@@ -177,6 +181,8 @@ class Plan:
     method : str
     columns : ndarray of int
         Columns of the vibration fit (empty for ``fit.method=none``).
+    fit_plan : ColumnPlan or None
+        How they were chosen, the predicted uncertainty and time (None for ``fit.method=none``).
     effects : tuple of str
         Configured effects that remain candidates (the Fisher check of the run may still drop ``auto`` ones).
     dropped : dict
@@ -195,6 +201,7 @@ class Plan:
     lit_samples: int
     method: str
     columns: np.ndarray
+    fit_plan: ColumnPlan | None
     effects: tuple
     dropped: dict = field(default_factory=dict)
     memory_bytes: int = 0
@@ -203,10 +210,8 @@ class Plan:
     def summary(self) -> str:
         """Lines for the terminal."""
         J, H, W = self.shape
-        cols = self.columns
-        fit = ("none: no vibration fit" if self.method == "none" else
-               f"{self.method} on {cols.size} of {W} columns"
-               + (f" (every {cols[1] - cols[0]} columns from column {cols[0]})" if cols.size > 1 else ""))
+        fit = ("none: no vibration fit" if self.fit_plan is None else
+               f"{self.method} on {self.columns.size} of {W} columns: {self.fit_plan.summary()}")
         lines = [f"scan {self.scan}: {J} frames of {H} x {W} ({self.dtype}), active area {self.active_rows} rows"
                  + (", phase stepping" if self.stepping else ""),
                  f"rows used: {self.rows_used} of {H}; lit samples: {self.lit_samples}",
@@ -230,20 +235,28 @@ def memory_estimate(shape, *, itemsize: int, lit_samples: int, fit_samples: int,
                + BASE_BYTES)
 
 
-def _columns(width: int, cfg: dict, samples_per_column: int) -> np.ndarray:
-    from .pipeline import fit_columns
+def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, pilot: bool) -> ColumnPlan:
+    from .pipeline import FIT_SECONDS_PER_SAMPLE, ColumnPlan, column_step, fit_columns, plan_columns, prepare
 
+    W = scan.shape[2]
+    n = cfg["fit"]["subsample"]
     try:
-        return fit_columns(width, cfg, samples_per_column, report=False)
+        if n == "auto" and pilot:
+            return plan_columns(prepare(scan, cfg), cfg, report=False)
+        step = column_step(W, samples_per_column, most=cfg["fit"]["max_samples"]) if n == "auto" else n
+        cols = fit_columns(W, cfg, step)
+        return ColumnPlan(columns=cols, why="fit.subsample" if n != "auto" else
+                          "at most; auto chooses at run time from a pilot, which dfxcorr check runs",
+                          seconds=FIT_SECONDS_PER_SAMPLE * samples_per_column * cols.size)
     except ValueError as exc:
         if isinstance(exc, DfxcorrError):
             raise
-        n, offset = cfg["fit"]["subsample"], cfg["fit"]["column_offset"]
+        offset = cfg["fit"]["column_offset"]
         if offset is not None:
-            raise C.ConfigError(f"fit.column_offset={offset} is outside the detector's columns 0..{width - 1}") \
+            raise C.ConfigError(f"fit.column_offset={offset} is outside the detector's columns 0..{W - 1}") \
                 from None
         first = f" (its first column would be {n // 2})" if isinstance(n, int) else ""
-        raise C.ConfigError(f"fit.subsample={n} leaves no column of {width}{first}; use at most {width // 4}") from None
+        raise C.ConfigError(f"fit.subsample={n} leaves no column of {W}{first}; use at most {W // 4}") from None
 
 
 def _visibility_reasons(scan: io.Scan) -> str | None:
@@ -257,7 +270,8 @@ def _visibility_reasons(scan: io.Scan) -> str | None:
     return visibility_unidentifiable(scan, reference)
 
 
-def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool = False) -> Plan:
+def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool = False,
+         pilot: bool = False) -> Plan:
     """Check a resolved configuration against a scan without fitting; what ``reconstruct`` would do.
 
     Parameters
@@ -272,6 +286,9 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
         Listed in the summary.
     diagnose : bool
         Also check the ``diagnose`` section.
+    pilot : bool
+        For ``fit.subsample: auto``, prepare the scan (reading its frames) and run the pilot that chooses the
+        fit's columns (:func:`dfxcorr.pipeline.plan_columns`); otherwise the columns are the most auto may take.
 
     Raises
     ------
@@ -302,14 +319,15 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     for effect in REGISTRY.values():
         effect.configured(cfg, n_frames=J, detector=(H, W))
     lit = int(count[used].sum()) * W
-    columns = np.zeros(0, int) if method == "none" else _columns(W, cfg, lit // W)
+    fit_plan = None if method == "none" else _columns(scan, cfg, lit // W, pilot=pilot)
+    columns = np.zeros(0, int) if fit_plan is None else fit_plan.columns
     effects = C.effects_of(cfg) if method != "none" else ()
     why = _visibility_reasons(scan) if set(VISIBILITY_EFFECTS) & set(effects) else None
     kept, dropped = drop_visibility(cfg, effects, why)
     effects = tuple(kept)
     return Plan(scan=name, shape=(J, H, W), dtype=str(scan.data.dtype), active_rows=scan.active_rows,
                 stepping=scan.is_stepping, rows_used=int(used.sum()), lit_samples=lit, method=method,
-                columns=columns, effects=effects, dropped=dropped,
+                columns=columns, fit_plan=fit_plan, effects=effects, dropped=dropped,
                 memory_bytes=memory_estimate(scan.shape, itemsize=scan.data.dtype.itemsize, lit_samples=lit,
                                              fit_samples=columns.size * (lit // W),
                                              block_mb=cfg["retrieve"]["block_mb"]),

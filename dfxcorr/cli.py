@@ -209,7 +209,7 @@ def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overw
 
     _, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
     scan_read = read_scan(scan, allow_external=cfg["load"]["allow_external"])
-    click.echo(check.plan(scan_read, cfg, name=scan, outputs=outputs, diagnose=True).summary())
+    click.echo(check.plan(scan_read, cfg, name=scan, outputs=outputs, diagnose=True, pilot=True).summary())
     faults = check.detector_faults(scan_read, cfg)
     faults.require_data()
     click.echo(faults.summary() if faults.any else "detector faults: none (no saturated sample, no empty or repeated "

@@ -148,19 +148,24 @@ SCHEMA: dict[str, dict[str, Option]] = {
     "fit": {
         "method": Option("ml", "vibration estimator: ml (this paper), alternating, correlation, none", str,
                          choices=METHODS),
-        "subsample": Option("auto", "fit on every n-th detector column (paper Sec. II-D.1); auto: every column "
-                                    "unless that exceeds fit.max_samples, then the smallest n that stays within it "
-                                    "(never beyond the alias limit W / 4)", (int, str),
+        "subsample": Option("auto", "fit on every n-th detector column (paper Sec. II-D.1); auto: the fewest "
+                                    "columns predicted (from a pilot's Fisher information) to reach "
+                                    "fit.target_uncertainty, or the most within fit.time_budget (never beyond "
+                                    "fit.max_samples nor the alias limit W / 4)", (int, str),
                             check=lambda v: None if v == "auto" or (not isinstance(v, str) and 0 < v <= 10 ** 6)
                             else "must be auto or an integer in [1, 1e6]"),
-        "max_samples": Option(2_000_000, "subsample auto: most lit samples (rows x frames x columns) the fit may "
-                                         "hold; the fit's time grows with them (about 3 s per million samples "
-                                         "on 2 cores) and 2e6 keeps phi0 and phi1 within the paper's 0.004 rad "
-                                         "on a clinical scan (measured: scripts/benchmark.py clinical)",
-                              int, check=_within(1, 1e12)),
+        "target_uncertainty": Option(0.0025, "subsample auto: predicted median one-sigma uncertainty of phi0 and "
+                                              "phi1 (rad) to reach", _NUM, check=_within(1e-9, 10)),
+        "time_budget": Option(None, "subsample auto: instead of fit.target_uncertainty, the most columns whose "
+                                    "fit is predicted to take at most this many seconds", _NUM, check=_within(1e-3, 1e7),
+                              nullable=True),
+        "max_samples": Option(7_000_000, "subsample auto: most lit samples (rows x frames x columns) the fit "
+                                         "may hold (memory: a full-resolution clinical scan peaked at 1.43 GB "
+                                         "with 2.7e6, 1.60 GB with 7.7e6)", int, check=_within(1, 1e12)),
         "column_offset": Option(None, "first column of the subsampled grid; null: subsample // 2", int,
-                                check=_within(0, 1e6), nullable=True),
-        "maxiter": Option(300, "L-BFGS iterations per stage", int, check=_within(1, 1e5)),
+                                check=_nonneg, nullable=True),
+        "maxiter": Option(300, "iterations (Gauss-Newton trial steps or L-BFGS iterations) per stage", int,
+                          check=_within(1, 1e5)),
         "gtol": Option(1e-3, "stop when the preconditioned gradient is below this (cost per parameter sigma)",
                        _NUM, check=_positive),
         "circmean_iterations": Option(10, "first iterations with the phase image at its circular mean (eq. 36)",
@@ -170,6 +175,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "preconditioner": Option("profiled", "profiled: whiten by the whole profiled Fisher information (same "
                                              "minimum, far fewer iterations); diagonal: its plain diagonal, the "
                                              "paper's eq. 34", str, choices=("profiled", "diagonal")),
+        "optimizer": Option("gauss-newton", "gauss-newton: Levenberg-Marquardt steps on the profiled Fisher "
+                                            "information (a handful of cost evaluations per stage, L-BFGS where "
+                                            "they stall); lbfgs: L-BFGS alone (the same minimum)", str,
+                            choices=("gauss-newton", "lbfgs")),
         "reweight": Option(1, "refits with noise weights from the fitted model", int, check=_within(0, 100)),
         "visibility_gauge": Option("max", "normalise v^s to a robust maximum of 1 (max) or a median of 1 "
                                           "(median, eq. 22)", str, choices=("max", "median")),

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -26,7 +26,14 @@ from scipy.optimize import minimize
 
 from . import kernels as K
 from . import model as M
-from .align import gauge_frames
+from .frames import (
+    catalogue_prior,
+    empirical_prior,
+    fix_gauge,
+    rescue_frames,
+    well_determined,
+    wrap_phases,
+)
 
 log = logging.getLogger(__name__)
 
@@ -47,11 +54,14 @@ class FitResult:
     stage : list of str
         Stage of each entry of ``cost``.
     iterations : int
+        Accepted steps (Gauss-Newton) or iterations (L-BFGS), all stages.
     converged : bool
     messages : list of str
         The optimiser's last word per stage.
     well_determined : ndarray of bool, shape (J,)
         Frames lighting at least the configured fraction of the active area (used for the gauge).
+    evaluations : int
+        Passes of the cost kernel over the fit's samples, all stages.
     """
 
     params: dict[str, np.ndarray]
@@ -62,6 +72,7 @@ class FitResult:
     converged: bool
     messages: list[str] = field(default_factory=list)
     well_determined: np.ndarray | None = None
+    evaluations: int = 0
 
 
 #: Share of the diagonal preconditioner (eq. 34) added to the profiled Hessian: it bounds the steps of
@@ -69,14 +80,33 @@ class FitResult:
 #: whose profiled curvature there understates what the cost shows once the images settle (paper study,
 #: every column: 0 -> 377 iterations, the 'all' stage at its limit; 0.01 -> 190; 0.1 -> 195; diagonal 426).
 RIDGE = 0.01
-#: At most this many evenly spread columns enter the profiled Hessian of the preconditioner (scaled up to all):
-#: the coupling it captures is that of frames through the rows they share, which every column repeats.
-FACTOR_COLUMNS = 64
+#: Pixels (rows x columns) of the evenly spread columns that enter the profiled Hessian (scaled up to all): the
+#: coupling it captures is that of frames through the rows they share, which every column repeats, so a tall
+#: detector needs fewer columns (the paper study's 450 rows: 64 columns; a binned clinical scan's 1440: 21, which
+#: took its refreshes 0.33 -> 0.06 s each for 54 -> 77 cost evaluations, the fit 13.3 -> 9.4 s on the 2-core
+#: machine under load 2.4). At least :data:`FACTOR_MIN_COLUMNS`.
+FACTOR_PIXELS = 30_000
+FACTOR_MIN_COLUMNS = 16
 #: Above this many parameters the dense profiled Hessian (P x P, per thread in the Fisher kernel) is not
 #: formed and the diagonal preconditions (a clinical scan has 585; a long scan with many effects could
 #: need gigabytes).
 FACTOR_MAX_PARAMETERS = 3000
 PRECONDITIONERS = ("profiled", "diagonal")
+#: Gauss-Newton steps predicted to lower the cost (a chi-square) by more than this are followed by a fresh
+#: Hessian; smaller ones keep the last (paper study, every column: a threshold of 0 -> 1, 76 -> 17 Hessians, the
+#: same minimum; 100 saved a few Hessians at full resolution but cost evaluations on a small scan, 93 -> 138).
+REFRESH_DECREASE = 1.0
+#: Gauss-Newton trial steps per stage before L-BFGS takes over: where the Gauss-Newton Hessian misses the
+#: curvature (frames lighting a few rows, whose cost is not near-quadratic) the steps crawl, and L-BFGS learns
+#: that curvature (a small scan of 17 columns with many edge frames crawled for 256 steps, each lowering the
+#: cost by ~0.02; the paper study at every column converges in at most 15 per stage).
+GAUSS_NEWTON_STEPS = 25
+#: Convergence threshold of the stage with the phase effects alone (a whitened gradient of 1: within about a
+#: standard deviation of that stage's minimum). The stage only brings the phases into the basin of the full
+#: model's minimum; with visibility held at 1 its residuals are far above noise, so that the Gauss-Newton
+#: Hessian misses curvature there and the steps converge only linearly (paper study, every column: 56
+#: steps to the default gtol, 15 to this).
+PHASE_STAGE_GTOL = 1.0
 
 
 class _Problem:
@@ -99,6 +129,10 @@ class _Problem:
         self.prior_w = np.concatenate([np.broadcast_to(prior[n][1], params[n].shape).ravel() ** -2.0 if n in prior
                                        else np.zeros(params[n].size) for n in self.names])
         self.scale = np.ones_like(self.theta0)
+        #: passes of the cost kernel over the samples (cost and gradient, or the Fisher diagonal)
+        self.evaluations = 0
+        # the spread columns of the Hessian (:meth:`hessian`), by their number
+        self._spread: dict[int, tuple[M.Observations, np.ndarray]] = {}
         # z = chol^T (scale theta): chol is the Cholesky factor of the profiled Hessian divided by the diagonal
         # preconditioner's scales (eq. 34), or None
         self.chol: np.ndarray | None = None
@@ -106,7 +140,6 @@ class _Problem:
             self.scale = np.sqrt(self._curvature(params))
             if preconditioner == "profiled" and phase is None and self.theta0.size <= FACTOR_MAX_PARAMETERS:
                 self.chol = self._profiled_factor(params)
-        self.history: list[float] = []
 
     def to_z(self, theta: np.ndarray) -> np.ndarray:
         """The optimiser's variables of parameters ``theta``."""
@@ -118,19 +151,26 @@ class _Problem:
         y = z if self.chol is None else solve_triangular(self.chol, z, trans="T", lower=True)
         return y / self.scale
 
-    def _profiled_factor(self, params: dict[str, np.ndarray]) -> np.ndarray | None:
-        """Cholesky factor of the reduced cost's Gauss-Newton Hessian, divided by the diagonal scales.
+    def hessian(self, params: dict[str, np.ndarray], *, columns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The reduced cost's Gauss-Newton Hessian in the order of ``theta``, and its plain diagonal.
 
         The Hessian is 2 x the profiled Fisher information (plain minus the share the images take up, as
-        in :func:`uncertainty`) plus the prior. Whitening by it removes what the diagonal of eq. 34 leaves:
-        the coupling of phase offset and tilt, and of frames through the images they share (frames that
-        light few rows share their pixels with few others, so their plain diagonal overstates their
-        information many times over). It is computed on at most :data:`FACTOR_COLUMNS` columns and scaled
-        to all, then divided by ``outer(scale, scale)`` (the plain diagonal of eq. 34, so its own diagonal
-        is the profiled share of the information, at most 1, plus :data:`RIDGE`). None where the matrix is
-        not finite or the factorisation fails (the diagonal is used then).
+        in :func:`uncertainty`) plus the prior's 2 / width^2, computed on at most ``columns`` evenly spread
+        columns (default: :data:`FACTOR_PIXELS` pixels' worth, at least :data:`FACTOR_MIN_COLUMNS`) and scaled
+        to all.
+
+        Returns
+        -------
+        hessian : ndarray, shape (P, P)
+            Cost per parameter unit squared.
+        plain : ndarray, shape (P,)
+            Its diagonal without the profiled correction (2 x the plain Fisher diagonal, eq. 27, plus the prior).
         """
-        obs, weights = spread_columns(self.obs, self.weights, most=FACTOR_COLUMNS)
+        if columns is None:
+            columns = max(FACTOR_MIN_COLUMNS, FACTOR_PIXELS // max(self.obs.rows.size, 1))
+        if columns not in self._spread:
+            self._spread[columns] = spread_columns(self.obs, self.weights, most=columns)
+        obs, weights = self._spread[columns]
         images = _solve(obs, params, weights, keep_inverse=True)
         plain, corr = K.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
                                M.component_table(self.names)[:3])
@@ -138,10 +178,25 @@ class _Problem:
         where = {n: (o, shp) for n, o, shp in zip(self.names, offsets[:-1], self.shapes, strict=True)}
         order = np.array([where[n][0] + (np.ravel_multi_index((j, m), where[n][1]) if j >= 0 else m)
                           for n, j, m in M.fisher_index(self.names, self.obs.n_frames)])
+        ratio = self.obs.columns.size / obs.columns.size
         h = np.empty((order.size, order.size))
-        h[np.ix_(order, order)] = 2.0 * (plain - corr) * (self.obs.columns.size / obs.columns.size)
+        h[np.ix_(order, order)] = 2.0 * (plain - corr) * ratio
         h[np.diag_indices_from(h)] += 2.0 * self.prior_w
-        h /= np.outer(self.scale, self.scale)
+        d = np.empty(order.size)
+        d[order] = 2.0 * np.diag(plain) * ratio
+        return h, d + 2.0 * self.prior_w
+
+    def _profiled_factor(self, params: dict[str, np.ndarray]) -> np.ndarray | None:
+        """Cholesky factor of the reduced cost's Gauss-Newton Hessian (:meth:`hessian`), divided by the diagonal scales.
+
+        Whitening by it removes what the diagonal of eq. 34 leaves: the coupling of phase offset and tilt,
+        and of frames through the images they share (frames that light few rows share their pixels with few
+        others, so their plain diagonal overstates their information many times over). It is divided by
+        ``outer(scale, scale)`` (the plain diagonal of eq. 34, so its own diagonal is the profiled share of
+        the information, at most 1, plus :data:`RIDGE`). None where the matrix is not finite or the
+        factorisation fails (the diagonal is used then).
+        """
+        h = self.hessian(params)[0] / np.outer(self.scale, self.scale)
         h[np.diag_indices_from(h)] += RIDGE
         if not np.all(np.isfinite(h)):
             log.debug("profiled Hessian not finite: diagonal preconditioning")
@@ -162,6 +217,7 @@ class _Problem:
 
     def _channel_sums(self, params: dict[str, np.ndarray], *, square: bool) -> tuple[float, np.ndarray]:
         """Reduced cost and the per-parameter sums of the kernel (gradient, or sum w F^2 if ``square``)."""
+        self.evaluations += 1
         cost, g = K.reduced_cost(self.obs, _channels(self.obs, params), self.weights, *self.fringe, phase=self.phase,
                                  square=square,
                                  channels={M.effect(n).channel for n in self.names})
@@ -175,14 +231,19 @@ class _Problem:
         floor = 1e-12 * (positive.max() if positive.size else 1.0)
         return np.maximum(h, max(floor, 1e-300))
 
-    def evaluate(self, z: np.ndarray) -> tuple[float, np.ndarray]:
-        theta = self.to_theta(z)
+    def cost_gradient(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """Cost (with the prior) and its gradient in the parameters ``theta``."""
         cost, grad = self._channel_sums(self.unpack(theta), square=False)
         dev = theta - self.centre
-        g = (grad + 2.0 * self.prior_w * dev) / self.scale
+        return cost + float(np.sum(self.prior_w * dev ** 2)), grad + 2.0 * self.prior_w * dev
+
+    def evaluate(self, z: np.ndarray) -> tuple[float, np.ndarray]:
+        """Cost and gradient in the optimiser's variables ``z``."""
+        cost, grad = self.cost_gradient(self.to_theta(z))
+        g = grad / self.scale
         if self.chol is not None:
             g = solve_triangular(self.chol, g, lower=True)
-        return cost + float(np.sum(self.prior_w * dev ** 2)), g
+        return cost, g
 
     def lower(self) -> np.ndarray:
         """Physical lower bounds of the parameters (visibility and dose stay positive; -inf: none)."""
@@ -196,12 +257,105 @@ class _Problem:
         return [(lo if np.isfinite(lo) else None, None) for lo in self.lower() * self.scale]
 
 
+def gauss_newton(prob: _Problem, *, maxiter: int, gtol: float, on_step: Callable[[float], None] | None = None
+                 ) -> tuple[np.ndarray, str, bool]:
+    """Levenberg-Marquardt steps on the profiled Gauss-Newton Hessian of the reduced cost.
+
+    The reduced cost is a weighted least-squares problem in the per-frame parameters, and its
+    Gauss-Newton Hessian is 2 x their profiled Fisher information (:meth:`_Problem.hessian`, from at
+    most :data:`FACTOR_PIXELS` pixels of spread columns, refreshed after every accepted step that was predicted to
+    lower the cost by more than :data:`REFRESH_DECREASE`: near the minimum the parameters hardly move and
+    the Hessian hardly changes, while computing it costs a few cost evaluations). Each step solves
+    (H_s + lambda I) d = -g in the variables scaled by the plain diagonal (eq. 34), H_s's diagonal being
+    the profiled share of the information (at most 1); lambda starts at :data:`RIDGE`, shrinks after a
+    step that the quadratic model predicted well and doubles (then quadruples...) after a rejected one
+    (Nielsen's rule). A trial below a parameter's lower bound is rejected unevaluated. Convergence is
+    the test of the whitened L-BFGS (:func:`minimise`), the gradient whitened by the Cholesky factor of
+    H_s + lambda I below ``gtol`` in every component, with lambda at most :data:`RIDGE`: the smaller
+    damping of the last steps makes it the step to the minimum in units of the parameters' standard
+    deviations (times sqrt 2), also for frames whose profiled information is far below the ridge.
+
+    Parameters
+    ----------
+    prob : _Problem
+        Built without preconditioning (its own scaling is not used here).
+    maxiter : int
+        Trial steps at most.
+    gtol : float
+        Cost per standard deviation of a parameter.
+    on_step : callable, optional
+        Called with the cost after every accepted step.
+
+    Returns
+    -------
+    theta : ndarray, shape (P,)
+        The last accepted parameters.
+    message : str
+    converged : bool
+        False where ``maxiter`` ran out or the damping grew without bound (no step lowers the cost).
+    """
+    theta = prob.theta0.copy()
+    lower = prob.lower()
+    cost, grad = prob.cost_gradient(theta)
+    lam, grow = RIDGE, 2.0
+    hs = scale = whiten = None
+    for _ in range(maxiter):
+        if hs is None:
+            h, plain = prob.hessian(prob.unpack(theta))
+            positive = plain[plain > 0]
+            scale = np.sqrt(np.maximum(plain, 1e-12 * (positive.max() if positive.size else 1.0) + 1e-300))
+            hs = h / np.outer(scale, scale)
+            if not np.all(np.isfinite(hs)):
+                return theta, "Gauss-Newton Hessian not finite", False
+            try:
+                whiten = np.linalg.cholesky(hs + RIDGE * np.eye(hs.shape[0]))
+            except np.linalg.LinAlgError:
+                return theta, "Gauss-Newton Hessian not positive definite", False
+        gs = grad / scale
+        try:
+            factor = whiten if lam == RIDGE else np.linalg.cholesky(hs + lam * np.eye(hs.shape[0]))
+        except np.linalg.LinAlgError:
+            lam, grow = lam * grow, grow * 2.0
+            continue
+        gw = solve_triangular(factor, gs, lower=True)
+        # the step in whitened units, damped at most by the ridge (a larger damping shortens it)
+        worst = float(np.max(np.abs(gw if lam <= RIDGE else solve_triangular(whiten, gs, lower=True)), initial=0.0))
+        if worst < gtol:
+            return theta, "whitened gradient below gtol", True
+        if lam > 1e12:
+            return theta, "no Gauss-Newton step lowers the cost", False
+        ds = -solve_triangular(factor, gw, trans="T", lower=True)
+        trial = theta + ds / scale
+        if np.any(trial < lower):
+            lam, grow = lam * grow, grow * 2.0
+            continue
+        new_cost, new_grad = prob.cost_gradient(trial)
+        predicted = -(gs @ ds + 0.5 * ds @ hs @ ds)
+        log.debug("Gauss-Newton: cost %.9g -> %.9g (predicted %.3g), lambda %.2g, whitened gradient %.3g", cost,
+                  new_cost, predicted, lam, worst)
+        if new_cost < cost:
+            rho = (cost - new_cost) / max(predicted, 1e-300)
+            theta, cost, grad = trial, new_cost, new_grad
+            if predicted > REFRESH_DECREASE:
+                hs = None
+            lam, grow = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-9), 2.0
+            if on_step is not None:
+                on_step(cost)
+        else:
+            lam, grow = lam * grow, grow * 2.0
+    return theta, "iteration limit of the Gauss-Newton steps", False
+
+
+#: Minimisers of the reduced cost (``fit.optimizer``).
+OPTIMIZERS = ("gauss-newton", "lbfgs")
+
+
 def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.ndarray], weights: np.ndarray, *,
              phase: float | None = None, maxiter: int = 200, gtol: float = 1e-3, precondition: bool = True,
-             preconditioner: str = "profiled", prior: dict | None = None,
+             preconditioner: str = "profiled", optimizer: str = "gauss-newton", prior: dict | None = None,
              on_iteration: Callable[[float], None] | None = None,
              fringe: tuple[np.ndarray, np.ndarray] | None = None
-             ) -> tuple[dict[str, np.ndarray], list[float], str, bool]:
+             ) -> tuple[dict[str, np.ndarray], list[float], str, bool, int]:
     """Minimise the reduced cost over the parameters of ``names``, the others held fixed.
 
     Parameters
@@ -214,7 +368,7 @@ def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.nda
     weights : ndarray, shape (K, C)
         Fixed least-squares weights (inverse variances).
     phase : float, optional
-        Hold the phase image at this constant (circular-mean stage).
+        Hold the phase image at this constant (circular-mean stage; always L-BFGS).
     maxiter : int
     gtol : float
         Stop when the largest preconditioned gradient component falls below this (units of the
@@ -222,18 +376,24 @@ def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.nda
     precondition : bool
         Rescale by the Fisher information.
     preconditioner : {'profiled', 'diagonal'}
-        'diagonal': the diagonal of the plain Fisher information (paper eq. 34); 'profiled': whiten by
-        the whole profiled Fisher information (its Cholesky factor), so that L-BFGS also sees the
-        coupling of the parameters, which the diagonal leaves it to learn (the phase-held stage uses the
-        diagonal). Both reach the same minimum; the whitened variables have no box bounds, so where a
+        Of L-BFGS. 'diagonal': the diagonal of the plain Fisher information (paper eq. 34); 'profiled':
+        whiten by the whole profiled Fisher information (its Cholesky factor), so that L-BFGS also sees
+        the coupling of the parameters, which the diagonal leaves it to learn (the phase-held stage uses
+        the diagonal). Both reach the same minimum; the whitened variables have no box bounds, so where a
         parameter ends below its bound the stage is finished under the diagonal scaling, from the last
         iterate within the bounds and within the same ``maxiter``. Above
         :data:`FACTOR_MAX_PARAMETERS` parameters the diagonal is used.
+    optimizer : {'gauss-newton', 'lbfgs'}
+        'gauss-newton': :func:`gauss_newton` steps on the profiled Fisher information (a handful of cost
+        evaluations), L-BFGS from where they stop if they do not converge within :data:`GAUSS_NEWTON_STEPS`
+        (L-BFGS then has ``maxiter`` iterations); used unless the phase image is
+        held, ``precondition`` is off or there are more than :data:`FACTOR_MAX_PARAMETERS` parameters.
+        'lbfgs': L-BFGS alone (the same minimum).
     prior : dict, optional
         Effect name -> (centre, width): a Gaussian prior on each per-frame parameter, arrays
         broadcastable to the parameters (see :func:`catalogue_prior`, :func:`empirical_prior`).
     on_iteration : callable, optional
-        Called with the cost after every iteration.
+        Called with the cost after every iteration (accepted step).
     fringe : tuple of ndarray, optional
         :func:`dfxcorr.kernels.fringe` of ``obs`` (computed here if not given).
 
@@ -241,21 +401,41 @@ def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.nda
     -------
     params : dict
     costs : list of float
+        After each iteration.
     message : str
     converged : bool
+    evaluations : int
+        Passes of the cost kernel over the samples (cost and gradient, or the Fisher diagonal).
     """
+    if optimizer not in OPTIMIZERS:
+        raise ValueError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {optimizer!r}")
     costs: list[float] = []
+    evaluations = 0
+
+    def step(cost: float) -> None:
+        costs.append(cost)
+        if on_iteration is not None:
+            on_iteration(cost)
+
+    size = sum(int(np.size(params[n])) for n in names)
+    if optimizer == "gauss-newton" and phase is None and precondition and size <= FACTOR_MAX_PARAMETERS:
+        gn = _Problem(obs, names, params, weights, precondition=False, prior=prior, fringe=fringe)
+        theta, message, ok = gauss_newton(gn, maxiter=min(maxiter, GAUSS_NEWTON_STEPS), gtol=gtol,
+                                          on_step=step)
+        evaluations += gn.evaluations
+        if ok:
+            return gn.unpack(theta), costs, message, True, evaluations
+        log.debug("Gauss-Newton stopped (%s) after %d steps: L-BFGS from there", message, len(costs))
+        params = {**params, **gn.unpack(theta)}
     # the last iterate within the lower bounds (the whitened variables have no box bounds)
     feasible: list[np.ndarray] = []
 
     def callback(intermediate_result: Any) -> None:  # a scipy.optimize.OptimizeResult
-        costs.append(float(intermediate_result.fun))
         if prob.chol is not None:
             now = prob.to_theta(intermediate_result.x)
             if np.all(now >= lower):
                 feasible[:] = [now]
-        if on_iteration is not None:
-            on_iteration(costs[-1])
+        step(float(intermediate_result.fun))
 
     prob = _Problem(obs, names, params, weights, phase=phase, precondition=precondition,
                     preconditioner=preconditioner, prior=prior, fringe=fringe)
@@ -265,6 +445,7 @@ def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.nda
     res = minimize(prob.evaluate, prob.to_z(prob.theta0), jac=True, method="L-BFGS-B", bounds=prob.bounds(),
                    callback=callback, options={"maxiter": maxiter, "maxcor": 20, "ftol": 1e-15, "gtol": gtol})
     theta = prob.to_theta(res.x)
+    evaluations += prob.evaluations
     if prob.chol is not None and np.any(theta < lower):
         # finish under the diagonal scaling, which keeps the bounds, from the last iterate within them (a
         # clipped end point could sit across a symmetry, e.g. v < 0 for a fringe shifted by pi)
@@ -276,13 +457,14 @@ def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.nda
                        callback=callback, options={"maxiter": max(maxiter - len(costs), 1), "maxcor": 20,
                                                    "ftol": 1e-15, "gtol": gtol})
         theta = prob.to_theta(res.x)
-    return prob.unpack(theta), costs, str(res.message), bool(res.success)
+        evaluations += prob.evaluations
+    return prob.unpack(theta), costs, str(res.message), bool(res.success), evaluations
 
 
 def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODEL, start: dict | None = None,
                    weights: np.ndarray | None = None, circmean_iterations: int = 10, staged: bool = True,
                    maxiter: int = 300, gtol: float = 1e-3, precondition: bool = True,
-                   preconditioner: str = "profiled", prior: bool = True,
+                   preconditioner: str = "profiled", optimizer: str = "gauss-newton", prior: bool = True,
                    reweight: int = 1, visibility_gauge: str = "max", visibility_quantile: float = 0.99,
                    gauge_fraction: float = 0.5, on_iteration: Callable[[str, float], None] | None = None
                    ) -> FitResult:
@@ -309,6 +491,8 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
     precondition : bool
         See :func:`minimise`.
     preconditioner : {'profiled', 'diagonal'}
+        See :func:`minimise`.
+    optimizer : {'gauss-newton', 'lbfgs'}
         See :func:`minimise`.
     prior : bool
         Keep frames with little data sane: a wide prior around the neutral values during the main
@@ -347,7 +531,7 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
         stages.append(("phase", phase_names, maxiter))
     stages.append(("all", names, maxiter))
     stages += [("reweight", names, maxiter)] * reweight
-    costs, stage_of, messages, converged = [], [], [], True
+    costs, stage_of, messages, converged, evaluations = [], [], [], True, 0
     wide = catalogue_prior(names) if prior else None
     for label, free, iters in stages:
         if not free:
@@ -361,10 +545,12 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
             weights = _model_weights(obs, params, weights)
         cb: Callable[[float], None] | None = None if on_iteration is None else (
             lambda c, _l=label: on_iteration(_l, c))
-        params, c, msg, ok = minimise(obs, free, params, weights, phase=phase, maxiter=iters, gtol=gtol,
-                                      precondition=precondition, preconditioner=preconditioner,
-                                      prior=wide, on_iteration=cb, fringe=fringe)
-        log.debug("stage %s: %d iterations, %s", label, len(c), msg)
+        tol = max(gtol, PHASE_STAGE_GTOL) if label == "phase" and len(free) < len(names) else gtol
+        params, c, msg, ok, n_eval = minimise(obs, free, params, weights, phase=phase, maxiter=iters, gtol=tol,
+                                              precondition=precondition, preconditioner=preconditioner,
+                                              optimizer=optimizer, prior=wide, on_iteration=cb, fringe=fringe)
+        log.debug("stage %s: %d iterations, %d evaluations, %s", label, len(c), n_eval, msg)
+        evaluations += n_eval
         costs += c
         stage_of += [label] * len(c)
         messages.append(f"{label}: {msg}")
@@ -379,9 +565,11 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
             params, moved = rescue_frames(obs, params, weights, weak, narrow)
             log.info("%d of %d weakly determined frames moved by the global search", moved, weak.size)
         cb = None if on_iteration is None else (lambda c: on_iteration("prior", c))
-        params, c, msg, ok = minimise(obs, names, params, weights, maxiter=maxiter, gtol=gtol,
-                                      precondition=precondition, preconditioner=preconditioner,
-                                      prior=narrow, on_iteration=cb, fringe=fringe)
+        params, c, msg, ok, n_eval = minimise(obs, names, params, weights, maxiter=maxiter, gtol=gtol,
+                                              precondition=precondition, preconditioner=preconditioner,
+                                              optimizer=optimizer, prior=narrow, on_iteration=cb, fringe=fringe)
+        log.debug("stage prior: %d iterations, %d evaluations, %s", len(c), n_eval, msg)
+        evaluations += n_eval
         costs += c
         stage_of += ["prior"] * len(c)
         messages.append(f"prior: {msg}")
@@ -389,7 +577,42 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
     params = fix_gauge(params, good, visibility_gauge=visibility_gauge, visibility_quantile=visibility_quantile)
     unc = uncertainty(obs, params, weights)
     return FitResult(params=params, uncertainty=unc, cost=np.asarray(costs), stage=stage_of,
-                     iterations=len(costs), converged=converged, messages=messages, well_determined=good)
+                     iterations=len(costs), converged=converged, messages=messages, well_determined=good,
+                     evaluations=evaluations)
+
+
+def pilot_uncertainty(obs: M.Observations, *, params: dict | None = None, effects: Sequence[str] = M.PAPER_MODEL,
+                      gauge_fraction: float = 0.5) -> float:
+    """Median one-sigma uncertainty of the phase effects that a fit of ``obs`` would report, before fitting.
+
+    The profiled Fisher information (:func:`uncertainty`) at a pilot estimate of the parameters, with the
+    weights of :func:`initial_weights`. At the neutral model instead, the images solved without the
+    vibrations lose fringe amplitude and the prediction is pessimistic (binned clinical scan: 0.0025
+    predicted, 0.0016 reported after the fit).
+
+    Parameters
+    ----------
+    obs : Observations
+        A few evenly spread columns.
+    params : dict, optional
+        Pilot estimate of some effects' parameters (e.g. :func:`dfxcorr.mask.pilot_vibrations`); the others
+        neutral.
+    effects : sequence of str
+        The model (its phase effects are reported).
+    gauge_fraction : float
+        Frames lighting at least this fraction of the active area count (:func:`well_determined`).
+
+    Returns
+    -------
+    float
+        The larger of the medians of phase_offset (rad) and tilt (rad at the detector's edge) over the
+        well-determined frames.
+    """
+    names = [n for n in effects if M.effect(n).channel is not None]
+    at = {**M.neutral_params(names, obs.n_frames), **{k: v for k, v in (params or {}).items() if k in names}}
+    unc = uncertainty(obs, at, initial_weights(obs, at))
+    good = well_determined(obs, gauge_fraction)
+    return max(float(np.median(unc[n][good])) for n in names if M.effect(n).channel == "phase")
 
 
 def spread_columns(obs: M.Observations, weights: np.ndarray, *, most: int) -> tuple[M.Observations, np.ndarray]:
@@ -397,7 +620,11 @@ def spread_columns(obs: M.Observations, weights: np.ndarray, *, most: int) -> tu
     if obs.columns.size <= most:
         return obs, weights
     keep = np.unique(np.linspace(0, obs.columns.size - 1, most).astype(int))
-    return obs.subset(keep), weights[:, keep]
+    sub = obs.subset(keep)
+    # C-ordered once here, rather than by the kernels at every refresh of the Hessian
+    c = np.ascontiguousarray
+    return (replace(sub, counts=c(sub.counts), tf=c(sub.tf), vf=c(sub.vf), phif=c(sub.phif), dark=c(sub.dark),
+                    use=c(sub.use)), c(weights[:, keep]))
 
 
 def initial_weights(obs: M.Observations, params: dict) -> np.ndarray:
@@ -420,167 +647,6 @@ def _solve(obs: M.Observations, params: dict, weights: np.ndarray, *, keep_inver
     """Closed-form images for fixed parameters and weights."""
     out = K.retrieve(obs, _channels(obs, params), weights=weights, keep_inverse=keep_inverse)
     return M.Images(out["coef"], out["valid"], out["inverse"])
-
-
-def wrap_phases(params: dict, obs: M.Observations) -> dict:
-    """Move phase parameters into their symmetry window without changing the model.
-
-    A phase offset is defined modulo 2 pi. On columns spaced by n the tilt is defined modulo the alias
-    period pi W / n (paper Sec. II-D.1), up to a constant phase that the offset takes up. Frames that
-    light only a few rows can land on such an equivalent solution; this brings them back.
-    """
-    out = dict(params)
-    W = obs.shape[2]
-    spacing = np.unique(np.diff(obs.columns))
-    if "tilt" in out and spacing.size == 1 and "phase_offset" in out:
-        period = 2 * np.pi * W / (2 * spacing[0])
-        k = np.round(out["tilt"] / period)
-        out["tilt"] = out["tilt"] - k * period
-        out["phase_offset"] = out["phase_offset"] + k * period * obs.x[0]
-    if "phase_offset" in out:
-        out["phase_offset"] = np.angle(np.exp(1j * out["phase_offset"]))
-    return out
-
-
-def catalogue_prior(names: Iterable[str]) -> dict:
-    """A wide prior for every per-frame effect: its neutral value, width from the catalogue."""
-    return {n: (M.effect(n).neutral, M.effect(n).scale) for n in names if M.effect(n).per_frame}
-
-
-def empirical_prior(params: dict, good: np.ndarray, *, floor: float = 1e-3) -> dict:
-    """Per-frame parameters as draws from the distribution of the well-determined frames.
-
-    Centre: their median; width: their robust standard deviation (1.4826 MAD, at least ``floor``).
-    Where the data determine a frame this prior is negligible (a shrinkage of (sigma_fit / width)^2);
-    where they hardly do, it keeps the frame among the plausible values.
-    """
-    out = {}
-    for n, p in params.items():
-        if M.effect(n).per_frame:
-            med = np.median(p[good], axis=0)
-            out[n] = (med, np.maximum(1.4826 * np.median(np.abs(p[good] - med), axis=0), floor))
-    return out
-
-
-def rescue_frames(obs: M.Observations, params: dict, weights: np.ndarray, frames: np.ndarray,
-                  prior: dict, *, n_offset: int = 48, n_tilt: int = 41) -> tuple[dict, int]:
-    """Global search over phase offset and tilt for frames that light only a few rows.
-
-    With few rows a frame's cost has several local minima in (phi0, phi1) (on subsampled columns the
-    tilt is moreover only defined modulo the alias period); L-BFGS keeps whichever it started in.
-    Holding the images at their current values (each frame is one of many that determine a pixel),
-    the frame's own cost plus the prior is evaluated on a grid over a full period of phi0 and +-4
-    prior widths of phi1, and the frame moves to the best grid point where that beats its current value.
-
-    Returns
-    -------
-    params : dict
-        Updated copy.
-    moved : int
-        Number of frames moved.
-    """
-    params = {k: v.copy() for k, v in params.items()}
-    ch = _channels(obs, params)
-    now = K.retrieve(obs, ch, weights=weights)
-    c1, w1 = (float(np.ravel(prior["tilt"][0])[0]), float(np.ravel(prior["tilt"][1])[0])) if "tilt" in prior else (0, 1)
-    offsets = np.linspace(-np.pi, np.pi, n_offset, endpoint=False)
-    tilts = c1 + np.linspace(-4 * w1, 4 * w1, n_tilt) if "tilt" in params else np.zeros(1)
-    g0, g1 = (g.ravel() for g in np.meshgrid(offsets, tilts, indexing="ij"))
-    c0, w0 = (float(np.ravel(prior["phase_offset"][0])[0]), float(np.ravel(prior["phase_offset"][1])[0])) \
-        if "phase_offset" in prior else (0.0, np.inf)
-    penalty = (np.angle(np.exp(1j * (g0 - c0))) / w0) ** 2 + ((g1 - c1) / w1) ** 2
-    moved = 0
-    for j in frames:
-        sel = np.flatnonzero(obs.frame == j)
-        now0 = params["phase_offset"][j, 0] if "phase_offset" in params else 0.0
-        now1 = params["tilt"][j, 0] if "tilt" in params else c1
-        cost = frame_grid_cost(obs, ch, now["coef"], weights, sel, offsets, tilts,
-                               held=now0 + (now1 if "tilt" in params else 0.0) * obs.x).ravel() + penalty
-        r = obs.counts[sel] - now["expected"][sel]
-        current = float(np.sum(weights[sel] * r ** 2)) + (np.angle(np.exp(1j * (now0 - c0))) / w0) ** 2 \
-            + ((now1 - c1) / w1) ** 2
-        best = int(np.argmin(cost))
-        if cost[best] < current - 1.0:
-            params.setdefault("phase_offset", np.zeros((obs.n_frames, 1)))[j, 0] = g0[best]
-            if "tilt" in params:
-                params["tilt"][j, 0] = g1[best]
-            moved += 1
-    return params, moved
-
-
-def frame_grid_cost(obs: M.Observations, ch: M.Channels, coef: np.ndarray, weights: np.ndarray, blocks: np.ndarray,
-                    offsets: np.ndarray, tilts: np.ndarray, *, held: np.ndarray) -> np.ndarray:
-    """Cost sum w (I - Ibar)^2 of some blocks of one frame, at fixed images, over a grid of phase offset and tilt.
-
-    The frame's phase channel has its current offset + tilt (``held``, per column) replaced by
-    psi = offset + tilt x. With E = exp(i psi) the model is a trigonometric polynomial,
-    Ibar - offset - t A0 = Re(P E) + Re(Q E^2) (P: the fringe, Q: the second harmonic), so the cost
-    is S0 + Re(sum_n E^n S_n) with per-column sums S_n over the blocks (n = 1..4): the grid costs
-    O(samples + grid x columns) instead of O(samples x grid).
-
-    Parameters
-    ----------
-    obs : Observations
-    ch : Channels
-        Current channel values.
-    coef : ndarray, shape (R, C, 3)
-        Images held fixed.
-    weights : ndarray, shape (K, C)
-    blocks : ndarray of int
-        Blocks, all of one frame.
-    offsets, tilts : ndarray, shapes (n0,), (n1,)
-        Grid of the trial offset (rad) and tilt (rad per unit x).
-    held : ndarray, shape (C,)
-        The frame's current offset + tilt x, which the trial replaces (rad).
-
-    Returns
-    -------
-    ndarray, shape (n0, n1)
-    """
-    j = obs.frame[blocks[0]]
-    x = obs.x
-    cf = coef[obs.pixel[blocks]]
-    theta = obs.phif[blocks] + ch.phase[j] - held
-    amp = ch.dose[j] * obs.tf[blocks]
-    P = amp * obs.vf[blocks] * ch.vis[j] * (cf[..., 1] + 1j * cf[..., 2]) * np.exp(1j * theta)
-    # the harmonic follows the sample: m exp(2i phi) = e + i f of the images
-    _, _, e, f = M.harmonic_factors(cf[..., 1], cf[..., 2])
-    Q = amp * obs.vf[blocks] * ch.vis[j] * (e + 1j * f) * (ch.harmonic[0] + 1j * ch.harmonic[1]) * np.exp(2j * theta)
-    background = ch.background[0] + ch.background[1] * x[None, :] + ch.background[2] * obs.y[blocks, None]
-    y = obs.counts[blocks] - obs.dark[blocks] - background - cf[..., 0] * amp
-    w = weights[blocks]
-    # r^2 = (y - Re PE - Re QE^2)^2, expanded with Re a Re b = (Re ab + Re a b*) / 2
-    S0 = float(np.sum(w * (y ** 2 + 0.5 * np.abs(P) ** 2 + 0.5 * np.abs(Q) ** 2)))
-    S = [np.sum(w * s, axis=0) for s in (-2 * y * P + np.conj(P) * Q, -2 * y * Q + 0.5 * P ** 2, P * Q, 0.5 * Q ** 2)]
-    return S0 + sum(np.real(np.exp(1j * n * offsets)[:, None] * (np.exp(1j * n * np.outer(tilts, x)) @ Sn)[None, :])
-                    for n, Sn in enumerate(S, start=1))
-
-
-def well_determined(obs: M.Observations, fraction: float) -> np.ndarray:
-    """Frames lighting at least ``fraction`` of the largest number of rows any frame lights in ``obs``, (J,)
-    (:func:`dfxcorr.align.gauge_frames`)."""
-    return gauge_frames(np.bincount(obs.frame, minlength=obs.n_frames), fraction)
-
-
-def fix_gauge(params: dict, good: np.ndarray, *, visibility_gauge: str = "max",
-              visibility_quantile: float = 0.99) -> dict:
-    """Select one of the equivalent solutions (paper eq. 22).
-
-    'shift' effects get median zero over the well-determined frames; 'scale' effects are divided by a
-    robust normaliser (dose: median; visibility_loss: per ``visibility_gauge``).
-    """
-    out = {}
-    for name, p in params.items():
-        e = M.effect(name)
-        if not e.per_frame or e.gauge == "none" or not np.any(good):
-            out[name] = p
-        elif e.gauge == "shift":
-            out[name] = p - np.median(p[good], axis=0) + e.neutral
-        elif name == "visibility_loss" and visibility_gauge == "max":
-            out[name] = p / np.quantile(p[good], visibility_quantile, axis=0)
-        else:
-            out[name] = p / np.median(p[good], axis=0)
-    return out
 
 
 def uncertainty(obs: M.Observations, params: dict, weights: np.ndarray) -> dict[str, np.ndarray]:

@@ -59,7 +59,7 @@ __all__ = ["CATALOGUE", "MEAN_EFFECTS", "PAPER_MODEL", "Effect", "effect", "neut
            "lateral_coordinate", "noise_weights", "pearson", "variance", "Channels", "channels", "channel_adjoint",
            "component_table", "fisher_index", "Design", "design", "background_basis", "harmonic_factors",
            "image_columns", "Images", "solve_pixels", "solve_images", "harmonic_term", "expected", "circular_mean",
-           "sample_derivatives", "reduce_component", "gradient", "leverage", "fisher_matrix"]
+           "sample_derivatives", "reduce_component", "gradient", "leverage", "frame_leverage", "fisher_matrix"]
 
 # --------------------------------------------------------------------------------------------------
 # Channels and design
@@ -527,6 +527,32 @@ def leverage(obs: Observations, dsg: Design, images: Images, weights: np.ndarray
     c = images.coef[obs.pixel]
     X = np.stack([dsg.A, *image_columns(dsg, c[..., 1], c[..., 2])], axis=-1)
     return weights * np.einsum("kca,kcab,kcb->kc", X, images.inverse[obs.pixel], X)
+
+
+def frame_leverage(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, names: Iterable[str]
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Leverage of each sample in the fit of the per-frame parameters of ``names``, at fixed images.
+
+    The share of a sample's residual variance that the per-frame parameters take (per frame,
+    w d^T I_j^+ d with I_j the frame's information); with :func:`leverage` (the images') it is what a fit
+    removes of each sample's noise.
+
+    Returns
+    -------
+    h : ndarray, shape (K, C)
+    info_inv : ndarray, shape (J, P, P)
+        Pseudo-inverse of each frame's information of its P per-frame parameter components.
+    scaled : ndarray, shape (K, C, P)
+        The derivatives times sqrt(weights).
+    """
+    D = [d for n in names if effect(n).per_frame for d in sample_derivatives(obs, dsg, images, n)]
+    info_inv = np.zeros((obs.n_frames, len(D), len(D)))
+    if D:
+        info = np.stack([np.stack([obs.frame_sum(np.sum(weights * Da * Db, axis=1)) for Db in D], -1)
+                         for Da in D], -2)
+        info_inv = np.linalg.pinv(info, rcond=1e-10, hermitian=True)
+    scaled = np.stack(D, axis=-1) * np.sqrt(weights)[..., None] if D else np.zeros(weights.shape + (0,))
+    return np.einsum("kca,kab,kcb->kc", scaled, info_inv[obs.frame], scaled), info_inv, scaled
 
 
 def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, names: Sequence[str],

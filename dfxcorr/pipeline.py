@@ -32,7 +32,7 @@ from .effects import REGISTRY
 from .effects.base import Preparation
 from .estimators import ESTIMATORS
 from .faults import MIN_KEPT_SHARE, find_faults, saturation_level
-from .fit import FitResult
+from .fit import FitResult, pilot_uncertainty
 from .io import Reference, Scan, read_scan
 from .mask import motion_mask, pilot_vibrations
 from .observations import Noise
@@ -209,24 +209,56 @@ def _place(image: np.ndarray, obs: M.Observations, values: np.ndarray) -> None:
 
 
 
-def fit_columns(width: int, cfg: dict, samples_per_column: int, *, report: bool = True) -> np.ndarray:
-    """Columns entering the vibration fit, with the aliasing limit of paper Sec. II-D.1 checked.
+#: Evenly spread columns of the pilot that predicts the fit's uncertainty (``fit.subsample: auto``): its profiled
+#: Fisher information costs a fraction of a second even at full resolution.
+PILOT_COLUMNS = 16
+#: Wall seconds of the vibration fit per sample it holds, all stages and the uncertainty included (the predicted
+#: time): 1.7 us on the paper study at every column, 2.2 on a binned and 3.2 on a full-resolution clinical scan
+#: (the Hessians' share grows with the rows), on the 2-core machine under load 1.5-2.5.
+FIT_SECONDS_PER_SAMPLE = 2.5e-6
+#: Samples of the motion mask's pilot vibration estimate (its columns need not be the fit's).
+MASK_PILOT_SAMPLES = 2_000_000
 
-    ``fit.subsample: auto`` takes every column unless the fit would then hold more than
-    ``fit.max_samples`` lit samples; then the smallest n that stays within it, at most W / 4 (logged
-    when ``report``).
+
+@dataclass(frozen=True)
+class ColumnPlan:
+    """The columns of the vibration fit and what they are predicted to give.
+
+    Attributes
+    ----------
+    columns : ndarray of int
+    why : str
+        How they were chosen.
+    uncertainty : float
+        Predicted median one-sigma uncertainty of the phase effects (phi0, phi1; rad) over the well-determined
+        frames, from the pilot's Fisher information at the neutral model (NaN without a pilot).
+    seconds : float
+        Predicted wall time of the fit (:data:`FIT_SECONDS_PER_SAMPLE`).
+    pilot : dict or None
+        The pilot vibration estimate the prediction used (:func:`pilot_estimate`), for the motion mask.
     """
-    n = cfg["fit"]["subsample"]
-    limit = max(width // 4, 1)
-    if n == "auto":
-        budget = cfg["fit"]["max_samples"]
-        n = min(max(int(np.ceil(samples_per_column * width / budget)), 1), limit)
-        why = ("every column fits within fit.max_samples" if n == 1 else
-               f"{samples_per_column} samples per column x {width} columns exceed fit.max_samples={budget}")
-        if n == limit and samples_per_column * width / n > budget:
-            why += f"; held at the alias limit W / 4 = {limit}"
-        if report:
-            log.info("fit.subsample auto: every %d-th column (%s)", n, why)
+
+    columns: np.ndarray
+    why: str
+    uncertainty: float = float("nan")
+    seconds: float = float("nan")
+    pilot: dict | None = None
+
+    def summary(self) -> str:
+        """One line: the columns, the predicted uncertainty and time, and why."""
+        cols = self.columns
+        every = f"every {cols[1] - cols[0]}-th column from column {cols[0]}" if cols.size > 1 else f"column {cols}"
+        unc = "" if np.isnan(self.uncertainty) else f", predicted phi0/phi1 uncertainty {self.uncertainty:.2g} rad"
+        return f"{cols.size} columns ({every}){unc}, predicted fit time {self.seconds:.1f} s ({self.why})"
+
+
+def column_step(width: int, samples_per_column: int, *, most: float) -> int:
+    """The smallest column spacing n whose columns hold at most ``most`` lit samples, at most W / 4."""
+    return min(max(int(np.ceil(samples_per_column * width / most)), 1), max(width // 4, 1))
+
+
+def fit_columns(width: int, cfg: dict, n: int) -> np.ndarray:
+    """Every ``n``-th column from ``fit.column_offset``, with the aliasing limit of paper Sec. II-D.1 checked."""
     cols = subsample_columns(width, n, offset=cfg["fit"]["column_offset"])
     if cols.size < 4:
         raise C.ConfigError(f"fit.subsample={n} leaves {cols.size} of {width} columns; use at most {width // 4}")
@@ -235,6 +267,57 @@ def fit_columns(width: int, cfg: dict, samples_per_column: int, *, report: bool 
         raise C.ConfigError(f"fit.subsample={n}: tilts that differ by {period:.2f} rad are indistinguishable on "
                             f"every {n}-th of {width} columns (paper Sec. II-D.1); use at most {width // 4}")
     return cols
+
+
+def pilot_estimate(prep: Prepared) -> dict:
+    """A quick estimate of the paper's vibrations (:func:`dfxcorr.mask.pilot_vibrations`) on evenly spread columns
+    holding at most :data:`MASK_PILOT_SAMPLES` samples: what the motion mask compares with and the column plan
+    predicts at."""
+    W = prep.shape[2]
+    cols = subsample_columns(W, column_step(W, prep.store.samples_per_column(), most=MASK_PILOT_SAMPLES))
+    return pilot_vibrations(prep.observations(columns=cols))
+
+
+def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report: bool = True) -> ColumnPlan:
+    """Columns entering the vibration fit: ``fit.subsample``, or for ``auto`` those a target precision needs.
+
+    ``auto`` predicts the uncertainty from a pilot: the profiled Fisher information of :data:`PILOT_COLUMNS`
+    evenly spread columns at the vibrations ``pilot`` (default :func:`pilot_estimate`) by
+    :func:`dfxcorr.fit.pilot_uncertainty`; columns add information independently, so n columns give
+    sigma_pilot sqrt(pilot columns / n). It takes the fewest evenly spaced columns predicted to reach
+    ``fit.target_uncertainty``, or with ``fit.time_budget`` the most predicted to fit in that time
+    (:data:`FIT_SECONDS_PER_SAMPLE`); never more than ``fit.max_samples`` samples (memory) nor a spacing
+    beyond the alias limit W / 4. Logged when ``report``.
+    """
+    f = cfg["fit"]
+    W = prep.shape[2]
+    per_column = prep.store.samples_per_column()
+    n, why = f["subsample"], "fit.subsample"
+    sigma, size = float("nan"), 0
+    if n == "auto":
+        spread = subsample_columns(W, max(W // PILOT_COLUMNS, 1))
+        size = spread.size
+        pilot = pilot_estimate(prep) if pilot is None else pilot
+        sigma = pilot_uncertainty(prep.observations(columns=spread, dtype=np.float32), params=pilot,
+                                  gauge_fraction=f["gauge_fraction"])
+        cap = column_step(W, per_column, most=f["max_samples"])
+        if f["time_budget"] is not None:
+            n = max(column_step(W, per_column, most=f["time_budget"] / FIT_SECONDS_PER_SAMPLE), cap)
+            why = f"the most columns within fit.time_budget={f['time_budget']:g} s"
+        else:
+            need = size * (sigma / f["target_uncertainty"]) ** 2
+            n = max(min(max(int(W / max(need, 1.0)), 1), max(W // 4, 1)), cap)
+            why = f"fit.target_uncertainty={f['target_uncertainty']:g} rad"
+        why += f"; pilot of {size} columns {sigma:.2g} rad"
+        if n == cap and cap > 1:
+            why += f"; held at fit.max_samples={f['max_samples']:g}"
+    cols = fit_columns(W, cfg, n)
+    out = ColumnPlan(columns=cols, why=why,
+                     uncertainty=sigma * np.sqrt(size / cols.size) if size else float("nan"),
+                     seconds=FIT_SECONDS_PER_SAMPLE * per_column * cols.size, pilot=pilot)
+    if report:
+        log.info("vibration fit columns: %s", out.summary())
+    return out
 
 
 def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, command_line: str = "",
@@ -266,17 +349,16 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
     log.info("retrieval and motion mask in %d block(s) of detector rows (retrieve.block_mb=%g)", len(blocks),
              cfg["retrieve"]["block_mb"])
     moving = np.zeros((H, W), bool)
-    columns = fit_columns(W, cfg, prep.store.samples_per_column()) if method != "none" else np.zeros(0, int)
+    with stage("plan", timings):
+        plan = plan_columns(prep, cfg) if method != "none" else None
+    columns = np.zeros(0, int) if plan is None else plan.columns
     with stage("mask", timings):
-        if cfg["mask"]["enabled"] and method != "none":
+        if cfg["mask"]["enabled"] and plan is not None:
             m = cfg["mask"]
-            # the pilot estimate needs columns enough whatever fit.subsample the fit itself uses
-            auto = {**cfg, "fit": {**cfg["fit"], "subsample": "auto", "column_offset": None}}
-            pilot = fit_columns(W, auto, prep.store.samples_per_column(), report=False)
+            pilot = pilot_estimate(prep) if plan.pilot is None else plan.pilot
             # the per-pixel statistics of the fit's columns only (the others never enter the fit), block by block
             moving, _, thr = motion_mask((prep.observations(columns=columns, rows=rows) for rows in blocks),
-                                         pilot=pilot_vibrations(prep.observations(columns=pilot)),
-                                         threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
+                                         pilot=pilot, threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
             log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
     with stage("fit", timings):
         fitted, fit_mask, effects = run_fit(prep, cfg, moving, columns=columns, progress=progress)
@@ -342,7 +424,7 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
             progress: bool | None = None) -> tuple[FitResult, np.ndarray, tuple[str, ...]]:
     """Estimate the per-frame parameters with the configured method.
 
-    The fit holds observations of ``columns`` only (:func:`fit_columns`), in float32.
+    The fit holds observations of ``columns`` only (:func:`plan_columns`), in float32.
 
     Returns
     -------
@@ -383,6 +465,8 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
         if worst > period / 4:
             log.warning("fitted tilts reach %.2f rad, a quarter of the alias period %.2f rad of every %d-th "
                         "column: reduce fit.subsample", worst, period, step)
+    log.info("vibration fit: %d iterations, %d evaluations of the cost over %d samples", result.iterations,
+             result.evaluations, fit_obs.counts.size)
     if not result.converged:
         log.warning("the vibration fit stopped before converging (%s)", "; ".join(result.messages))
     for name in result.params:

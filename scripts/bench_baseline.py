@@ -42,6 +42,12 @@ def reference_env(ref: str, work: Path) -> Path:
     return exe
 
 
+def head_commit() -> str:
+    """The commit this checkout is at (benchmark.py targets uses the ratio only if it was measured there)."""
+    return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], check=True, capture_output=True,
+                          text=True).stdout.strip()
+
+
 def timed(cmd: list[str]) -> tuple[float, float]:
     """Wall seconds and peak resident MiB of one process (GNU time)."""
     fmt = "%e %M"
@@ -90,7 +96,7 @@ def main():
         print(f"{case}: median {med[args.ref]:.1f} s ({args.ref}) -> {med['this checkout']:.1f} s, "
               f"ratio {summary[case]['ratio_this_over_ref']}")
     doc = {"machine": machine(), "scan": "paper study, 209 x 450 x 510 (configs/paper-simulation.yaml)",
-           "reference": args.ref, "runs": runs, "summary": summary}
+           "reference": args.ref, "commit": head_commit(), "runs": runs, "summary": summary}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "bench-baseline.json").write_text(json.dumps(doc, indent=2) + "\n")
 

@@ -45,9 +45,10 @@ def test_reference_maps_from_a_noise_free_stepping_series(rng):
     steps = 2 * np.pi * np.arange(S) / S + 0.1
     data = t * (1 + v * np.cos(phi + steps[:, None, None]))
     ref = fit_reference(SteppingReference(data=data, phase_step=steps), effects=()).reference
-    np.testing.assert_allclose(ref.transmission, t, rtol=1e-10)
-    np.testing.assert_allclose(ref.visibility, v, rtol=1e-9)
-    np.testing.assert_allclose(np.angle(np.exp(1j * (ref.phase - phi))), 0, atol=1e-9)
+    # to the retrieval's single-precision fringe (kernels._cos_sin32, error below 1e-7)
+    np.testing.assert_allclose(ref.transmission, t, rtol=1e-7)
+    np.testing.assert_allclose(ref.visibility, v, rtol=1e-6)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (ref.phase - phi))), 0, atol=1e-6)
 
 
 def test_compiled_interpolation_is_the_formula():
@@ -62,3 +63,7 @@ def test_compiled_interpolation_is_the_formula():
     np.testing.assert_array_equal(interpolate_rows(maps, u), oracle)
     np.testing.assert_array_equal(interpolate_rows(maps, u, dtype=np.float32), oracle.astype(np.float32))
     np.testing.assert_array_equal(interpolate_rows(maps[:1], u), np.repeat(maps[:1], u.size, axis=0))
+    cols = np.array([11, 0, 4, 4])
+    np.testing.assert_array_equal(interpolate_rows(maps, u, columns=cols), oracle[:, cols])
+    np.testing.assert_array_equal(interpolate_rows(maps[:1], u, columns=cols),
+                                  np.repeat(maps[:1, cols], u.size, axis=0))

@@ -125,22 +125,29 @@ def test_whitened_variables_round_trip_and_their_gradient_matches_finite_differe
         assert g @ d == pytest.approx(fd, rel=1e-4, abs=1e-6 * np.abs(g).max())
 
 
-def test_profiled_and_diagonal_preconditioners_reach_the_same_minimum(small_scan, monkeypatch):
-    """Converged tightly, both find the same estimates; at the default tolerance the profiled one needs
-    fewer iterations (it whitens the coupling of offset, tilt and the frames sharing pixels)."""
+def test_optimizers_and_preconditioners_reach_the_same_minimum(small_scan, monkeypatch):
+    """Gauss-Newton at its default tolerance, also with its Hessian from a third of the columns (scaled to all,
+    as on large detectors), and L-BFGS under either preconditioner converged tightly find the same estimates
+    (0.01 sigma). At the default tolerance Gauss-Newton needs fewer cost evaluations than whitened L-BFGS
+    (this scan's many edge frames make it a hard case: 93 against 134; the paper study at every column: 61
+    against about 210), and whitened L-BFGS fewer iterations than the diagonal preconditioner."""
     scan, _ = small_scan()
-    runs = {(pc, gtol): pipeline.reconstruct(scan, C.load([], ["fit.subsample=2", f"fit.preconditioner={pc}",
-                                                              f"fit.gtol={gtol}"]), progress=False)
-            for pc in ("profiled", "diagonal") for gtol in (1e-3, 1e-6)}
-    # and with the profiled Hessian from a few columns only (scaled to all), as on large detectors
-    monkeypatch.setattr(F, "FACTOR_COLUMNS", 8)
-    few = pipeline.reconstruct(scan, C.load([], ["fit.subsample=2", "fit.gtol=1e-6"]), progress=False)
-    tight_d = runs[("diagonal", 1e-6)]
-    for tight in (runs[("profiled", 1e-6)], few):
+    obs = pipeline.prepare(scan, C.load([], [])).observations(columns=np.arange(1, scan.shape[2], 2))
+
+    def fit(optimizer, preconditioner="profiled", gtol=1e-3):
+        return F.fit_vibrations(obs, optimizer=optimizer, preconditioner=preconditioner, gtol=gtol)
+
+    gn, lbfgs, diagonal = fit("gauss-newton"), fit("lbfgs"), fit("lbfgs", "diagonal")
+    tight = {pc: fit("lbfgs", pc, 1e-6) for pc in ("profiled", "diagonal")}
+    monkeypatch.setattr(F._Problem.hessian, "__kwdefaults__", {"columns": 16})
+    few = fit("gauss-newton")
+    for run in (gn, few, tight["profiled"]):
         for name in ("phase_offset", "tilt", "visibility_loss"):
-            z = (tight.params[name] - tight_d.params[name]) / tight.uncertainty[name]
+            z = (run.params[name] - tight["diagonal"].params[name]) / tight["diagonal"].uncertainty[name]
             assert np.abs(z[np.isfinite(z)]).max() < 0.01, name
-    assert runs[("profiled", 1e-3)].cost.size < runs[("diagonal", 1e-3)].cost.size
+    assert gn.converged and few.converged
+    assert gn.evaluations < lbfgs.evaluations
+    assert lbfgs.iterations < diagonal.iterations
 
 
 def test_a_bound_the_whitened_fit_crosses_is_kept(small_scan, monkeypatch, caplog):

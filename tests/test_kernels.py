@@ -30,6 +30,11 @@ def as_float64(obs):
                           obs.columns, obs.shape, obs.gain, obs.electronic)
 
 
+#: Agreement of the retrieval with the model's float64 definition: it evaluates the fringe's cos and sin in
+#: single precision (kernels._cos_sin32, error below 1e-7), which moves the images by up to 4e-7 of their range.
+TRIG32 = 1e-6
+
+
 def close(actual, desired, rtol=1e-9):
     """Agreement up to rounding: relative to the largest entry (sums with cancellation)."""
     desired = np.asarray(desired, dtype=np.float64)
@@ -94,15 +99,15 @@ def test_retrieval_matches_the_model(rng, masked, iterations):
     out = K.retrieve(obs, dsg.channels, iterations=iterations, keep_inverse=True)
     assert np.array_equal(out["valid"], images.valid)
     assert masked == (not images.valid.all())
-    close(out["coef"], images.coef, rtol=1e-10)
-    close(out["inverse"], images.inverse, rtol=1e-10)
-    close(out["expected"], ibar, rtol=1e-10)
-    close(out["weights"], w, rtol=1e-12)
+    close(out["coef"], images.coef, rtol=TRIG32)
+    close(out["inverse"], images.inverse, rtol=TRIG32)
+    close(out["expected"], ibar, rtol=TRIG32)
+    close(out["weights"], w, rtol=1e-12 if iterations == 1 else TRIG32)
     sel = images.valid[obs.pixel] & obs.use
     assert out["samples"] == sel.sum()
-    assert out["chi2"] == pytest.approx(float(M.pearson(obs, ibar)[sel].sum()), rel=1e-10)
+    assert out["chi2"] == pytest.approx(float(M.pearson(obs, ibar)[sel].sum()), rel=TRIG32)
     start = K.retrieve(obs, dsg.channels, weights=w)
-    close(start["coef"], M.solve_images(obs, dsg, w).coef, rtol=1e-10)
+    close(start["coef"], M.solve_images(obs, dsg, w).coef, rtol=TRIG32)
 
 
 def correction_oracle(obs, dsg, images, w, names):
@@ -192,7 +197,7 @@ def test_only_the_requested_channels_are_summed(rng):
 
 def test_frame_grid_cost_is_the_direct_cost(rng):
     """The trigonometric-polynomial grid of fit.rescue_frames against the model evaluated at each grid point."""
-    from dfxcorr.fit import frame_grid_cost
+    from dfxcorr.frames import frame_grid_cost
     obs = prepared(rng, masked=True)
     params = random_params(rng, obs.n_frames, ALL)
     w = M.noise_weights(obs, obs.counts)

@@ -179,14 +179,33 @@ def test_diagnose_and_reconstruct_see_the_same_data(monkeypatch):
     (2880, 195 * 440, 10_000_000, 25),  # the full-resolution clinical scan
     (400, 10_000, 10, 100),  # a tiny budget stops at the alias limit W / 4
 ])
-def test_subsample_auto(width, samples_per_column, budget, expected, caplog):
-    cfg = C.load([], [f"fit.max_samples={budget}"])
-    with caplog.at_level("INFO", logger="dfxcorr"):
-        cols = pipeline.fit_columns(width, cfg, samples_per_column)
-    assert np.all(np.diff(cols) == expected) and f"every {expected}-th column" in caplog.text
-    # the smallest n within the budget (unless at the alias limit)
+def test_column_step_is_the_smallest_within_the_samples(width, samples_per_column, budget, expected):
+    n = pipeline.column_step(width, samples_per_column, most=budget)
+    assert n == expected
     assert expected == width // 4 or samples_per_column * width / expected <= budget
     assert expected == 1 or samples_per_column * width / (expected - 1) > budget
+
+
+def test_subsample_auto_reaches_the_target_uncertainty_it_predicts(small_scan, caplog):
+    """The pilot's prediction is what the fit on the chosen columns then reports (within 25 %, and not
+    optimistic by more than 10 %); a looser target takes fewer columns, a time budget the columns it
+    predicts to fit in it; the log names the columns, the predicted uncertainty and time."""
+    scan, _ = small_scan()
+    prep = pipeline.prepare(scan, C.defaults())
+    with caplog.at_level("INFO", logger="dfxcorr"):
+        plans = {t: pipeline.plan_columns(prep, C.load([], [f"fit.target_uncertainty={t}"])) for t in (0.007, 0.012)}
+    assert "predicted phi0/phi1 uncertainty" in caplog.text and "predicted fit time" in caplog.text
+    assert plans[0.012].columns.size < plans[0.007].columns.size < scan.shape[2]
+    plan = plans[0.007]
+    assert plan.uncertainty <= 0.007
+    obs = prep.observations(columns=plan.columns, dtype=np.float32)
+    fitted = fit_vibrations(obs)
+    good = fitted.well_determined
+    reported = max(float(np.median(fitted.uncertainty[n][good])) for n in ("phase_offset", "tilt"))
+    assert 0.75 * plan.uncertainty < reported < 1.1 * plan.uncertainty
+    budget = pipeline.plan_columns(prep, C.load([], [f"fit.time_budget={plan.seconds / 2}"]))
+    assert budget.seconds <= plan.seconds / 2 and budget.columns.size >= plan.columns.size // 2 - 1
+    assert budget.uncertainty == pytest.approx(plan.uncertainty * np.sqrt(plan.columns.size / budget.columns.size))
 
 
 @pytest.mark.slow

@@ -26,7 +26,8 @@ from .. import model as M
 from ..align import pixel_mm, realign, subsample_columns
 from ..effects import REGISTRY
 from ..effects.base import EffectBase, Hypothesis, Preparation, Realign
-from ..fit import fit_vibrations, well_determined
+from ..fit import fit_vibrations
+from ..frames import well_determined
 from ..io import Scan
 from ..observations import Observations
 from ..pipeline import Prepared, prepare, stage

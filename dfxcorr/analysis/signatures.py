@@ -136,13 +136,7 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
     w = np.where(sel, rec.weights, 0.0)
     # the fit's per-frame parameters take their share too, largest where a frame's information is
     # (edge columns for the tilt, bright modulated samples for the phase)
-    D = [d for n in params if M.effect(n).per_frame for d in M.sample_derivatives(obs, dsg, images, n)]
-    info_inv = np.zeros((obs.n_frames, len(D), len(D)))
-    if D:
-        info = np.stack([np.stack([obs.frame_sum(np.sum(w * Da * Db, axis=1)) for Db in D], -1) for Da in D], -2)
-        info_inv = np.linalg.pinv(info, rcond=1e-10, hermitian=True)
-    Dn = np.stack(D, axis=-1) * np.sqrt(w)[..., None] if D else np.zeros(w.shape + (0,))
-    h_par = np.einsum("kca,kab,kcb->kc", Dn, info_inv[obs.frame], Dn)
+    h_par, info_inv, Dn = M.frame_leverage(obs, dsg, images, w, params)
     h = np.where(sel, M.leverage(obs, dsg, images, rec.weights) + h_par, 0.0)
     keep = np.where(sel, np.clip(1.0 - h, 0.0, 1.0), 0.0)
     var = M.variance(obs, ibar)

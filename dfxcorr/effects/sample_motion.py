@@ -15,7 +15,6 @@ from ..mask import motion_score
 from ..observations import Observations
 from .base import Context, EffectBase, Hypothesis, State, Test, Writer
 
-
 #: The largest share of the scored pixels that a moving part of the sample may cover: a misfit spread wider is
 #: not sample motion (a blanket mask hides a misfit of the whole detector), and is reported where it is.
 MAX_SHARE = 0.1
