@@ -59,11 +59,13 @@ def test_one_model_in_kernels_and_numpy_oracle():
     rec = retrieve(obs, params, iterations=1)
     dsg = M.design(obs, params)
     images = M.solve_images(obs, dsg, rec.weights)
-    # the compiled retrieval and the numpy model: the same offset in the expected count, the same variance
-    np.testing.assert_allclose(M.expected(obs, dsg, images), rec.expected, rtol=1e-9, atol=1e-6)
+    # the compiled retrieval and the numpy model: the same offset in the expected count, the same variance (up to
+    # the kernels' float32 trigonometry, 1e-6 of the largest count as in tests/test_kernels.py)
+    ibar = M.expected(obs, dsg, images)
+    np.testing.assert_allclose(rec.expected, ibar, rtol=1e-6, atol=1e-6 * np.abs(ibar).max())
     n_params = sum(np.size(p) for p in params.values())
     assert reduced_chi2(obs, rec.expected, rec.images.valid, n_params=n_params) == pytest.approx(rec.reduced_chi2,
-                                                                                               rel=1e-9)
+                                                                                               rel=1e-6)
     np.testing.assert_allclose(M.variance(obs, rec.expected),
                                obs.pixel_gain()[obs.pixel] * np.maximum(rec.expected - obs.dark, MIN_SIGNAL))
     # a subset of columns keeps each pixel's factor
