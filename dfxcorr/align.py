@@ -65,6 +65,11 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
     return K.interpolate_rows(maps, u, columns=columns, dtype=dtype)
 
 
+def pixel_mm(scan: Scan) -> tuple[float, float] | None:
+    """The detector's pixel pitch (mm; between rows, along a row) where the scan file states it, else None."""
+    return None if scan.pixel_size is None else (1e3 * scan.pixel_size[0], 1e3 * scan.pixel_size[1])
+
+
 def lit_blocks(position: np.ndarray, active_rows: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """All (row, frame) pairs in which a detector row is illuminated, sorted by row.
 
@@ -122,6 +127,14 @@ class LitStore:
         Index of the block (row, j - 1) of each of them.
     lag : float
         Detector lag fraction already taken out of ``counts`` (:func:`dfxcorr.effects.detector_lag.without_lag`).
+    offset : ndarray, shape (K, W), or None
+        Known unmodulated photons of each sample beyond the dark (counts; a correction of the preparation,
+        e.g. Compton scatter): the observations add them to ``dark``, the model's additive term. A field
+        that couples neighbouring pixels cannot enter the per-pixel solve; as a known offset it enters
+        every stage alike (the compiled kernels, the numpy model, the Fisher information). None: none.
+    offset_noise : ndarray, shape (H, W), or None
+        The per-pixel factor on the photon variance that those photons' shot noise makes
+        (:attr:`Observations.offset_noise <dfxcorr.observations.Observations>`); None: 1.
     good : ndarray of bool, shape (K, W), or None
         False for samples left out as detector faults (:meth:`without`); None: every sample is good.
     bad_frames : tuple of int
@@ -139,6 +152,8 @@ class LitStore:
     left_counts: np.ndarray | None = None
     left_prev: np.ndarray | None = None
     lag: float = 0.0
+    offset: np.ndarray | None = None
+    offset_noise: np.ndarray | None = None
     good: np.ndarray | None = None
     bad_frames: tuple[int, ...] = ()
 
@@ -224,13 +239,17 @@ class LitStore:
         # every cost evaluation about 1.7x slower)
         counts = (self.counts[lo:hi] if columns is None else self.counts[lo:hi, cols]).astype(dtype, order="C")
         dark = self.dark[row[:, None], cols[None, :]].astype(dtype, copy=False)
+        if self.offset is not None:
+            dark = dark + (self.offset[lo:hi] if columns is None else self.offset[lo:hi, cols])
         use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
+        held = np.ix_(np.unique(row), cols)
         if self.good is not None:
             use &= self.good[lo:hi] if columns is None else self.good[lo:hi, cols]
         return Observations(counts=counts, tf=tf, vf=vf, phif=phif.astype(dtype, copy=False), dark=dark, use=use,
                             row=row, frame=frame, columns=cols, shape=(J, H, W),
                             gain=self.gain if gain is None else gain, electronic=electronic,
-                            noise=None if noise is None else noise[np.ix_(np.unique(row), cols)])
+                            noise=None if noise is None else noise[held],
+                            offset_noise=None if self.offset_noise is None else self.offset_noise[held])
 
 
 def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: int = 3) -> LitStore:

@@ -19,10 +19,10 @@ MIN_SIGNAL = 1.0
 
 
 def variance(obs: Observations, ibar: np.ndarray, *, gain: float | None = None) -> np.ndarray:
-    """Noise variance of each sample, f g max(Ibar - dark, 1) + electronic (f of ``obs.noise``), shape (K, C)."""
-    g = obs.gain if gain is None else gain
-    if obs.noise is not None:
-        g = g * obs.noise[obs.pixel]
+    """Noise variance of each sample, f g max(Ibar - dark, 1) + electronic (f g: :meth:`Observations.pixel_gain`)."""
+    g: np.ndarray | float = obs.gain if gain is None else gain
+    if obs.noise is not None or obs.offset_noise is not None:
+        g = obs.pixel_gain(gain)[obs.pixel]
     return g * np.maximum(ibar - obs.dark, MIN_SIGNAL) + obs.electronic
 
 

@@ -52,7 +52,10 @@ class Observations:
         at each sample, aligned to the frame's position. v^f is 0 where the flat field carries no fringe
         (outside the region of interest): there the model has no modulation.
     dark : ndarray, shape (K, C)
-        Dark signal (counts).
+        The additive term of each sample, unmodulated by the gratings (counts): the detector's dark signal,
+        plus any known unmodulated photons the preparation put there (:attr:`LitStore.offset
+        <dfxcorr.align.LitStore>`); the model adds it to the expected count, the noise model counts no
+        photon noise of it (the photons' share is in ``offset_noise``).
     use : ndarray of bool, shape (K, C)
         Samples that enter the fit or the retrieval (False for masked pixels).
     row, frame : ndarray of int, shape (K,)
@@ -70,6 +73,11 @@ class Observations:
         + electronic; None: 1 everywhere.
     roi : ndarray of bool, shape (K, C), or None
         The region of interest: samples whose flat field carries a fringe. None: every sample.
+    offset_noise : ndarray, shape (R, C), or None
+        Factor on each held pixel's photon variance for the shot noise of the known unmodulated photons in
+        ``dark`` (1 + their mean share of the pixel's modulated count): the variance of a sample,
+        g (Ibar - dark), leaves them out, and the compiled kernels take one variance factor per pixel,
+        so their noise enters per pixel. None: 1 (no such photons).
     """
 
     counts: np.ndarray
@@ -86,6 +94,7 @@ class Observations:
     electronic: float = 0.0
     noise: np.ndarray | None = None
     roi: np.ndarray | None = None
+    offset_noise: np.ndarray | None = None
     rows: np.ndarray = field(init=False)
     starts: np.ndarray = field(init=False)
     pixel: np.ndarray = field(init=False)
@@ -146,7 +155,8 @@ class Observations:
         return Observations(self.counts[:, idx], self.tf[:, idx], self.vf[:, idx], self.phif[:, idx],
                             self.dark[:, idx], self.use[:, idx], self.row, self.frame, self.columns[idx],
                             self.shape, self.gain, self.electronic, None if self.noise is None else self.noise[:, idx],
-                            None if self.roi is None else self.roi[:, idx])
+                            None if self.roi is None else self.roi[:, idx],
+                            None if self.offset_noise is None else self.offset_noise[:, idx])
 
     def with_noise(self, noise: Noise) -> Observations:
         """The same samples under another noise description (its factor map sliced to the held pixels)."""
@@ -154,6 +164,11 @@ class Observations:
                        noise=None if noise.factors is None else self.held(noise.factors))
 
     def pixel_gain(self, gain: float | None = None) -> np.ndarray:
-        """Detector units per photon of each pixel held, f * gain (``pixel_noise``), shape (R, C)."""
+        """The photon variance per unit of Ibar - dark of each pixel held, shape (R, C).
+
+        gain * f (``pixel_noise``) * ``offset_noise``: the kernels and :func:`dfxcorr.noise.variance` read this one
+        factor per pixel.
+        """
         g = self.gain if gain is None else gain
-        return g * (np.ones((self.rows.size, self.columns.size)) if self.noise is None else self.noise)
+        out = g * (np.ones((self.rows.size, self.columns.size)) if self.noise is None else self.noise)
+        return out if self.offset_noise is None else out * self.offset_noise

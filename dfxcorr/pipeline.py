@@ -27,7 +27,7 @@ import numpy as np
 from . import __version__
 from . import config as C
 from . import model as M
-from .align import LitStore, collect_lit_rows, subsample_columns, tilt_alias_period
+from .align import LitStore, collect_lit_rows, pixel_mm, subsample_columns, tilt_alias_period
 from .effects import REGISTRY
 from .effects.base import Preparation
 from .estimators import ESTIMATORS
@@ -160,7 +160,8 @@ def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) 
             store = store.without(faults, margin=SATURATION_SIGMAS * np.sqrt(gain * (faults.level or 0.0)
                                                                            + cfg["load"]["electronic"]))
         made = Preparation(store=store, shift=np.zeros(scan.shape[0]),
-                           noise=Noise(cfg["load"]["gain"] or scan.gain, cfg["load"]["electronic"]))
+                           noise=Noise(cfg["load"]["gain"] or scan.gain, cfg["load"]["electronic"]),
+                           reference=reference, pixel_mm=pixel_mm(scan))
         for name, setting in settings.items():
             if setting is not None:
                 made = REGISTRY[name].prepare(made, setting)

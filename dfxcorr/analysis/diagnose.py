@@ -23,7 +23,7 @@ import numpy as np
 
 from .. import config as C
 from .. import model as M
-from ..align import realign, subsample_columns
+from ..align import pixel_mm, realign, subsample_columns
 from ..effects import REGISTRY
 from ..effects.base import EffectBase, Hypothesis, Preparation, Realign
 from ..fit import fit_vibrations
@@ -78,7 +78,8 @@ class Session:
     def prepared(self, hypothesis: Hypothesis) -> Prepared:
         key = hypothesis.corrections
         if key not in self._prepared:
-            made = Preparation(self.prep.store, np.zeros(self.prep.shape[0]), self.prep.noise)
+            made = Preparation(self.prep.store, np.zeros(self.prep.shape[0]), self.prep.noise,
+                               reference=self.prep.reference, pixel_mm=pixel_mm(self.prep.scan))
             for name, setting in key:
                 made = self.registry[name].prepare(made, setting)
             self._prepared[key] = replace(self.prep, store=made.store)

@@ -16,6 +16,7 @@ from . import (
                position_error,
                reference_offset,
                sample_motion,
+               scatter,
 )
 from .base import EffectBase
 
@@ -29,4 +30,5 @@ REGISTRY: dict[str, EffectBase] = {e.name: e for e in (
     position_error.EFFECT,
     detector_lag.EFFECT,
     pixel_noise.EFFECT,
+    scatter.EFFECT,
 )}

@@ -29,6 +29,7 @@ from scipy import stats
 
 from ..align import LitStore
 from ..catalogue import Effect
+from ..io import Reference
 from ..observations import Noise, Observations
 from ..retrieve import Retrieval
 
@@ -151,11 +152,18 @@ class Preparation:
     shift : ndarray, shape (J,)
         Rows by which each frame reads the flat field off its recorded position.
     noise : Noise
+    reference : Reference or None
+        The flat-field maps the samples are aligned to (a correction that needs the flat field reads them).
+    pixel_mm : (float, float) or None
+        Detector pixel pitch (mm) along the columns of the detector (between rows) and along its rows,
+        where the scan file states it.
     """
 
     store: LitStore
     shift: np.ndarray
     noise: Noise
+    reference: Reference | None = None
+    pixel_mm: tuple[float, float] | None = None
 
 
 class State(Protocol):
