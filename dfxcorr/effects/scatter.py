@@ -302,6 +302,10 @@ class Scatter(EffectBase):
         if prep.store.offset is not None:
             return None  # in the model already (configured, or a correction of this hypothesis)
         width_mm = float(ctx.cfg["load"]["scatter_width_mm"])
+        if pixel_mm(prep.scan) is None:
+            # a kernel width in mm means nothing without the pixel pitch (an imported recording may not state it)
+            return Test(0.0, 1, 1.0, 0.0, identifiable=False, payload={"value": 0.0, "se": np.inf,
+                                                                          "width_mm": width_mm})
         # measured, not assumed from the geometry: in phase stepping every step sees the same primary and the
         # share of S's information left after profiling the images is ~1e-31 (5-step simulation), in a scan ~0.1
         key = ("scatter field", state.hypothesis.corrections)
