@@ -357,3 +357,29 @@ def test_a_toy_effect_is_found_corrected_and_reported_through_the_one_interface(
     written = write_report(diag, tmp_path)
     assert tmp_path / "pedestal.txt" in written
     assert "toy_pedestal" in (tmp_path / "report.md").read_text()
+
+
+def test_a_mean_effect_whose_trial_raises_the_chi_square_is_refused():
+    """The chi-square is read on every column and the fit saw a few of them: a rise is an overfit."""
+    world = World({})
+    fit = world.fit
+
+    def overfit(hyp, start, label):
+        state = fit(hyp, start, label)
+        if "overfit" in hyp.effects:
+            # it silences a signature on the fitted columns, but the chi-square of all of them rises
+            sigs = [{**s, "significant": False} for s in state.signatures]
+            return replace(state, signatures=sigs, chi2=state.chi2 + 50.0, reduced_chi2=state.reduced_chi2 + 0.05)
+        return state
+
+    def start_state(hyp, start, label):
+        state = fit(hyp, start, label)
+        sigs = [{**s, "statistic": s["dof"] + 40.0, "significant": True} if s["axis"] == "frame" else s
+                for s in state.signatures]
+        return replace(state, signatures=sigs)
+
+    world.fit = overfit
+    registry = {"overfit": Fake("overfit", 200)}
+    out = loop.run(registry, None, start_state(_hypothesis(), {}, "start"), fit=world.fit, alpha=0.01,
+                   explain_share=0.25, max_rounds=3)
+    assert out.steps == [] and "overfit" in out.rejected

@@ -221,14 +221,19 @@ def run(effects: Mapping[str, EffectBase], ctx: Context, start: State, *, fit: F
             # where an unidentifiable effect explains the misfit, only an effect that explains as much (within the
             # share a candidate must explain) is no proxy for it
             as_much = blind is None or (share if share is not None else 1.0) >= blind[1] - explain_share
-            if as_much and accepts(state.signatures, trial.signatures, explain_share=explain_share,
-                                   judged=effect.judged_on):
+            # more of the mean model must not fit the same data worse: the chi-square is read on every column and the
+            # fit saw a few of them, so a rise is an overfit or a fit gone astray (the other effects change the data,
+            # the pixels or the variance the chi-square divides by)
+            worse = effect.role in ("mean", "alignment") and trial.reduced_chi2 > state.reduced_chi2
+            if as_much and not worse and accepts(state.signatures, trial.signatures, explain_share=explain_share,
+                                                 judged=effect.judged_on):
                 close = contenders(name, [n for n in order[i + 1:] if n not in out.rejected], tests, effects)
                 step = _best_of(Step(name, tests[name], state, trial, share), close, tests, effects, ctx, flagged,
                                 fit=fit, explain_share=explain_share, label=f"round {rnd}")
                 break
             log.info("round %d: %s removes %.0f %% of the significant residual signatures' excess%s: rejected",
-                     rnd, name, 100 * (share or 0.0), "" if blind is None or as_much else f", less than {blind[0]}")
+                     rnd, name, 100 * (share or 0.0), f", less than {blind[0]}" if blind is not None and not as_much
+                     else (f", and raises the reduced chi-square to {trial.reduced_chi2:.4f}" if worse else ""))
             out.rejected[name] = share
         if step is None:
             if blind is not None:
