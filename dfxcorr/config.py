@@ -157,7 +157,8 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "target_uncertainty": Option(0.0025, "subsample auto: predicted median one-sigma uncertainty of phi0 and "
                                               "phi1 (rad) to reach", _NUM, check=_within(1e-9, 10)),
         "time_budget": Option(None, "subsample auto: instead of fit.target_uncertainty, the most columns whose "
-                                    "fit is predicted to take at most this many seconds", _NUM, check=_within(1e-3, 1e7),
+                                    "fit is predicted to take at most this many seconds", _NUM,
+                              check=_within(1e-3, 1e7),
                               nullable=True),
         "max_samples": Option(7_000_000, "subsample auto: most lit samples (rows x frames x columns) the fit "
                                          "may hold (memory: a full-resolution clinical scan peaked at 1.43 GB "

@@ -30,8 +30,8 @@ if command == "reconstruct":
     timings = reconstruct(path, C.defaults(), progress=False).timings
 else:
     timings = diagnose(path, C.defaults(), base=base).timings
-print(json.dumps({"seconds": time.perf_counter() - t0, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                  "timings": timings}))
+peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(json.dumps({"seconds": time.perf_counter() - t0, "peak_mb": peak_mb, "timings": timings}))
 """
 
 

@@ -272,7 +272,8 @@ def main():
     lines += ["", "## Two effects concealed at once", "",
               "Amplitudes from each effect's realistic one down its list of smaller ones until the pair is no longer "
               "named exactly (both, once, nothing else).", "",
-              "| pair | amplitudes | found | unexplained | reduced chi2 initial -> final | both and nothing else | cost |",
+              "| pair | amplitudes | found | unexplained | reduced chi2 initial -> final | both and nothing else "
+              "| cost |",
               "|---|---|---|---|---|---|---|"]
     lines += [f"| {r['effect']} | {', '.join(f'{v:g}' for v in r['amplitude'].values())} | "
               f"{', '.join(r['found']) or '-'} | {', '.join(r['unexplained']) or '-'} | "

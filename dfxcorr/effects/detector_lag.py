@@ -156,7 +156,8 @@ def lag_test(store: LitStore) -> Test:
 
 class DetectorLag(EffectBase):
     entry = Effect("detector_lag", None, False, ("a",), 0.0, "none",
-                   "the detector carries a fraction a of the previous frame's signal into the next: I_j = S_j + a S_(j-1)")
+                   "the detector carries a fraction a of the previous frame's signal into the next: "
+                   "I_j = S_j + a S_(j-1)")
     role = "counts"
     # measured directly outside the active area: the mean effects would only soak up its traces
     tier = 0

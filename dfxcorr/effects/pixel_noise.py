@@ -1,4 +1,4 @@
-"""``pixel_noise``: the noise variance differs from pixel to pixel (e.g. the module-boundary pixels of hybrid detectors).
+"""``pixel_noise``: the noise variance differs from pixel to pixel (module-boundary pixels of hybrid detectors, say).
 
 variance_i = f_i * g * mean (+ electronic), f a per-pixel factor map, one factor per pixel class. Read from
 ``load.pixel_noise`` (a TIFF of factors, such as the ``pixel_noise.tif`` that the diagnosis writes), it
