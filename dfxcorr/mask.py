@@ -235,7 +235,7 @@ def motion_mask(blocks: Iterable[M.Observations], *, pilot: dict, threshold: flo
         e, qq, d = motion_statistics(obs, pilot)
         for key, values in (("eps", e), ("q", qq), ("dof", d),
                             ("fringe", obs.segment_sum(obs.in_roi.astype(float)) > 0)):
-            images[key][np.ix_(obs.rows, obs.columns)] = values
+            obs.place(images[key], values)
     if not images:
         raise ValueError("the motion mask needs observations")
     score = np.where(images["fringe"], score_from_statistics(images["eps"], images["q"]), np.nan)

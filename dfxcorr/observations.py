@@ -138,8 +138,12 @@ class Observations:
     def to_image(self, values: np.ndarray, *, fill: float = np.nan) -> np.ndarray:
         """Place per-pixel values (R, C) into a detector image (H, W), ``fill`` elsewhere."""
         out = np.full(self.shape[1:], fill, dtype=np.result_type(values, type(fill)))
-        out[np.ix_(self.rows, self.columns)] = values
+        self.place(out, values)
         return out
+
+    def place(self, image: np.ndarray, values: np.ndarray) -> None:
+        """Write per-pixel values (R, C) into a detector image (H, W) in place (a block of a larger image)."""
+        image[np.ix_(self.rows, self.columns)] = values
 
     def held(self, image: np.ndarray) -> np.ndarray:
         """The values (R, C) of the held pixels in a detector image (H, W)."""

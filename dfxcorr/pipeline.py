@@ -203,12 +203,6 @@ def row_blocks(store: LitStore, budget_mb: float) -> list[tuple[int, int]]:
     return blocks
 
 
-def _place(image: np.ndarray, obs: M.Observations, values: np.ndarray) -> None:
-    """Write per-pixel values (R, C) of a row block into a detector image (H, W) in place."""
-    image[np.ix_(obs.rows, obs.columns)] = values
-
-
-
 #: Evenly spread columns of the pilot that predicts the fit's uncertainty (``fit.subsample: auto``): its profiled
 #: Fisher information costs a fraction of a second even at full resolution.
 PILOT_COLUMNS = 16
@@ -411,7 +405,7 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
         for m, p, acc in zip(maps, params, sums, strict=True):
             rec = retrieve(obs, p, iterations=iterations, n_frame_params=0)
             for k, v in image_values(rec.images).items():
-                _place(m[k], obs, v)
+                obs.place(m[k], v)
             acc += (rec.chi2_sum, rec.samples, int(rec.images.valid.sum()))
         left_out += int(np.count_nonzero(obs.segment_sum(roi.astype(np.float64)) == 0))
     if left_out:
@@ -446,10 +440,10 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
         raise C.ConfigError(f"fit.method={method!r} is not available; available: {', '.join(ESTIMATORS)}, none")
     cols = columns
     fit_obs = prep.observations(columns=cols, dtype=np.float32)
-    fit_obs = replace(fit_obs, use=fit_obs.use & ~moving[fit_obs.row][:, fit_obs.columns])
+    fit_obs = replace(fit_obs, use=fit_obs.use & ~fit_obs.pixel_mask(moving))
     effects = resolve_effects(cfg, prep.scan, prep.reference, fit_obs)
     used = fit_obs.segment_sum(fit_obs.use.astype(np.float64)) > 0
-    fit_mask[np.ix_(fit_obs.rows, fit_obs.columns)] = used
+    fit_obs.place(fit_mask, used)
     log.info("vibration fit (%s): %s on %d columns, %d pixels, %d frames", method, ", ".join(effects),
              fit_obs.columns.size, int(used.sum()), J)
     f = cfg["fit"]

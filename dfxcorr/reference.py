@@ -121,7 +121,7 @@ def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=None, op
         raise AlignmentError("/entry/reference/stepping/phase_step does not determine a sinusoid")
     vis = obs.to_image(nominal.images.v, fill=0.0)
     thr = auto_visibility_threshold(vis) if min_visibility == "auto" else float(min_visibility)
-    roi = replace(obs, use=(np.nan_to_num(vis) >= thr)[obs.row][:, obs.columns])
+    roi = replace(obs, use=obs.pixel_mask(np.nan_to_num(vis) >= thr))
     chi2 = {"nominal": retrieve(roi, {}).reduced_chi2}
     params, rec = {}, nominal
     fit_obs = obs.subset(subsample_columns(obs.columns.size, subsample))

@@ -53,6 +53,7 @@ class Fitted:
     signatures: list
     obs: Observations
     fit_obs: Observations
+    fit_rec: Retrieval
 
 
 class Session:
@@ -125,8 +126,9 @@ class Session:
                 params = {k: v for k, v in fitted.params.items() if k in model}
             n_par = sum(np.size(p) for p in params.values())
             rec = retrieve(obs, params, n_frame_params=n_par)
-            sigs = signatures(fit_obs, params, n_params=n_par, alpha=self.cfg["diagnose"]["alpha"])
-        return Fitted(hypothesis, params, rec.chi2_sum, rec.reduced_chi2, rec, sigs, obs, fit_obs)
+            fit_rec = retrieve(fit_obs, params, keep_inverse=True)
+            sigs = signatures(fit_obs, params, n_params=n_par, alpha=self.cfg["diagnose"]["alpha"], rec=fit_rec)
+        return Fitted(hypothesis, params, rec.chi2_sum, rec.reduced_chi2, rec, sigs, obs, fit_obs, fit_rec)
 
 
 def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, base: str = "configured",

@@ -10,12 +10,14 @@ from typing import Any
 
 import numpy as np
 
+from .. import model as M
 from .. import plots
 from ..catalogue import PAPER_MODEL, effect
 from ..effects import REGISTRY
 from ..effects.base import EffectBase, Hypothesis
 from ..io import atomic_path
-from .signatures import Residuals
+from ..retrieve import image_maps
+from .signatures import Residuals, locate
 
 
 @dataclass
@@ -109,13 +111,9 @@ FIXED_FILES = ("diagnosis.json", "report.md", "residuals.png", "signatures.png",
 
 
 def change_picture(effect: EffectBase, before, after, extra: dict) -> dict:
-    """What adding ``name`` changed, for its picture: images and residual maps of the fits ``before`` and
+    """What adding ``effect`` changed, for its picture: images and residual maps of the fits ``before`` and
     ``after`` (each on its own observations: the change may alter the data or their noise model) (H, W), and
     its per-frame estimate (J, n) where it has one."""
-    from .. import model as M
-    from ..retrieve import image_maps
-    from .signatures import locate
-
     out: dict[str, Any] = {"name": effect.name, "reduced_chi2": (before.reduced_chi2, after.reduced_chi2)}
     for key, state in (("before", before), ("after", after)):
         rec = state.rec

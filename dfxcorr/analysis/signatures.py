@@ -15,7 +15,7 @@ from scipy import stats
 
 from .. import model as M
 from ..effects.base import holm, ranges
-from ..retrieve import retrieve
+from ..retrieve import Retrieval, retrieve
 
 
 @dataclass
@@ -82,7 +82,7 @@ SIGNATURE_AXES = ("frame", "row", "column", "frame_row", "phase", "count", "pixe
 
 
 def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float,
-               min_photons: float = 25.0) -> list[dict]:
+               min_photons: float = 25.0, rec: Retrieval | None = None) -> list[dict]:
     """Residual signatures of a fit, each tested against noise.
 
     On the fit's own samples (its columns: there the share of the residual that the per-frame
@@ -120,6 +120,8 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
         all of them.
     min_photons : float
         The mean signatures use only samples expecting at least this many photons.
+    rec : Retrieval, optional
+        The retrieval of ``obs`` with ``params`` that keeps the inverse normal matrices (default: made here).
 
     Returns
     -------
@@ -129,7 +131,7 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
         phase in rad, count), 'relative' (per-bin S / expectation: relative variance excess, or mean z),
         'where', 'description'.
     """
-    rec = retrieve(obs, params, keep_inverse=True)
+    rec = retrieve(obs, params, keep_inverse=True) if rec is None else rec
     dsg = M.design(obs, params)
     images, ibar = rec.images, rec.expected
     sel = obs.use & images.valid[obs.pixel] & (rec.weights > 0)

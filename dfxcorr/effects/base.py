@@ -168,8 +168,8 @@ class Preparation:
 
 class State(Protocol):
     """A fitted hypothesis, as effects see it: the hypothesis, its parameters, chi-square (sum and reduced),
-    residual signatures, the retrieval of every column, and the samples of every column and of the fit's
-    columns under it."""
+    residual signatures, the retrieval of every column, the samples of every column and of the fit's
+    columns under it, and the retrieval of the fit's columns (with the inverse normal matrices)."""
 
     @property
     def hypothesis(self) -> Hypothesis: ...
@@ -187,6 +187,8 @@ class State(Protocol):
     def obs(self) -> Observations: ...
     @property
     def fit_obs(self) -> Observations: ...
+    @property
+    def fit_rec(self) -> Retrieval: ...
 
 
 #: (observations, shift (J,) rows) -> the same samples with the flat field read that far off the prepared alignment.

@@ -16,7 +16,6 @@ from scipy import ndimage
 from .. import model as M
 from ..catalogue import Effect
 from ..observations import Observations
-from ..retrieve import retrieve
 from .base import Context, EffectBase, Hypothesis, State, Test, chi2_test
 
 #: The least gain the regression returns (detector units per photon): a variance needs a photon term.
@@ -110,8 +109,7 @@ def noise_fit(ctx: Context, state: State, flagged: np.ndarray) -> NoiseFit:
     """
     held = ctx.memo.get("noise")
     if held is None or held[0] is not state:
-        obs, params = state.fit_obs, state.params
-        rec = retrieve(obs, params, keep_inverse=True)
+        obs, params, rec = state.fit_obs, state.params, state.fit_rec
         dsg = M.design(obs, params)
         w = np.where(obs.use & rec.images.valid[obs.pixel], rec.weights, 0.0)
         h = M.leverage(obs, dsg, rec.images, rec.weights) + M.frame_leverage(obs, dsg, rec.images, w, params)[0]

@@ -102,7 +102,7 @@ def pixel_noise_test(obs: Observations, ibar: np.ndarray, valid: np.ndarray, *, 
     # they stay the same (anomalous lines would otherwise pull the reference and make the rest look anomalous)
     for _ in range(5):
         regular = (groups[1][:, None] == 0) & (groups[0][None, :] == 0)
-        reg = sel & regular[obs.row][:, obs.columns]
+        reg = sel & obs.pixel_mask(regular)
         num = np.bincount(cbin[reg], weights=z2[reg], minlength=24)
         den = np.bincount(cbin[reg], weights=share[reg], minlength=24)
         per_count = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)

@@ -154,7 +154,7 @@ def retrieved(store: LitStore, reference: Reference) -> tuple[np.ndarray, np.nda
             continue
         obs = store.observations(ref, rows=(int(r[0]), int(r[-1]) + 1), phase_unwrapped=True)
         rec = retrieve(obs, {})
-        t[np.ix_(obs.rows, obs.columns)] = np.where(rec.images.valid, rec.images.t, 0.0)
+        obs.place(t, np.where(rec.images.valid, rec.images.t, 0.0))
         lo, hi = np.searchsorted(store.row, (r[0], r[-1] + 1))
         modulated[lo:hi] = rec.expected - obs.dark
     return t, modulated
