@@ -20,6 +20,7 @@ from dfxcorr.analysis.report import write_report
 from dfxcorr.catalogue import PAPER_MODEL, Effect
 from dfxcorr.effects import REGISTRY
 from dfxcorr.effects.base import EffectBase, Hypothesis, Preparation, chi2_test, holm
+from dfxcorr.effects.base import Test as EffectTest
 from dfxcorr.observations import Noise
 from dfxcorr.sim import simulate as S
 
@@ -383,3 +384,28 @@ def test_a_mean_effect_whose_trial_raises_the_chi_square_is_refused():
     out = loop.run(registry, None, start_state(_hypothesis(), {}, "start"), fit=world.fit, alpha=0.01,
                    explain_share=0.25, max_rounds=3)
     assert out.steps == [] and "overfit" in out.rejected
+
+
+class OfOneSize(Fake):
+    """A fake whose consistency test says whether its size changes across the strata, and how much."""
+
+    def __init__(self, name, statistic, *, p, spread):
+        super().__init__(name, statistic)
+        self.p, self.spread = p, spread
+
+    def consistency(self, ctx, state):
+        return EffectTest(20.0, 1, self.p, float(np.log(self.p)), material=self.spread > 1.0,
+                    payload={"axis": "count", "strata": [1 - self.spread / 2, 1 + self.spread / 2]})
+
+
+@pytest.mark.parametrize(("p", "spread", "named"), [(1e-6, 5.0, False), (1e-6, 0.3, True), (0.5, 5.0, True)])
+def test_a_candidate_of_another_size_in_other_strata_is_refused_as_a_proxy(p, spread, named):
+    """Refused only when the change of size is both significant and material; the refused one is kept as
+    inconsistent (reported unexplained) and the next candidate is tried."""
+    world = World({"true": {("frame", "mean"): 400.0}})
+    out = _run([OfOneSize("true", 200, p=p, spread=spread)], world)
+    assert ([s.name for s in out.steps] == ["true"]) is named
+    assert ("true" in out.inconsistent) is not named
+    if not named:
+        test, odd = out.inconsistent["true"]
+        assert test.statistic == 200 and odd.payload["axis"] == "count"

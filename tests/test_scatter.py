@@ -143,3 +143,14 @@ def test_unit_scatter_keeps_the_primarys_total_per_frame_and_its_level_at_the_ed
         assert out[frame == j].sum() == pytest.approx(primary[frame == j].sum(), rel=1e-5)
     with pytest.raises(SC.ScatterError, match="pixel size"):
         SC.kernel_pixels(50.0, None)
+
+
+@pytest.mark.parametrize("sigma", [0.7, 3.2, 167.0])
+def test_the_scatter_blur_is_the_gaussian_filter_with_zeros_beyond_the_edges(sigma):
+    from scipy import ndimage
+
+    from dfxcorr.effects.scatter import blur
+    a = np.random.default_rng(3).random((37, 400))
+    for axis in (0, 1):
+        assert np.allclose(blur(a, sigma, axis=axis), ndimage.gaussian_filter1d(a, sigma, axis=axis, mode="constant"),
+                           rtol=0, atol=1e-12)

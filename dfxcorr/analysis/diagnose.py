@@ -25,7 +25,7 @@ from .. import config as C
 from .. import model as M
 from ..align import pixel_mm, realign, subsample_columns
 from ..effects import REGISTRY
-from ..effects.base import EffectBase, Hypothesis, Preparation, Realign
+from ..effects.base import EffectBase, Hypothesis, Preparation, Realign, Test
 from ..fit import fit_vibrations
 from ..frames import well_determined
 from ..io import Scan
@@ -131,6 +131,22 @@ class Session:
         return Fitted(hypothesis, params, rec.chi2_sum, rec.reduced_chi2, rec, sigs, obs, fit_obs, fit_rec)
 
 
+#: What a catalogue effect of another size along each axis of :meth:`EffectBase.consistency` suggests.
+_SUSPECTS = {"count": ("expected count, dimmest", "a detector non-linearity or an additive artefact"),
+             "row": ("detector row, top", "an artefact on some rows, as a ghost of an earlier frame")}
+
+
+def _proxy(name: str, test: Test, odd: Test) -> dict:
+    """The ``unexplained`` entry of a candidate refused as a proxy: its signature, located where its size changes."""
+    axis = odd.payload["axis"]
+    strata, suspect = _SUSPECTS[axis]
+    return {"axis": axis, "statistic": odd.statistic, "dof": odd.dof, "p_value": odd.p_value,
+            "where": f"pixels in {len(odd.payload['strata'])} strata by {strata} first: size against the shared fit "
+                     + ", ".join(f"{v:.2g}" for v in odd.payload["strata"]),
+            "description": f"the signature of {name} (S = {test.statistic:.4g}, dof {test.dof}), but of a size that "
+                           f"changes with the {axis}: no catalogue effect ({suspect}?)"}
+
+
 def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, base: str = "configured",
              registry: Mapping[str, EffectBase] = REGISTRY) -> Diagnosis:
     """Locate model-data mismatch, name the missing effects, add them and refit until nothing is left.
@@ -187,6 +203,8 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     unexplained = [{"axis": s["axis"], "statistic": s["statistic"], "dof": s["dof"], "p_value": s["p_value"],
                     "where": s["where"], "description": s["description"]} for s in final.signatures
                    if s["significant"]]
+    # what a catalogue effect's test saw but the effect itself did not explain: its size changes across the recording
+    unexplained += [_proxy(n, t, odd) for n, (t, odd) in out.inconsistent.items() if n not in added]
     # localised misfits that masking did not explain
     unexplained += [u for n, t in out.tests.items() if n not in added and t.dof and t.log_p < np.log(d["alpha"])
                     and (u := registry[n].unexplained(t)) is not None]

@@ -55,6 +55,8 @@ class Outcome:
     blind : dict
         Unidentifiable effects tried: whether and how far a trial refit with them explained the misfit.
     rounds : list of dict
+    inconsistent : dict
+        Candidates refused as proxies (:meth:`EffectBase.consistency`): their test and the consistency test.
     """
 
     state: State
@@ -63,6 +65,7 @@ class Outcome:
     rejected: dict[str, float | None] = field(default_factory=dict)
     blind: dict[str, dict] = field(default_factory=dict)
     rounds: list[dict] = field(default_factory=list)
+    inconsistent: dict[str, tuple[Test, Test]] = field(default_factory=dict)
 
 
 def significant(tests: Mapping[str, Test], alpha: float) -> list[str]:
@@ -227,6 +230,14 @@ def run(effects: Mapping[str, EffectBase], ctx: Context, start: State, *, fit: F
             worse = effect.role in ("mean", "alignment") and trial.reduced_chi2 > state.reduced_chi2
             if as_much and not worse and accepts(state.signatures, trial.signatures, explain_share=explain_share,
                                                  judged=effect.judged_on):
+                odd = effect.consistency(ctx, trial)
+                if odd is not None and odd.material and odd.log_p < np.log(alpha):
+                    log.info("round %d: %s has another size in pixels of another %s (S = %.4g, dof %d): what its "
+                             "test sees is not this effect: rejected", rnd, name, odd.payload.get("axis", "kind"),
+                             odd.statistic, odd.dof)
+                    out.rejected[name] = share
+                    out.inconsistent[name] = (tests[name], odd)
+                    continue
                 close = contenders(name, [n for n in order[i + 1:] if n not in out.rejected], tests, effects)
                 step = _best_of(Step(name, tests[name], state, trial, share), close, tests, effects, ctx, flagged,
                                 fit=fit, explain_share=explain_share, label=f"round {rnd}")

@@ -306,6 +306,18 @@ class EffectBase:
         """
         return self.role == "noise" or signature["kind"] != "level"
 
+    def consistency(self, ctx: Context, state: State) -> Test | None:
+        """Whether the effect, in the model of its trial fit ``state``, is one effect across the recording: of one
+        size wherever the count or the detector row differs (None: not tested).
+
+        A detector effect in no catalogue can leave the signature of a catalogue effect (a non-linearity a
+        second harmonic, a ghost of an earlier frame a change of dose) but not with one size everywhere: a
+        significant and ``material`` test (the size, estimated stratum by stratum, spans more than
+        ``diagnose.proxy_spread`` times its mean) refuses the effect as a proxy and its signature is reported as
+        unexplained. The payload holds 'axis' and 'strata' (those sizes, relative to their mean).
+        """
+        return None
+
     def unexplained(self, test: Test) -> dict | None:
         """The ``unexplained`` entry of a significant test of it that was not added (a localised misfit), or None."""
         return None

@@ -52,9 +52,7 @@ def score_tests(obs: Observations, params: dict, weights: np.ndarray, model, can
     images = M.solve_images(obs, dsg, weights, keep_inverse=True)
     resid = obs.counts - M.expected(obs, dsg, images)
     inf = identify.information(obs, dsg.channels, images, weights, names)
-    grad = M.gradient(obs, dsg, images, weights, resid, names)
-    U = -0.5 * np.array([grad[n][(j, m) if j >= 0 else m]
-                         for n, j, m in zip(inf.owner, inf.frame, inf.component, strict=True)])
+    U = _score(inf, M.gradient(obs, dsg, images, weights, resid, names))
     out = {}
     for name in candidates:
         cond = identify.conditional(inf, name, model)
@@ -68,6 +66,126 @@ def score_tests(obs: Observations, params: dict, weights: np.ndarray, model, can
         out[name] = chi2_test(stat, cond.dof, explains=stat * dispersion, identifiable=cond.verdict.identifiable,
                               excess=cond.verdict.excess, payload={"frames": frames})
     return out
+
+
+def _score(inf: identify.Information, grad: dict) -> np.ndarray:
+    """The score (half the negative gradient of the cost) in the order of the information's entries."""
+    return -0.5 * np.array([grad[n][(j, m) if j >= 0 else m]
+                            for n, j, m in zip(inf.owner, inf.frame, inf.component, strict=True)])
+
+
+def strata(obs: Observations, expected: np.ndarray, *, by: str, n: int = 6) -> np.ndarray:
+    """Stratum of each sample by its pixel: ``n`` strata of equally many pixels.
+
+    Parameters
+    ----------
+    obs : Observations
+    expected : ndarray, shape (K, C)
+        Expected counts (detector units).
+    by : {'count', 'row'}
+        The pixel's mean expected count, or its detector row.
+    n : int
+        Number of strata.
+
+    Returns
+    -------
+    ndarray of int, shape (K, C)
+        0 (dimmest pixels, or first rows) ... n - 1; -1 for pixels without samples in use.
+    """
+    used = obs.use.astype(float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        level = obs.segment_sum(np.where(obs.use, expected, 0.0)) / obs.segment_sum(used)
+    if by == "row":
+        level = np.where(np.isfinite(level), obs.rows[:, None].astype(float), np.nan)
+    ok = np.isfinite(level)
+    out = np.full(level.shape, -1)
+    if ok.sum() >= n:
+        edges = np.quantile(level[ok], np.linspace(0, 1, n + 1)[1:-1])
+        out[ok] = np.searchsorted(edges, level[ok])
+    return out[obs.pixel]
+
+
+def heterogeneity(obs: Observations, params: dict, weights: np.ndarray, model, name: str, *,
+                  strata: np.ndarray) -> Test:
+    """Whether an effect in the model has one size in every stratum of pixels.
+
+    A score test at the fit with the effect (``params``, theta), of the alternative that its parameters
+    are theta (1 + gamma_k) in stratum k, everything else shared: a catalogue effect that a detector
+    effect outside the catalogue mimics (a non-linearity's second harmonic, a ghost's change of dose)
+    has a size that changes with the count or along the rows. The profiled information and the score
+    are sums over pixels, so each stratum's share is the kernel's with the other pixels' weights set to
+    zero; each stratum's share is divided by its own dispersion (Pearson chi-square per degree of
+    freedom, a quasi-likelihood), so a noise model that is off by a factor that changes with the count
+    does not pose as a change of size. Two contrasts of the gamma_k, Bonferroni over both: a trend
+    along the strata's order (1 dof) and any difference (strata - 1 dof); S = U*^T I*^+ U*, U* and I*
+    the contrasts' score and information with what the shared parameters explain taken out.
+
+    Parameters
+    ----------
+    obs : Observations
+        The fit's samples.
+    params : dict
+        The fitted parameters of the model, ``name`` among them.
+    weights : ndarray, shape (K, C)
+        Inverse noise variances.
+    model : sequence of str
+        The mean effects in the model (``name`` included).
+    name : str
+    strata : ndarray of int, shape (K, C)
+        Stratum of each sample (:func:`strata`; negative: left out).
+
+    Returns
+    -------
+    Test
+        Its payload holds 'strata': the size of the effect each stratum alone would give, relative to the
+        shared fit (one step from it), in the strata's order; 'alternative': 'trend' or 'any', the contrast
+        that decided.
+    """
+    names = list(model)
+    dsg = M.design(obs, params)
+    images = M.solve_images(obs, dsg, weights, keep_inverse=True)
+    resid = obs.counts - M.expected(obs, dsg, images)
+    n = int(strata.max()) + 1
+    infos, scores = [], []
+    for k in range(n):
+        inside = obs.use & (strata == k)
+        dof = inside.sum() - 3 * np.count_nonzero(obs.segment_sum(inside.astype(float)))
+        phi = float(np.sum(np.where(inside, weights * resid ** 2, 0.0)) / max(dof, 1))
+        wk = np.where(inside, weights, 0.0)
+        inf = identify.information(obs, dsg.channels, images, wk, names)
+        # quasi-likelihood: the stratum's score and information over its own dispersion (the images' profile
+        # uses every weight as it is, so the weights themselves are not rescaled)
+        phi = max(phi, 1e-12)
+        infos.append(replace(inf, matrix=inf.matrix / phi))
+        scores.append(_score(inf, M.gradient(obs, dsg, images, wk, resid, names)) / phi)
+    live = np.logical_or.reduce([i.live for i in infos])
+    sel = live & (infos[0].owner == name)
+    # the alternative: the effect as fitted, of another size in each stratum (theta_k = (1 + gamma_k) theta): a
+    # parameter per stratum, however many the effect has, so a per-frame effect is tested with a few dof
+    e = M.effect(name)
+    size = np.array([params[name][(j, m) if j >= 0 else m] - e.neutral
+                     for j, m in zip(infos[0].frame[sel], infos[0].component[sel], strict=True)])
+    u = np.array([size @ s[sel] for s in scores])
+    own = np.array([size @ i.matrix[np.ix_(sel, sel)] @ size for i in infos])
+    cross = np.stack([size @ i.matrix[np.ix_(sel, live)] for i in infos])
+    # two contrasts of the strata's sizes, Bonferroni over both: a size that drifts along the strata's order (where
+    # a detector effect grows or fades with the count), and any difference
+    contrasts = {"trend": (np.arange(n) - (n - 1) / 2)[:, None], "any": np.eye(n)[:, 1:]}
+    total = np.sum([i.matrix for i in infos], axis=0)[np.ix_(live, live)]
+    inv_total = identify.pinv_rank(total)[0]
+    U_eta = np.sum(scores, axis=0)[live]
+    found = {}
+    for key, Z in contrasts.items():
+        eff_score = Z.T @ u - Z.T @ cross @ inv_total @ U_eta
+        eff_info = Z.T @ np.diag(own) @ Z - Z.T @ cross @ inv_total @ cross.T @ Z
+        inv, dof = identify.pinv_rank(eff_info, np.diag(Z.T @ np.diag(own) @ Z))
+        # the sizes this alternative estimates (one step from the shared fit), relative to their mean
+        sizes = 1.0 + Z @ (inv @ eff_score)
+        found[key] = chi2_test(float(eff_score @ inv @ eff_score), dof, payload={"sizes": sizes / np.mean(sizes)})
+    key = min(found, key=lambda k: found[k].log_p)
+    t = found[key]
+    return Test(t.statistic, t.dof, min(1.0, 2 * t.p_value), t.log_p + np.log(2), payload={
+        "strata": t.payload["sizes"].tolist(), "alternative": key})
 
 
 def _round_scores(ctx: Context, state: State) -> dict[str, Test]:
@@ -98,6 +216,19 @@ class ChannelEffect(EffectBase):
 
     def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
         return state.hypothesis.but(effects=(*state.hypothesis.effects, self.name))
+
+    def consistency(self, ctx: Context, state: State) -> Test | None:
+        # by count (a non-linearity, an additive artefact) and by detector row (an artefact on some rows of a
+        # frame, as a ghost of an earlier frame): the stronger of the two, Bonferroni over both
+        obs, expected = state.fit_obs, state.fit_rec.expected
+        weights = M.noise_weights(obs, expected)
+        found = {by: heterogeneity(obs, state.params, weights, state.hypothesis.effects, self.name,
+                                   strata=strata(obs, expected, by=by)) for by in ("count", "row")}
+        by = min(found, key=lambda k: found[k].log_p)
+        t = found[by]
+        spread = float(np.ptp(t.payload["strata"]))
+        return replace(t, p_value=min(1.0, 2 * t.p_value), log_p=t.log_p + np.log(2),
+                       material=spread > ctx.cfg["diagnose"]["proxy_spread"], payload={**t.payload, "axis": by})
 
     def where(self, test: Test, obs: Observations) -> str:
         if not self.entry.per_frame:

@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
+from scipy import signal
 
 from .. import model as M
 from ..align import LitStore, interpolate_rows, pixel_mm, realign
@@ -88,6 +88,20 @@ def kernel_pixels(width_mm: float, pixel_mm: tuple[float, float] | None) -> tupl
     return width_mm / pixel_mm[0], width_mm / pixel_mm[1]
 
 
+def blur(a: np.ndarray, sigma: float, *, axis: int = -1) -> np.ndarray:
+    """Gaussian blur of ``a`` along ``axis`` (std ``sigma`` pixels, kernel cut at 4 sigma), zeros beyond the edges.
+
+    scipy.ndimage.gaussian_filter1d(mode='constant') by FFT: the scatter's kernel spans hundreds of pixels
+    (50 mm at 0.3 mm: sigma 167), where the direct sum took 10 s for a 5-step 512 x 1536 scan.
+    """
+    radius = int(4.0 * sigma + 0.5)
+    x = np.arange(-radius, radius + 1, dtype=float)
+    kernel = np.exp(-0.5 * (x / max(sigma, 1e-12)) ** 2)
+    shape = [1] * a.ndim
+    shape[axis] = kernel.size
+    return signal.fftconvolve(a, (kernel / kernel.sum()).reshape(shape), mode="same", axes=axis)
+
+
 def unit_scatter(primary: np.ndarray, row: np.ndarray, frame: np.ndarray, width: tuple[float, float]) -> np.ndarray:
     """S of every sample: its frame's primary blurred within the frame's lit rows, scaled to the primary's total.
 
@@ -110,7 +124,7 @@ def unit_scatter(primary: np.ndarray, row: np.ndarray, frame: np.ndarray, width:
     out = np.zeros(primary.shape, np.float32)
     order = np.argsort(frame, kind="stable")
     bounds = np.searchsorted(frame[order], np.arange(int(frame.max(initial=-1)) + 2))
-    ones = ndimage.gaussian_filter1d(np.ones(primary.shape[1]), width[1], mode="constant")
+    ones = blur(np.ones(primary.shape[1]), width[1])
     for j in range(bounds.size - 1):
         idx = order[bounds[j]:bounds[j + 1]]
         if idx.size == 0:
@@ -120,9 +134,8 @@ def unit_scatter(primary: np.ndarray, row: np.ndarray, frame: np.ndarray, width:
         band = np.zeros((int(local.max()) + 1, primary.shape[1]))
         lit = np.zeros(band.shape[0])
         band[local], lit[local] = primary[idx], 1.0
-        blurred = ndimage.gaussian_filter1d(ndimage.gaussian_filter1d(band, width[0], axis=0, mode="constant"),
-                                            width[1], axis=1, mode="constant")
-        inside = np.outer(ndimage.gaussian_filter1d(lit, width[0], mode="constant"), ones)
+        blurred = blur(blur(band, width[0], axis=0), width[1], axis=1)
+        inside = np.outer(blur(lit, width[0]), ones)
         spread = blurred[local] / inside[local]
         total = spread.sum()
         if total > 0:
@@ -315,12 +328,19 @@ class Scatter(EffectBase):
             t, _ = retrieved(store, ref)
             ctx.memo[key] = unit_scatter(tf * t[store.row], store.row, store.frame,
                                          kernel_pixels(width_mm, pixel_mm(prep.scan)))
+        # whether the acquisition identifies it, first on the fit's columns: a phase-stepping recording shows its
+        # ~1e-31 there as well, and the score of every column is most of a stepping diagnosis's tests
+        few = state.fit_obs
+        U, info, known, _ = score(few, state.params, state.fit_rec.images, state.fit_rec.weights,
+                                  ctx.memo[key][:, few.columns].astype(np.float64))
+        identifiable = info > MIN_INFORMATION_SHARE * known
         obs = state.obs
-        U, info, known, _ = score(obs, state.params, state.rec.images, state.rec.weights,
-                                  ctx.memo[key][:, obs.columns].astype(np.float64))
+        if identifiable:
+            U, info, known, _ = score(obs, state.params, state.rec.images, state.rec.weights,
+                                      ctx.memo[key][:, obs.columns].astype(np.float64))
+            identifiable = info > MIN_INFORMATION_SHARE * known
         # quasi-likelihood: the dispersion of the fit, not the stated noise model, scales the score's variance
         dispersion = max(state.reduced_chi2, 1.0)
-        identifiable = info > MIN_INFORMATION_SHARE * known
         stat = max(U, 0.0) ** 2 / (info * dispersion) if identifiable else 0.0
         payload = {"value": U / info if identifiable else 0.0, "se": float(np.sqrt(dispersion / info))
                    if identifiable else np.inf, "width_mm": width_mm, "information_share": info / max(known, 1e-300)}
