@@ -154,3 +154,21 @@ def test_real_recording_pixel_classes_come_to_one(tmp_path):
         dof = {k: 8 * int((labels == k).sum()) for k in per_class}  # 11 steps, 3 unknowns per pixel
         near_one = all(abs(v - 1) < 5 * np.sqrt(2 / dof[k]) + 0.01 for k, v in per_class.items())
         assert near_one == expect_one, per_class
+
+
+@pytest.mark.parametrize("read_noise", [25.0, 1.0])
+def test_the_readout_of_unlit_rows_measures_the_read_noise(read_noise):
+    """A flat panel's unlit rows hold dark + read noise: their variance (row means out) is sigma_e^2 plus the
+    integer counts' rounding (1/12), as on every sample, within the sampling error of a variance (sd sqrt(2 / N)
+    relative, 5 of them allowed); a scan whose unlit rows were not read out (zeros) and a phase-stepping
+    recording give nothing."""
+    from dfxcorr.effects.detector_gain import unlit_readout
+
+    scan, _ = S.simulate(sim_config(**{**S.FLAT_PANEL, "effects.read_noise": read_noise, "simulate.seed": 4}))
+    r = unlit_readout(scan)
+    assert r.size > 10000
+    assert np.issubdtype(scan.data.dtype, np.integer)
+    assert np.mean(r ** 2) / (read_noise ** 2 + 1 / 12) == pytest.approx(1.0, abs=5 * np.sqrt(2 / r.size))
+    assert unlit_readout(S.simulate(sim_config(**{"simulate.seed": 4}))[0]).size == 0
+    stepping, _ = S.simulate(sim_config(**{**S.FLAT_PANEL_STEPPING, "simulate.seed": 4}))
+    assert unlit_readout(stepping).size == 0

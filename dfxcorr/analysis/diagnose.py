@@ -227,7 +227,8 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                      final_model=model + [n for n in detected if n in final.hypothesis.effects]
                      + [n for n in detected if n not in final.hypothesis.effects],
                      before=before,
-                     after=locate(final.obs, M.design(final.obs, final.params), final.rec.images, final.rec.expected),
+                     after=before if final is first else locate(final.obs, M.design(final.obs, final.params),
+                                                                final.rec.images, final.rec.expected),
                      params=final.params, criterion=criterion, rounds=out.rounds,
                      unexplained=sorted(unexplained, key=lambda u: u["p_value"]), signatures=final.signatures,
                      shape=prep.shape, final=final.hypothesis, start=start, cfg=cfg, registry=registry,

@@ -1,9 +1,11 @@
 """``detector_gain``: the noise is not Poisson in the file's units (variance g * mean + electronic noise).
 
 The noise model's two parameters, the gain g and the electronic variance sigma_e^2, are estimated together
-from the fit's residuals (:func:`noise_model`); each is tested with the other profiled (a partial
-likelihood-ratio test, 1 dof), so that a gain error is not named electronic noise nor the other way
-round. This module tests the gain; :mod:`dfxcorr.effects.electronic_noise` the electronic variance.
+from the fit's residuals (:func:`noise_model`) and, where the file holds the readout of rows that no frame
+lights near then, from those rows (:func:`unlit_readout`: a direct measurement of sigma_e^2); each is tested
+with the other profiled (a partial likelihood-ratio test, 1 dof), so that a gain error is not named
+electronic noise nor the other way round. This module tests the gain; :mod:`dfxcorr.effects.electronic_noise`
+the electronic variance.
 """
 from __future__ import annotations
 
@@ -15,6 +17,8 @@ from scipy import ndimage
 
 from .. import model as M
 from ..catalogue import Effect
+from ..io import Scan
+from ..noise import MIN_SIGNAL
 from ..observations import Observations
 from .base import Context, EffectBase, Hypothesis, State, Test, chi2_test
 
@@ -35,6 +39,8 @@ class NoiseFit:
         The current noise model.
     joint : (float, float)
         Gain and electronic variance fitted together.
+    readout : int
+        How many of the samples, the last ones, are unlit readout (:func:`unlit_readout`).
     """
 
     r2: np.ndarray
@@ -43,6 +49,12 @@ class NoiseFit:
     gain: float
     electronic: float
     joint: tuple[float, float]
+    readout: int = 0
+
+    @property
+    def lit(self) -> np.ndarray:
+        """``mean`` of the lit samples."""
+        return self.mean[:self.mean.size - self.readout]
 
     def regression(self, *, gain: float | None = None, electronic: float | None = None) -> tuple[float, float]:
         """(g, sigma_e^2) fitted to E[r2] = g mean + sigma_e^2, either held where given; g > 0, sigma_e^2 >= 0.
@@ -65,7 +77,8 @@ class NoiseFit:
 
     def deviance(self, gain: float, electronic: float) -> float:
         """-2 log-likelihood of the residuals under a noise model (Gaussian), up to a constant."""
-        v = gain * self.mean + electronic
+        # unlit readout has no photon term: with no electronic variance either, its spread is impossible
+        v = np.maximum(gain * self.mean + electronic, 1e-300)
         return float(np.sum(np.log(v) + self.r2 / v))
 
     def partial_test(self, held: dict) -> Test:
@@ -79,22 +92,78 @@ class NoiseFit:
         return chi2_test(stat, 1, payload={"gain": g1, "electronic": e1, "profiled": self.regression(**other)})
 
 
-def noise_model(obs: Observations, ibar: np.ndarray, h: np.ndarray, *, exclude: np.ndarray | None = None
-                ) -> NoiseFit:
+#: Frames, and rows on each side of the lit band, whose unlit readout :func:`unlit_readout` reads: a sample of the
+#: file, not all of it (a clinical scan's unlit rows are most of its 4 GB).
+UNLIT_FRAMES, UNLIT_ROWS = 16, 16
+
+
+def unlit_readout(scan: Scan, *, frames: int = UNLIT_FRAMES, rows: int = UNLIT_ROWS) -> np.ndarray:
+    """Readout noise of rows that no frame lights near then, where the file holds their readout (a flat panel).
+
+    From up to ``frames`` evenly spread frames, up to ``rows`` contiguous rows on either side of the lit band, at
+    least half the band's height (and 4 rows) away from the rows lit in that frame and the three before it (the
+    detector lag of rows just left). Each row's mean is taken out (a row offset, line noise or a dark-map error,
+    is no readout noise; the W / (W - 1) makes up for the mean), so the values' mean square estimates sigma_e^2
+    whatever the dark map says: the readout's noise as recorded, integer rounding included (1/12 count^2, which
+    every sample carries). Rows read as all zeros were not read out (the format lets a writer leave them
+    unallocated).
+
+    Parameters
+    ----------
+    scan : Scan
+    frames, rows : int
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        Counts minus dark minus their row's mean (detector units); empty for a phase-stepping recording or a
+        file without unlit readout.
+    """
+    J, H, W = scan.shape
+    A = scan.active_rows
+    if scan.is_stepping or W < 2 or J == 0:
+        return np.zeros(0)
+    margin = max(4, A // 2)
+    out = []
+    for j in np.unique(np.linspace(0, J - 1, min(frames, J)).round().astype(int)):
+        recent = scan.position[max(j - 3, 0):j + 1]
+        top, bottom = int(np.floor(recent.min())) - margin, int(np.ceil(recent.max())) + A + margin
+        for a, b in ((max(top - rows, 0), max(top, 0)), (min(bottom, H), min(bottom + rows, H))):
+            if b - a < 1:
+                continue
+            block = np.asarray(scan.data[j, a:b], dtype=np.float64)
+            if not np.any(block):
+                continue
+            dev = block - np.asarray(scan.dark)[a:b]
+            out.append(((dev - dev.mean(axis=1, keepdims=True)) * np.sqrt(W / (W - 1))).ravel())
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def noise_model(obs: Observations, ibar: np.ndarray, h: np.ndarray, *, exclude: np.ndarray | None = None,
+                readout: np.ndarray | None = None) -> NoiseFit:
     """The noise model fitted to the residuals: E[r^2 / (1 - h)] = g (Ibar - dark) + sigma_e^2.
 
     Squared residuals are divided by 1 - h (h (K, C) the leverage of the sample in the fit: its pixel's images,
     and the per-frame parameters where they were fitted on these samples): the fit removes that share of each
     sample's variance. ``exclude`` (K, C) bool: samples left out (pixels whose frames disagree: a localised
-    misfit must not pose as a global variance excess).
+    misfit must not pose as a global variance excess). ``readout`` (N,): unlit readout (:func:`unlit_readout`),
+    samples whose photon signal is known to be nil: E[r^2] = sigma_e^2 exactly (the model's floor of
+    :data:`dfxcorr.noise.MIN_SIGNAL`, there for expected counts that a fit puts at or below the dark, does not
+    apply: taken at one count, a read noise of 1 was indistinguishable from none). Their regression weight is
+    that of the current electronic variance, or of one count where it is nil.
     """
     sel = obs.use & (h < 0.99)
     if exclude is not None:
         sel &= ~exclude
     r2 = ((obs.counts - ibar) ** 2 / (1 - h))[sel]
     # the photon variance per unit gain: the mean times the pixel's variance factor (pixel_noise)
-    mu = (np.maximum(ibar - obs.dark, 1e-3) * obs.pixel_gain(1.0)[obs.pixel])[sel]
-    fit = NoiseFit(r2, mu, M.variance(obs, ibar)[sel], obs.gain, obs.electronic, (obs.gain, obs.electronic))
+    mu = (np.maximum(ibar - obs.dark, MIN_SIGNAL) * obs.pixel_gain(1.0)[obs.pixel])[sel]
+    var = M.variance(obs, ibar)[sel]
+    if readout is not None and readout.size:
+        r2, mu = np.concatenate([r2, readout ** 2]), np.concatenate([mu, np.zeros(readout.size)])
+        var = np.concatenate([var, np.full(readout.size, obs.electronic or obs.gain * MIN_SIGNAL)])
+    fit = NoiseFit(r2, mu, var, obs.gain, obs.electronic, (obs.gain, obs.electronic),
+                   0 if readout is None else readout.size)
     return replace(fit, joint=fit.regression())
 
 
@@ -113,7 +182,10 @@ def noise_fit(ctx: Context, state: State, flagged: np.ndarray) -> NoiseFit:
         dsg = M.design(obs, params)
         w = np.where(obs.use & rec.images.valid[obs.pixel], rec.weights, 0.0)
         h = M.leverage(obs, dsg, rec.images, rec.weights) + M.frame_leverage(obs, dsg, rec.images, w, params)[0]
-        held = state, noise_model(obs, rec.expected, h, exclude=obs.pixel_mask(ndimage.binary_dilation(flagged)))
+        if "readout" not in ctx.memo:
+            ctx.memo["readout"] = unlit_readout(ctx.prepared(state.hypothesis).scan)
+        held = state, noise_model(obs, rec.expected, h, exclude=obs.pixel_mask(ndimage.binary_dilation(flagged)),
+                                  readout=ctx.memo["readout"])
         ctx.memo["noise"] = held
     return held[1]
 

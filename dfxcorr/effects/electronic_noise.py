@@ -1,8 +1,9 @@
 """``electronic_noise``: additive noise of the detector's readout, independent of the signal (flat panels).
 
 variance = g * (Ibar - dark) + sigma_e^2 (the paper's eq. 7 neglects sigma_e). Estimated with the gain from
-the fit's residuals, where the expected counts are low it dominates (:mod:`dfxcorr.effects.detector_gain`);
-tested with the gain profiled. Reported as sigma_e in detector units; ``load.electronic`` holds sigma_e^2.
+the fit's residuals, where the expected counts are low it dominates, and from the readout of unlit rows where
+the file holds it (:mod:`dfxcorr.effects.detector_gain`); tested with the gain profiled. Reported as sigma_e
+in detector units; ``load.electronic`` holds sigma_e^2.
 """
 from __future__ import annotations
 
@@ -36,7 +37,7 @@ class ElectronicNoise(EffectBase):
         t = fit.partial_test({"electronic": state.obs.electronic})
         change = abs(t.payload["electronic"] - state.obs.electronic)
         # material where it moves the variance of a typical sample by more than the practical floor
-        typical = float(np.median(fit.gain * fit.mean)) if fit.mean.size else 1.0
+        typical = float(np.median(fit.gain * fit.lit)) if fit.lit.size else 1.0
         return replace(t, explains=t.statistic, material=change > ctx.cfg["diagnose"]["min_gain_change"] * typical)
 
     def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
