@@ -209,6 +209,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                       "this share of the excess chi-square of the residual signatures that were "
                                       "significant (it must explain the misfit's signature, not merely some of its "
                                       "chi-square)", _NUM, check=_fraction),
+        "order": Option("mean-first", "which candidates a round tries first: the mean effects, then the noise model "
+                                      "before the localised ones (mean-first), or the noise model first (noise-first);"
+                                      " the decisions must not depend on it", str,
+                        choices=("mean-first", "noise-first")),
         "proxy_spread": Option(1.0, "a candidate whose size, estimated on pixels in strata of count or of detector "
                                     "row, spans more than this many times its mean (and significantly) is refused "
                                     "as a proxy for an effect in no catalogue: a real effect has one size (a true "

@@ -9,8 +9,8 @@ differential-phase and dark-field images against the truth before and after the 
 first (the detection limit). Clean scans (both phantoms, smooth and tiled flat fields, gain 1 and 3
 stated in the file, a flat panel with its read noise stated) give the false alarms; each run is timed against
 ``reconstruct`` of the same scan. Detector effects in no catalogue (``simulate.UNCATALOGUED``) must end in
-``unexplained`` with at most the noise model named on the way; pairs of concealed effects must each be named
-once and nothing else, down to their smaller amplitudes (the pairs' detection limits).
+``unexplained`` with at most the noise model named on the way; pairs (and a triple) of concealed effects must
+each be named once and nothing else, down to their smaller amplitudes (the combinations' detection limits).
 Writes docs/diagnosis-study.json and docs/diagnosis-study.md.
 
 Usage: python scripts/diagnose_study.py [--pixel-mm 5] [--effects ...] [--clean 12] [--pairs N] [--out docs/]
@@ -41,9 +41,11 @@ CLEAN = [(phantom, flat, gain) for flat in ({}, TILED) for phantom, gain in
          (("thorax", 1.0), ("slab", 1.0), ("thorax", 3.0), ("slab", 3.0), ("thorax", 1.0))] + \
     [(phantom, S.FLAT_PANEL, 1.0) for phantom in ("thorax", "slab")]
 
-#: Two effects concealed at once: mean with mean, noise with mean, alignment with mean, counts with mean.
+#: Two effects concealed at once (mean with mean, noise with mean, alignment with mean, counts with mean), and three
+#: (noise with two means).
 PAIRS = [("dose", "curvature"), ("detector_gain", "dose"), ("electronic_noise", "visibility_tilt"),
-         ("reference_offset", "curvature"), ("position_error", "dose"), ("detector_lag", "harmonic")]
+         ("reference_offset", "curvature"), ("position_error", "dose"), ("detector_lag", "harmonic"),
+         ("electronic_noise", "dose", "curvature")]
 
 #: The noise model's effects: the only ones an effect outside the catalogue may add on the way.
 NOISE = {"detector_gain", "electronic_noise", "pixel_noise"}
@@ -145,16 +147,16 @@ def run(effect: str | None, amplitude: float | None, *, pixel_mm: float, seed: i
     return out
 
 
-def run_pair(a: str, b: str, level: int, *, pixel_mm: float, seed: int) -> dict:
-    """Both effects concealed at once, each at its ``level``-th amplitude (0: realistic, then the smaller ones)."""
+def run_pair(names: tuple[str, ...], level: int, *, pixel_mm: float, seed: int) -> dict:
+    """The effects concealed at once, each at its ``level``-th amplitude (0: realistic, then the smaller ones)."""
     amps, settings, sets = {}, {}, []
-    for name in (a, b):
+    for name in names:
         key, realistic, smaller, extra, conceal = SCENARIOS[name]
         amps[name] = ([realistic] + smaller)[level]
         settings.update({**extra, key: amps[name]})
         sets += conceal
     r = run(None, None, pixel_mm=pixel_mm, seed=seed, settings=settings, sets=tuple(sets))
-    r.update(effect=f"{a} + {b}", amplitude=amps, ok=sorted(r["found"]) == sorted((a, b)))
+    r.update(effect=" + ".join(names), amplitude=amps, ok=sorted(r["found"]) == sorted(names))
     return r
 
 
@@ -230,9 +232,9 @@ def main():
         r["ok"] = bool(r["unexplained"]) and set(r["found"]) <= NOISE
         results["uncatalogued"].append(r)
         print(json.dumps(r), flush=True)
-    for a, b in PAIRS[:args.pairs]:
+    for names in PAIRS[:args.pairs]:
         for level in range(3):
-            r = run_pair(a, b, level, pixel_mm=args.pixel_mm, seed=11)
+            r = run_pair(names, level, pixel_mm=args.pixel_mm, seed=11)
             results["pairs"].append(r)
             print(json.dumps(r), flush=True)
             if not r["ok"]:
@@ -269,11 +271,11 @@ def main():
     lines += [f"| {r['effect']} | {r['amplitude']:g} | {', '.join(r['found']) or '-'} | "
               f"{', '.join(r['unexplained']) or '-'} | {r['initial_chi2']:.4f} -> {r['final_chi2']:.4f} | "
               f"{'yes' if r['ok'] else 'no'} | {r['cost_vs_reconstruct']:g} |" for r in results["uncatalogued"]]
-    lines += ["", "## Two effects concealed at once", "",
-              "Amplitudes from each effect's realistic one down its list of smaller ones until the pair is no longer "
-              "named exactly (both, once, nothing else).", "",
-              "| pair | amplitudes | found | unexplained | reduced chi2 initial -> final | both and nothing else "
-              "| cost |",
+    lines += ["", "## Two or three effects concealed at once", "",
+              "Amplitudes from each effect's realistic one down its list of smaller ones until the combination is no "
+              "longer named exactly (each once, nothing else).", "",
+              "| effects | amplitudes | found | unexplained | reduced chi2 initial -> final | each once and nothing "
+              "else | cost |",
               "|---|---|---|---|---|---|---|"]
     lines += [f"| {r['effect']} | {', '.join(f'{v:g}' for v in r['amplitude'].values())} | "
               f"{', '.join(r['found']) or '-'} | {', '.join(r['unexplained']) or '-'} | "

@@ -220,8 +220,11 @@ def test_report_files_follow_the_contract(tmp_path):
 
 @pytest.mark.shared
 @pytest.mark.slow
-def test_real_recording_is_diagnosed(tmp_path):
-    diag = diagnose(real_ipp_scan(tmp_path), C.defaults())
+@pytest.mark.parametrize("order", ["mean-first", "noise-first"])
+def test_real_recording_is_diagnosed(tmp_path, order):
+    """The shared 11-step recording, whichever kind of candidate a round tries first: pixel_noise alone."""
+    diag = diagnose(real_ipp_scan(tmp_path), C.load([], [f"diagnose.order={order}"]))
+    assert [e.name for e in diag.effects if e.detected] == ["pixel_noise"]
     verdict = {e.name: e for e in diag.effects}
     assert not verdict["visibility_loss"].identifiable and not verdict["visibility_loss"].detected
     # the recording's noise is below Poisson mostly in the detector's module-boundary pixels (whole columns
@@ -248,12 +251,14 @@ def test_unidentifiable_effect_that_explains_the_misfit_stops_the_naming():
     assert diag.unexplained
 
 
-def test_a_flat_panel_in_detector_units_with_step_errors_names_the_steps_and_the_noise_model_only():
+@pytest.mark.parametrize("order", ["mean-first", "noise-first"])
+def test_a_flat_panel_in_detector_units_with_step_errors_names_the_steps_and_the_noise_model_only(order):
     """5 phase steps, gain 0.5 and read noise 25 unstated, per-step phase errors, --base none: the step errors and
     the noise model, nothing else; a wrong noise model (reduced chi-square ~200 before) must not make the step
-    errors look like they make things worse, nor let a proxy in."""
+    errors look like they make things worse, nor let a proxy in; and the same whichever kind of candidate a round
+    tries first (a noise model decided first is settled again in the mean effects' trials)."""
     scan, truth = S.simulate(sim_config(**{**S.FLAT_PANEL_STEPPING, "simulate.seed": 11}))
-    diag = diagnose(scan, C.defaults(), base="none")
+    diag = diagnose(scan, C.load([], [f"diagnose.order={order}"]), base="none")
     found = {e.name: e for e in diag.effects if e.detected}
     assert set(found) == {"phase_offset", "electronic_noise", "detector_gain"}, list(found)
     assert diag.initial_chi2 > 50 and diag.final_chi2 == pytest.approx(1.0, abs=0.06)

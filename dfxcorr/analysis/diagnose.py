@@ -180,7 +180,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     first = session.fit(start, {}, "round 0")
     before = locate(first.obs, M.design(first.obs, first.params), first.rec.images, first.rec.expected)
     out = loop.run(registry, session, first, fit=session.fit, alpha=d["alpha"], explain_share=d["explain_share"],
-                   max_rounds=d["max_rounds"], timings=timings)
+                   max_rounds=d["max_rounds"], timings=timings, noise_first=d["order"] == "noise-first")
     final = out.state
     effects, changes = [], []
     for step in out.steps:

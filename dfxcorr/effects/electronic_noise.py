@@ -33,7 +33,7 @@ class ElectronicNoise(EffectBase):
     refinements = 1
 
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
-        fit = noise_fit(ctx, state, flagged)
+        fit = noise_fit(ctx, state, flagged, readout=True)
         t = fit.partial_test({"electronic": state.obs.electronic})
         change = abs(t.payload["electronic"] - state.obs.electronic)
         # material where it moves the variance of a typical sample by more than the practical floor
