@@ -165,6 +165,8 @@ def _trial(effect: EffectBase, ctx: Context, state: State, test: Test, flagged: 
             break
         trial = fit(effect.trial(ctx, trial, again), {} if effect.fresh_start else trial.params,
                     f"{label} (refined {k + 1})")
+    if effect.role in ("mean", "alignment") and trial.reduced_chi2 > state.reduced_chi2:
+        return trial  # astray or an overfit at the noise model it was judged under: refused as it is (see run)
     for name, noise in (settle or {}).items():
         moved = noise.test(ctx, trial, flagged)
         if moved is not None:
