@@ -389,8 +389,8 @@ def test_a_mean_effect_whose_trial_raises_the_chi_square_is_refused():
 class OfOneSize(Fake):
     """A fake whose consistency test says whether its size changes across the strata, and how much."""
 
-    def __init__(self, name, statistic, *, p, spread):
-        super().__init__(name, statistic)
+    def __init__(self, name, statistic, *, p, spread, until=None):
+        super().__init__(name, statistic, until=until)
         self.p, self.spread = p, spread
 
     def consistency(self, ctx, state):
@@ -409,3 +409,12 @@ def test_a_candidate_of_another_size_in_other_strata_is_refused_as_a_proxy(p, sp
     if not named:
         test, odd = out.inconsistent["true"]
         assert test.statistic == 200 and odd.payload["axis"] == "count"
+
+
+def test_a_proxy_whose_signature_the_next_effect_explains_is_not_reported():
+    """Refused as a proxy in round 0 (its trial explained a third of the misfit, with sizes that differ), the true
+    effect added next; in round 1 the proxy's test is no longer significant, so nothing is left unexplained of it."""
+    world = World({"true": {("frame", "mean"): 400.0}, "proxy": {("frame", "mean"): 200.0}})
+    out = _run([OfOneSize("proxy", 500, p=1e-6, spread=5.0, until="true"), Fake("true", 300)], world)
+    assert [s.name for s in out.steps] == ["true"]
+    assert out.inconsistent == {}

@@ -185,7 +185,8 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     effects, changes = [], []
     for step in out.steps:
         e, t = registry[step.name], step.test
-        extra = e.accepted(session, step.before, step.after, t)
+        # the noise model is settled again in later trials: its report is what the final model holds
+        extra = e.accepted(session, step.before, final if e.role == "noise" else step.after, t)
         effects.append(EffectReport(step.name, True, True, t.statistic, int(t.dof), t.p_value,
                                     delta_chi2=step.before.chi2 - step.after.chi2,
                                     reduced_chi2_after=step.after.reduced_chi2, where=e.where(t, step.after.fit_obs),
@@ -198,6 +199,8 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
         extra = {"excess_null_directions": t.excess} if t.excess else {}
         if n in out.rejected:
             extra["explained_share"] = out.rejected[n]
+        if n in out.inconsistent:
+            extra["refused_as_proxy"] = out.inconsistent[n][1].payload["axis"]
         extra.update(out.blind.get(n, {}))
         effects.append(EffectReport(n, False, bool(t.identifiable), t.statistic, int(t.dof), t.p_value, extra=extra))
     unexplained = [{"axis": s["axis"], "statistic": s["statistic"], "dof": s["dof"], "p_value": s["p_value"],
@@ -217,7 +220,11 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                  f"the residual signatures that were significant (Holm, alpha = {d['alpha']}) must shrink by "
                  f"{100 * d['explain_share']:.0f} % or more, or one of them must become insignificant while the "
                  f"excess does not grow; otherwise it stays out of the model (its explained "
-                 f"share is reported) and the next candidate is tried. A significant effect that the acquisition "
+                 f"share is reported) and the next candidate is tried; nor if, fitted, its size differs between "
+                 f"strata of the pixels by count or by row (significantly, and spanning more than "
+                 f"{d['proxy_spread']:g} times its size): then it stands in for an effect in no catalogue and its "
+                 f"signature is reported unexplained there. A trial of a mean effect settles the noise model already "
+                 f"added again on its own fit. A significant effect that the acquisition "
                  f"cannot identify gets a trial refit first: if it explains the misfit so, the diagnosis stops "
                  f"there (naming a proxy would be the wrong physics). What stays significant is listed as "
                  f"unexplained")

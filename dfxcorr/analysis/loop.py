@@ -149,8 +149,18 @@ def round_tests(effects: Mapping[str, EffectBase], ctx: Context, state: State,
     return tests, flagged
 
 
+@dataclass(frozen=True)
+class Trial:
+    """A trial refit and whether it went astray: a mean or alignment effect whose fit, at the noise model it was
+    tried under, raises the reduced chi-square (read on every column, the fit saw a few: an overfit or a fit gone
+    astray). An astray trial's noise model is not settled again: that would hide the rise."""
+
+    state: State
+    astray: bool
+
+
 def _trial(effect: EffectBase, ctx: Context, state: State, test: Test, flagged: np.ndarray, *, fit: Fit,
-           label: str, settle: Mapping[str, EffectBase] | None = None, alpha: float = 0.0) -> State:
+           label: str, settle: Mapping[str, EffectBase], alpha: float) -> Trial:
     """A trial refit with ``effect``, then its refinements: each a refit at the estimate its test gives on the
     trial's own fit (an estimate from a fit under the wrong model is biased, most so for the noise model).
 
@@ -166,16 +176,28 @@ def _trial(effect: EffectBase, ctx: Context, state: State, test: Test, flagged: 
         trial = fit(effect.trial(ctx, trial, again), {} if effect.fresh_start else trial.params,
                     f"{label} (refined {k + 1})")
     if effect.role in ("mean", "alignment") and trial.reduced_chi2 > state.reduced_chi2:
-        return trial  # astray or an overfit at the noise model it was judged under: refused as it is (see run)
-    for name, noise in (settle or {}).items():
+        return Trial(trial, True)
+    for name, noise in settle.items():
         moved = noise.test(ctx, trial, flagged)
-        if moved is not None:
-            log.info("%s: %s on the trial's fit S = %.4g%s", label, name, moved.statistic,
-                     "" if moved.material else " (immaterial)")
         if moved is not None and moved.material and moved.log_p < np.log(alpha):
+            log.info("%s: %s moved on the trial's fit (S = %.4g): settled again", label, name, moved.statistic)
             trial = fit(noise.trial(ctx, trial, moved), {} if noise.fresh_start else trial.params,
                         f"{label} ({name} settled)")
-    return trial
+    return Trial(trial, False)
+
+
+def _admitted(effect: EffectBase, ctx: Context, before: State, trial: Trial, *, explain_share: float,
+              alpha: float) -> tuple[bool, Test | None]:
+    """Whether a trial justifies adding ``effect``: not astray, explains the signatures it is judged on
+    (:func:`accepts`), and of one size across the recording (:meth:`EffectBase.consistency`: refused as a proxy
+    where that test is significant and material). Also the consistency test that refused it, or None."""
+    if trial.astray or not accepts(before.signatures, trial.state.signatures, explain_share=explain_share,
+                                   judged=effect.judged_on):
+        return False, None
+    odd = effect.consistency(ctx, trial.state)
+    if odd is not None and odd.material and odd.log_p < np.log(alpha):
+        return False, odd
+    return True, None
 
 
 def _settled(name: str, effects: Mapping[str, EffectBase], steps: list[Step]) -> dict[str, EffectBase]:
@@ -198,17 +220,17 @@ def contenders(first: str, later: list[str], tests: Mapping[str, Test], effects:
 def _best_of(first: Step, others: list[str], tests: Mapping[str, Test], effects: Mapping[str, EffectBase],
              ctx: Context, flagged: np.ndarray, *, fit: Fit, explain_share: float, label: str,
              settle: Mapping[str, EffectBase], alpha: float) -> Step:
-    """Of an accepted candidate and its close contenders (same role), the accepted one whose trial fits best (least
-    chi-square); each trial settles the noise model as ``first``'s did."""
+    """Of an accepted candidate and its close contenders (same role), the admitted one (:func:`_admitted`) whose
+    trial fits best (least chi-square); each trial settles the noise model as ``first``'s did."""
     best = first
     for name in others:
         effect = effects[name]
         trial = _trial(effect, ctx, first.before, tests[name], flagged, fit=fit,
                        label=f"{label}: trial {name} (beside {first.name})", settle=settle, alpha=alpha)
-        if trial.chi2 < best.after.chi2 and accepts(first.before.signatures, trial.signatures,
-                                                    explain_share=explain_share, judged=effect.judged_on):
-            best = Step(name, tests[name], first.before, trial,
-                        explained_share(first.before.signatures, trial.signatures, effect.judged_on))
+        if trial.state.chi2 < best.after.chi2 and _admitted(effect, ctx, first.before, trial,
+                                                            explain_share=explain_share, alpha=alpha)[0]:
+            best = Step(name, tests[name], first.before, trial.state,
+                        explained_share(first.before.signatures, trial.state.signatures, effect.judged_on))
     return best
 
 
@@ -230,13 +252,13 @@ def run(effects: Mapping[str, EffectBase], ctx: Context, start: State, *, fit: F
         while (suspect := strongest_unidentifiable(tests, effects, alpha, out.blind)) is not None:
             # an effect this acquisition cannot determine may still be what the data show: if a trial refit with
             # it explains the misfit, no identifiable proxy may be named for it
-            trial = _trial(effects[suspect], ctx, state, tests[suspect], flagged, fit=fit,
+            tried = _trial(effects[suspect], ctx, state, tests[suspect], flagged, fit=fit,
                            label=f"round {rnd}: trial {suspect} (not identifiable)",
-                           settle=_settled(suspect, effects, out.steps), alpha=alpha)
-            share = explained_share(state.signatures, trial.signatures, effects[suspect].judged_on)
+                           settle=_settled(suspect, effects, out.steps), alpha=alpha).state
+            share = explained_share(state.signatures, tried.signatures, effects[suspect].judged_on)
             explains = share is None or share >= explain_share
             out.blind[suspect] = {"explains_misfit": explains, "explained_share": share,
-                                  "reduced_chi2_with": trial.reduced_chi2}
+                                  "reduced_chi2_with": tried.reduced_chi2}
             if explains:
                 blind = suspect, 1.0 if share is None else share
                 break
@@ -248,32 +270,27 @@ def run(effects: Mapping[str, EffectBase], ctx: Context, start: State, *, fit: F
             effect = effects[name]
             trial = _trial(effect, ctx, state, tests[name], flagged, fit=fit, label=f"round {rnd}: trial {name}",
                            settle=_settled(name, effects, out.steps), alpha=alpha)
-            share = explained_share(state.signatures, trial.signatures, effect.judged_on)
+            share = explained_share(state.signatures, trial.state.signatures, effect.judged_on)
             # where an unidentifiable effect explains the misfit, only an effect that explains as much (within the
             # share a candidate must explain) is no proxy for it
             as_much = blind is None or (share if share is not None else 1.0) >= blind[1] - explain_share
-            # more of the mean model must not fit the same data worse: the chi-square is read on every column and the
-            # fit saw a few of them, so a rise is an overfit or a fit gone astray (the other effects change the data,
-            # the pixels or the variance the chi-square divides by)
-            worse = effect.role in ("mean", "alignment") and trial.reduced_chi2 > state.reduced_chi2
-            if as_much and not worse and accepts(state.signatures, trial.signatures, explain_share=explain_share,
-                                                 judged=effect.judged_on):
-                odd = effect.consistency(ctx, trial)
-                if odd is not None and odd.material and odd.log_p < np.log(alpha):
-                    log.info("round %d: %s has another size in pixels of another %s (S = %.4g, dof %d): what its "
-                             "test sees is not this effect: rejected", rnd, name, odd.payload.get("axis", "kind"),
-                             odd.statistic, odd.dof)
-                    out.rejected[name] = share
-                    out.inconsistent[name] = (tests[name], odd)
-                    continue
+            admitted, odd = _admitted(effect, ctx, state, trial, explain_share=explain_share, alpha=alpha)
+            if as_much and admitted:
                 close = contenders(name, [n for n in order[i + 1:] if n not in out.rejected], tests, effects)
-                step = _best_of(Step(name, tests[name], state, trial, share), close, tests, effects, ctx, flagged,
-                                fit=fit, explain_share=explain_share, label=f"round {rnd}",
+                step = _best_of(Step(name, tests[name], state, trial.state, share), close, tests, effects, ctx,
+                                flagged, fit=fit, explain_share=explain_share, label=f"round {rnd}",
                                 settle=_settled(name, effects, out.steps), alpha=alpha)
                 break
-            log.info("round %d: %s removes %.0f %% of the significant residual signatures' excess%s: rejected",
-                     rnd, name, 100 * (share or 0.0), f", less than {blind[0]}" if blind is not None and not as_much
-                     else (f", and raises the reduced chi-square to {trial.reduced_chi2:.4f}" if worse else ""))
+            if odd is not None:
+                log.info("round %d: %s has another size in pixels of another %s (S = %.4g, dof %d): what its test "
+                         "sees is not this effect: rejected", rnd, name, odd.payload["axis"], odd.statistic, odd.dof)
+                out.inconsistent[name] = (tests[name], odd)
+            else:
+                log.info("round %d: %s removes %.0f %% of the significant residual signatures' excess%s: rejected",
+                         rnd, name, 100 * (share or 0.0), f", less than {blind[0]}"
+                         if blind is not None and not as_much else (", and raises the reduced chi-square to "
+                                                                    f"{trial.state.reduced_chi2:.4f}"
+                                                                    if trial.astray else ""))
             out.rejected[name] = share
         if step is None:
             if blind is not None:
@@ -282,7 +299,10 @@ def run(effects: Mapping[str, EffectBase], ctx: Context, start: State, *, fit: F
                             "this acquisition cannot identify: nothing else is named in its place", rnd, blind[0],
                             out.blind[blind[0]]["reduced_chi2_with"])
             break
-        out.rejected.clear()  # a candidate that did not explain the misfit then may, now that the model changed
+        # a candidate that did not explain the misfit then may, now that the model changed (and one refused as a proxy
+        # is retried, or no longer significant)
+        out.rejected.clear()
+        out.inconsistent.clear()
         out.steps.append(step)
         out.rounds.append({"round": rnd, "added": step.name, "chi2_before": state.chi2,
                            "reduced_chi2_before": state.reduced_chi2, "reduced_chi2_after": step.after.reduced_chi2,

@@ -95,6 +95,8 @@ def strata(obs: Observations, expected: np.ndarray, *, by: str, n: int = 6) -> n
     used = obs.use.astype(float)
     with np.errstate(invalid="ignore", divide="ignore"):
         level = obs.segment_sum(np.where(obs.use, expected, 0.0)) / obs.segment_sum(used)
+    if by not in ("count", "row"):
+        raise ValueError(f"strata by 'count' or 'row', not {by!r}")
     if by == "row":
         level = np.where(np.isfinite(level), obs.rows[:, None].astype(float), np.nan)
     ok = np.isfinite(level)
@@ -106,7 +108,7 @@ def strata(obs: Observations, expected: np.ndarray, *, by: str, n: int = 6) -> n
 
 
 def heterogeneity(obs: Observations, params: dict, weights: np.ndarray, model, name: str, *,
-                  strata: np.ndarray) -> Test:
+                  labels: np.ndarray) -> Test:
     """Whether an effect in the model has one size in every stratum of pixels.
 
     A score test at the fit with the effect (``params``, theta), of the alternative that its parameters
@@ -131,60 +133,64 @@ def heterogeneity(obs: Observations, params: dict, weights: np.ndarray, model, n
     model : sequence of str
         The mean effects in the model (``name`` included).
     name : str
-    strata : ndarray of int, shape (K, C)
+    labels : ndarray of int, shape (K, C)
         Stratum of each sample (:func:`strata`; negative: left out).
 
     Returns
     -------
     Test
-        Its payload holds 'strata': the size of the effect each stratum alone would give, relative to the
-        shared fit (one step from it), in the strata's order; 'alternative': 'trend' or 'any', the contrast
-        that decided.
+        Its payload holds 'strata': the size of the effect in each stratum under the contrast that decided, relative
+        to the shared fit's (1; one step from it), in the strata's order; 'alternative': 'trend' or 'any' (or
+        'none': fewer than two strata, nothing tested).
     """
+    n = int(labels.max()) + 1
+    if n < 2:
+        return chi2_test(0.0, 0, payload={"strata": [], "alternative": "none"})
     names = list(model)
     dsg = M.design(obs, params)
     images = M.solve_images(obs, dsg, weights, keep_inverse=True)
     resid = obs.counts - M.expected(obs, dsg, images)
-    n = int(strata.max()) + 1
-    infos, scores = [], []
+    e = M.effect(name)
+    total, U_eta = 0.0, 0.0
+    u, own, cross = np.zeros(n), np.zeros(n), []
     for k in range(n):
-        inside = obs.use & (strata == k)
-        dof = inside.sum() - 3 * np.count_nonzero(obs.segment_sum(inside.astype(float)))
-        phi = float(np.sum(np.where(inside, weights * resid ** 2, 0.0)) / max(dof, 1))
+        inside = obs.use & (labels == k)
+        # a pixel's samples beyond its three images are what its residuals have to spread
+        dof = float(np.sum(np.maximum(obs.segment_sum(inside.astype(float)) - 3, 0)))
+        phi = max(float(np.sum(np.where(inside, weights * resid ** 2, 0.0))) / max(dof, 1.0), 1e-12)
         wk = np.where(inside, weights, 0.0)
         inf = identify.information(obs, dsg.channels, images, wk, names)
         # quasi-likelihood: the stratum's score and information over its own dispersion (the images' profile
         # uses every weight as it is, so the weights themselves are not rescaled)
-        phi = max(phi, 1e-12)
-        infos.append(replace(inf, matrix=inf.matrix / phi))
-        scores.append(_score(inf, M.gradient(obs, dsg, images, wk, resid, names)) / phi)
-    live = np.logical_or.reduce([i.live for i in infos])
-    sel = live & (infos[0].owner == name)
-    # the alternative: the effect as fitted, of another size in each stratum (theta_k = (1 + gamma_k) theta): a
-    # parameter per stratum, however many the effect has, so a per-frame effect is tested with a few dof
-    e = M.effect(name)
-    size = np.array([params[name][(j, m) if j >= 0 else m] - e.neutral
-                     for j, m in zip(infos[0].frame[sel], infos[0].component[sel], strict=True)])
-    u = np.array([size @ s[sel] for s in scores])
-    own = np.array([size @ i.matrix[np.ix_(sel, sel)] @ size for i in infos])
-    cross = np.stack([size @ i.matrix[np.ix_(sel, live)] for i in infos])
+        matrix = inf.matrix / phi
+        score = _score(inf, M.gradient(obs, dsg, images, wk, resid, names)) / phi
+        live, sel = inf.live, inf.live & (inf.owner == name)  # the same for every stratum: frames, not weights
+        # the alternative: the effect as fitted, of another size in each stratum (theta_k = (1 + gamma_k) theta):
+        # a parameter per stratum, however many the effect has, so a per-frame effect is tested with a few dof
+        size = np.array([params[name][(j, m) if j >= 0 else m] - e.neutral
+                         for j, m in zip(inf.frame[sel], inf.component[sel], strict=True)])
+        u[k], own[k] = size @ score[sel], size @ matrix[np.ix_(sel, sel)] @ size
+        cross.append(size @ matrix[np.ix_(sel, live)])
+        total = total + matrix[np.ix_(live, live)]
+        U_eta = U_eta + score[live]
+    C = np.stack(cross)
     # two contrasts of the strata's sizes, Bonferroni over both: a size that drifts along the strata's order (where
     # a detector effect grows or fades with the count), and any difference
     contrasts = {"trend": (np.arange(n) - (n - 1) / 2)[:, None], "any": np.eye(n)[:, 1:]}
-    total = np.sum([i.matrix for i in infos], axis=0)[np.ix_(live, live)]
-    inv_total = identify.pinv_rank(total)[0]
-    U_eta = np.sum(scores, axis=0)[live]
+    inv_total = identify.pinv_rank(np.asarray(total))[0]
     found = {}
     for key, Z in contrasts.items():
-        eff_score = Z.T @ u - Z.T @ cross @ inv_total @ U_eta
-        eff_info = Z.T @ np.diag(own) @ Z - Z.T @ cross @ inv_total @ cross.T @ Z
+        eff_score = Z.T @ u - Z.T @ C @ inv_total @ U_eta
+        eff_info = Z.T @ np.diag(own) @ Z - Z.T @ C @ inv_total @ C.T @ Z
         inv, dof = identify.pinv_rank(eff_info, np.diag(Z.T @ np.diag(own) @ Z))
-        # the sizes this alternative estimates (one step from the shared fit), relative to their mean
-        sizes = 1.0 + Z @ (inv @ eff_score)
-        found[key] = chi2_test(float(eff_score @ inv @ eff_score), dof, payload={"sizes": sizes / np.mean(sizes)})
+        # the sizes this alternative estimates (one step from the shared fit), centred on the shared size: their
+        # information-weighted mean is the shared fit's (a stratum as the contrasts' baseline must not matter)
+        g = Z @ (inv @ eff_score)
+        sizes = 1.0 + g - own @ g / max(own.sum(), 1e-300)
+        found[key] = chi2_test(float(eff_score @ inv @ eff_score), dof, payload={"sizes": sizes})
     key = min(found, key=lambda k: found[k].log_p)
     t = found[key]
-    return Test(t.statistic, t.dof, min(1.0, 2 * t.p_value), t.log_p + np.log(2), payload={
+    return Test(t.statistic, t.dof, min(1.0, 2 * t.p_value), min(t.log_p + np.log(2), 0.0), payload={
         "strata": t.payload["sizes"].tolist(), "alternative": key})
 
 
@@ -223,7 +229,7 @@ class ChannelEffect(EffectBase):
         obs, expected = state.fit_obs, state.fit_rec.expected
         weights = M.noise_weights(obs, expected)
         found = {by: heterogeneity(obs, state.params, weights, state.hypothesis.effects, self.name,
-                                   strata=strata(obs, expected, by=by)) for by in ("count", "row")}
+                                   labels=strata(obs, expected, by=by)) for by in ("count", "row")}
         by = min(found, key=lambda k: found[k].log_p)
         t = found[by]
         spread = float(np.ptp(t.payload["strata"]))

@@ -121,14 +121,18 @@ def unlit_readout(scan: Scan, *, frames: int = UNLIT_FRAMES, rows: int = UNLIT_R
     least half the band's height (and 4 rows) away from the rows lit in that frame and the three before it (the
     detector lag of rows just left). Each row's mean is taken out (a row offset, line noise or a dark-map error,
     is no readout noise; the W / (W - 1) makes up for the mean), so the values' mean square estimates sigma_e^2
-    whatever the dark map says: the readout's noise as recorded, integer rounding included (1/12 count^2, which
-    every sample carries). Rows read as all zeros were not read out (the format lets a writer leave them
-    unallocated).
+    whatever the dark map's row levels say: the readout's noise as recorded, integer rounding included (1/12
+    count^2, which every sample carries). A pixel-by-pixel error of the dark map would count as read noise
+    here (differences of frames would cancel it; not done). Rows read as all zeros were not read out (the
+    format lets a writer leave them unallocated).
 
     Parameters
     ----------
     scan : Scan
-    frames, rows : int
+    frames : int
+        Most frames read.
+    rows : int
+        Most rows read on each side of a frame's lit band.
 
     Returns
     -------
@@ -149,9 +153,10 @@ def unlit_readout(scan: Scan, *, frames: int = UNLIT_FRAMES, rows: int = UNLIT_R
             if b - a < 1:
                 continue
             block = np.asarray(scan.data[j, a:b], dtype=np.float64)
-            if not np.any(block):
+            read = np.any(block, axis=1)
+            if not read.any():
                 continue
-            dev = block - np.asarray(scan.dark)[a:b]
+            dev = (block - np.asarray(scan.dark)[a:b])[read]
             out.append(((dev - dev.mean(axis=1, keepdims=True)) * np.sqrt(W / (W - 1))).ravel())
     return np.concatenate(out) if out else np.zeros(0)
 
