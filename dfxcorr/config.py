@@ -202,6 +202,9 @@ SCHEMA: dict[str, dict[str, Option]] = {
                         check=_fraction),
         "subsample": Option(4, "the diagnosis fits and tests on every n-th column (finer than fit.subsample: the "
                                "parameter noise of a coarse fit would read as misfit)", int, check=_within(1, 1e6)),
+        "max_samples": Option(1e6, "the diagnosis fits and tests on every n-th column, n at least diagnose.subsample "
+                                   "and large enough that they hold at most this many samples (a large scan's every "
+                                   "4th column was most of the diagnosis's time)", _NUM, check=_within(1e3, 1e12)),
         "max_rounds": Option(8, "at most this many effects are added", int, check=_within(1, 100)),
         "motion_p": Option(1e-6, "per-pixel p-value below which a pixel's frames disagree", _NUM, check=_fraction),
         "min_pixels": Option(5, "sample_motion needs at least this many flagged pixels", int, check=_within(1, 1e9)),

@@ -65,8 +65,11 @@ class Session:
         self.prep, self.cfg, self.timings, self.registry = prep, cfg, timings, registry
         # the tests need every pixel: the diagnosis holds the whole scan (the reconstruction streams it)
         self.obs = prep.observations()
-        # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit
-        self.fit_columns = subsample_columns(prep.shape[2], d["subsample"])
+        # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit; on a large scan
+        # fewer of them (diagnose.max_samples) still hold more information than the tests need
+        blocks, width = self.obs.counts.shape
+        every = max(d["subsample"], int(np.ceil(blocks * width / d["max_samples"])))
+        self.fit_columns = subsample_columns(width, min(every, width))
         self.fitted = np.zeros(self.obs.columns.size, bool)
         self.fitted[self.fit_columns] = True
         self.good_frames = well_determined(self.obs.subset(self.fit_columns), cfg["fit"]["gauge_fraction"])
