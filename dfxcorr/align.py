@@ -217,7 +217,7 @@ class LitStore:
             Variance factor of each detector pixel (``pixel_noise``; default 1).
         dtype : numpy dtype
             Of the sample arrays: float64, or float32 to halve them (counts up to 2^24 stay exact;
-            the flat field is interpolated in float64 first).
+            the flat field is interpolated in float64 first, its phase then wrapped to [-pi, pi)).
         phase_unwrapped : bool
             The reference's phase is already unwrapped along the scan (axis 0), so it is not done again
             (a caller aligning block after block unwraps once).
@@ -235,6 +235,9 @@ class LitStore:
         vf = interpolate_rows(reference.visibility, u, columns=cols, dtype=dtype)
         phif = interpolate_rows(phase, u, columns=cols)
         phif += self.phase_step[frame][:, None]
+        # the model takes only cos and sin of it: wrapped to [-pi, pi), float32 keeps it to 2e-7 rad (unwrapped
+        # across a clinical detector's many fringes it would keep it only to |phi^f| 6e-8)
+        phif -= 2.0 * np.pi * np.floor(phif / (2.0 * np.pi) + 0.5)
         # C order whatever the store's: the kernels walk a sample row at a time (a Fortran-ordered copy made
         # every cost evaluation about 1.7x slower)
         counts = (self.counts[lo:hi] if columns is None else self.counts[lo:hi, cols]).astype(dtype, order="C")

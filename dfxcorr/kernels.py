@@ -444,7 +444,7 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
 
 @njit(cache=True, parallel=True)
 def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunks, phase, vis, dose, bg, harm,
-              gain, electronic, iterations, from_data, keep_inverse, tile):
+              gain, electronic, iterations, from_data, keep_inverse, keep_expected, tile):
     K, C = counts.shape
     R = bounds.size - 1
     n = chunks.size - 1
@@ -452,8 +452,8 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
     coef = np.empty((R, C, 3))
     valid = np.empty((R, C), dtype=np.bool_)
     inverse = np.empty((R if keep_inverse else 0, C, 3, 3))
-    ibar = np.empty((K, C))
-    w_out = np.empty((K, C))
+    ibar = np.empty((K if keep_expected else 0, C))
+    w_out = np.empty((K if keep_expected else 0, C))
     chi2 = np.empty(n)
     n_sel = np.empty(n)
     hc, hs = harm[0], harm[1]
@@ -535,8 +535,9 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                         c = c0 + i
                         m = off[b, i] + coef[r, c, 0] * A[b, i] + coef[r, c, 1] * Bc[b, i] + coef[r, c, 2] * Bs[b, i] \
                             + (Hc[b, i] * dirn[2, i] - Hs[b, i] * dirn[3, i])
-                        ibar[k, c] = m
-                        w_out[k, c] = w[b, i]
+                        if keep_expected:
+                            ibar[k, c] = m
+                            w_out[k, c] = w[b, i]
                         if valid[r, c] and use[k, c]:
                             # Pearson residual with the variance of the weights (noise.variance)
                             chi2[t] += (counts[k, c] - m) ** 2 / (gain[r, c] * max(m - dark[k, c], 1.0) + electronic)
@@ -545,7 +546,7 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
 
 
 def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1, gain: float | None = None,
-             keep_inverse: bool = False) -> dict:
+             keep_inverse: bool = False, keep_expected: bool = True) -> dict:
     """Closed-form images of every pixel, the expected counts and the Pearson chi-square.
 
     Parameters
@@ -562,13 +563,16 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         ``obs.noise``: the kernel reads one gain per pixel).
     keep_inverse : bool
         Also return the inverse normal matrices.
+    keep_expected : bool
+        Return the expected counts and the weights; without them the pass writes nothing per sample (two
+        float64 arrays of the samples' size, which a retrieval for the images alone discards).
 
     Returns
     -------
     dict
         'coef' (R, C, 3), 'valid' (R, C), 'inverse' (R, C, 3, 3) or None, 'expected' (K, C) counts,
-        'weights' (K, C) of the last solve, 'chi2' (Pearson chi-square over the used samples of
-        valid pixels), 'samples' (their number).
+        'weights' (K, C) of the last solve (both (0, C) without ``keep_expected``), 'chi2' (Pearson chi-square
+        over the used samples of valid pixels), 'samples' (their number).
     """
     if iterations < 1:
         raise ValueError("iterations must be at least 1")
@@ -580,7 +584,7 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         _c(obs.counts), _c(obs.tf), _c(obs.vf), _c(obs.phif), _c(obs.dark), _c(obs.use), start, obs.frame, obs.y, obs.x,
         bounds, row_chunks(bounds[:-1], obs.frame.size), _c(ch.phase, np.float64), _c(ch.vis, np.float64), ch.dose,
         ch.background, ch.harmonic, _c(g, np.float64), float(obs.electronic), int(iterations), weights is None,
-        keep_inverse, TILE)
+        keep_inverse, keep_expected, TILE)
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
 

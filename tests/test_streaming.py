@@ -97,9 +97,10 @@ def test_row_blocks_give_the_images_of_one_pass(prepared_scan):
                                    equal_nan=True)
     np.testing.assert_array_equal(tiny.motion_mask, huge.motion_mask)
     assert tiny.reduced_chi2 == pytest.approx(huge.reduced_chi2, rel=1e-10)
-    # and both equal one retrieval holding every sample, with reduced_chi2's own degrees of freedom
+    # and both equal one retrieval holding every sample (in float32, as the pipeline's), with reduced_chi2's own
+    # degrees of freedom
     prep = pipeline.prepare(scan, C.defaults())
-    obs = prep.observations()
+    obs = prep.observations(dtype=np.float32)
     fitted = {k: v for k, v in tiny.params.items() if tiny.estimated[k]}
     whole = retrieve(replace(obs, use=obs.roi), fitted)
     assert tiny.reduced_chi2 == pytest.approx(whole.reduced_chi2, rel=1e-10)
