@@ -347,8 +347,9 @@ def realign(store: LitStore, reference: Reference, like: Observations, shift: np
 
 def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray | None = None,
                        min_frames: int = 3, pixel_mask: np.ndarray | None = None,
-                       gain: float | None = None) -> Observations:
-    """Align the flat field to every lit sample and collect the data as :class:`Observations` (float64).
+                       gain: float | None = None, dtype: DTypeLike = np.float64) -> Observations:
+    """Align the flat field to every lit sample and collect the data as :class:`Observations` (float64 unless
+    ``dtype`` says otherwise, see :meth:`LitStore.observations`).
 
     :func:`collect_lit_rows` then :meth:`LitStore.observations`; for scans that fit in memory many
     times over. The pipeline keeps the store and builds observations of column subsets and row blocks.
@@ -359,7 +360,7 @@ def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray 
         If no row is lit in at least ``min_frames`` frames.
     """
     store = collect_lit_rows(scan, active_rows=reference.transmission.shape[0], min_frames=min_frames)
-    return store.observations(reference, columns=columns, pixel_mask=pixel_mask, gain=gain)
+    return store.observations(reference, columns=columns, pixel_mask=pixel_mask, gain=gain, dtype=dtype)
 
 
 def subsample_columns(width: int, n: int, *, offset: int | None = None) -> np.ndarray:
