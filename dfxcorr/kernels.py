@@ -616,6 +616,10 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
         corr[t, :, :] = 0.0
         F = np.empty(Q)
         basis = np.empty(5)
+        # one frame's block of the information, summed over the row's columns before it is placed (its slots are
+        # the same for every column: loads and stores of the row's matrix per sample were most of the plain part)
+        blk = np.empty((Q, Q))
+        dirs = np.empty((4, C))  # _direction of each column's images: per pixel, not per sample
         for r in range(chunks[t], chunks[t + 1]):
             lo, hi = bounds[r], bounds[r + 1]
             nb = hi - lo
@@ -630,15 +634,18 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
             local = np.zeros((m, m))
             # Y = X^T W D of each pixel (3 rows per column)
             Y = np.zeros((3 * C, m))
+            for c in range(C):
+                dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c] = _direction(coef[r, c, 1], coef[r, c, 2])
             for b in range(nb):
                 k = lo + b
                 j = frame[k]
+                blk[:, :] = 0.0
                 for c in range(C):
                     wk = w[k, c]
                     if wk == 0:
                         continue
                     tt, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
-                    du, dw, e, f = _direction(cs, ss)
+                    du, dw, e, f = dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c]
                     th = phif[k, c] + phase[j, c]
                     ct, st = np.cos(th), np.sin(th)
                     amp = dose[j] * tf[k, c]
@@ -656,15 +663,18 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
                         else:
                             F[q] = basis[3 + power[q]]
                     for q1 in range(Q):
-                        s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
                         wf = wk * F[q1]
                         for q2 in range(Q):
-                            s2_ = b * Pf + q2 if q2 < Pf else nb * Pf + q2 - Pf
-                            local[s1, s2_] += wf * F[q2]
+                            blk[q1, q2] += wf * F[q2]
                         if profiled:
+                            s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
                             Y[3 * c, s1] += wf * a
                             Y[3 * c + 1, s1] += wf * xc
                             Y[3 * c + 2, s1] += wf * xs
+                for q1 in range(Q):
+                    s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
+                    for q2 in range(Q):
+                        local[s1, b * Pf + q2 if q2 < Pf else nb * Pf + q2 - Pf] += blk[q1, q2]
             if profiled:
                 # sum over the row's columns of Y^T N^-1 Y = Z^T Z, Z = L^T Y with N^-1 = L L^T: Y becomes Z in place
                 # (each column's three rows), then one matrix product (BLAS; the scalar triple loop it replaces
