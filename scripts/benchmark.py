@@ -232,12 +232,15 @@ def targets(folder: Path) -> None:
     for key, label in (("paper_every_column", "paper study, every column"), ("clinical_fit_columns", "clinical fit")):
         if key in kern:
             k = kern[key]
-            worst = max(k[p]["ns_per_sample"] / k[p]["floor_ns_per_sample"] for p in ("cost_gradient", "retrieval"))
-            rows.append((f"kernels within 3 x the memory floor ({label}): cost+gradient / retrieval, wall ns "
+            cpu = {p: k[p].get("cpu_ns_per_sample", k[p]["ns_per_sample"]) for p in ("cost_gradient", "retrieval")}
+            worst = max(cpu[p] / k[p]["floor_ns_per_sample"] for p in cpu)
+            trig = k["retrieval"].get("trig_cpu_ns_per_sample")
+            rows.append((f"kernels within 3 x the memory floor ({label}): cost+gradient / retrieval, CPU ns "
                          "per sample",
-                         f"{k['cost_gradient']['ns_per_sample']} / {k['retrieval']['ns_per_sample']} ns against "
+                         f"{cpu['cost_gradient']} / {cpu['retrieval']} ns against "
                          f"{k['cost_gradient']['floor_ns_per_sample']} / {k['retrieval']['floor_ns_per_sample']} ns "
-                         f"(x{worst:.1f})", worst <= 3))
+                         f"(x{worst:.1f})" + ("" if trig is None else f"; the retrieval's cos and sin alone {trig} ns"),
+                         worst <= 3))
     print("machine:", bench.get("clinical", {}).get("machine") or bench.get("paper", {}).get("machine"),
           "| kernels:", kern.get("machine"))
     for what, figure, met in rows:
