@@ -97,7 +97,9 @@ PRECONDITIONERS = ("profiled", "diagonal")
 #: same minimum; 100 saved a few Hessians at full resolution but cost evaluations on a small scan, 93 -> 138).
 #: 1 -> 10: a Hessian costs about three evaluations of the cost; binned clinical scan 34 -> 27 Fisher passes for
 #: 71 -> 73 evaluations, process CPU 12.1 -> 11.5 s; paper study 6.7 -> 5.8 s at its defaults, 12.4 -> 11.4 s at
-#: every column (100: 23 Fisher passes, 99 evaluations, 12.0 s binned).
+#: every column (100: 23 Fisher passes, 99 evaluations, 12.0 s binned). Not on a small scan with many edge
+#: frames, whose steps need fresh curvature (tests/test_fit.py's 102 x 90 scan on every 2nd column: 78 -> 124
+#: evaluations, 0.45 -> 0.51 s CPU); the clinical and paper scans are what this is set for.
 REFRESH_DECREASE = 10.0
 #: Gauss-Newton trial steps per stage before L-BFGS takes over: where the Gauss-Newton Hessian misses the
 #: curvature (frames lighting a few rows, whose cost is not near-quadratic) the steps crawl, and L-BFGS learns
