@@ -1,22 +1,21 @@
 """Compiled per-sample loops of the fit and the retrieval (numba).
 
-The forward model of :mod:`dfxcorr.model` is evaluated here from its *channel values* on the
-(frame, column) grid: the phase Φ (J, C), the visibility factor V (J, C), the dose D (J,), the
-background coefficients of (1, x, y) (3,) and the harmonic (hc, hs) (2,). Every catalogue effect
-enters through one of these channels (:func:`dfxcorr.model.channels` maps effect parameters to
-them, :func:`dfxcorr.model.channel_adjoint` maps channel gradients back), so a new effect that
-enters through an existing channel needs no change here. The numpy expressions of
-:mod:`dfxcorr.model` are the definition; the tests hold these kernels to them.
+The forward model of :mod:`dfxcorr.model` is evaluated here from its *channel values* on the (frame, column) grid:
+the phase Φ (J, C), the visibility factor V (J, C), the dose D (J,), the background coefficients of (1, x, y) (3,)
+and the harmonic (hc, hs) (2,). Every catalogue effect enters through one of these channels
+(:func:`dfxcorr.model.channels` maps effect parameters to them, :func:`dfxcorr.model.channel_adjoint` maps channel
+gradients back), so a new effect that enters through an existing channel needs no change here. The numpy expressions
+of :mod:`dfxcorr.model` are the definition; the tests hold these kernels to them.
 
-The second harmonic follows the sample (its term is m cos(2 psi + beta), not linear in the images):
-where it is non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton steps,
-each a solve with the columns :func:`_image_columns` at the previous images (``model.solve_images``).
+The second harmonic follows the sample (its term is m cos(2 psi + beta), not linear in the images): where it is
+non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton steps, each a solve with the columns
+:func:`_image_columns` at the previous images (``model.solve_images``).
 
 Layout: a pixel is (row, column); its samples are the blocks ``starts[r]:starts[r + 1]`` of one row
-(:class:`dfxcorr.model.Observations`). The kernels run over chunks of rows in parallel; every chunk
-owns its accumulators (summed afterwards), so no two threads write the same memory. Within a row
-the columns are handled in tiles (:data:`TILE`, :data:`FIT_TILE`) so that the second pass over a
-tile finds what the first left in cache. Sums are accumulated in float64 whatever the sample dtype.
+(:class:`dfxcorr.model.Observations`). The kernels run over chunks of rows in parallel; every chunk owns its
+accumulators (summed afterwards), so no two threads write the same memory. Within a row the columns are handled in
+tiles (:data:`TILE`, :data:`FIT_TILE`) so that the second pass over a tile finds what the first left in cache. Sums
+are accumulated in float64 whatever the sample dtype.
 """
 from __future__ import annotations
 
@@ -49,15 +48,15 @@ HARMONIC_STEPS = 3
 def set_threads() -> int:
     """Set numba's thread count from SLURM_CPUS_PER_TASK, else OMP_NUM_THREADS, else the usable cores.
 
-    Unless NUMBA_THREADING_LAYER chooses otherwise, the kernels run on numba's own 'workqueue' pool:
-    OpenMP's spin-waiting threads made every call about ten times slower on cores shared with other
-    processes (measured: 23 ms instead of 1.6 ms per small evaluation), and its spinning slows the
-    optimiser between calls. This takes effect if no parallel kernel has run yet in the process.
+    Unless NUMBA_THREADING_LAYER chooses otherwise, the kernels run on numba's own 'workqueue' pool: OpenMP's
+    spin-waiting threads made every call about ten times slower on cores shared with other processes (measured: 23
+    ms instead of 1.6 ms per small evaluation), and its spinning slows the optimiser between calls. This takes
+    effect if no parallel kernel has run yet in the process.
 
-    BLAS (OpenBLAS, MKL) is held to one thread for the same reason: this package's BLAS calls are
-    small (matrices of the per-frame parameters, L-BFGS's vectors), and OpenBLAS's idle threads
-    spin-wait on the cores the kernels' threads need (binned clinical scan: the vibration fit 8.8 ->
-    6.9 s, the motion mask 2.9 -> 2.4 s). Like numba's thread count, this holds for the process.
+    BLAS (OpenBLAS, MKL) is held to one thread for the same reason: this package's BLAS calls are small (matrices of
+    the per-frame parameters, L-BFGS's vectors), and OpenBLAS's idle threads spin-wait on the cores the kernels'
+    threads need (binned clinical scan: the vibration fit 8.8 -> 6.9 s, the motion mask 2.9 -> 2.4 s). Like numba's
+    thread count, this holds for the process.
 
     Returns
     -------
@@ -113,9 +112,8 @@ def row_chunks(starts: np.ndarray, n_blocks: int, *, per_thread: int = 4) -> np.
 
 
 def _c(a: np.ndarray, dtype=None) -> np.ndarray:
-    """``a`` C-ordered (copied only if it is not, or not of ``dtype``): numba compiles a kernel once per layout
-    and dtype of its arguments, and observations of a column subset are not C-ordered (a first demo run compiled
-    the retrieval five times, about 6 s each), nor fast to walk a sample row at a time."""
+    """``a`` C-ordered (copied only if it is not, or not of ``dtype``): numba compiles a kernel once per layout and
+    dtype (a first demo run compiled the retrieval five times, about 6 s each), and walks samples a row at a time."""
     return np.ascontiguousarray(a, dtype=dtype)
 
 
@@ -143,10 +141,9 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
                      dtype=np.float64, add: np.ndarray | None = None, wrap: bool = False) -> np.ndarray:
     """Linear interpolation of row-sampled maps at continuous local rows (see :func:`dfxcorr.align.interpolate_rows`).
 
-    One pass per sample row, in parallel, written straight in ``dtype`` (the numpy expression made four
-    temporaries of the output's size: 3.5 s of a full-resolution clinical scan's retrieval). The columns are
-    read from the whole maps (a copy of ``maps[:, columns]`` is not C-ordered and was copied again: 3 s of
-    that retrieval).
+    One pass per sample row, in parallel, written straight in ``dtype`` (the numpy expression made four temporaries of
+    the output's size: 3.5 s of a full-resolution clinical scan's retrieval). The columns are read from the whole
+    maps (a copy of ``maps[:, columns]`` is not C-ordered and was copied again: 3 s of that retrieval).
 
     Parameters
     ----------
@@ -159,9 +156,7 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
     add : ndarray, shape (K,), optional
         Added to each sample row's values (a phase step) before ``wrap``.
     wrap : bool
-        Wrap the values (rad) to [-pi, pi) before the cast to ``dtype`` (in the same pass: as numpy
-        expressions these were five passes over a float64 array of the samples, 0.3 s of a binned clinical
-        scan's observations).
+        Wrap the values (rad) to [-pi, pi) before the cast to ``dtype``, in the same pass.
 
     Returns
     -------
@@ -170,8 +165,7 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
     cols = np.arange(maps.shape[1]) if columns is None else np.asarray(columns, dtype=np.int64)
     out = np.empty((np.size(u), cols.size), dtype=dtype)
     shift = np.zeros(np.size(u)) if add is None else np.asarray(add, dtype=np.float64)
-    _interpolate_rows(np.ascontiguousarray(maps, dtype=np.float64), cols, np.asarray(u, dtype=np.float64), shift,
-                      bool(wrap), out)
+    _interpolate_rows(np.ascontiguousarray(maps, np.float64), cols, np.asarray(u, np.float64), shift, bool(wrap), out)
     return out
 
 
@@ -184,10 +178,10 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
 def _cos_sin32(theta):
     """cos and sin of an angle (rad) in single precision after reducing it to [-pi, pi] in double.
 
-    The float32 functions are several times cheaper per sample than the float64 ones, which dominated the
-    retrieval (synthetic clinical fit columns: 27.6 -> 16.8 ns wall per sample); the error is below 1e-7
-    absolute, a fringe error under 1e-7 of its amplitude (the photon noise of a sample is above 1e-3 of it).
-    Not where the retrieval keeps the inverse normal matrices for the Fisher information.
+    The float32 functions are several times cheaper per sample than the float64 ones, which dominated the retrieval
+    (synthetic clinical fit columns: 27.6 -> 16.8 ns wall per sample); the error is below 2e-7 absolute (1.6e-7 on
+    the paper study, bench_kernels.py), a fringe error under 2e-7 of its amplitude (a sample's photon noise is above
+    1e-3 of it). Not where the retrieval keeps the inverse normal matrices for the Fisher information.
     """
     r = np.float32(theta - 2.0 * np.pi * np.floor(theta / (2.0 * np.pi) + 0.5))
     return np.float64(np.cos(r)), np.float64(np.sin(r))
@@ -575,8 +569,7 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
     keep_inverse : bool
         Also return the inverse normal matrices.
     keep_expected : bool
-        Return the expected counts and the weights; without them the pass writes nothing per sample (two
-        float64 arrays of the samples' size, which a retrieval for the images alone discards).
+        Return the expected counts and the weights (a retrieval for the images alone writes nothing per sample).
 
     Returns
     -------
@@ -627,8 +620,7 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
         corr[t, :, :] = 0.0
         F = np.empty(Q)
         basis = np.empty(5)
-        # one frame's block of the information, summed over the row's columns before it is placed (its slots are
-        # the same for every column: loads and stores of the row's matrix per sample were most of the plain part)
+        # a frame's block, summed over the row's columns before it is placed (not a store per sample and slot)
         blk = np.empty((Q, Q))
         dirs = np.empty((4, C))  # _direction of each column's images: per pixel, not per sample
         for r in range(chunks[t], chunks[t + 1]):
