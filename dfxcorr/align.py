@@ -37,7 +37,7 @@ def no_lit_rows(min_frames: int) -> AlignmentError:
 
 
 def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | None = None,
-                     dtype: DTypeLike = np.float64) -> np.ndarray:
+                     dtype: DTypeLike = np.float64, add: np.ndarray | None = None, wrap: bool = False) -> np.ndarray:
     """Linear interpolation of row-sampled maps at continuous local rows.
 
     With f = u - 0.5 and k0 = floor(f) clipped to [0, A - 2], the value is
@@ -53,16 +53,25 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
         Only these columns of the maps (default all).
     dtype : numpy dtype
         Of the result (computed in float64).
+    add : ndarray, shape (K,), optional
+        Added to each sample row's values (e.g. the phase step of its frame).
+    wrap : bool
+        Wrap the values (rad) to [-pi, pi) before the cast to ``dtype``.
 
     Returns
     -------
     ndarray, shape (K, C)
     """
     if maps.shape[0] == 1:
-        picked = maps if columns is None else maps[:, columns]
-        return np.repeat(picked, np.size(u), axis=0).astype(dtype, copy=False)
+        picked = np.asarray(maps if columns is None else maps[:, columns], dtype=np.float64)
+        out = np.repeat(picked, np.size(u), axis=0)
+        if add is not None:
+            out += np.asarray(add, dtype=np.float64)[:, None]
+        if wrap:
+            out -= 2.0 * np.pi * np.floor(out / (2.0 * np.pi) + 0.5)
+        return out.astype(dtype, copy=False)
     K.set_threads()
-    return K.interpolate_rows(maps, u, columns=columns, dtype=dtype)
+    return K.interpolate_rows(maps, u, columns=columns, dtype=dtype, add=add, wrap=wrap)
 
 
 def pixel_mm(scan: Scan) -> tuple[float, float] | None:
@@ -217,7 +226,7 @@ class LitStore:
             Variance factor of each detector pixel (``pixel_noise``; default 1).
         dtype : numpy dtype
             Of the sample arrays: float64, or float32 to halve them (counts up to 2^24 stay exact;
-            the flat field is interpolated in float64 first).
+            the flat field is interpolated in float64 first, its phase then wrapped to [-pi, pi)).
         phase_unwrapped : bool
             The reference's phase is already unwrapped along the scan (axis 0), so it is not done again
             (a caller aligning block after block unwraps once).
@@ -233,19 +242,21 @@ class LitStore:
         phase = reference.phase if phase_unwrapped else np.unwrap(reference.phase, axis=0)
         tf = interpolate_rows(reference.transmission, u, columns=cols, dtype=dtype)
         vf = interpolate_rows(reference.visibility, u, columns=cols, dtype=dtype)
-        phif = interpolate_rows(phase, u, columns=cols)
-        phif += self.phase_step[frame][:, None]
+        # the model takes only cos and sin of it: wrapped to [-pi, pi), float32 keeps it to 2e-7 rad (unwrapped
+        # across a clinical detector's many fringes it would keep it only to |phi^f| 6e-8)
+        phif = interpolate_rows(phase, u, columns=cols, dtype=dtype, add=self.phase_step[frame], wrap=True)
         # C order whatever the store's: the kernels walk a sample row at a time (a Fortran-ordered copy made
         # every cost evaluation about 1.7x slower)
         counts = (self.counts[lo:hi] if columns is None else self.counts[lo:hi, cols]).astype(dtype, order="C")
-        dark = self.dark[row[:, None], cols[None, :]].astype(dtype, copy=False)
+        # whole rows are taken by row (a 2-d fancy index of every column was most of a block's own time)
+        dark = (self.dark[row] if columns is None else self.dark[row[:, None], cols[None, :]]).astype(dtype, copy=False)
         if self.offset is not None:
             dark = dark + (self.offset[lo:hi] if columns is None else self.offset[lo:hi, cols])
         use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
         held = np.ix_(np.unique(row), cols)
         if self.good is not None:
             use &= self.good[lo:hi] if columns is None else self.good[lo:hi, cols]
-        return Observations(counts=counts, tf=tf, vf=vf, phif=phif.astype(dtype, copy=False), dark=dark, use=use,
+        return Observations(counts=counts, tf=tf, vf=vf, phif=phif, dark=dark, use=use,
                             row=row, frame=frame, columns=cols, shape=(J, H, W),
                             gain=self.gain if gain is None else gain, electronic=electronic,
                             noise=None if noise is None else noise[held],
@@ -344,8 +355,9 @@ def realign(store: LitStore, reference: Reference, like: Observations, shift: np
 
 def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray | None = None,
                        min_frames: int = 3, pixel_mask: np.ndarray | None = None,
-                       gain: float | None = None) -> Observations:
-    """Align the flat field to every lit sample and collect the data as :class:`Observations` (float64).
+                       gain: float | None = None, dtype: DTypeLike = np.float64) -> Observations:
+    """Align the flat field to every lit sample and collect the data as :class:`Observations` (float64 unless
+    ``dtype`` says otherwise, see :meth:`LitStore.observations`).
 
     :func:`collect_lit_rows` then :meth:`LitStore.observations`; for scans that fit in memory many
     times over. The pipeline keeps the store and builds observations of column subsets and row blocks.
@@ -356,7 +368,7 @@ def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray 
         If no row is lit in at least ``min_frames`` frames.
     """
     store = collect_lit_rows(scan, active_rows=reference.transmission.shape[0], min_frames=min_frames)
-    return store.observations(reference, columns=columns, pixel_mask=pixel_mask, gain=gain)
+    return store.observations(reference, columns=columns, pixel_mask=pixel_mask, gain=gain, dtype=dtype)
 
 
 def subsample_columns(width: int, n: int, *, offset: int | None = None) -> np.ndarray:

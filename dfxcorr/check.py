@@ -236,7 +236,7 @@ def memory_estimate(shape, *, itemsize: int, lit_samples: int, fit_samples: int,
 
 
 def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, pilot: bool) -> ColumnPlan:
-    from .pipeline import FIT_SECONDS_PER_SAMPLE, ColumnPlan, column_step, fit_columns, plan_columns, prepare
+    from .pipeline import ColumnPlan, coarse_step, column_step, fit_columns, fit_seconds, plan_columns, prepare
 
     W = scan.shape[2]
     n = cfg["fit"]["subsample"]
@@ -245,9 +245,10 @@ def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, pilot: bool) 
             return plan_columns(prepare(scan, cfg), cfg, report=False)
         step = column_step(W, samples_per_column, most=cfg["fit"]["max_samples"]) if n == "auto" else n
         cols = fit_columns(W, cfg, step)
+        coarse = coarse_step(cfg, cols.size, samples_per_column, step=step, width=W)
         return ColumnPlan(columns=cols, why="fit.subsample" if n != "auto" else
                           "at most; auto chooses at run time from a pilot, which dfxcorr check runs",
-                          seconds=FIT_SECONDS_PER_SAMPLE * samples_per_column * cols.size)
+                          seconds=fit_seconds(cols.size, samples_per_column, coarse), coarse=coarse)
     except ValueError as exc:
         if isinstance(exc, DfxcorrError):
             raise

@@ -160,6 +160,15 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                     "fit is predicted to take at most this many seconds", _NUM,
                               check=_within(1e-3, 1e7),
                               nullable=True),
+        "time_floor": Option(4.0, "subsample auto: at least the columns whose fit is predicted to take this many "
+                                  "seconds (where columns are cheap, a small scan's, precision beyond "
+                                  "fit.target_uncertainty for little time); null: none", _NUM,
+                             check=_within(0, 1e7), nullable=True),
+        "coarse": Option("auto", "run the fit's stages on every n-th of its columns first, then only its last "
+                                 "stages on all of them from there (the same minimum in fewer passes over all); "
+                                 "auto: n for about a million samples in the first pass; 1: off", (int, str),
+                         check=lambda v: None if v == "auto" or (not isinstance(v, str) and 0 < v <= 10 ** 6)
+                         else "must be auto or an integer in [1, 1e6]"),
         "max_samples": Option(7_000_000, "subsample auto: most lit samples (rows x frames x columns) the fit "
                                          "may hold (memory: a full-resolution clinical scan peaked at 1.43 GB "
                                          "with 2.7e6, 1.60 GB with 7.7e6)", int, check=_within(1, 1e12)),

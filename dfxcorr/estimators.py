@@ -48,7 +48,7 @@ _GAUGE = ("visibility_gauge", "visibility_quantile", "gauge_fraction")
 #: The estimator of each ``fit.method`` (:data:`dfxcorr.config.METHODS`) but 'none'.
 ESTIMATORS = {
     "ml": Estimator(fit_vibrations, ("circmean_iterations", "staged", "maxiter", "gtol", "precondition",
-                                     "preconditioner", "optimizer", "reweight", *_GAUGE)),
+                                     "preconditioner", "optimizer", "reweight", "coarse", *_GAUGE)),
     "alternating": Estimator(fit_alternating, ("maxiter", "gtol", "reweight", *_GAUGE)),
     "correlation": Estimator(fit_correlation, ("gauge_fraction",), progress=False),
 }

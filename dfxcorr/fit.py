@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -95,7 +95,12 @@ PRECONDITIONERS = ("profiled", "diagonal")
 #: Gauss-Newton steps predicted to lower the cost (a chi-square) by more than this are followed by a fresh
 #: Hessian; smaller ones keep the last (paper study, every column: a threshold of 0 -> 1, 76 -> 17 Hessians, the
 #: same minimum; 100 saved a few Hessians at full resolution but cost evaluations on a small scan, 93 -> 138).
-REFRESH_DECREASE = 1.0
+#: 1 -> 10: a Hessian costs about three evaluations of the cost; binned clinical scan 34 -> 27 Fisher passes for
+#: 71 -> 73 evaluations, process CPU 12.1 -> 11.5 s; paper study 6.7 -> 5.8 s at its defaults, 12.4 -> 11.4 s at
+#: every column (100: 23 Fisher passes, 99 evaluations, 12.0 s binned). Not on a small scan with many edge
+#: frames, whose steps need fresh curvature (tests/test_fit.py's 102 x 90 scan on every 2nd column: 78 -> 124
+#: evaluations, 0.45 -> 0.51 s CPU); the clinical and paper scans are what this is set for.
+REFRESH_DECREASE = 10.0
 #: Gauss-Newton trial steps per stage before L-BFGS takes over: where the Gauss-Newton Hessian misses the
 #: curvature (frames lighting a few rows, whose cost is not near-quadratic) the steps crawl, and L-BFGS learns
 #: that curvature (a small scan of 17 columns with many edge frames crawled for 256 steps, each lowering the
@@ -107,6 +112,11 @@ GAUSS_NEWTON_STEPS = 25
 #: Hessian misses curvature there and the steps converge only linearly (paper study, every column: 56
 #: steps to the default gtol, 15 to this).
 PHASE_STAGE_GTOL = 1.0
+#: Smallest factor by which a well-predicted Gauss-Newton step shrinks the damping (Nielsen's rule uses 1/3): the
+#: damping starts at :data:`RIDGE` and, near the minimum, only limits the steps of frames whose information is
+#: far below it, which then crawl until it has shrunk (paper study at every column, evaluations of all stages:
+#: 1/3 -> 73, 0.1 -> 64, 0.01 -> 59; the same minimum).
+LAMBDA_SHRINK = 0.01
 
 
 class _Problem:
@@ -338,7 +348,7 @@ def gauss_newton(prob: _Problem, *, maxiter: int, gtol: float, on_step: Callable
             theta, cost, grad = trial, new_cost, new_grad
             if predicted > REFRESH_DECREASE:
                 hs = None
-            lam, grow = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-9), 2.0
+            lam, grow = max(lam * max(LAMBDA_SHRINK, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-9), 2.0
             if on_step is not None:
                 on_step(cost)
         else:
@@ -466,8 +476,8 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
                    maxiter: int = 300, gtol: float = 1e-3, precondition: bool = True,
                    preconditioner: str = "profiled", optimizer: str = "gauss-newton", prior: bool = True,
                    reweight: int = 1, visibility_gauge: str = "max", visibility_quantile: float = 0.99,
-                   gauge_fraction: float = 0.5, on_iteration: Callable[[str, float], None] | None = None
-                   ) -> FitResult:
+                   gauge_fraction: float = 0.5, coarse: int = 1,
+                   on_iteration: Callable[[str, float], None] | None = None) -> FitResult:
     """Estimate per-frame effect parameters by maximum likelihood (paper Sec. II-C to II-E).
 
     Parameters
@@ -507,6 +517,11 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
         Quantile used by the 'max' gauge.
     gauge_fraction : float
         Frames lighting at least this fraction of the active area's rows define the gauge.
+    coarse : int
+        Run every stage on every ``coarse``-th column first, then only the final ones on all columns from that
+        estimate (with ``weights`` if given, else with those of its model, as a reweighting): Gauss-Newton reaches
+        the same minimum from there in a few steps, so a fit of many columns costs a fit of a few and a few
+        passes over all.
     on_iteration : callable, optional
         Called with (stage, cost) after every iteration.
 
@@ -516,6 +531,19 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
     """
     names = [n for n in effects if M.effect(n).channel is not None]
     J = obs.n_frames
+    costs, stage_of, messages, evaluations = [], [], [], 0
+    if coarse > 1:
+        keep = np.arange(coarse // 2, obs.columns.size, coarse)
+        first = fit_vibrations(obs.subset(keep), effects=effects, start=start,
+                               weights=None if weights is None else weights[:, keep],
+                               circmean_iterations=circmean_iterations, staged=staged, maxiter=maxiter, gtol=gtol,
+                               precondition=precondition, preconditioner=preconditioner, optimizer=optimizer,
+                               prior=prior, reweight=reweight, visibility_gauge=visibility_gauge,
+                               visibility_quantile=visibility_quantile, gauge_fraction=gauge_fraction,
+                               on_iteration=on_iteration)
+        costs, stage_of, messages, evaluations = list(first.cost), list(first.stage), first.messages, first.evaluations
+        # given weights stay; otherwise those of the coarse estimate's model, as a reweighting
+        start, staged = first.params, False
     K.set_threads()
     fringe = K.fringe(obs)
     params = M.neutral_params(names, J)
@@ -531,7 +559,7 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
         stages.append(("phase", phase_names, maxiter))
     stages.append(("all", names, maxiter))
     stages += [("reweight", names, maxiter)] * reweight
-    costs, stage_of, messages, converged, evaluations = [], [], [], True, 0
+    converged = True
     wide = catalogue_prior(names) if prior else None
     for label, free, iters in stages:
         if not free:
@@ -620,11 +648,8 @@ def spread_columns(obs: M.Observations, weights: np.ndarray, *, most: int) -> tu
     if obs.columns.size <= most:
         return obs, weights
     keep = np.unique(np.linspace(0, obs.columns.size - 1, most).astype(int))
-    sub = obs.subset(keep)
-    # C-ordered once here, rather than by the kernels at every refresh of the Hessian
-    c = np.ascontiguousarray
-    return (replace(sub, counts=c(sub.counts), tf=c(sub.tf), vf=c(sub.vf), phif=c(sub.phif), dark=c(sub.dark),
-                    use=c(sub.use)), c(weights[:, keep]))
+    # C-ordered once here (as the subset's samples), rather than by the kernels at every refresh of the Hessian
+    return obs.subset(keep), np.ascontiguousarray(weights[:, keep])
 
 
 def initial_weights(obs: M.Observations, params: dict) -> np.ndarray:

@@ -1,22 +1,21 @@
 """Compiled per-sample loops of the fit and the retrieval (numba).
 
-The forward model of :mod:`dfxcorr.model` is evaluated here from its *channel values* on the
-(frame, column) grid: the phase Φ (J, C), the visibility factor V (J, C), the dose D (J,), the
-background coefficients of (1, x, y) (3,) and the harmonic (hc, hs) (2,). Every catalogue effect
-enters through one of these channels (:func:`dfxcorr.model.channels` maps effect parameters to
-them, :func:`dfxcorr.model.channel_adjoint` maps channel gradients back), so a new effect that
-enters through an existing channel needs no change here. The numpy expressions of
-:mod:`dfxcorr.model` are the definition; the tests hold these kernels to them.
+The forward model of :mod:`dfxcorr.model` is evaluated here from its *channel values* on the (frame, column) grid:
+the phase Φ (J, C), the visibility factor V (J, C), the dose D (J,), the background coefficients of (1, x, y) (3,)
+and the harmonic (hc, hs) (2,). Every catalogue effect enters through one of these channels
+(:func:`dfxcorr.model.channels` maps effect parameters to them, :func:`dfxcorr.model.channel_adjoint` maps channel
+gradients back), so a new effect that enters through an existing channel needs no change here. The numpy expressions
+of :mod:`dfxcorr.model` are the definition; the tests hold these kernels to them.
 
-The second harmonic follows the sample (its term is m cos(2 psi + beta), not linear in the images):
-where it is non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton steps,
-each a solve with the columns :func:`_image_columns` at the previous images (``model.solve_images``).
+The second harmonic follows the sample (its term is m cos(2 psi + beta), not linear in the images): where it is
+non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton steps, each a solve with the columns
+:func:`_image_columns` at the previous images (``model.solve_images``).
 
 Layout: a pixel is (row, column); its samples are the blocks ``starts[r]:starts[r + 1]`` of one row
-(:class:`dfxcorr.model.Observations`). The kernels run over chunks of rows in parallel; every chunk
-owns its accumulators (summed afterwards), so no two threads write the same memory. Within a row
-the columns are handled in tiles (:data:`TILE`, :data:`FIT_TILE`) so that the second pass over a
-tile finds what the first left in cache. Sums are accumulated in float64 whatever the sample dtype.
+(:class:`dfxcorr.model.Observations`). The kernels run over chunks of rows in parallel; every chunk owns its
+accumulators (summed afterwards), so no two threads write the same memory. Within a row the columns are handled in
+tiles (:data:`TILE`, :data:`FIT_TILE`) so that the second pass over a tile finds what the first left in cache. Sums
+are accumulated in float64 whatever the sample dtype.
 """
 from __future__ import annotations
 
@@ -49,15 +48,15 @@ HARMONIC_STEPS = 3
 def set_threads() -> int:
     """Set numba's thread count from SLURM_CPUS_PER_TASK, else OMP_NUM_THREADS, else the usable cores.
 
-    Unless NUMBA_THREADING_LAYER chooses otherwise, the kernels run on numba's own 'workqueue' pool:
-    OpenMP's spin-waiting threads made every call about ten times slower on cores shared with other
-    processes (measured: 23 ms instead of 1.6 ms per small evaluation), and its spinning slows the
-    optimiser between calls. This takes effect if no parallel kernel has run yet in the process.
+    Unless NUMBA_THREADING_LAYER chooses otherwise, the kernels run on numba's own 'workqueue' pool: OpenMP's
+    spin-waiting threads made every call about ten times slower on cores shared with other processes (measured: 23
+    ms instead of 1.6 ms per small evaluation), and its spinning slows the optimiser between calls. This takes
+    effect if no parallel kernel has run yet in the process.
 
-    BLAS (OpenBLAS, MKL) is held to one thread for the same reason: this package's BLAS calls are
-    small (matrices of the per-frame parameters, L-BFGS's vectors), and OpenBLAS's idle threads
-    spin-wait on the cores the kernels' threads need (binned clinical scan: the vibration fit 8.8 ->
-    6.9 s, the motion mask 2.9 -> 2.4 s). Like numba's thread count, this holds for the process.
+    BLAS (OpenBLAS, MKL) is held to one thread for the same reason: this package's BLAS calls are small (matrices of
+    the per-frame parameters, L-BFGS's vectors), and OpenBLAS's idle threads spin-wait on the cores the kernels'
+    threads need (binned clinical scan: the vibration fit 8.8 -> 6.9 s, the motion mask 2.9 -> 2.4 s). Like numba's
+    thread count, this holds for the process.
 
     Returns
     -------
@@ -113,9 +112,8 @@ def row_chunks(starts: np.ndarray, n_blocks: int, *, per_thread: int = 4) -> np.
 
 
 def _c(a: np.ndarray, dtype=None) -> np.ndarray:
-    """``a`` C-ordered (copied only if it is not, or not of ``dtype``): numba compiles a kernel once per layout
-    and dtype of its arguments, and observations of a column subset are not C-ordered (a first demo run compiled
-    the retrieval five times, about 6 s each), nor fast to walk a sample row at a time."""
+    """``a`` C-ordered (copied only if it is not, or not of ``dtype``): numba compiles a kernel once per layout and
+    dtype (a first demo run compiled the retrieval five times, about 6 s each), and walks samples a row at a time."""
     return np.ascontiguousarray(a, dtype=dtype)
 
 
@@ -125,7 +123,7 @@ def _bounds(obs) -> np.ndarray:
 
 
 @njit(cache=True, parallel=True)
-def _interpolate_rows(maps, cols, u, out):
+def _interpolate_rows(maps, cols, u, add, wrap, out):
     A = maps.shape[0]
     for k in prange(u.size):
         f = u[k] - 0.5
@@ -133,17 +131,19 @@ def _interpolate_rows(maps, cols, u, out):
         a = f - k0
         for i in range(cols.size):
             c = cols[i]
-            out[k, i] = (1.0 - a) * maps[k0, c] + a * maps[k0 + 1, c]
+            v = (1.0 - a) * maps[k0, c] + a * maps[k0 + 1, c] + add[k]
+            if wrap:
+                v -= 2.0 * np.pi * np.floor(v / (2.0 * np.pi) + 0.5)
+            out[k, i] = v
 
 
 def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | None = None,
-                     dtype=np.float64) -> np.ndarray:
+                     dtype=np.float64, add: np.ndarray | None = None, wrap: bool = False) -> np.ndarray:
     """Linear interpolation of row-sampled maps at continuous local rows (see :func:`dfxcorr.align.interpolate_rows`).
 
-    One pass per sample row, in parallel, written straight in ``dtype`` (the numpy expression made four
-    temporaries of the output's size: 3.5 s of a full-resolution clinical scan's retrieval). The columns are
-    read from the whole maps (a copy of ``maps[:, columns]`` is not C-ordered and was copied again: 3 s of
-    that retrieval).
+    One pass per sample row, in parallel, written straight in ``dtype`` (the numpy expression made four temporaries of
+    the output's size: 3.5 s of a full-resolution clinical scan's retrieval). The columns are read from the whole
+    maps (a copy of ``maps[:, columns]`` is not C-ordered and was copied again: 3 s of that retrieval).
 
     Parameters
     ----------
@@ -153,6 +153,10 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
         Columns of ``maps`` to interpolate (default all).
     dtype : numpy dtype
         Of the result; the interpolation runs in float64.
+    add : ndarray, shape (K,), optional
+        Added to each sample row's values (a phase step) before ``wrap``.
+    wrap : bool
+        Wrap the values (rad) to [-pi, pi) before the cast to ``dtype``, in the same pass.
 
     Returns
     -------
@@ -160,7 +164,8 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
     """
     cols = np.arange(maps.shape[1]) if columns is None else np.asarray(columns, dtype=np.int64)
     out = np.empty((np.size(u), cols.size), dtype=dtype)
-    _interpolate_rows(np.ascontiguousarray(maps, dtype=np.float64), cols, np.asarray(u, dtype=np.float64), out)
+    shift = np.zeros(np.size(u)) if add is None else np.asarray(add, dtype=np.float64)
+    _interpolate_rows(np.ascontiguousarray(maps, np.float64), cols, np.asarray(u, np.float64), shift, bool(wrap), out)
     return out
 
 
@@ -173,10 +178,10 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
 def _cos_sin32(theta):
     """cos and sin of an angle (rad) in single precision after reducing it to [-pi, pi] in double.
 
-    The float32 functions are several times cheaper per sample than the float64 ones, which dominated the
-    retrieval (synthetic clinical fit columns: 27.6 -> 16.8 ns wall per sample); the error is below 1e-7
-    absolute, a fringe error under 1e-7 of its amplitude (the photon noise of a sample is above 1e-3 of it).
-    Not where the retrieval keeps the inverse normal matrices for the Fisher information.
+    The float32 functions are several times cheaper per sample than the float64 ones, which dominated the retrieval
+    (synthetic clinical fit columns: 27.6 -> 16.8 ns wall per sample); the error is below 2e-7 absolute (1.6e-7 on
+    the paper study, bench_kernels.py), a fringe error under 2e-7 of its amplitude (a sample's photon noise is above
+    1e-3 of it). Not where the retrieval keeps the inverse normal matrices for the Fisher information.
     """
     r = np.float32(theta - 2.0 * np.pi * np.floor(theta / (2.0 * np.pi) + 0.5))
     return np.float64(np.cos(r)), np.float64(np.sin(r))
@@ -444,7 +449,7 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
 
 @njit(cache=True, parallel=True)
 def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunks, phase, vis, dose, bg, harm,
-              gain, electronic, iterations, from_data, keep_inverse, tile):
+              gain, electronic, iterations, from_data, keep_inverse, keep_expected, tile):
     K, C = counts.shape
     R = bounds.size - 1
     n = chunks.size - 1
@@ -452,8 +457,8 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
     coef = np.empty((R, C, 3))
     valid = np.empty((R, C), dtype=np.bool_)
     inverse = np.empty((R if keep_inverse else 0, C, 3, 3))
-    ibar = np.empty((K, C))
-    w_out = np.empty((K, C))
+    ibar = np.empty((K if keep_expected else 0, C))
+    w_out = np.empty((K if keep_expected else 0, C))
     chi2 = np.empty(n)
     n_sel = np.empty(n)
     hc, hs = harm[0], harm[1]
@@ -535,8 +540,9 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                         c = c0 + i
                         m = off[b, i] + coef[r, c, 0] * A[b, i] + coef[r, c, 1] * Bc[b, i] + coef[r, c, 2] * Bs[b, i] \
                             + (Hc[b, i] * dirn[2, i] - Hs[b, i] * dirn[3, i])
-                        ibar[k, c] = m
-                        w_out[k, c] = w[b, i]
+                        if keep_expected:
+                            ibar[k, c] = m
+                            w_out[k, c] = w[b, i]
                         if valid[r, c] and use[k, c]:
                             # Pearson residual with the variance of the weights (noise.variance)
                             chi2[t] += (counts[k, c] - m) ** 2 / (gain[r, c] * max(m - dark[k, c], 1.0) + electronic)
@@ -545,7 +551,7 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
 
 
 def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1, gain: float | None = None,
-             keep_inverse: bool = False) -> dict:
+             keep_inverse: bool = False, keep_expected: bool = True) -> dict:
     """Closed-form images of every pixel, the expected counts and the Pearson chi-square.
 
     Parameters
@@ -562,13 +568,15 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         ``obs.noise``: the kernel reads one gain per pixel).
     keep_inverse : bool
         Also return the inverse normal matrices.
+    keep_expected : bool
+        Return the expected counts and the weights (a retrieval for the images alone writes nothing per sample).
 
     Returns
     -------
     dict
         'coef' (R, C, 3), 'valid' (R, C), 'inverse' (R, C, 3, 3) or None, 'expected' (K, C) counts,
-        'weights' (K, C) of the last solve, 'chi2' (Pearson chi-square over the used samples of
-        valid pixels), 'samples' (their number).
+        'weights' (K, C) of the last solve (both (0, C) without ``keep_expected``), 'chi2' (Pearson chi-square
+        over the used samples of valid pixels), 'samples' (their number).
     """
     if iterations < 1:
         raise ValueError("iterations must be at least 1")
@@ -580,7 +588,7 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         _c(obs.counts), _c(obs.tf), _c(obs.vf), _c(obs.phif), _c(obs.dark), _c(obs.use), start, obs.frame, obs.y, obs.x,
         bounds, row_chunks(bounds[:-1], obs.frame.size), _c(ch.phase, np.float64), _c(ch.vis, np.float64), ch.dose,
         ch.background, ch.harmonic, _c(g, np.float64), float(obs.electronic), int(iterations), weights is None,
-        keep_inverse, TILE)
+        keep_inverse, keep_expected, TILE)
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
 
@@ -612,6 +620,9 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
         corr[t, :, :] = 0.0
         F = np.empty(Q)
         basis = np.empty(5)
+        # a frame's block, summed over the row's columns before it is placed (not a store per sample and slot)
+        blk = np.empty((Q, Q))
+        dirs = np.empty((4, C))  # _direction of each column's images: per pixel, not per sample
         for r in range(chunks[t], chunks[t + 1]):
             lo, hi = bounds[r], bounds[r + 1]
             nb = hi - lo
@@ -626,15 +637,18 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
             local = np.zeros((m, m))
             # Y = X^T W D of each pixel (3 rows per column)
             Y = np.zeros((3 * C, m))
+            for c in range(C):
+                dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c] = _direction(coef[r, c, 1], coef[r, c, 2])
             for b in range(nb):
                 k = lo + b
                 j = frame[k]
+                blk[:, :] = 0.0
                 for c in range(C):
                     wk = w[k, c]
                     if wk == 0:
                         continue
                     tt, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
-                    du, dw, e, f = _direction(cs, ss)
+                    du, dw, e, f = dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c]
                     th = phif[k, c] + phase[j, c]
                     ct, st = np.cos(th), np.sin(th)
                     amp = dose[j] * tf[k, c]
@@ -652,15 +666,18 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
                         else:
                             F[q] = basis[3 + power[q]]
                     for q1 in range(Q):
-                        s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
                         wf = wk * F[q1]
                         for q2 in range(Q):
-                            s2_ = b * Pf + q2 if q2 < Pf else nb * Pf + q2 - Pf
-                            local[s1, s2_] += wf * F[q2]
+                            blk[q1, q2] += wf * F[q2]
                         if profiled:
+                            s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
                             Y[3 * c, s1] += wf * a
                             Y[3 * c + 1, s1] += wf * xc
                             Y[3 * c + 2, s1] += wf * xs
+                for q1 in range(Q):
+                    s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
+                    for q2 in range(Q):
+                        local[s1, b * Pf + q2 if q2 < Pf else nb * Pf + q2 - Pf] += blk[q1, q2]
             if profiled:
                 # sum over the row's columns of Y^T N^-1 Y = Z^T Z, Z = L^T Y with N^-1 = L L^T: Y becomes Z in place
                 # (each column's three rows), then one matrix product (BLAS; the scalar triple loop it replaces

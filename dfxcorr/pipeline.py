@@ -212,6 +212,13 @@ PILOT_COLUMNS = 16
 FIT_SECONDS_PER_SAMPLE = 2.5e-6
 #: Samples of the motion mask's pilot vibration estimate (its columns need not be the fit's).
 MASK_PILOT_SAMPLES = 2_000_000
+#: Samples of the coarse first pass of a fit of more columns (``fit.coarse: auto``; at least
+#: :data:`COARSE_MIN_COLUMNS` columns): its estimate is far inside the basin of the minimum on all columns.
+COARSE_SAMPLES = 1_000_000
+COARSE_MIN_COLUMNS = 16
+#: Wall seconds per sample of the fit's last stages on all its columns after a coarse pass (the predicted time
+#: adds :data:`FIT_SECONDS_PER_SAMPLE` per sample of the coarse pass).
+POLISH_SECONDS_PER_SAMPLE = 0.6e-6
 
 
 @dataclass(frozen=True)
@@ -227,9 +234,11 @@ class ColumnPlan:
         Predicted median one-sigma uncertainty of the phase effects (phi0, phi1; rad) over the well-determined
         frames, from the pilot's Fisher information at the neutral model (NaN without a pilot).
     seconds : float
-        Predicted wall time of the fit (:data:`FIT_SECONDS_PER_SAMPLE`).
+        Predicted wall time of the fit (:func:`fit_seconds`).
     pilot : dict or None
         The pilot vibration estimate the prediction used (:func:`pilot_estimate`), for the motion mask.
+    coarse : int
+        The fit's stages run on every ``coarse``-th of the columns first (``fit.coarse``).
     """
 
     columns: np.ndarray
@@ -237,13 +246,43 @@ class ColumnPlan:
     uncertainty: float = float("nan")
     seconds: float = float("nan")
     pilot: dict | None = None
+    coarse: int = 1
 
     def summary(self) -> str:
         """One line: the columns, the predicted uncertainty and time, and why."""
         cols = self.columns
         every = f"every {cols[1] - cols[0]}-th column from column {cols[0]}" if cols.size > 1 else f"column {cols}"
         unc = "" if np.isnan(self.uncertainty) else f", predicted phi0/phi1 uncertainty {self.uncertainty:.2g} rad"
-        return f"{cols.size} columns ({every}){unc}, predicted fit time {self.seconds:.1f} s ({self.why})"
+        first = f", its stages first on every {self.coarse}-th of them" if self.coarse > 1 else ""
+        return f"{cols.size} columns ({every}){unc}, predicted fit time {self.seconds:.1f} s{first} ({self.why})"
+
+
+def coarse_step(cfg: dict, n_columns: int, samples_per_column: int, *, step: int, width: int) -> int:
+    """``fit.coarse``, or for ``auto`` the spacing that leaves about :data:`COARSE_SAMPLES` samples (at least
+    :data:`COARSE_MIN_COLUMNS` columns) to the first pass; never beyond the alias limit W / 4 of the detector's
+    columns (``step`` apart in the fit)."""
+    c = cfg["fit"]["coarse"]
+    if c == "auto":
+        c = min(int(round(n_columns * samples_per_column / COARSE_SAMPLES)), n_columns // COARSE_MIN_COLUMNS)
+    return max(1, min(int(c), max(width // 4, 1) // max(step, 1)))
+
+
+def fit_seconds(n_columns: int, samples_per_column: int, coarse: int) -> float:
+    """Predicted wall time (s) of a fit of ``n_columns`` columns whose stages run on every ``coarse``-th first."""
+    if coarse <= 1:
+        return FIT_SECONDS_PER_SAMPLE * n_columns * samples_per_column
+    return (FIT_SECONDS_PER_SAMPLE * -(-n_columns // coarse) + POLISH_SECONDS_PER_SAMPLE * n_columns) \
+        * samples_per_column
+
+
+def within_seconds(cfg: dict, width: int, samples_per_column: int, seconds: float) -> int:
+    """The smallest column spacing whose fit is predicted (:func:`fit_seconds`) to take at most ``seconds``."""
+    for n in range(1, max(width // 4, 1) + 1):
+        cols = subsample_columns(width, n, offset=cfg["fit"]["column_offset"]).size
+        coarse = coarse_step(cfg, cols, samples_per_column, step=n, width=width)
+        if fit_seconds(cols, samples_per_column, coarse) <= seconds:
+            return n
+    return max(width // 4, 1)
 
 
 def column_step(width: int, samples_per_column: int, *, most: float) -> int:
@@ -266,10 +305,10 @@ def fit_columns(width: int, cfg: dict, n: int) -> np.ndarray:
 def pilot_estimate(prep: Prepared) -> dict:
     """A quick estimate of the paper's vibrations (:func:`dfxcorr.mask.pilot_vibrations`) on evenly spread columns
     holding at most :data:`MASK_PILOT_SAMPLES` samples: what the motion mask compares with and the column plan
-    predicts at."""
+    predicts at. In float32, as every observation of a reconstruction (:func:`blocked_retrieval`)."""
     W = prep.shape[2]
     cols = subsample_columns(W, column_step(W, prep.store.samples_per_column(), most=MASK_PILOT_SAMPLES))
-    return pilot_vibrations(prep.observations(columns=cols))
+    return pilot_vibrations(prep.observations(columns=cols, dtype=np.float32))
 
 
 def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report: bool = True) -> ColumnPlan:
@@ -279,9 +318,10 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
     evenly spread columns at the vibrations ``pilot`` (default :func:`pilot_estimate`) by
     :func:`dfxcorr.fit.pilot_uncertainty`; columns add information independently, so n columns give
     sigma_pilot sqrt(pilot columns / n). It takes the fewest evenly spaced columns predicted to reach
-    ``fit.target_uncertainty``, or with ``fit.time_budget`` the most predicted to fit in that time
-    (:data:`FIT_SECONDS_PER_SAMPLE`); never more than ``fit.max_samples`` samples (memory) nor a spacing
-    beyond the alias limit W / 4. Logged when ``report``.
+    ``fit.target_uncertainty``, or more where more are predicted to fit in ``fit.time_floor`` seconds (the
+    columns of a small scan are cheap: every column of the paper study's), or with ``fit.time_budget`` the most
+    predicted to fit in that time (:func:`fit_seconds`); never more than ``fit.max_samples`` samples (memory)
+    nor a spacing beyond the alias limit W / 4. Logged when ``report``.
     """
     f = cfg["fit"]
     W = prep.shape[2]
@@ -296,19 +336,24 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
                                   gauge_fraction=f["gauge_fraction"])
         cap = column_step(W, per_column, most=f["max_samples"])
         if f["time_budget"] is not None:
-            n = max(column_step(W, per_column, most=f["time_budget"] / FIT_SECONDS_PER_SAMPLE), cap)
+            n = max(within_seconds(cfg, W, per_column, f["time_budget"]), cap)
             why = f"the most columns within fit.time_budget={f['time_budget']:g} s"
         else:
             need = size * (sigma / f["target_uncertainty"]) ** 2
-            n = max(min(max(int(W / max(need, 1.0)), 1), max(W // 4, 1)), cap)
+            n = min(max(int(W / max(need, 1.0)), 1), max(W // 4, 1))
             why = f"fit.target_uncertainty={f['target_uncertainty']:g} rad"
+            floor = W if f["time_floor"] is None else within_seconds(cfg, W, per_column, f["time_floor"])
+            if floor < n:
+                n, why = floor, f"the most columns within fit.time_floor={f['time_floor']:g} s"
+            n = max(n, cap)
         why += f"; pilot of {size} columns {sigma:.2g} rad"
         if n == cap and cap > 1:
             why += f"; held at fit.max_samples={f['max_samples']:g}"
     cols = fit_columns(W, cfg, n)
+    coarse = coarse_step(cfg, cols.size, per_column, step=n, width=W)
     out = ColumnPlan(columns=cols, why=why,
                      uncertainty=sigma * np.sqrt(size / cols.size) if size else float("nan"),
-                     seconds=FIT_SECONDS_PER_SAMPLE * per_column * cols.size, pilot=pilot)
+                     seconds=fit_seconds(cols.size, per_column, coarse), pilot=pilot, coarse=coarse)
     if report:
         log.info("vibration fit columns: %s", out.summary())
     return out
@@ -351,11 +396,13 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
             m = cfg["mask"]
             pilot = pilot_estimate(prep) if plan.pilot is None else plan.pilot
             # the per-pixel statistics of the fit's columns only (the others never enter the fit), block by block
-            moving, _, thr = motion_mask((prep.observations(columns=columns, rows=rows) for rows in blocks),
+            moving, _, thr = motion_mask((prep.observations(columns=columns, rows=rows, dtype=np.float32)
+                                          for rows in blocks),
                                          pilot=pilot, threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
             log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
     with stage("fit", timings):
-        fitted, fit_mask, effects = run_fit(prep, cfg, moving, columns=columns, progress=progress)
+        fitted, fit_mask, effects = run_fit(prep, cfg, moving, columns=columns, progress=progress,
+                                            coarse=1 if plan is None else plan.coarse)
     with stage("retrieve", timings):
         iterations = cfg["retrieve"]["iterations"]
         n_par = sum(np.size(p) for p in fitted.params.values())
@@ -390,6 +437,11 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
     ones), so each block's observations are built once. The chi-square and its degrees of freedom are
     summed over blocks, so each result equals :func:`dfxcorr.retrieve.reduced_chi2` over the whole scan
     with that set's ``n_params`` per-frame parameters.
+
+    The blocks are float32 observations, as the fit's, the pilot's and the motion mask's: a reconstruction
+    then compiles each kernel for one dtype only (the float64 variants were about 14 s of a first run), and the
+    images differ from a float64 retrieval by far less than their noise (the demo: 1e-4 of their spread).
+    The expected counts and weights are not written (the images and the chi-square are all that is kept).
     """
     H, W = prep.shape[1:]
     maps = [{k: np.full((H, W), np.nan) for k in ("transmission", "dark_field", "differential_phase")}
@@ -397,13 +449,13 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
     sums = np.zeros((len(params), 3))  # chi-square, samples, pixels
     left_out = 0
     for rows in blocks:
-        obs = prep.observations(rows=rows)
+        obs = prep.observations(rows=rows, dtype=np.float32)
         roi = obs.in_roi
         with np.errstate(invalid="ignore"):
             kept = obs.segment_sum(obs.use.astype(np.float64)) / obs.segment_sum(np.ones(obs.use.shape))
         obs = replace(obs, use=obs.use & roi & (kept >= MIN_KEPT_SHARE)[obs.pixel])
         for m, p, acc in zip(maps, params, sums, strict=True):
-            rec = retrieve(obs, p, iterations=iterations, n_frame_params=0)
+            rec = retrieve(obs, p, iterations=iterations, n_frame_params=0, keep_expected=False)
             for k, v in image_values(rec.images).items():
                 obs.place(m[k], v)
             acc += (rec.chi2_sum, rec.samples, int(rec.images.valid.sum()))
@@ -414,11 +466,12 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
     return [(m, float(c / max(n - 3 * px - k, 1))) for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
 
 
-def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarray,
-            progress: bool | None = None) -> tuple[FitResult, np.ndarray, tuple[str, ...]]:
+def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarray, progress: bool | None = None,
+            coarse: int = 1) -> tuple[FitResult, np.ndarray, tuple[str, ...]]:
     """Estimate the per-frame parameters with the configured method.
 
-    The fit holds observations of ``columns`` only (:func:`plan_columns`), in float32.
+    The fit holds observations of ``columns`` only (:func:`plan_columns`), in float32; its stages run on every
+    ``coarse``-th of them first (:attr:`ColumnPlan.coarse`).
 
     Returns
     -------
@@ -451,7 +504,8 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
         def tick(stage_name, cost):
             bar.update(1, status=f"{stage_name} cost {cost:.6g}")
         estimator = ESTIMATORS[method]
-        result = estimator.fit(fit_obs, effects=effects, **estimator.options(f, on_iteration=tick))
+        result = estimator.fit(fit_obs, effects=effects, **estimator.options({**f, "coarse": coarse},
+                                                                             on_iteration=tick))
     if "tilt" in result.params and result.well_determined is not None:
         step = int(cols[1] - cols[0]) if cols.size > 1 else 1
         period = tilt_alias_period(W, step)

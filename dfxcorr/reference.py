@@ -11,6 +11,7 @@ import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.typing import DTypeLike
 
 from . import config as C
 from . import identify
@@ -25,7 +26,7 @@ log = logging.getLogger(__name__)
 
 
 def stepping_observations(data: FrameSource, phase_step: np.ndarray, *, dark: np.ndarray | None = None,
-                          gain: float = 1.0) -> Observations:
+                          gain: float = 1.0, dtype: DTypeLike = np.float64) -> Observations:
     """Observations of a phase-stepping series of the unloaded interferometer (flat field 1, 1, 0).
 
     Parameters
@@ -33,6 +34,9 @@ def stepping_observations(data: FrameSource, phase_step: np.ndarray, *, dark: np
     data : ndarray or FrameSource, shape (S, A, W)
     phase_step : ndarray, shape (S,)
     dark : ndarray, shape (A, W), optional
+    gain : float
+    dtype : numpy dtype
+        Of the sample arrays (:meth:`dfxcorr.align.LitStore.observations`).
 
     Returns
     -------
@@ -43,7 +47,7 @@ def stepping_observations(data: FrameSource, phase_step: np.ndarray, *, dark: np
     flat = Reference(np.ones((A, W)), np.ones((A, W)), np.zeros((A, W)))
     series = Scan(data=data, position=np.zeros(S), reference=flat, phase_step=np.asarray(phase_step, float),
                   dark=dark, gain=gain)
-    return build_observations(series, flat)
+    return build_observations(series, flat, dtype=dtype)
 
 
 @dataclass
@@ -115,7 +119,8 @@ def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=None, op
     if unsupported:
         raise AlignmentError(f"{', '.join(unsupported)} cannot be estimated from a reference stepping series "
                              f"(not identifiable there, paper Sec. II-F)")
-    obs = stepping_observations(ref.data, ref.phase_step, dark=ref.dark, gain=gain)
+    # float32 as the scan's own reconstruction: the kernels compile for one dtype per run
+    obs = stepping_observations(ref.data, ref.phase_step, dark=ref.dark, gain=gain, dtype=np.float32)
     nominal = retrieve(obs, {})
     if not np.any(nominal.images.valid):
         raise AlignmentError("/entry/reference/stepping/phase_step does not determine a sinusoid")

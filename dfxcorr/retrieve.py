@@ -42,7 +42,7 @@ class Retrieval:
 
 
 def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_params: int | None = None,
-             gain: float | None = None, keep_inverse: bool = False) -> Retrieval:
+             gain: float | None = None, keep_inverse: bool = False, keep_expected: bool = True) -> Retrieval:
     """Solve the images for fixed effect parameters.
 
     Parameters
@@ -60,6 +60,9 @@ def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_
         Overrides ``obs.gain`` in the noise weights.
     keep_inverse : bool
         Keep the inverse normal matrices of the last solve in the images (for leverages and Fisher information).
+    keep_expected : bool
+        Return the expected counts and weights; without them both are (0, C) and the pass writes nothing per
+        sample (images and chi-square alone).
 
     Returns
     -------
@@ -67,7 +70,7 @@ def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_
     """
     K.set_threads()
     out = K.retrieve(obs, M.channels(params, x=obs.x, n_frames=obs.n_frames), iterations=iterations, gain=gain,
-                     keep_inverse=keep_inverse)
+                     keep_inverse=keep_inverse, keep_expected=keep_expected)
     images = M.Images(out["coef"], out["valid"], out["inverse"])
     n_par = sum(np.size(p) for p in params.values()) if n_frame_params is None else n_frame_params
     chi2 = _per_dof(out["chi2"], out["samples"], int(images.valid.sum()), n_par, 3)

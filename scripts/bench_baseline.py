@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """This checkout against a tagged earlier version, on the paper's simulation study, in one run.
 
-The reference (default: the tag ``baseline-0.1``, main before the clinical-scale work) is exported
+The reference (default :data:`BASELINE`: main before the clinical-scale work, the plain numpy/scipy
+implementation of the paper; the tag ``baseline-0.1`` that stood for it is not in this repository) is exported
 with ``git archive`` and installed into its own virtual environment under ``--work``; this checkout
 runs from the environment that runs the script. The paper's study (209 frames of 450 x 510,
 ``configs/paper-simulation.yaml``) is simulated once, then both versions reconstruct it in
@@ -10,7 +11,7 @@ peak resident memory of the whole process, start-up included). Cases: each versi
 defaults, and both at ``fit.subsample=20`` (the reference's default). Prints and writes medians,
 ratios and the machine to ``--out``/bench-baseline.json.
 
-Usage: python scripts/bench_baseline.py [--ref baseline-0.1] [--runs 3] [--work /tmp/dfx-bench] [--out docs/]
+Usage: python scripts/bench_baseline.py [--ref 8a55ae67a752] [--runs 3] [--work /tmp/dfx-bench] [--out docs/]
 """
 from __future__ import annotations
 
@@ -26,6 +27,11 @@ from dfxcorr.analysis.compare import machine
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = {"defaults": [], "fit.subsample=20": ["--set", "fit.subsample=20"]}
+#: Main before the clinical-scale merge (76575f2): 8a55ae6 "scripts/bench_baseline.py: this checkout against a
+#: tagged version" on main's first-parent line, the last main commit without numba (its reconstruction is that of
+#: 3e531e1, the parent of the scale branch's 810d9ea "Streaming: ..."; 8a55ae6 adds only dfxcorr batch and this
+#: script).
+BASELINE = "8a55ae67a752f7ac14bc59aa8c1bb0bdcdbba0d9"
 
 
 def reference_env(ref: str, work: Path) -> Path:
@@ -60,7 +66,7 @@ def timed(cmd: list[str]) -> tuple[float, float]:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--ref", default="baseline-0.1")
+    ap.add_argument("--ref", default=BASELINE)
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--work", type=Path, default=Path("/tmp/dfx-bench"))
     ap.add_argument("--out", type=Path, default=ROOT / "docs")

@@ -97,9 +97,10 @@ def test_row_blocks_give_the_images_of_one_pass(prepared_scan):
                                    equal_nan=True)
     np.testing.assert_array_equal(tiny.motion_mask, huge.motion_mask)
     assert tiny.reduced_chi2 == pytest.approx(huge.reduced_chi2, rel=1e-10)
-    # and both equal one retrieval holding every sample, with reduced_chi2's own degrees of freedom
+    # and both equal one retrieval holding every sample (in float32, as the pipeline's), with reduced_chi2's own
+    # degrees of freedom
     prep = pipeline.prepare(scan, C.defaults())
-    obs = prep.observations()
+    obs = prep.observations(dtype=np.float32)
     fitted = {k: v for k, v in tiny.params.items() if tiny.estimated[k]}
     whole = retrieve(replace(obs, use=obs.roi), fitted)
     assert tiny.reduced_chi2 == pytest.approx(whole.reduced_chi2, rel=1e-10)
@@ -189,11 +190,13 @@ def test_column_step_is_the_smallest_within_the_samples(width, samples_per_colum
 def test_subsample_auto_reaches_the_target_uncertainty_it_predicts(small_scan, caplog):
     """The pilot's prediction is what the fit on the chosen columns then reports (within 25 %, and not
     optimistic by more than 10 %); a looser target takes fewer columns, a time budget the columns it
-    predicts to fit in it; the log names the columns, the predicted uncertainty and time."""
+    predicts to fit in it, a time floor at least those (this small scan's every column); the log names the
+    columns, the predicted uncertainty and time."""
     scan, _ = small_scan()
     prep = pipeline.prepare(scan, C.defaults())
     with caplog.at_level("INFO", logger="dfxcorr"):
-        plans = {t: pipeline.plan_columns(prep, C.load([], [f"fit.target_uncertainty={t}"])) for t in (0.007, 0.012)}
+        plans = {t: pipeline.plan_columns(prep, C.load([], [f"fit.target_uncertainty={t}", "fit.time_floor=null"]))
+                 for t in (0.007, 0.012)}
     assert "predicted phi0/phi1 uncertainty" in caplog.text and "predicted fit time" in caplog.text
     assert plans[0.012].columns.size < plans[0.007].columns.size < scan.shape[2]
     plan = plans[0.007]
@@ -206,6 +209,10 @@ def test_subsample_auto_reaches_the_target_uncertainty_it_predicts(small_scan, c
     budget = pipeline.plan_columns(prep, C.load([], [f"fit.time_budget={plan.seconds / 2}"]))
     assert budget.seconds <= plan.seconds / 2 and budget.columns.size >= plan.columns.size // 2 - 1
     assert budget.uncertainty == pytest.approx(plan.uncertainty * np.sqrt(plan.columns.size / budget.columns.size))
+    floor = pipeline.plan_columns(prep, C.load([], ["fit.target_uncertainty=0.012", f"fit.time_floor={plan.seconds}"]))
+    assert floor.columns.size >= plan.columns.size and floor.seconds <= plan.seconds
+    every = pipeline.plan_columns(prep, C.load([], ["fit.target_uncertainty=0.012"]))
+    assert every.columns.size == scan.shape[2] and every.seconds <= C.defaults()["fit"]["time_floor"]
 
 
 @pytest.mark.slow

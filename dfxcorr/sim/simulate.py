@@ -210,8 +210,9 @@ def geometry(cfg: dict) -> dict:
     return dict(H=H, W=W, A=A, position=position, phase_step=np.zeros(J))
 
 
-#: Most samples (frames x rows x columns) a simulation holds: 4 GB of uint32 counts.
-MAX_SAMPLES = 10 ** 9
+#: Most samples (frames x rows x columns) a simulation holds: 8 GB of uint32 counts in memory; the full-resolution
+#: clinical scan (configs/clinical.yaml, 1.6e9 samples, scripts/benchmark.py clinical) is written frame by frame.
+MAX_SAMPLES = 2 * 10 ** 9
 
 
 def _check_size(H: float, W: float, A: float, J: float) -> None:
