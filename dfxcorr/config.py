@@ -211,9 +211,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
                         check=_fraction),
         "subsample": Option(4, "the diagnosis fits and tests on every n-th column (finer than fit.subsample: the "
                                "parameter noise of a coarse fit would read as misfit)", int, check=_within(1, 1e6)),
-        "max_samples": Option(1e6, "the diagnosis fits and tests on every n-th column, n at least diagnose.subsample "
+        "max_samples": Option(5e5, "the diagnosis fits and tests on every n-th column, n at least diagnose.subsample "
                                    "and large enough that they hold at most this many samples (a large scan's every "
-                                   "4th column was most of the diagnosis's time)", _NUM, check=_within(1e3, 1e12)),
+                                   "4th column was most of the diagnosis's time; a 5-step 512 x 1536 flat panel named "
+                                   "the same effects on every 8th, 38 -> 22 s)", _NUM, check=_within(1e3, 1e12)),
         "max_rounds": Option(8, "at most this many effects are added", int, check=_within(1, 100)),
         "motion_p": Option(1e-6, "per-pixel p-value below which a pixel's frames disagree", _NUM, check=_fraction),
         "min_pixels": Option(5, "sample_motion needs at least this many flagged pixels", int, check=_within(1, 1e9)),

@@ -22,10 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from .. import config as C
-from .. import model as M
 from ..align import pixel_mm, realign, subsample_columns
 from ..effects import REGISTRY
-from ..effects.base import EffectBase, Hypothesis, Preparation, Realign, Test
+from ..effects.base import EffectBase, Hypothesis, Preparation, Realign, State, Test
 from ..fit import fit_vibrations
 from ..frames import well_determined
 from ..io import Scan
@@ -34,8 +33,8 @@ from ..pipeline import Prepared, prepare, stage
 from ..planning import resolve_effects, visibility_unidentifiable
 from ..retrieve import Retrieval, retrieve
 from . import loop
-from .report import Diagnosis, EffectReport, change_picture
-from .signatures import locate, signatures
+from .report import Diagnosis, EffectReport, change_picture, residuals
+from .signatures import Residuals, signatures
 
 log = logging.getLogger(__name__)
 
@@ -181,7 +180,15 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
         if base == "configured" else []
     start = Hypothesis(tuple(model), prep.noise, np.zeros((H, W), bool), np.zeros(J))
     first = session.fit(start, {}, "round 0")
-    before = locate(first.obs, M.design(first.obs, first.params), first.rec.images, first.rec.expected)
+    located: dict[int, Residuals] = {}
+
+    def located_once(state: State) -> Residuals:
+        # the states live in the outcome until the report is made: their ids stay theirs
+        if id(state) not in located:
+            located[id(state)] = residuals(state)
+        return located[id(state)]
+
+    before = located_once(first)
     out = loop.run(registry, session, first, fit=session.fit, alpha=d["alpha"], explain_share=d["explain_share"],
                    max_rounds=d["max_rounds"], timings=timings, noise_first=d["order"] == "noise-first")
     final = out.state
@@ -194,7 +201,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                                     delta_chi2=step.before.chi2 - step.after.chi2,
                                     reduced_chi2_after=step.after.reduced_chi2, where=e.where(t, step.after.fit_obs),
                                     estimate=e.estimate(extra, step.after.params, session.good_frames), extra=extra))
-        changes.append(change_picture(e, step.before, step.after, extra))
+        changes.append(change_picture(e, step.before, step.after, extra, located=located_once))
     added = {s.name for s in out.steps}
     for n, t in sorted(out.tests.items(), key=lambda kv: -kv[1].statistic):
         if n in added:
@@ -237,8 +244,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                      final_model=model + [n for n in detected if n in final.hypothesis.effects]
                      + [n for n in detected if n not in final.hypothesis.effects],
                      before=before,
-                     after=before if final is first else locate(final.obs, M.design(final.obs, final.params),
-                                                                final.rec.images, final.rec.expected),
+                     after=located_once(final),
                      params=final.params, criterion=criterion, rounds=out.rounds,
                      unexplained=sorted(unexplained, key=lambda u: u["p_value"]), signatures=final.signatures,
                      shape=prep.shape, final=final.hypothesis, start=start, cfg=cfg, registry=registry,

@@ -3,7 +3,7 @@ the effects added, and the ``reconstruct`` command that uses the final model."""
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -110,15 +110,21 @@ FIXED_FILES = ("diagnosis.json", "report.md", "residuals.png", "signatures.png",
                *(f for e in REGISTRY.values() for f in e.files))
 
 
-def change_picture(effect: EffectBase, before, after, extra: dict) -> dict:
+def residuals(state) -> Residuals:
+    """Where the fit ``state`` and its observations disagree (:func:`dfxcorr.analysis.signatures.locate`)."""
+    return locate(state.obs, M.design(state.obs, state.params), state.rec.images, state.rec.expected)
+
+
+def change_picture(effect: EffectBase, before, after, extra: dict, *,
+                   located: Callable[[Any], Residuals] = residuals) -> dict:
     """What adding ``effect`` changed, for its picture: images and residual maps of the fits ``before`` and
     ``after`` (each on its own observations: the change may alter the data or their noise model) (H, W), and
-    its per-frame estimate (J, n) where it has one."""
+    its per-frame estimate (J, n) where it has one. ``located``: the residuals of a fit (the caller may keep
+    them: one step's fit after is the next one's before)."""
     out: dict[str, Any] = {"name": effect.name, "reduced_chi2": (before.reduced_chi2, after.reduced_chi2)}
     for key, state in (("before", before), ("after", after)):
-        rec = state.rec
-        out[key] = image_maps(state.obs, rec.images)
-        out[key]["residual"] = locate(state.obs, M.design(state.obs, state.params), rec.images, rec.expected).pixel
+        out[key] = image_maps(state.obs, state.rec.images)
+        out[key]["residual"] = located(state).pixel
     out["per_frame"] = effect.per_frame(extra, after.params)
     out["components"] = effect.entry.components
     return out
