@@ -79,6 +79,14 @@ def chi2_test(statistic: float, dof: int, **kw: Any) -> Test:
     return Test(float(statistic), int(dof), float(stats.chi2.sf(statistic, dof)), log_p, **kw)
 
 
+def strongest(found: Mapping[str, Test]) -> tuple[str, Test]:
+    """The test of ``found`` with the least p-value, Bonferroni-corrected for how many were looked at: its key and
+    the test with p (and log p) multiplied by that number (at most 1)."""
+    key = min(found, key=lambda k: found[k].log_p)
+    t, m = found[key], len(found)
+    return key, replace(t, p_value=min(1.0, m * t.p_value), log_p=min(t.log_p + float(np.log(m)), 0.0))
+
+
 def holm(log_p: list[float], alpha: float) -> list[bool]:
     """Holm's step-down verdicts at family-wise level ``alpha`` for tests with these log p-values."""
     order = sorted(range(len(log_p)), key=lambda i: log_p[i])
@@ -313,8 +321,8 @@ class EffectBase:
         A detector effect in no catalogue can leave the signature of a catalogue effect (a non-linearity a
         second harmonic, a ghost of an earlier frame a change of dose) but not with one size everywhere: a
         significant and ``material`` test (the size, estimated stratum by stratum, spans more than
-        ``diagnose.proxy_spread`` times its mean) refuses the effect as a proxy and its signature is reported as
-        unexplained. The payload holds 'axis' and 'strata' (those sizes, relative to their mean).
+        ``diagnose.proxy_spread`` times the shared fit's) refuses the effect as a proxy and its signature is
+        reported as unexplained. The payload holds 'axis' and 'strata' (those sizes, the shared fit's being 1).
         """
         return None
 

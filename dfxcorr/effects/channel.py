@@ -20,7 +20,7 @@ from .. import model as M
 from ..catalogue import CATALOGUE, Effect
 from ..observations import Observations
 from ..retrieve import retrieve
-from .base import Context, EffectBase, Hypothesis, State, Test, chi2_test, frames_where
+from .base import Context, EffectBase, Hypothesis, State, Test, chi2_test, frames_where, strongest
 
 
 def score_tests(obs: Observations, params: dict, weights: np.ndarray, model, candidates, *,
@@ -188,10 +188,8 @@ def heterogeneity(obs: Observations, params: dict, weights: np.ndarray, model, n
         g = Z @ (inv @ eff_score)
         sizes = 1.0 + g - own @ g / max(own.sum(), 1e-300)
         found[key] = chi2_test(float(eff_score @ inv @ eff_score), dof, payload={"sizes": sizes})
-    key = min(found, key=lambda k: found[k].log_p)
-    t = found[key]
-    return Test(t.statistic, t.dof, min(1.0, 2 * t.p_value), min(t.log_p + np.log(2), 0.0), payload={
-        "strata": t.payload["sizes"].tolist(), "alternative": key})
+    key, t = strongest(found)
+    return replace(t, payload={"strata": t.payload["sizes"].tolist(), "alternative": key})
 
 
 def _round_scores(ctx: Context, state: State) -> dict[str, Test]:
@@ -230,11 +228,9 @@ class ChannelEffect(EffectBase):
         weights = M.noise_weights(obs, expected)
         found = {by: heterogeneity(obs, state.params, weights, state.hypothesis.effects, self.name,
                                    labels=strata(obs, expected, by=by)) for by in ("count", "row")}
-        by = min(found, key=lambda k: found[k].log_p)
-        t = found[by]
-        spread = float(np.ptp(t.payload["strata"]))
-        return replace(t, p_value=min(1.0, 2 * t.p_value), log_p=t.log_p + np.log(2),
-                       material=spread > ctx.cfg["diagnose"]["proxy_spread"], payload={**t.payload, "axis": by})
+        by, t = strongest(found)
+        return replace(t, material=float(np.ptp(t.payload["strata"])) > ctx.cfg["diagnose"]["proxy_spread"],
+                       payload={**t.payload, "axis": by})
 
     def where(self, test: Test, obs: Observations) -> str:
         if not self.entry.per_frame:

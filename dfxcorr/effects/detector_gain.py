@@ -20,7 +20,7 @@ from scipy import ndimage
 
 from .. import model as M
 from ..catalogue import Effect
-from ..io import Scan
+from ..io import Scan, frame_rows, lit_rows
 from ..noise import MIN_SIGNAL
 from ..observations import Observations
 from .base import Context, EffectBase, Hypothesis, State, Test, chi2_test
@@ -117,14 +117,14 @@ UNLIT_FRAMES, UNLIT_ROWS = 16, 16
 def unlit_readout(scan: Scan, *, frames: int = UNLIT_FRAMES, rows: int = UNLIT_ROWS) -> np.ndarray:
     """Readout noise of rows that no frame lights near then, where the file holds their readout (a flat panel).
 
-    From up to ``frames`` evenly spread frames, up to ``rows`` contiguous rows on either side of the lit band, at
-    least half the band's height (and 4 rows) away from the rows lit in that frame and the three before it (the
-    detector lag of rows just left). Each row's mean is taken out (a row offset, line noise or a dark-map error,
-    is no readout noise; the W / (W - 1) makes up for the mean), so the values' mean square estimates sigma_e^2
-    whatever the dark map's row levels say: the readout's noise as recorded, integer rounding included (1/12
-    count^2, which every sample carries). A pixel-by-pixel error of the dark map would count as read noise
-    here (differences of frames would cancel it; not done). Rows read as all zeros were not read out (the
-    format lets a writer leave them unallocated).
+    From up to ``frames`` evenly spread frames that light rows, up to ``rows`` contiguous rows on either side of the
+    lit band, at least half the band's height (and 4 rows) away from the rows lit (:func:`dfxcorr.io.lit_rows`) in
+    that frame and the three before it (the detector lag of rows just left). Each row's mean is taken out (a row
+    offset, line noise or a dark-map error, is no readout noise; the W / (W - 1) makes up for the mean), so the
+    values' mean square estimates sigma_e^2 whatever the dark map's row levels say: the readout's noise as
+    recorded, integer rounding included (1/12 count^2, which every sample carries). A pixel-by-pixel error of
+    the dark map would count as read noise here (differences of frames would cancel it; not done). Rows read
+    as all zeros were not read out (the format lets a writer leave them unallocated).
 
     Parameters
     ----------
@@ -145,14 +145,18 @@ def unlit_readout(scan: Scan, *, frames: int = UNLIT_FRAMES, rows: int = UNLIT_R
     if scan.is_stepping or W < 2 or J == 0:
         return np.zeros(0)
     margin = max(4, A // 2)
+    bounds = lit_rows(scan.position, A, H)
     out = []
     for j in np.unique(np.linspace(0, J - 1, min(frames, J)).round().astype(int)):
-        recent = scan.position[max(j - 3, 0):j + 1]
-        top, bottom = int(np.floor(recent.min())) - margin, int(np.ceil(recent.max())) + A + margin
+        recent = bounds[max(j - 3, 0):j + 1]
+        recent = recent[recent[:, 1] > recent[:, 0]]
+        if not recent.size:
+            continue
+        top, bottom = int(recent[:, 0].min()) - margin, int(recent[:, 1].max()) + margin
         for a, b in ((max(top - rows, 0), max(top, 0)), (min(bottom, H), min(bottom + rows, H))):
             if b - a < 1:
                 continue
-            block = np.asarray(scan.data[j, a:b], dtype=np.float64)
+            block = frame_rows(scan.data, j, a, b).astype(np.float64)
             read = np.any(block, axis=1)
             if not read.any():
                 continue
