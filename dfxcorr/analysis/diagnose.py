@@ -29,7 +29,7 @@ from ..fit import fit_vibrations
 from ..frames import well_determined
 from ..io import Scan
 from ..observations import Observations
-from ..pipeline import Prepared, prepare, stage
+from ..pipeline import Prepared, column_step, prepare, stage
 from ..planning import resolve_effects, visibility_unidentifiable
 from ..retrieve import Retrieval, retrieve
 from . import loop
@@ -67,8 +67,8 @@ class Session:
         # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit; on a large scan
         # fewer of them (diagnose.max_samples) still hold more information than the tests need
         blocks, width = self.obs.counts.shape
-        every = max(d["subsample"], int(np.ceil(blocks * width / d["max_samples"])))
-        self.fit_columns = subsample_columns(width, min(every, width))
+        self.fit_columns = subsample_columns(width, max(d["subsample"], column_step(width, blocks,
+                                                                                     most=d["max_samples"])))
         self.fitted = np.zeros(self.obs.columns.size, bool)
         self.fitted[self.fit_columns] = True
         self.good_frames = well_determined(self.obs.subset(self.fit_columns), cfg["fit"]["gauge_fraction"])
