@@ -80,10 +80,12 @@ def score_from_statistics(eps: np.ndarray, q: np.ndarray) -> np.ndarray:
         return np.where(ok, eps / (1.0 + gamma * q), np.nan)
 
 
-def motion_score(obs: M.Observations, params: dict | None = None, weights: np.ndarray | None = None) -> np.ndarray:
+def motion_score(obs: M.Observations, params: dict | None = None, *, chunk: float = 1e6) -> np.ndarray:
     """Per-pixel residual relative to what noise and (unmodelled) vibrations explain.
 
-    Parameters as :func:`motion_statistics`.
+    ``params`` as :func:`motion_statistics`'s. The statistics are taken a run of about ``chunk`` samples' columns
+    at a time (the pixels are independent; :func:`score_from_statistics` fits its gamma over all of them): every
+    column's temporaries at once were most of a diagnosis's peak memory.
 
     Returns
     -------
@@ -91,7 +93,10 @@ def motion_score(obs: M.Observations, params: dict | None = None, weights: np.nd
         About 1 for consistent pixels (a reduced chi-square with n - 3 degrees of freedom), NaN where
         the pixel could not be solved.
     """
-    eps, q, _ = motion_statistics(obs, params, weights)
+    if params is None:
+        params = pilot_vibrations(obs)
+    eps, q, _ = (np.concatenate(a, axis=1) for a in zip(*(motion_statistics(obs.subset(c), params)
+                                                          for c in obs.column_chunks(chunk)), strict=True))
     return score_from_statistics(eps, q)
 
 

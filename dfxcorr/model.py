@@ -322,6 +322,11 @@ class Images:
     def t(self) -> np.ndarray:
         return self.coef[..., 0]
 
+    def subset(self, columns: np.ndarray) -> Images:
+        """The images of some of the held columns (positions, as :meth:`Observations.subset` takes them)."""
+        return Images(self.coef[:, columns], self.valid[:, columns],
+                      None if self.inverse is None else self.inverse[:, columns])
+
     @property
     def v(self) -> np.ndarray:
         with np.errstate(divide="ignore", invalid="ignore"):

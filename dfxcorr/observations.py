@@ -10,6 +10,7 @@ sharing the arrays that stay the same.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -170,6 +171,18 @@ class Observations:
                             None if self.noise is None else cut(self.noise),
                             None if self.roi is None else cut(self.roi),
                             None if self.offset_noise is None else cut(self.offset_noise))
+
+    def column_chunks(self, samples: float = 1e6) -> list[np.ndarray]:
+        """Positions of ``self.columns`` in consecutive runs holding about ``samples`` samples each (at least one
+        column): per-pixel work over every column done a run at a time holds that many samples' temporaries."""
+        K, C = self.counts.shape
+        step = max(int(samples // max(K, 1)), 1)
+        return [np.arange(a, min(a + step, C)) for a in range(0, C, step)]
+
+    def per_pixel(self, function: Callable[[Observations], np.ndarray], samples: float = 1e6) -> np.ndarray:
+        """``function`` of the observations -> per-pixel values (R, c, ...), evaluated a run of columns at a time
+        (:meth:`column_chunks`) and joined: (R, C, ...)."""
+        return np.concatenate([function(self.subset(c)) for c in self.column_chunks(samples)], axis=1)
 
     def with_noise(self, noise: Noise) -> Observations:
         """The same samples under another noise description (its factor map sliced to the held pixels)."""

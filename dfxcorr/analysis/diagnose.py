@@ -62,21 +62,24 @@ class Session:
     def __init__(self, prep: Prepared, cfg: dict, timings: dict, registry: Mapping[str, EffectBase]):
         d = cfg["diagnose"]
         self.prep, self.cfg, self.timings, self.registry = prep, cfg, timings, registry
-        # the tests need every pixel: the diagnosis holds the whole scan (the reconstruction streams it)
-        self.obs = prep.observations()
+        # the tests need every pixel: the diagnosis holds the whole scan (the reconstruction streams it), in
+        # float32 as a reconstruction's samples (they are read a run of columns at a time, in float64)
+        self.obs = prep.observations(dtype=np.float32)
         # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit; on a large scan
-        # fewer of them (diagnose.max_samples) still hold more information than the tests need
+        # fewer of them (diagnose.max_samples) still hold more information than the tests need. In float64: a
+        # fit under a grossly wrong noise model (reduced chi-square 100) depends on the samples' last bits
         blocks, width = self.obs.counts.shape
         self.fit_columns = subsample_columns(width, max(d["subsample"], column_step(width, blocks,
                                                                                      most=d["max_samples"])))
+        self.fit_base = prep.observations(columns=self.fit_columns)
         self.fitted = np.zeros(self.obs.columns.size, bool)
         self.fitted[self.fit_columns] = True
-        self.good_frames = well_determined(self.obs.subset(self.fit_columns), cfg["fit"]["gauge_fraction"])
+        self.good_frames = well_determined(self.fit_base, cfg["fit"]["gauge_fraction"])
         self.stepping = prep.scan.is_stepping
         self.visibility_why = visibility_unidentifiable(prep.scan, prep.reference)
         self.memo: dict = {}
         self._prepared: dict[tuple, Prepared] = {}
-        self._aligned: dict[tuple, Observations] = {}
+        self._aligned: dict[tuple, tuple[Observations, Observations]] = {}
 
     def prepared(self, hypothesis: Hypothesis) -> Prepared:
         key = hypothesis.corrections
@@ -104,10 +107,13 @@ class Session:
             moved = hypothesis.corrections or np.any(hypothesis.shift)
             # the current alignment and a trial's: older ones are not asked for again
             self._aligned = {k: v for k, v in list(self._aligned.items())[-1:]}
-            self._aligned[key] = self.realigner(hypothesis)(self.obs, hypothesis.shift) if moved else self.obs
-        base = self._aligned[key].with_noise(hypothesis.noise)
+            # the states of one alignment share their samples
+            realigned = self.realigner(hypothesis)
+            self._aligned[key] = ((realigned(self.obs, hypothesis.shift), realigned(self.fit_base, hypothesis.shift))
+                                  if moved else (self.obs, self.fit_base))
+        every, fit_columns = self._aligned[key]
+        base, fit_obs = every.with_noise(hypothesis.noise), fit_columns.with_noise(hypothesis.noise)
         obs = replace(base, use=base.use & base.in_roi & ~base.pixel_mask(hypothesis.motion))
-        fit_obs = base.subset(self.fit_columns)
         return obs, replace(fit_obs, use=fit_obs.use & ~fit_obs.pixel_mask(hypothesis.motion))
 
     def fit(self, hypothesis: Hypothesis, start: dict, label: str) -> Fitted:
@@ -127,7 +133,9 @@ class Session:
                                         gauge_fraction=f["gauge_fraction"])
                 params = {k: v for k, v in fitted.params.items() if k in model}
             n_par = sum(np.size(p) for p in params.values())
-            rec = retrieve(obs, params, n_frame_params=n_par)
+            # images and chi-square of every column, no per-sample arrays: the states stay small (the tests that
+            # need every column's expected counts make them a run of columns at a time)
+            rec = retrieve(obs, params, n_frame_params=n_par, keep_expected=False)
             fit_rec = retrieve(fit_obs, params, keep_inverse=True)
             sigs = signatures(fit_obs, params, n_params=n_par, alpha=self.cfg["diagnose"]["alpha"], rec=fit_rec)
         return Fitted(hypothesis, params, rec.chi2_sum, rec.reduced_chi2, rec, sigs, obs, fit_obs, fit_rec)
@@ -176,7 +184,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     prep = scan if isinstance(scan, Prepared) else prepare(scan, cfg, timings=timings)
     session = Session(prep, cfg, timings, registry)
     J, H, W = prep.shape
-    model = list(resolve_effects(cfg, prep.scan, prep.reference, session.obs.subset(session.fit_columns))) \
+    model = list(resolve_effects(cfg, prep.scan, prep.reference, session.fit_base)) \
         if base == "configured" else []
     start = Hypothesis(tuple(model), prep.noise, np.zeros((H, W), bool), np.zeros(J))
     first = session.fit(start, {}, "round 0")

@@ -10,7 +10,6 @@ from typing import Any
 
 import numpy as np
 
-from .. import model as M
 from .. import plots
 from ..catalogue import PAPER_MODEL, effect
 from ..effects import REGISTRY
@@ -112,7 +111,8 @@ FIXED_FILES = ("diagnosis.json", "report.md", "residuals.png", "signatures.png",
 
 def residuals(state) -> Residuals:
     """Where the fit ``state`` and its observations disagree (:func:`dfxcorr.analysis.signatures.locate`)."""
-    return locate(state.obs, M.design(state.obs, state.params), state.rec.images, state.rec.expected)
+    held = state.fit_obs.use & state.fit_obs.in_roi
+    return locate(state.obs, state.params, state.rec.images, counts=state.fit_rec.expected[held])
 
 
 def change_picture(effect: EffectBase, before, after, extra: dict, *,
@@ -120,10 +120,11 @@ def change_picture(effect: EffectBase, before, after, extra: dict, *,
     """What adding ``effect`` changed, for its picture: images and residual maps of the fits ``before`` and
     ``after`` (each on its own observations: the change may alter the data or their noise model) (H, W), and
     its per-frame estimate (J, n) where it has one. ``located``: the residuals of a fit (the caller may keep
-    them: one step's fit after is the next one's before)."""
+    them: one step's fit after is the next one's before). The maps are float32: they are drawn, and six per step
+    in float64 were the largest item of a diagnosis's peak memory."""
     out: dict[str, Any] = {"name": effect.name, "reduced_chi2": (before.reduced_chi2, after.reduced_chi2)}
     for key, state in (("before", before), ("after", after)):
-        out[key] = image_maps(state.obs, state.rec.images)
+        out[key] = {k: v.astype(np.float32) for k, v in image_maps(state.obs, state.rec.images).items()}
         out[key]["residual"] = located(state).pixel
     out["per_frame"] = effect.per_frame(extra, after.params)
     out["components"] = effect.entry.components

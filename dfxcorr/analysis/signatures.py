@@ -45,36 +45,56 @@ class Residuals:
     count_value: np.ndarray
 
 
-def locate(obs: M.Observations, dsg: M.Design, images: M.Images, ibar: np.ndarray) -> Residuals:
-    """Mean squared standardized residual per pixel, frame, lateral position, fringe phase and count."""
-    z2 = np.where(obs.use, M.pearson(obs, ibar), np.nan)
-    used = obs.use.astype(float)
-    n = obs.segment_sum(used)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        pixel = obs.to_image(obs.segment_sum(np.nan_to_num(z2)) / (n - 3))
-        frame = obs.frame_sum(np.nansum(z2, axis=1)) / obs.frame_sum(used.sum(axis=1))
-        xs = np.nansum(z2, axis=0) / used.sum(axis=0)
-    psi = np.angle(np.exp(1j * (dsg.theta + images.phi[obs.pixel])))
+def locate(obs: M.Observations, params: dict, images: M.Images, *, counts: np.ndarray,
+           chunk: float = 5e5) -> Residuals:
+    """Mean squared standardized residual per pixel, frame, lateral position, fringe phase and count.
+
+    Computed a run of columns at a time (about ``chunk`` samples: :meth:`Observations.column_chunks`), the
+    expected counts from ``images`` and the model at ``params``, so that a scan of every column holds one run's
+    temporaries. ``counts``: expected counts whose 0.5 and 99.5 percentiles bound the count bins (the fit's
+    columns' do: the bins need not see every sample).
+    """
+    C = obs.columns.size
+    n = np.zeros((obs.starts.size, C))
+    z2_pixel = np.zeros((obs.starts.size, C))
+    frame_z2, frame_n = np.zeros(obs.n_frames), np.zeros(obs.n_frames)
+    xs = np.full(C, np.nan)
     edges = np.linspace(-np.pi, np.pi, 17)
-    phase = _binned(psi, z2, edges)
-    lo, hi = np.nanpercentile(np.where(obs.use, ibar, np.nan), [0.5, 99.5])
+    lo, hi = np.nanpercentile(counts, [0.5, 99.5])
     cedges = np.geomspace(max(lo, 1e-3), max(hi, 2 * max(lo, 1e-3)), 13)
-    count = _binned(ibar, z2, cedges)
+    phase = np.zeros((2, edges.size - 1))
+    count = np.zeros((2, cedges.size - 1))
+    for cols in obs.column_chunks(chunk):
+        sub, im = obs.subset(cols), images.subset(cols)
+        dsg = M.design(sub, params)
+        ibar = M.expected(sub, dsg, im)
+        z2 = np.where(sub.use, M.pearson(sub, ibar), np.nan)
+        used = sub.use.astype(float)
+        n[:, cols] = sub.segment_sum(used)
+        z2_pixel[:, cols] = sub.segment_sum(np.nan_to_num(z2))
+        frame_z2 += sub.frame_sum(np.nansum(z2, axis=1))
+        frame_n += sub.frame_sum(used.sum(axis=1))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            xs[cols] = np.nansum(z2, axis=0) / used.sum(axis=0)
+        phase += _binned(np.angle(np.exp(1j * (dsg.theta + im.phi[sub.pixel]))), z2, edges)
+        count += _binned(ibar, z2, cedges)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pixel = obs.to_image(z2_pixel / (n - 3))
+        frame, phase_mean, count_mean = frame_z2 / frame_n, phase[0] / phase[1], count[0] / count[1]
     # a retrieval with 3 unknowns per pixel leaves (n - 3) / n of the variance in the residuals
     scale = float(np.nansum(n) / np.nansum(np.maximum(n - 3, 0)))
-    return Residuals(pixel=pixel, frame=frame * scale, x=xs * scale, x_value=obs.x, phase=phase * scale,
-                     phase_value=0.5 * (edges[1:] + edges[:-1]), count=count * scale,
+    return Residuals(pixel=pixel, frame=frame * scale, x=xs * scale, x_value=obs.x, phase=phase_mean * scale,
+                     phase_value=0.5 * (edges[1:] + edges[:-1]), count=count_mean * scale,
                      count_value=np.sqrt(cedges[1:] * cedges[:-1]))
 
 
-def _binned(value, z2, edges):
+def _binned(value: np.ndarray, z2: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Sum of the finite ``z2`` and their number in each bin of ``value`` between ``edges``, shape (2, bins)."""
     ok = np.isfinite(z2)
     idx = np.digitize(value[ok], edges) - 1
     inside = (idx >= 0) & (idx < edges.size - 1)
-    s = np.bincount(idx[inside], weights=z2[ok][inside], minlength=edges.size - 1)
-    c = np.bincount(idx[inside], minlength=edges.size - 1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return s / c
+    return np.stack([np.bincount(idx[inside], weights=z2[ok][inside], minlength=edges.size - 1),
+                     np.bincount(idx[inside], minlength=edges.size - 1)])
 
 
 #: Axes of the residual signatures (``unexplained`` in ``spec/diagnosis.md``, version 2).

@@ -176,8 +176,10 @@ class Preparation:
 
 class State(Protocol):
     """A fitted hypothesis, as effects see it: the hypothesis, its parameters, chi-square (sum and reduced),
-    residual signatures, the retrieval of every column, the samples of every column and of the fit's
-    columns under it, and the retrieval of the fit's columns (with the inverse normal matrices)."""
+    residual signatures, the retrieval of every column (images and chi-square; no per-sample arrays: a test that
+    needs every column's expected counts makes them a run of columns at a time, :meth:`Observations.column_chunks`),
+    the samples of every column and of the fit's columns under it, and the retrieval of the fit's columns (with the
+    inverse normal matrices, expected counts and weights)."""
 
     @property
     def hypothesis(self) -> Hypothesis: ...

@@ -48,7 +48,7 @@ class PixelNoiseError(DfxcorrError, ValueError):
 
 
 
-def pixel_noise_test(obs: Observations, ibar: np.ndarray, valid: np.ndarray, *, alpha: float,
+def pixel_noise_test(obs: Observations, params: dict, images: M.Images, *, alpha: float, counts: np.ndarray,
                      exclude: np.ndarray | None = None, fitted: np.ndarray | None = None) -> Test:
     """Pixel classes whose noise variance differs from the rest: found by detector column and row, factor per class.
 
@@ -70,43 +70,61 @@ def pixel_noise_test(obs: Observations, ibar: np.ndarray, valid: np.ndarray, *, 
     (the parameters took some of their variance, and of any misfit), so their dispersion reference is that
     of the regular fitted columns, per count bin like the rest.
 
+    The samples are summed per pixel and count bin a run of columns at a time (the expected counts from
+    ``images`` and the model at ``params``), so that every column's temporaries are never held at once; the
+    count bins' edges are quantiles of ``counts`` (the fit's columns' expected counts: the bins need not see
+    every sample). ``exclude`` (H, W): pixels left out.
+
     Returns
     -------
     Test
         Payload 'map' (H, W) factors (relative to the current ones), 'classes' (list of dict: 'columns', 'rows',
         'pixels', 'factor').
     """
-    sel = obs.use & valid[obs.pixel]
-    if exclude is not None:
-        sel &= ~exclude
-    z2 = np.where(sel, M.pearson(obs, ibar), 0.0)
-    g = obs.pixel_gain()[obs.pixel]
-    kv = np.where(sel, 2.0 + g / np.maximum(ibar - obs.dark, 1e-3), 0.0)
-    n = obs.segment_sum(sel.astype(float))
+    C = obs.columns.size
+    kind = np.zeros(C, int) if fitted is None else np.asarray(fitted, int)
+    # a variance misfit that depends on the expected count (detector nonlinearity, say) is not a pixel class:
+    # z^2 is measured against the regular pixels' dispersion at the same count (12 bins of equal size)
+    edges = np.quantile(counts, np.linspace(0, 1, 13)[1:-1])
+    R = obs.starts.size
+    # per pixel and count bin: the sum of z^2 and the number of samples (float32: a few samples each)
+    Z, N = np.zeros((R, C, edges.size + 1), np.float32), np.zeros((R, C, edges.size + 1), np.float32)
+    kv_sum = np.zeros((R, C))
+    for cols in obs.column_chunks():
+        sub, im = obs.subset(cols), images.subset(cols)
+        ibar = M.expected(sub, M.design(sub, params), im)
+        sel = sub.use & im.valid[sub.pixel]
+        if exclude is not None:
+            sel &= ~sub.pixel_mask(exclude)
+        z2 = np.where(sel, M.pearson(sub, ibar), 0.0)
+        kv_sum[:, cols] = sub.segment_sum(np.where(sel, 2.0 + sub.pixel_gain()[sub.pixel]
+                                                   / np.maximum(ibar - sub.dark, 1e-3), 0.0))
+        b = np.digitize(ibar, edges)
+        for k in range(edges.size + 1):
+            Z[:, cols, k] = sub.segment_sum(np.where(b == k, z2, 0.0))
+            N[:, cols, k] = sub.segment_sum((sel & (b == k)).astype(float))
+    n = N.sum(axis=2)
     dof = np.maximum(n - 3, 0.0)
-    share = np.where(sel, (dof / np.maximum(n, 1))[obs.pixel], 0.0)  # a sample's share of its pixel's dof
-    V = np.where(dof > 0, obs.segment_sum(kv) * dof / np.maximum(n, 1), 0.0)
+    share = dof / np.maximum(n, 1)  # a sample's share of its pixel's dof
+    V = np.where(dof > 0, kv_sum * dof / np.maximum(n, 1), 0.0)
     img = {k: obs.to_image(v, fill=0.0) for k, v in (("dof", dof), ("V", V))}
     H, W = obs.shape[1:]
     fmap = np.ones((H, W))
     none = Test(0.0, 0, 1.0, 0.0, payload={"map": fmap, "classes": []})
     if img["dof"].sum() <= 0:
         return none
-    # a variance misfit that depends on the expected count (detector nonlinearity, say) is not a pixel class:
-    # z^2 is measured against the regular pixels' dispersion at the same count (12 bins of equal size)
-    edges = np.quantile(ibar[sel], np.linspace(0, 1, 13)[1:-1])
-    kind = np.zeros(obs.columns.size, int) if fitted is None else np.asarray(fitted, int)
-    cbin = 2 * np.digitize(ibar, edges) + kind[None, :]
     groups = [np.zeros(W, int), np.zeros(H, int)]
     # the dispersion of the regular pixels, the anomalous columns and rows found against it: repeated until
     # they stay the same (anomalous lines would otherwise pull the reference and make the rest look anomalous)
     for _ in range(5):
         regular = (groups[1][:, None] == 0) & (groups[0][None, :] == 0)
-        reg = sel & obs.pixel_mask(regular)
-        num = np.bincount(cbin[reg], weights=z2[reg], minlength=24)
-        den = np.bincount(cbin[reg], weights=share[reg], minlength=24)
-        per_count = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
-        img["X"] = obs.to_image(np.where(dof > 0, obs.segment_sum(z2 / per_count[cbin]), 0.0), fill=0.0)
+        # per count bin (columns fitted or not) the regular pixels' sum of z^2 against their share of the dof
+        per_count = np.ones((2, edges.size + 1))
+        for k in (0, 1):
+            reg = (obs.held(regular) & (kind == k)[None, :]).astype(float)
+            num, den = np.tensordot(reg, Z, 2), np.tensordot(reg * share, N, 2)
+            per_count[k] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
+        img["X"] = obs.to_image(np.where(dof > 0, np.einsum("rcb,cb->rc", Z, 1.0 / per_count[kind]), 0.0), fill=0.0)
         c = _dispersion(img, regular)
         tests, lines = [], []
         for axis in (0, 1):
@@ -209,9 +227,10 @@ class PixelNoise(EffectBase):
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
         from scipy import ndimage
 
-        obs, rec = state.obs, state.rec
-        return pixel_noise_test(obs, rec.expected, rec.images.valid, alpha=ctx.cfg["diagnose"]["alpha"],
-                                fitted=ctx.fitted, exclude=obs.pixel_mask(ndimage.binary_dilation(flagged)))
+        held = state.fit_obs.use & state.fit_obs.in_roi & state.fit_rec.images.valid[state.fit_obs.pixel]
+        return pixel_noise_test(state.obs, state.params, state.rec.images, alpha=ctx.cfg["diagnose"]["alpha"],
+                                counts=state.fit_rec.expected[held], fitted=ctx.fitted,
+                                exclude=ndimage.binary_dilation(flagged))
 
     def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
         noise = state.hypothesis.noise

@@ -90,10 +90,10 @@ def offset_test(realigned: Realign, obs: Observations, params: dict, shift: np.n
     """
     # the compiled retrieval keeps the inverse normal matrices the phase variance needs (the numpy model's solve of
     # every column was 2.5 s of the paper study's 10 s of tests)
-    rec = retrieve(obs, params, keep_inverse=True)
+    rec = retrieve(obs, params, keep_inverse=True, keep_expected=False)
     images = rec.images
     phi, var = images.phi, phase_variance(images, max(rec.reduced_chi2, 1.0))
-    plus, minus = (retrieve(realigned(obs, shift + d), params).images for d in (step, -step))
+    plus, minus = (retrieve(realigned(obs, shift + d), params, keep_expected=False).images for d in (step, -step))
     sens = _wrap(plus.phi - minus.phi) / (2 * step)
     ok4 = images.valid & plus.valid & minus.valid & np.isfinite(var)
     ok = ok4[:, 3:] & ok4[:, 2:-1] & ok4[:, 1:-2] & ok4[:, :-3]

@@ -235,7 +235,7 @@ def profile(prep: Any, state: State, setting: Setting) -> tuple[float, float]:
     # the fit's weights, the same for every candidate: the Pearson chi-square's variance floors would turn a
     # candidate that over-subtracts somewhere into a huge cost (measured: 164137 at 50 mm against 118789 at
     # 100 mm, the true width, and 2e7 at 200 mm), and without the scatter in the model its variance is in t
-    weights = state.rec.weights
+    weights = retrieve(state.obs, state.params).weights
     for _ in range(STEPS):
         if s <= 0:
             break
