@@ -10,7 +10,6 @@ sharing the arrays that stay the same.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -178,11 +177,6 @@ class Observations:
         K, C = self.counts.shape
         step = max(int(samples // max(K, 1)), 1)
         return [np.arange(a, min(a + step, C)) for a in range(0, C, step)]
-
-    def per_pixel(self, function: Callable[[Observations], np.ndarray], samples: float = 1e6) -> np.ndarray:
-        """``function`` of the observations -> per-pixel values (R, c, ...), evaluated a run of columns at a time
-        (:meth:`column_chunks`) and joined: (R, C, ...)."""
-        return np.concatenate([function(self.subset(c)) for c in self.column_chunks(samples)], axis=1)
 
     def with_noise(self, noise: Noise) -> Observations:
         """The same samples under another noise description (its factor map sliced to the held pixels)."""
