@@ -202,6 +202,20 @@ class LitStore:
         """Lit samples in one detector column (K)."""
         return int(self.row.size)
 
+    def row_runs(self, samples: float) -> list[tuple[int, int]]:
+        """Detector-row ranges [r0, r1) whose blocks hold at most ``samples`` samples (at least one row each),
+        covering every held row: pixels, and a pixel's frames, never straddle two of them."""
+        rows, per_row = np.unique(self.row, return_counts=True)
+        cap = max(int(samples / self.shape[2]), 1)  # blocks (row, frame)
+        runs, start, filled = [], 0, 0
+        for i, n in enumerate(per_row):
+            if filled and filled + n > cap:
+                runs.append((int(rows[start]), int(rows[i])))
+                start, filled = i, 0
+            filled += n
+        runs.append((int(rows[start]), int(rows[-1]) + 1))
+        return runs
+
     def observations(self, reference: Reference, *, columns: np.ndarray | None = None,
                      rows: tuple[int, int] | None = None, pixel_mask: np.ndarray | None = None,
                      gain: float | None = None, electronic: float = 0.0, noise: np.ndarray | None = None,

@@ -185,22 +185,9 @@ BYTES_PER_SAMPLE = 160
 
 
 def row_blocks(store: LitStore, budget_mb: float) -> list[tuple[int, int]]:
-    """Detector-row ranges [r0, r1) whose samples fit the memory budget, covering every held row.
-
-    Each block holds at least one row; rows are lit in different numbers of frames, so blocks are cut
-    on the cumulative sample count.
-    """
-    rows, per_row = np.unique(store.row, return_counts=True)
-    width = store.shape[2]
-    cap = max(int(budget_mb * 1e6 / (BYTES_PER_SAMPLE * width)), 1)  # blocks (row, frame) per block
-    blocks, start, filled = [], 0, 0
-    for i, n in enumerate(per_row):
-        if filled and filled + n > cap:
-            blocks.append((int(rows[start]), int(rows[i])))
-            start, filled = i, 0
-        filled += n
-    blocks.append((int(rows[start]), int(rows[-1]) + 1))
-    return blocks
+    """Detector-row ranges [r0, r1) whose samples fit the memory budget, covering every held row
+    (:meth:`LitStore.row_runs`)."""
+    return store.row_runs(budget_mb * 1e6 / BYTES_PER_SAMPLE)
 
 
 #: Evenly spread columns of the pilot that predicts the fit's uncertainty (``fit.subsample: auto``): its profiled

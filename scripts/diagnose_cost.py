@@ -3,14 +3,17 @@
 
 Each command runs in a process of its own (peak resident memory from getrusage); the scans are made here
 (the shared 11-step recording, imported; a 5-step 512 x 1536 flat-panel stepping simulation; the paper's
-study at 1 mm). Writes docs/diagnose-cost.json and prints a table.
+study at 1 mm), the clinical ones are read from ``--dir`` (made there by ``scripts/benchmark.py clinical --dir``:
+195 frames of 1440 x 1440 and of 2880 x 2880). Writes docs/diagnose-cost.json and prints a table.
 
-Usage: python scripts/diagnose_cost.py [--cases real stepping paper] [--out docs/]
+Usage: python scripts/diagnose_cost.py [--cases real stepping paper clinical-binned clinical-full]
+       [--dir /tmp/dfx-bench] [--out docs/]
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -35,12 +38,18 @@ print(json.dumps({"seconds": time.perf_counter() - t0, "peak_mb": peak_mb, "timi
 """
 
 
-def make(case: str, folder: Path) -> tuple[Path, str]:
-    """The scan file of a case, and the diagnosis's base model."""
+def make(case: str, folder: Path, clinical: Path | None = None) -> tuple[Path, str]:
+    """The scan file of a case, and the diagnosis's base model (the clinical ones are read from ``clinical``)."""
     from dfxcorr import config as C
     from dfxcorr.io import write_scan
     from dfxcorr.sim import simulate as S
 
+    if case.startswith("clinical-"):
+        path = (clinical or folder) / f"{case}.h5"
+        if not path.exists():
+            raise SystemExit(f"{path} is missing: make it with python scripts/benchmark.py clinical --dir "
+                             f"{clinical or folder}")
+        return path, "configured"
     path = folder / f"{case}.h5"
     if case == "real":
         from dfxcorr.importer import import_stepping
@@ -70,7 +79,9 @@ def measure(command: str, path: Path, base: str) -> dict:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", nargs="*", default=["real", "stepping", "paper"])
+    ap.add_argument("--cases", nargs="*", default=["real", "stepping", "paper"],
+                    choices=["real", "stepping", "paper", "clinical-binned", "clinical-full"])
+    ap.add_argument("--dir", type=Path, default=None, help="where the clinical scans are")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
     args = ap.parse_args()
     from dfxcorr.analysis.compare import machine
@@ -78,7 +89,7 @@ def main():
     rows = {"machine": machine(), "cases": {}}
     with tempfile.TemporaryDirectory() as tmp:
         for case in args.cases:
-            path, base = make(case, Path(tmp))
+            path, base = make(case, Path(tmp), args.dir)
             rec, diag = measure("reconstruct", path, base), measure("diagnose", path, base)
             stages: dict[str, float] = {}
             for name, seconds in diag["timings"].items():
@@ -89,10 +100,15 @@ def main():
             rows["cases"][case] = {"reconstruct_s": rec["seconds"], "diagnose_s": diag["seconds"],
                                    "time_ratio": diag["seconds"] / rec["seconds"], "reconstruct_mb": rec["peak_mb"],
                                    "diagnose_mb": diag["peak_mb"], "memory_ratio": diag["peak_mb"] / rec["peak_mb"],
-                                   "diagnose_stages_s": stages}
+                                   "diagnose_stages_s": stages, "machine": rows["machine"],
+                                   "load_average_after": round(os.getloadavg()[0], 2)}
             print(case, json.dumps(rows["cases"][case]), flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "diagnose-cost.json").write_text(json.dumps(rows, indent=2) + "\n")
+    out = args.out / "diagnose-cost.json"
+    # the cases not run this time keep their last measurement
+    kept = json.loads(out.read_text())["cases"] if out.exists() else {}
+    rows["cases"] = {**{k: v for k, v in kept.items() if k not in rows["cases"]}, **rows["cases"]}
+    out.write_text(json.dumps(rows, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from dfxcorr import config as C
-from dfxcorr.analysis.diagnose import diagnose
+from dfxcorr.analysis.diagnose import diagnose, held_band
 from dfxcorr.analysis.report import write_report
 from dfxcorr.sim import simulate as S
 
@@ -300,3 +300,27 @@ def test_a_true_harmonic_has_one_size_across_the_count_and_the_rows():
     diag = diagnose(scan, C.defaults())
     assert [e.name for e in diag.effects if e.detected] == ["harmonic"]
     assert diag.unexplained == []
+
+
+def test_held_band_is_every_column_or_a_centred_band():
+    np.testing.assert_array_equal(held_band(100, 1000, most=1e6), np.arange(100))
+    band = held_band(100, 1000, most=30_000)
+    np.testing.assert_array_equal(band, np.arange(35, 65))
+    assert held_band(100, 10 ** 9, most=1e4).size == 4  # never fewer columns than a test needs
+
+
+def test_a_scan_larger_than_the_held_samples_is_tested_on_a_band_and_fitted_over_the_detector():
+    # the concealed step errors are still named first with the per-pixel tests on a band of a third of the columns;
+    # the pixels outside it are tested by nothing (NaN in the residual map), the fit still sees every part
+    from dfxcorr.pipeline import prepare
+
+    scan, truth, cfg = concealed("phase_offset")
+    prep = prepare(scan, cfg)
+    W, per_column = scan.shape[2], prep.store.samples_per_column()
+    most = per_column * W / 3
+    diag = diagnose(prep, {**cfg, "diagnose": {**cfg["diagnose"], "max_held_samples": most}})
+    assert [e.name for e in diag.effects if e.detected][0] == "phase_offset"
+    tested = np.isfinite(diag.after.pixel).any(axis=0)
+    band = held_band(W, per_column, most=most)
+    assert band.size == W // 3
+    assert not tested[:band[0]].any() and not tested[band[-1] + 1:].any() and tested[band].mean() > 0.5

@@ -135,10 +135,10 @@ def test_unit_scatter_keeps_the_primarys_total_per_frame_and_its_level_at_the_ed
     row = np.repeat(np.arange(10), 3)
     frame = np.tile(np.arange(3), 10)
     primary = np.full((30, 40), 5.0)
-    out = SC.unit_scatter(primary, row, frame, (4.0, 6.0))
+    out = SC.unit_scatter(lambda idx: primary[idx], row, frame, (4.0, 6.0))
     np.testing.assert_allclose(out, 5.0, rtol=1e-6)  # a uniform primary stays uniform (normalised blur)
     primary = rng.uniform(1, 9, (30, 40))
-    out = SC.unit_scatter(primary, row, frame, (4.0, 6.0))
+    out = SC.unit_scatter(lambda idx: primary[idx], row, frame, (4.0, 6.0))
     for j in range(3):
         assert out[frame == j].sum() == pytest.approx(primary[frame == j].sum(), rel=1e-5)
     with pytest.raises(SC.ScatterError, match="pixel size"):

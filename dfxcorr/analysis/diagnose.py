@@ -62,18 +62,20 @@ class Session:
     def __init__(self, prep: Prepared, cfg: dict, timings: dict, registry: Mapping[str, EffectBase]):
         d = cfg["diagnose"]
         self.prep, self.cfg, self.timings, self.registry = prep, cfg, timings, registry
-        # the tests need every pixel: the diagnosis holds the whole scan (the reconstruction streams it), in
-        # float32 as a reconstruction's samples (they are read a run of columns at a time, in float64)
-        self.obs = prep.observations(dtype=np.float32)
+        # the per-pixel tests need every pixel: the diagnosis holds the scan's samples (the reconstruction streams
+        # them), in float32 as a reconstruction does (they are read a run of columns at a time, in float64); a
+        # band of columns in the middle where they would exceed diagnose.max_held_samples
+        width, per_column = prep.shape[2], prep.store.samples_per_column()
+        self.held_columns = held_band(width, per_column, most=d["max_held_samples"])
+        self.obs = prep.observations(columns=None if self.held_columns.size == width else self.held_columns,
+                                     dtype=np.float32)
         # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit; on a large scan
         # fewer of them (diagnose.max_samples) still hold more information than the tests need. In float64: a
         # fit under a grossly wrong noise model (reduced chi-square 100) depends on the samples' last bits
-        blocks, width = self.obs.counts.shape
-        self.fit_columns = subsample_columns(width, max(d["subsample"], column_step(width, blocks,
+        self.fit_columns = subsample_columns(width, max(d["subsample"], column_step(width, per_column,
                                                                                      most=d["max_samples"])))
         self.fit_base = prep.observations(columns=self.fit_columns)
-        self.fitted = np.zeros(self.obs.columns.size, bool)
-        self.fitted[self.fit_columns] = True
+        self.fitted = np.isin(self.obs.columns, self.fit_columns)
         self.good_frames = well_determined(self.fit_base, cfg["fit"]["gauge_fraction"])
         self.stepping = prep.scan.is_stepping
         self.visibility_why = visibility_unidentifiable(prep.scan, prep.reference)
@@ -141,6 +143,14 @@ class Session:
         return Fitted(hypothesis, params, rec.chi2_sum, rec.reduced_chi2, rec, sigs, obs, fit_obs, fit_rec)
 
 
+def held_band(width: int, samples_per_column: int, *, most: float) -> np.ndarray:
+    """The detector columns whose samples the per-pixel tests hold: every column, or where they would hold more
+    than ``most`` samples, the contiguous band of as many columns as fit, in the middle of the detector."""
+    n = min(max(int(most // max(samples_per_column, 1)), 4), width)
+    start = (width - n) // 2
+    return np.arange(start, start + n)
+
+
 #: What a catalogue effect of another size along each axis of :meth:`EffectBase.consistency` suggests.
 _SUSPECTS = {"count": ("expected count, dimmest", "a detector non-linearity or an additive artefact"),
              "row": ("detector row, top", "an artefact on some rows, as a ghost of an earlier frame")}
@@ -196,6 +206,10 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
             located[id(state)] = residuals(state)
         return located[id(state)]
 
+    if session.held_columns.size < W:
+        log.info("per-pixel tests on columns %d-%d of %d (diagnose.max_held_samples=%g); the fit on %d columns "
+                 "spread over the detector", session.held_columns[0], session.held_columns[-1], W,
+                 d["max_held_samples"], session.fit_columns.size)
     before = located_once(first)
     out = loop.run(registry, session, first, fit=session.fit, alpha=d["alpha"], explain_share=d["explain_share"],
                    max_rounds=d["max_rounds"], timings=timings, noise_first=d["order"] == "noise-first")

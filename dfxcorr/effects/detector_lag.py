@@ -40,6 +40,10 @@ def previous_block(row: np.ndarray, frame: np.ndarray) -> np.ndarray:
     return np.where(ok, prev, -1)
 
 
+#: Samples of each run of rows in which the lag is undone to measure it (:func:`measured_lag`).
+LAG_RUN_SAMPLES = 4_000_000
+
+
 def lag_free(counts: np.ndarray, dark: np.ndarray, row: np.ndarray, frame: np.ndarray, fraction: float,
              *, dtype: type = np.float32) -> np.ndarray:
     """Undo detector lag recursively: S_j = (I_j - dark) - a S_(j-1), S = 0 where the pixel was not lit.
@@ -131,11 +135,25 @@ def measured_lag(store: LitStore) -> tuple[float, float]:
     signal = np.where(keep, store.left_counts.astype(np.float64) - store.dark[prev_row], 0.0)
     a, se = 0.0, float("inf")
     for _ in range(4):
-        prev = lag_free(store.counts, store.dark[store.row], store.row, store.frame, store.lag or a)[store.left_prev]
+        prev = _lag_free_at(store, store.lag or a, store.left_prev)
         a, se = lag_estimate(signal, np.where(keep, prev - store.dark[prev_row], 0.0))
         if store.lag:
             break
     return a, se
+
+
+def _lag_free_at(store: LitStore, fraction: float, blocks: np.ndarray) -> np.ndarray:
+    """:func:`lag_free` of the store's samples at some blocks (K',) -> (K', W), float32: a run of rows at a time
+    (a pixel's frames are in one run), so that a clinical scan's every sample is not held twice more."""
+    out = np.zeros((blocks.size, store.shape[2]), np.float32)
+    for r0, r1 in store.row_runs(LAG_RUN_SAMPLES):
+        lo, hi = np.searchsorted(store.row, (r0, r1))
+        here = (blocks >= lo) & (blocks < hi)
+        if here.any():
+            row = store.row[lo:hi]
+            out[here] = lag_free(store.counts[lo:hi], store.dark[row], row, store.frame[lo:hi],
+                                 fraction)[blocks[here] - lo]
+    return out
 
 
 def lag_test(store: LitStore) -> Test:

@@ -99,10 +99,12 @@ def pixel_noise_test(obs: Observations, params: dict, images: M.Images, *, alpha
         z2 = np.where(sel, M.pearson(sub, ibar), 0.0)
         kv_sum[:, cols] = sub.segment_sum(np.where(sel, 2.0 + sub.pixel_gain()[sub.pixel]
                                                    / np.maximum(ibar - sub.dark, 1e-3), 0.0))
-        b = np.digitize(ibar, edges)
-        for k in range(edges.size + 1):
-            Z[:, cols, k] = sub.segment_sum(np.where(b == k, z2, 0.0))
-            N[:, cols, k] = sub.segment_sum((sel & (b == k)).astype(float))
+        # one bincount per sum over (pixel, count bin) cells, not a segment sum per bin
+        cell = ((sub.pixel[:, None] * cols.size + np.arange(cols.size)) * (edges.size + 1)
+                + np.digitize(ibar, edges)).ravel()
+        for out, values in ((Z, z2), (N, sel)):
+            out[:, cols] = np.bincount(cell, weights=values.ravel(), minlength=out[:, cols].size
+                                       ).reshape(R, cols.size, edges.size + 1)
     n = N.sum(axis=2)
     dof = np.maximum(n - 3, 0.0)
     share = dof / np.maximum(n, 1)  # a sample's share of its pixel's dof
@@ -121,7 +123,7 @@ def pixel_noise_test(obs: Observations, params: dict, images: M.Images, *, alpha
         # per count bin (columns fitted or not) the regular pixels' sum of z^2 against their share of the dof
         per_count = np.ones((2, edges.size + 1))
         for k in (0, 1):
-            reg = (obs.held(regular) & (kind == k)[None, :]).astype(float)
+            reg = (obs.held(regular) & (kind == k)[None, :]).astype(np.float32)
             num, den = np.tensordot(reg, Z, 2), np.tensordot(reg * share, N, 2)
             per_count[k] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
         img["X"] = obs.to_image(np.where(dof > 0, np.einsum("rcb,cb->rc", Z, 1.0 / per_count[kind]), 0.0), fill=0.0)
@@ -134,7 +136,8 @@ def pixel_noise_test(obs: Observations, params: dict, images: M.Images, *, alpha
             ok = Da > 0
             z = np.where(ok, (Xa - c * Da) / (c * np.sqrt(np.where(ok, Va, 1.0))), 0.0)
             lines.append((Xa, Da, Va))
-            tests += [(float(np.log(2) + stats.norm.logsf(abs(v))), axis, i) for i, v in enumerate(z) if ok[i]]
+            log_p = np.log(2) + stats.norm.logsf(np.abs(z))
+            tests += [(float(log_p[i]), axis, i) for i in np.flatnonzero(ok)]
         significant = holm([t[0] for t in tests], alpha)
         new = []
         for axis in (0, 1):

@@ -48,6 +48,14 @@ def phase_variance(images: M.Images, dispersion: float = 1.0) -> np.ndarray:
     return np.where(images.valid, var * dispersion, np.nan)
 
 
+def _realigned_images(realigned: Realign, obs: Observations, params: dict, shift: np.ndarray | float) -> M.Images:
+    """The images of ``obs`` with the flat field read ``shift`` rows off, solved a run of columns at a time (a
+    clinical scan's realigned samples at once were most of its diagnosis's peak memory)."""
+    parts = [retrieve(realigned(obs.subset(c), shift), params, keep_expected=False).images
+             for c in obs.column_chunks()]
+    return M.Images(np.concatenate([p.coef for p in parts], axis=1), np.concatenate([p.valid for p in parts], axis=1))
+
+
 def offset_test(realigned: Realign, obs: Observations, params: dict, shift: np.ndarray | float = 0.0, *,
                 step: float = 0.5, clip: float = 5.0, min_precision: float = 0.1) -> Test:
     """Test for, and estimate, a reference offset from the steps of the differential-phase image.
@@ -93,7 +101,7 @@ def offset_test(realigned: Realign, obs: Observations, params: dict, shift: np.n
     rec = retrieve(obs, params, keep_inverse=True, keep_expected=False)
     images = rec.images
     phi, var = images.phi, phase_variance(images, max(rec.reduced_chi2, 1.0))
-    plus, minus = (retrieve(realigned(obs, shift + d), params, keep_expected=False).images for d in (step, -step))
+    plus, minus = (_realigned_images(realigned, obs, params, shift + d) for d in (step, -step))
     sens = _wrap(plus.phi - minus.phi) / (2 * step)
     ok4 = images.valid & plus.valid & minus.valid & np.isfinite(var)
     ok = ok4[:, 3:] & ok4[:, 2:-1] & ok4[:, 1:-2] & ok4[:, :-3]

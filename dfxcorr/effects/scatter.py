@@ -34,6 +34,7 @@ phase stepping every pixel sees the same primary in every step and s S is a shar
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -102,48 +103,54 @@ def blur(a: np.ndarray, sigma: float, *, axis: int = -1) -> np.ndarray:
     return signal.fftconvolve(a, (kernel / kernel.sum()).reshape(shape), mode="same", axes=axis)
 
 
-def unit_scatter(primary: np.ndarray, row: np.ndarray, frame: np.ndarray, width: tuple[float, float]) -> np.ndarray:
+def unit_scatter(primary: Callable[[np.ndarray], np.ndarray], row: np.ndarray, frame: np.ndarray,
+                 width: tuple[float, float], *, columns: np.ndarray | None = None) -> np.ndarray:
     """S of every sample: its frame's primary blurred within the frame's lit rows, scaled to the primary's total.
 
     Parameters
     ----------
-    primary : ndarray, shape (K, W)
-        Unmodulated primary t^f t of each sample (counts), every detector column.
+    primary : callable
+        Block indices (n,) -> the unmodulated primary t^f t of those blocks' samples (counts), shape (n, W), every
+        detector column: made a frame at a time (a clinical scan's primary of every sample at once is gigabytes).
     row, frame : ndarray of int, shape (K,)
         Detector row and frame of each block.
     width : (float, float)
         Kernel std between rows and along a row (pixels).
+    columns : ndarray of int, optional
+        The detector columns to return (default every one); the blur still sees every column.
 
     Returns
     -------
-    ndarray, shape (K, W), float32
+    ndarray, shape (K, W) or (K, columns), float32
         S: sum over a frame's samples of S equals that of the primary, so s S has scatter-to-primary ratio s.
         The blur is normalised by the kernel's weight inside the frame's lit rows and the detector, so the
         scatter keeps its level up to the edges of the lit band.
     """
-    out = np.zeros(primary.shape, np.float32)
+    out: np.ndarray | None = None
     order = np.argsort(frame, kind="stable")
     bounds = np.searchsorted(frame[order], np.arange(int(frame.max(initial=-1)) + 2))
-    ones = blur(np.ones(primary.shape[1]), width[1])
     for j in range(bounds.size - 1):
         idx = order[bounds[j]:bounds[j + 1]]
         if idx.size == 0:
             continue
+        p = primary(idx)
+        if out is None:
+            out = np.zeros((row.size, p.shape[1] if columns is None else len(columns)), np.float32)
         # the frame's lit band as an image (rows left out by alignment stay empty and get no weight)
         local = row[idx] - row[idx].min()
-        band = np.zeros((int(local.max()) + 1, primary.shape[1]))
+        band = np.zeros((int(local.max()) + 1, p.shape[1]))
         lit = np.zeros(band.shape[0])
-        band[local], lit[local] = primary[idx], 1.0
+        band[local], lit[local] = p, 1.0
         blurred = blur(blur(band, width[0], axis=0), width[1], axis=1)
-        inside = np.outer(blur(lit, width[0]), ones)
+        inside = np.outer(blur(lit, width[0]), blur(np.ones(p.shape[1]), width[1]))
         spread = blurred[local] / inside[local]
         total = spread.sum()
         if total > 0:
-            out[idx] = spread * (primary[idx].sum() / total)
-    return out
+            out[idx] = (spread if columns is None else spread[:, columns]) * (p.sum() / total)
+    return np.zeros((row.size, 0), np.float32) if out is None else out
 
 
-def retrieved(store: LitStore, reference: Reference) -> tuple[np.ndarray, np.ndarray]:
+def retrieved(store: LitStore, reference: Reference, *, modulated: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Transmission and modulated primary from a retrieval at neutral per-frame parameters, block by block of rows.
 
     Every lit sample counts (the region of interest too: the scatter comes from wherever the primary is).
@@ -153,24 +160,21 @@ def retrieved(store: LitStore, reference: Reference) -> tuple[np.ndarray, np.nda
     t : ndarray, shape (H, W)
         Transmission (0 where not solvable or not lit).
     modulated : ndarray, shape (K, W), float32
-        Expected count minus the offset (dark and any offset of the store) of every sample (counts).
+        Expected count minus the offset (dark and any offset of the store) of every sample (counts); (0, W) unless
+        ``modulated``.
     """
     J, H, W = store.shape
     t = np.zeros((H, W))
-    modulated = np.zeros(store.counts.shape, np.float32)
+    primary = np.zeros(store.counts.shape if modulated else (0, W), np.float32)
     ref = replace(reference, phase=np.unwrap(reference.phase, axis=0))
-    rows, starts = np.unique(store.row, return_index=True)
-    cut = np.searchsorted(np.cumsum(np.diff(np.r_[starts, store.row.size])) * W,
-                          np.arange(BLOCK_SAMPLES, store.row.size * W, BLOCK_SAMPLES))
-    for r in np.split(rows, np.unique(cut)):
-        if r.size == 0:
-            continue
-        obs = store.observations(ref, rows=(int(r[0]), int(r[-1]) + 1), phase_unwrapped=True)
-        rec = retrieve(obs, {})
+    for r0, r1 in store.row_runs(BLOCK_SAMPLES):
+        obs = store.observations(ref, rows=(r0, r1), phase_unwrapped=True)
+        rec = retrieve(obs, {}, keep_expected=modulated)
         obs.place(t, np.where(rec.images.valid, rec.images.t, 0.0))
-        lo, hi = np.searchsorted(store.row, (r[0], r[-1] + 1))
-        modulated[lo:hi] = rec.expected - obs.dark
-    return t, modulated
+        if modulated:
+            lo, hi = np.searchsorted(store.row, (r0, r1))
+            primary[lo:hi] = rec.expected - obs.dark
+    return t, primary
 
 
 def with_scatter(store: LitStore, scatter: np.ndarray, modulated: np.ndarray) -> LitStore:
@@ -200,13 +204,14 @@ def scattered(store: LitStore, reference: Reference, setting: Setting, pixel_mm:
         raise ValueError("these samples already hold an unmodulated offset")
     width = kernel_pixels(setting.width_mm, pixel_mm)
     tf = interpolate_rows(reference.transmission, store.u, dtype=np.float32)
+
+    def field(t: np.ndarray) -> np.ndarray:
+        return setting.ratio * unit_scatter(lambda idx: tf[idx] * t[store.row[idx]], store.row, store.frame, width)
+
     t, modulated = retrieved(store, reference)
     for _ in range(UPDATES):
-        trial = with_scatter(store, setting.ratio * unit_scatter(tf * t[store.row], store.row, store.frame, width),
-                             modulated)
-        t, modulated = retrieved(trial, reference)
-    return with_scatter(store, setting.ratio * unit_scatter(tf * t[store.row], store.row, store.frame, width),
-                        modulated)
+        t, modulated = retrieved(with_scatter(store, field(t), modulated), reference)
+    return with_scatter(store, field(t), modulated)
 
 
 def profile(prep: Any, state: State, setting: Setting) -> tuple[float, float]:
@@ -324,15 +329,17 @@ class Scatter(EffectBase):
         key = ("scatter field", state.hypothesis.corrections)
         if key not in ctx.memo:
             store, ref = prep.store, prep.reference
-            tf = interpolate_rows(ref.transmission, store.u, dtype=np.float32)
-            t, _ = retrieved(store, ref)
-            ctx.memo[key] = unit_scatter(tf * t[store.row], store.row, store.frame,
-                                         kernel_pixels(width_mm, pixel_mm(prep.scan)))
+            t, _ = retrieved(store, ref, modulated=False)
+            # the fit's columns only, the primary a frame at a time: a clinical scan's field of every sample was
+            # most of its diagnosis's peak memory
+            ctx.memo[key] = unit_scatter(
+                lambda idx: interpolate_rows(ref.transmission, store.u[idx], dtype=np.float32) * t[store.row[idx]],
+                store.row, store.frame, kernel_pixels(width_mm, pixel_mm(prep.scan)), columns=state.fit_obs.columns)
         # on the fit's columns, as the channel effects' tests: the score of every column was a fifth of the paper
         # study's tests (a stepping recording shows its ~1e-31 share of information there as well)
         obs = state.fit_obs
         U, info, known, _ = score(obs, state.params, state.fit_rec.images, state.fit_rec.weights,
-                                  ctx.memo[key][:, obs.columns].astype(np.float64))
+                                  ctx.memo[key].astype(np.float64))
         identifiable = info > MIN_INFORMATION_SHARE * known
         # quasi-likelihood: the dispersion of the fit, not the stated noise model, scales the score's variance
         dispersion = max(state.reduced_chi2, 1.0)
