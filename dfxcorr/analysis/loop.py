@@ -13,6 +13,7 @@ rules can be tested with made-up effects and fits.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
@@ -132,18 +133,26 @@ def accepts(before: list[dict], after: list[dict], *, explain_share: float, judg
 
 
 def round_tests(effects: Mapping[str, EffectBase], ctx: Context, state: State,
-                done: list[str]) -> tuple[dict[str, Test], np.ndarray]:
+                done: list[str], seconds: dict | None = None) -> tuple[dict[str, Test], np.ndarray]:
     """Every applicable effect's test at ``state``, those in ``done`` left out, in the registry's order; and the
     pixels flagged by the localised effects ('pixels'), which are tested first: what they flag is left out of the
-    others' tests.
+    others' tests. ``seconds`` accumulates each effect's test time under 'test <name>' (where the time goes).
     """
-    localised = {n: e.test(ctx, state, state.hypothesis.motion) for n, e in effects.items()
+    seconds = {} if seconds is None else seconds
+
+    def timed(n: str, e: EffectBase, flagged: np.ndarray) -> Test | None:
+        t0 = time.perf_counter()
+        out = e.test(ctx, state, flagged)
+        seconds[f"test {n}"] = seconds.get(f"test {n}", 0.0) + time.perf_counter() - t0
+        return out
+
+    localised = {n: timed(n, e, state.hypothesis.motion) for n, e in effects.items()
                  if e.role == "pixels" and n not in done}
     masks = [t.payload["mask"] for t in localised.values() if t is not None]
     flagged = np.logical_or.reduce(masks) if masks else state.hypothesis.motion
     tests = {}
     for n, e in effects.items():
-        t = localised.get(n) if n in localised else (e.test(ctx, state, flagged) if n not in done else None)
+        t = localised.get(n) if n in localised else (timed(n, e, flagged) if n not in done else None)
         if t is not None:
             tests[n] = t
     return tests, flagged
@@ -243,7 +252,8 @@ def run(effects: Mapping[str, EffectBase], ctx: Context, start: State, *, fit: F
     for rnd in range(max_rounds):
         state = out.state
         with stage(f"round {rnd}: tests", {} if timings is None else timings):
-            tests, flagged = round_tests(effects, ctx, state, [s.name for s in out.steps])
+            tests, flagged = round_tests(effects, ctx, state, [s.name for s in out.steps],
+                                         seconds=None if timings is None else timings)
         out.tests.update(tests)
         log.info("round %d: reduced chi-square %.4f; %s", rnd, state.reduced_chi2,
                  ", ".join(f"{k} S={t.statistic:.4g} (dof {t.dof}{'' if t.identifiable else ', n.i.'})"
