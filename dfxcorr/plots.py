@@ -355,7 +355,8 @@ def plot_diagnosis(diag, path: Path, *, overwrite: bool = False) -> None:
         ax = fig.add_subplot(grid[0, 2 * k:2 * k + 2])
         im = ax.imshow(res.pixel, cmap="magma", vmin=0, vmax=max(top, 2))
         ax.set_title(f"residual per pixel, {title} (model: "
-                     f"{', '.join(diag.base_model if k == 0 else diag.final_model) or 'none'})", fontsize=9)
+                     f"{', '.join(diag.base_model if k == 0 else diag.final_model) or 'none'})"
+                     + (f"\ntested pixel by pixel: {diag.band}" if diag.band else ""), fontsize=9)
         fig.colorbar(im, ax=ax, shrink=0.8)
     panels = [("frame", None, "frame"), ("x", "x_value", "lateral coordinate x"),
               ("phase", "phase_value", "fringe phase (rad)"), ("count", "count_value", "expected count")]

@@ -322,5 +322,6 @@ def test_a_scan_larger_than_the_held_samples_is_tested_on_a_band_and_fitted_over
     assert [e.name for e in diag.effects if e.detected][0] == "phase_offset"
     tested = np.isfinite(diag.after.pixel).any(axis=0)
     band = held_band(W, per_column, most=most)
-    assert band.size == W // 3
+    assert band.size == W // 3 and diag.tested_columns == (band[0], band[-1] + 1)
+    assert diag.to_json()["tested_columns"] == [band[0], band[-1] + 1] and f"{band[0]}-{band[-1]}" in diag.band
     assert not tested[:band[0]].any() and not tested[band[-1] + 1:].any() and tested[band].mean() > 0.5

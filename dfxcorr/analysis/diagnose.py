@@ -270,4 +270,5 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                      params=final.params, criterion=criterion, rounds=out.rounds,
                      unexplained=sorted(unexplained, key=lambda u: u["p_value"]), signatures=final.signatures,
                      shape=prep.shape, final=final.hypothesis, start=start, cfg=cfg, registry=registry,
-                     changes=changes, timings=timings)
+                     changes=changes, timings=timings,
+                     tested_columns=(int(session.held_columns[0]), int(session.held_columns[-1]) + 1))

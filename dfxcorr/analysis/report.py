@@ -72,6 +72,14 @@ class Diagnosis:
     changes: list = field(default_factory=list)
     #: Seconds of each stage (load, align, every fit and its tests), as logged.
     timings: dict = field(default_factory=dict)
+    #: The detector columns [first, stop) the per-pixel tests and residual maps saw (``diagnose.max_held_samples``).
+    tested_columns: tuple = (0, 0)
+
+    @property
+    def band(self) -> str:
+        """'' where every column was tested pixel by pixel, else which were."""
+        first, stop = self.tested_columns
+        return "" if stop - first >= self.shape[2] else f"columns {first}-{stop - 1} of {self.shape[2]}"
 
     @property
     def gain(self) -> float:
@@ -101,7 +109,8 @@ class Diagnosis:
         return {"format": "dfxcorr-diagnosis", "format_version": 2, "scan": self.scan, "base_model": self.base_model,
                 "reduced_chi2": {"initial": self.initial_chi2, "final": self.final_chi2},
                 "effects": [e.to_json() for e in self.effects], "final_model": self.final_model,
-                "unexplained": self.unexplained, "criterion": self.criterion, "rounds": self.rounds}
+                "unexplained": self.unexplained, "criterion": self.criterion, "rounds": self.rounds,
+                "tested_columns": list(self.tested_columns)}
 
 
 #: Every file of a fixed name the report may write: its own, and those the effects write when added.
@@ -172,8 +181,10 @@ def _markdown(diag: Diagnosis, out_dir: Path | None = None) -> str:
               f"Final model: {', '.join(diag.final_model) or 'none'}."), "",
              f"Reduced chi-square: {diag.initial_chi2:.4f} initially, {diag.final_chi2:.4f} at the end.", "",
              "![where the model and the data disagree](residuals.png)", "",
-             ("Top row: mean squared standardized residual per pixel before and after (1 = photon noise). "
-              "Below: the same by frame, lateral position, fringe phase and expected count."), "",
+             ("Top row: mean squared standardized residual per pixel before and after (1 = photon noise)"
+              + (f", on {diag.band} (diagnose.max_held_samples: the per-pixel tests hold that band; the fit and "
+                 f"the residual signatures see columns spread over the detector)" if diag.band else "")
+              + ". Below: the same by frame, lateral position, fringe phase and expected count."), "",
              ("| effect | detected | identifiable | statistic | dof | p-value | delta chi2 | reduced chi2 after "
               "| where | estimate |"), "|---|---|---|---|---|---|---|---|---|---|"]
 
