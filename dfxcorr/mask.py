@@ -21,8 +21,7 @@ from . import kernels as K
 from . import model as M
 
 
-def motion_statistics(obs: M.Observations, params: dict | None = None,
-                      weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def motion_statistics(obs: M.Observations, params: dict | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-pixel reduced residual, fringe sensitivity and degrees of freedom: what :func:`motion_score` and
     :func:`mask_from_score` need.
 
@@ -42,8 +41,6 @@ def motion_statistics(obs: M.Observations, params: dict | None = None,
         Effect parameters of the model to compare with. Default: a pilot estimate of the paper's
         vibration model (:func:`pilot_vibrations`); ``{}`` compares with a model without per-frame terms
         (paper eq. 35).
-    weights : ndarray, shape (K, C), optional
-        Inverse noise variances; default from a retrieval with ``params``.
 
     Returns
     -------
@@ -57,9 +54,9 @@ def motion_statistics(obs: M.Observations, params: dict | None = None,
         params = pilot_vibrations(obs)
     K.set_threads()
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
-    # without weights, those of the model (a solve with the data's first): the score compares the residual
-    # with the noise the model predicts, not with the data's own scatter
-    solved = K.retrieve(obs, ch, iterations=2) if weights is None else K.retrieve(obs, ch, weights=weights)
+    # the model's weights (a solve with the data's first): the score compares the residual with the noise the
+    # model predicts, not with the data's own scatter
+    solved = K.retrieve(obs, ch, iterations=2)
     weights, ibar = solved["weights"], solved["expected"]
     n = obs.segment_sum((weights > 0).astype(float))
     # the fringe's amplitude per unit image modulation, |(Bc, Bs)| = D tf vf V of model.design

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numpy.typing import DTypeLike
 
 
 def lateral_coordinate(columns: np.ndarray, width: int) -> np.ndarray:
@@ -127,9 +128,10 @@ class Observations:
         """The region of interest as an array, shape (K, C)."""
         return np.ones(self.counts.shape, bool) if self.roi is None else self.roi
 
-    def segment_sum(self, a: np.ndarray) -> np.ndarray:
-        """Sum over the blocks of each row: (K, ...) -> (R, ...), R = number of rows held."""
-        return np.add.reduceat(a, self.starts, axis=0)
+    def segment_sum(self, a: np.ndarray, dtype: DTypeLike | None = None) -> np.ndarray:
+        """Sum over the blocks of each row: (K, ...) -> (R, ...), R = number of rows held (in ``dtype``, e.g. to count
+        booleans without a float copy)."""
+        return np.add.reduceat(a, self.starts, axis=0, dtype=dtype)
 
     def frame_sum(self, a: np.ndarray) -> np.ndarray:
         """Sum of per-block values (K,) over the blocks of each frame -> (J,)."""

@@ -93,7 +93,8 @@ def main():
             rec, diag = measure("reconstruct", path, base), measure("diagnose", path, base)
             stages: dict[str, float] = {}
             for name, seconds in diag["timings"].items():
-                # 'test <effect>': each effect's share of the round tests
+                # 'test <effect>' keys stay as they are: each effect's share of the rounds' tests (already counted
+                # in 'tests': the stages do not add up to the whole)
                 kind = "tests" if name.endswith(": tests") else name.split(": fit")[0].split(": ")[-1] \
                     if ": fit" in name else name
                 kind = "trial fits" if kind.startswith("trial") else ("fits" if kind.startswith("round") else kind)

@@ -114,8 +114,9 @@ def test_the_kernel_width_is_found_with_s(width):
     diag = diagnose(scan, C.defaults())
     assert [e.name for e in diag.effects if e.detected] == ["scatter"]
     extra = diag.effects[0].extra
-    # measured: s = 0.1008 at 25 mm, 0.0998 at 100 mm
-    assert extra["width_mm"] == width and abs(extra["value"] - truth["scatter"]) < 4 * extra["se"], extra
+    # measured (profiled on the fit's columns): s = 0.1005 at 24.9 mm; within a tenth of the grid's factor 2
+    assert extra["width_mm"] == pytest.approx(width, rel=0.07) and abs(extra["value"] - truth["scatter"]) \
+        < 4 * extra["se"], extra
 
 
 def test_clean_scan_and_phase_stepping_do_not_name_it():

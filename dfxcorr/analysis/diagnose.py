@@ -42,7 +42,7 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True, eq=False)
 class Fitted:
     """A hypothesis fitted: its parameters, chi-square, retrieval and residual signatures, and the samples
-    it was fitted on (every column, and the fit's columns)."""
+    it was fitted on (the held columns, :func:`held_band`, and the fit's columns)."""
 
     hypothesis: Hypothesis
     params: dict
@@ -63,7 +63,7 @@ class Session:
         d = cfg["diagnose"]
         self.prep, self.cfg, self.timings, self.registry = prep, cfg, timings, registry
         # the per-pixel tests need every pixel: the diagnosis holds the scan's samples (the reconstruction streams
-        # them), in float32 as a reconstruction does (they are read a run of columns at a time, in float64); a
+        # them), in float32 as a reconstruction does (the per-pixel tests take a run of columns at a time); a
         # band of columns in the middle where they would exceed diagnose.max_held_samples
         width, per_column = prep.shape[2], prep.store.samples_per_column()
         self.held_columns = held_band(width, per_column, most=d["max_held_samples"])
@@ -98,7 +98,8 @@ class Session:
         return lambda like, shift: realign(prep.store, prep.reference, like, shift)
 
     def observe(self, hypothesis: Hypothesis) -> tuple[Observations, Observations]:
-        """The samples of every column and of the fit's columns under a hypothesis.
+        """The samples of the held columns (every column, or the band of :func:`held_band`) and of the fit's columns
+        under a hypothesis.
 
         As in reconstruct: the tests count the region of interest, the fit also the samples without fringe
         (they monitor dose and background); the hypothesis's moving pixels count in neither, nor do the samples

@@ -13,7 +13,7 @@ import numpy as np
 from .. import plots
 from ..catalogue import PAPER_MODEL, effect
 from ..effects import REGISTRY
-from ..effects.base import EffectBase, Hypothesis
+from ..effects.base import EffectBase, Hypothesis, fit_counts
 from ..io import atomic_path
 from ..retrieve import image_maps
 from .signatures import Residuals, locate
@@ -120,8 +120,7 @@ FIXED_FILES = ("diagnosis.json", "report.md", "residuals.png", "signatures.png",
 
 def residuals(state) -> Residuals:
     """Where the fit ``state`` and its observations disagree (:func:`dfxcorr.analysis.signatures.locate`)."""
-    held = state.fit_obs.use & state.fit_obs.in_roi
-    return locate(state.obs, state.params, state.rec.images, counts=state.fit_rec.expected[held])
+    return locate(state.obs, state.params, state.rec.images, counts=fit_counts(state, state.obs.columns))
 
 
 def change_picture(effect: EffectBase, before, after, extra: dict, *,

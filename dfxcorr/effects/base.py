@@ -176,10 +176,11 @@ class Preparation:
 
 class State(Protocol):
     """A fitted hypothesis, as effects see it: the hypothesis, its parameters, chi-square (sum and reduced),
-    residual signatures, the retrieval of every column (images and chi-square; no per-sample arrays: a test that
-    needs every column's expected counts makes them a run of columns at a time, :meth:`Observations.column_chunks`),
-    the samples of every column and of the fit's columns under it, and the retrieval of the fit's columns (with the
-    inverse normal matrices, expected counts and weights)."""
+    residual signatures, the retrieval of the held columns (every column, or on a large scan a band of them:
+    ``diagnose.max_held_samples``; images and chi-square, no per-sample arrays: a test that needs their expected
+    counts makes them a run of columns at a time, :meth:`Observations.column_chunks`), the samples of the held
+    columns and of the fit's columns under it, and the retrieval of the fit's columns (with the inverse normal
+    matrices, expected counts and weights)."""
 
     @property
     def hypothesis(self) -> Hypothesis: ...
@@ -199,6 +200,14 @@ class State(Protocol):
     def fit_obs(self) -> Observations: ...
     @property
     def fit_rec(self) -> Retrieval: ...
+
+
+def fit_counts(state: State, columns: np.ndarray) -> np.ndarray:
+    """The expected counts of the fit's used, solved samples in the region of interest on some detector ``columns``
+    (those held for the per-pixel tests): where bins of expected count are cut from, without every column's."""
+    obs, rec = state.fit_obs, state.fit_rec
+    held = obs.use & obs.in_roi & rec.images.valid[obs.pixel] & np.isin(obs.columns, columns)[None, :]
+    return rec.expected[held]
 
 
 #: (observations, shift (J,) rows) -> the same samples with the flat field read that far off the prepared alignment.

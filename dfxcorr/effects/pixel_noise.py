@@ -17,7 +17,7 @@ from .. import model as M
 from ..catalogue import Effect
 from ..errors import DfxcorrError
 from ..observations import Observations
-from .base import Context, EffectBase, Hypothesis, Preparation, State, Test, Writer, chi2_test, holm, ranges
+from .base import Context, EffectBase, Hypothesis, Preparation, State, Test, Writer, chi2_test, fit_counts, holm, ranges
 
 
 def read_pixel_noise(path: str | Path | None, shape: tuple[int, int]) -> np.ndarray | None:
@@ -103,7 +103,7 @@ def pixel_noise_test(obs: Observations, params: dict, images: M.Images, *, alpha
         cell = ((sub.pixel[:, None] * cols.size + np.arange(cols.size)) * (edges.size + 1)
                 + np.digitize(ibar, edges)).ravel()
         for out, values in ((Z, z2), (N, sel)):
-            out[:, cols] = np.bincount(cell, weights=values.ravel(), minlength=out[:, cols].size
+            out[:, cols] = np.bincount(cell, weights=values.ravel(), minlength=R * cols.size * (edges.size + 1)
                                        ).reshape(R, cols.size, edges.size + 1)
     n = N.sum(axis=2)
     dof = np.maximum(n - 3, 0.0)
@@ -123,8 +123,10 @@ def pixel_noise_test(obs: Observations, params: dict, images: M.Images, *, alpha
         # per count bin (columns fitted or not) the regular pixels' sum of z^2 against their share of the dof
         per_count = np.ones((2, edges.size + 1))
         for k in (0, 1):
-            reg = (obs.held(regular) & (kind == k)[None, :]).astype(np.float32)
-            num, den = np.tensordot(reg, Z, 2), np.tensordot(reg * share, N, 2)
+            reg = obs.held(regular) & (kind == k)[None, :]
+            # summed in float64 (the cells are float32)
+            num = np.einsum("rc,rcb->b", reg, Z, dtype=np.float64)
+            den = np.einsum("rc,rcb->b", reg * share, N, dtype=np.float64)
             per_count[k] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
         img["X"] = obs.to_image(np.where(dof > 0, np.einsum("rcb,cb->rc", Z, 1.0 / per_count[kind]), 0.0), fill=0.0)
         c = _dispersion(img, regular)
@@ -230,9 +232,8 @@ class PixelNoise(EffectBase):
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
         from scipy import ndimage
 
-        held = state.fit_obs.use & state.fit_obs.in_roi & state.fit_rec.images.valid[state.fit_obs.pixel]
         return pixel_noise_test(state.obs, state.params, state.rec.images, alpha=ctx.cfg["diagnose"]["alpha"],
-                                counts=state.fit_rec.expected[held], fitted=ctx.fitted,
+                                counts=fit_counts(state, state.obs.columns), fitted=ctx.fitted,
                                 exclude=ndimage.binary_dilation(flagged))
 
     def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:

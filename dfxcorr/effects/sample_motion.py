@@ -35,7 +35,7 @@ def motion_test(obs: Observations, params: dict, *, p_pixel: float = 1e-6, min_p
         the flagged pixels are more than :data:`MAX_SHARE` of those scored.
     """
     score = motion_score(obs, params)
-    dof = np.maximum(np.add.reduceat(obs.use, obs.starts, axis=0, dtype=np.int64) - 3, 1)
+    dof = np.maximum(obs.segment_sum(obs.use, dtype=np.int64) - 3, 1)
     ok = np.isfinite(score)
     logp = np.where(ok, stats.chi2.logsf(np.nan_to_num(score) * dof, dof), 0.0)
     flag = obs.to_image(ok & (logp < np.log(p_pixel)), fill=False).astype(bool)

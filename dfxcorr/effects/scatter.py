@@ -103,6 +103,14 @@ def blur(a: np.ndarray, sigma: float, *, axis: int = -1) -> np.ndarray:
     return signal.fftconvolve(a, (kernel / kernel.sum()).reshape(shape), mode="same", axes=axis)
 
 
+def primary(store: LitStore, reference: Reference, t: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """Block indices (n,) -> the unmodulated primary t^f t of those blocks' samples (counts, (n, W) float32), the
+    flat field's transmission read at each block's position: what :func:`unit_scatter` blurs.
+
+    ``t`` (H, W): the sample's transmission."""
+    return lambda idx: interpolate_rows(reference.transmission, store.u[idx], dtype=np.float32) * t[store.row[idx]]
+
+
 def unit_scatter(primary: Callable[[np.ndarray], np.ndarray], row: np.ndarray, frame: np.ndarray,
                  width: tuple[float, float], *, columns: np.ndarray | None = None) -> np.ndarray:
     """S of every sample: its frame's primary blurred within the frame's lit rows, scaled to the primary's total.
@@ -203,10 +211,9 @@ def scattered(store: LitStore, reference: Reference, setting: Setting, pixel_mm:
     if store.offset is not None:
         raise ValueError("these samples already hold an unmodulated offset")
     width = kernel_pixels(setting.width_mm, pixel_mm)
-    tf = interpolate_rows(reference.transmission, store.u, dtype=np.float32)
 
     def field(t: np.ndarray) -> np.ndarray:
-        return setting.ratio * unit_scatter(lambda idx: tf[idx] * t[store.row[idx]], store.row, store.frame, width)
+        return setting.ratio * unit_scatter(primary(store, reference, t), store.row, store.frame, width)
 
     t, modulated = retrieved(store, reference)
     for _ in range(UPDATES):
@@ -225,7 +232,7 @@ def profile(prep: Any, state: State, setting: Setting) -> tuple[float, float]:
     prep : Prepared
         The preparation of the fit's hypothesis (without scatter).
     state : State
-        The fit: its per-frame parameters and samples (their use, noise model and alignment).
+        The fit: its per-frame parameters and the samples of its columns (their use, noise model and alignment).
     setting : Setting
         Kernel width, and the ratio to start from.
 
@@ -239,13 +246,14 @@ def profile(prep: Any, state: State, setting: Setting) -> tuple[float, float]:
     s, chi2 = setting.ratio, np.inf
     # the fit's weights, the same for every candidate: the Pearson chi-square's variance floors would turn a
     # candidate that over-subtracts somewhere into a huge cost (measured: 164137 at 50 mm against 118789 at
-    # 100 mm, the true width, and 2e7 at 200 mm), and without the scatter in the model its variance is in t
-    weights = retrieve(state.obs, state.params).weights
+    # 100 mm, the true width, and 2e7 at 200 mm), and without the scatter in the model its variance is in t.
+    # On the fit's columns, as its test: every held column's solve was (K, C) float64 arrays times seven
+    weights = state.fit_rec.weights
     for _ in range(STEPS):
         if s <= 0:
             break
         store = scattered(prep.store, prep.reference, replace(setting, ratio=s), pixel_mm(prep.scan))
-        obs = realign(store, prep.reference, state.obs, state.hypothesis.shift)
+        obs = realign(store, prep.reference, state.fit_obs, state.hypothesis.shift)
         images = M.solve_images(obs, M.design(obs, state.params), weights)
         assert store.offset is not None
         U, info, _, cost = score(obs, state.params, images, weights,
@@ -332,9 +340,8 @@ class Scatter(EffectBase):
             t, _ = retrieved(store, ref, modulated=False)
             # the fit's columns only, the primary a frame at a time: a clinical scan's field of every sample was
             # most of its diagnosis's peak memory
-            ctx.memo[key] = unit_scatter(
-                lambda idx: interpolate_rows(ref.transmission, store.u[idx], dtype=np.float32) * t[store.row[idx]],
-                store.row, store.frame, kernel_pixels(width_mm, pixel_mm(prep.scan)), columns=state.fit_obs.columns)
+            ctx.memo[key] = unit_scatter(primary(store, ref, t), store.row, store.frame,
+                                         kernel_pixels(width_mm, pixel_mm(prep.scan)), columns=state.fit_obs.columns)
         # on the fit's columns, as the channel effects' tests: the score of every column was a fifth of the paper
         # study's tests (a stepping recording shows its ~1e-31 share of information there as well)
         obs = state.fit_obs
