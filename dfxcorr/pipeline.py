@@ -40,7 +40,7 @@ from .planning import resolve_effects
 from .progress import Progress
 from .reference import auto_visibility_threshold, resolve_reference
 from .result import Result, paper_params
-from .retrieve import image_values, retrieve
+from .retrieve import image_values, per_dof, retrieve
 
 log = logging.getLogger(__name__)
 
@@ -450,7 +450,7 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
     if left_out:
         log.info("region of interest: %d pixels see no fringe (reference visibility < %.3g) and are left out "
                  "of the images", left_out, prep.min_visibility)
-    return [(m, float(c / max(n - 3 * px - k, 1))) for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
+    return [(m, per_dof(c, int(n), int(px), k, 3)) for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
 
 
 def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarray, progress: bool | None = None,

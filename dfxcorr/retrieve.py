@@ -73,7 +73,7 @@ def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_
                      keep_inverse=keep_inverse, keep_expected=keep_expected)
     images = M.Images(out["coef"], out["valid"], out["inverse"])
     n_par = sum(np.size(p) for p in params.values()) if n_frame_params is None else n_frame_params
-    chi2 = _per_dof(out["chi2"], out["samples"], int(images.valid.sum()), n_par, 3)
+    chi2 = per_dof(out["chi2"], out["samples"], int(images.valid.sum()), n_par, 3)
     return Retrieval(images=images, expected=out["expected"], weights=out["weights"], reduced_chi2=chi2,
                      chi2_sum=float(out["chi2"]), samples=int(out["samples"]))
 
@@ -85,11 +85,12 @@ def reduced_chi2(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *, n_
     dof = samples - per_pixel_unknowns * pixels - n_params.
     """
     chi2, samples, pixels = chi2_sums(obs, ibar, valid, gain=gain)
-    return _per_dof(chi2, samples, pixels, n_params, per_pixel_unknowns)
+    return per_dof(chi2, samples, pixels, n_params, per_pixel_unknowns)
 
 
-def _per_dof(chi2: float, samples: int, pixels: int, n_params: int, per_pixel_unknowns: int) -> float:
-    """Chi-square per degree of freedom, dof = samples - per_pixel_unknowns * pixels - n_params (at least 1)."""
+def per_dof(chi2: float, samples: int, pixels: int, n_params: int, per_pixel_unknowns: int) -> float:
+    """Chi-square per degree of freedom, dof = samples - per_pixel_unknowns * pixels - n_params (at least 1): of one
+    retrieval, or of the summed chi-square, samples and pixels of several blocks of pixels."""
     return chi2 / max(samples - per_pixel_unknowns * pixels - n_params, 1)
 
 

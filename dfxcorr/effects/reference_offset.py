@@ -24,7 +24,7 @@ import numpy as np
 from .. import model as M
 from ..catalogue import Effect
 from ..observations import Observations
-from ..retrieve import retrieve
+from ..retrieve import per_dof, retrieve
 from .base import Context, EffectBase, Hypothesis, Preparation, Realign, State, Test, chi2_test
 
 
@@ -48,12 +48,19 @@ def phase_variance(images: M.Images, dispersion: float = 1.0) -> np.ndarray:
     return np.where(images.valid, var * dispersion, np.nan)
 
 
-def _realigned_images(realigned: Realign, obs: Observations, params: dict, shift: np.ndarray | float) -> M.Images:
-    """The images of ``obs`` with the flat field read ``shift`` rows off, solved a run of columns at a time (a
-    clinical scan's realigned samples at once were most of its diagnosis's peak memory)."""
-    parts = [retrieve(realigned(obs.subset(c), shift), params, keep_expected=False).images
+def _realigned_images(realigned: Realign, obs: Observations, params: dict, shift: np.ndarray | float, *,
+                      keep_inverse: bool = False) -> tuple[M.Images, float]:
+    """The images of the samples of ``obs`` with the flat field read ``shift`` rows off the prepared alignment, and
+    their reduced chi-square, solved a run of columns at a time (a clinical scan's realigned samples at once were
+    most of its diagnosis's peak memory)."""
+    parts = [retrieve(realigned(obs.subset(c), shift), params, keep_inverse=keep_inverse, keep_expected=False)
              for c in obs.column_chunks()]
-    return M.Images(np.concatenate([p.coef for p in parts], axis=1), np.concatenate([p.valid for p in parts], axis=1))
+    inverse = np.concatenate([p.images.inverse for p in parts], axis=1) if keep_inverse else None
+    images = M.Images(np.concatenate([p.images.coef for p in parts], axis=1),
+                      np.concatenate([p.images.valid for p in parts], axis=1), inverse)
+    chi2 = per_dof(sum(p.chi2_sum for p in parts), sum(p.samples for p in parts), int(images.valid.sum()),
+                   sum(np.size(p) for p in params.values()), 3)
+    return images, chi2
 
 
 def offset_test(realigned: Realign, obs: Observations, params: dict, shift: np.ndarray | float = 0.0, *,
@@ -78,11 +85,12 @@ def offset_test(realigned: Realign, obs: Observations, params: dict, shift: np.n
         (observations, shift) -> the same samples with the flat field read ``shift`` rows off the prepared
         alignment (:func:`dfxcorr.align.realign`).
     obs : Observations
-        Every column of the detector (contiguous), as prepared, at the current alignment.
+        Contiguous columns of the detector (every one, or the diagnosis's band): their samples, at any alignment.
     params : dict
         Current effect parameters.
     shift : float or ndarray, shape (J,)
-        Rows by which ``obs`` is already read off the prepared alignment.
+        Rows off the prepared alignment at which the flat field is read (the samples are realigned there, a run
+        of columns at a time).
     step : float
         Rows of the finite difference.
     clip : float
@@ -98,10 +106,9 @@ def offset_test(realigned: Realign, obs: Observations, params: dict, shift: np.n
     """
     # the compiled retrieval keeps the inverse normal matrices the phase variance needs (the numpy model's solve of
     # every column was 2.5 s of the paper study's 10 s of tests)
-    rec = retrieve(obs, params, keep_inverse=True, keep_expected=False)
-    images = rec.images
-    phi, var = images.phi, phase_variance(images, max(rec.reduced_chi2, 1.0))
-    plus, minus = (_realigned_images(realigned, obs, params, shift + d) for d in (step, -step))
+    images, chi2 = _realigned_images(realigned, obs, params, shift, keep_inverse=True)
+    phi, var = images.phi, phase_variance(images, max(chi2, 1.0))
+    plus, minus = (_realigned_images(realigned, obs, params, shift + d)[0] for d in (step, -step))
     sens = _wrap(plus.phi - minus.phi) / (2 * step)
     ok4 = images.valid & plus.valid & minus.valid & np.isfinite(var)
     ok = ok4[:, 3:] & ok4[:, 2:-1] & ok4[:, 1:-2] & ok4[:, :-3]
@@ -163,7 +170,7 @@ class ReferenceOffset(EffectBase):
         realigned = ctx.realigner(state.hypothesis)
         found = state.hypothesis.shift + test.payload["value"]
         # one refinement at the corrected alignment: the step's sensitivity is a linearisation
-        found = found + offset_test(realigned, realigned(state.obs, found), state.params, found).payload["value"]
+        found = found + offset_test(realigned, state.obs, state.params, found).payload["value"]
         return state.hypothesis.but(shift=found)
 
     def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
