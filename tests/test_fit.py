@@ -129,9 +129,8 @@ def test_optimizers_and_preconditioners_reach_the_same_minimum(small_scan, monke
     """Gauss-Newton at its default tolerance, also with its Hessian from a third of the columns (scaled to all,
     as on large detectors), and L-BFGS under either preconditioner converged tightly find the same estimates
     (0.01 sigma). At the default tolerance Gauss-Newton needs fewer cost evaluations than whitened L-BFGS
-    (this scan's many edge frames make it a hard case: 124 against 134, 78 with a fresh Hessian after every step
-    predicted to lower the cost by more than 1 instead of 10; the paper study at every column: about 60 against
-    about 210), and whitened L-BFGS fewer iterations than the diagonal preconditioner."""
+    (this scan's many edge frames make it a hard case: 47 against 85), and whitened L-BFGS fewer iterations than
+    the diagonal preconditioner."""
     scan, _ = small_scan()
     obs = pipeline.prepare(scan, C.load([], [])).observations(columns=np.arange(1, scan.shape[2], 2))
 
