@@ -122,53 +122,6 @@ def _bounds(obs) -> np.ndarray:
     return np.append(obs.starts, obs.frame.size).astype(np.int64)
 
 
-@njit(cache=True, parallel=True)
-def _interpolate_rows(maps, cols, u, add, wrap, out):
-    A = maps.shape[0]
-    for k in prange(u.size):
-        f = u[k] - 0.5
-        k0 = min(max(int(np.floor(f)), 0), A - 2)
-        a = f - k0
-        for i in range(cols.size):
-            c = cols[i]
-            v = (1.0 - a) * maps[k0, c] + a * maps[k0 + 1, c] + add[k]
-            if wrap:
-                v -= 2.0 * np.pi * np.floor(v / (2.0 * np.pi) + 0.5)
-            out[k, i] = v
-
-
-def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | None = None,
-                     dtype=np.float64, add: np.ndarray | None = None, wrap: bool = False) -> np.ndarray:
-    """Linear interpolation of row-sampled maps at continuous local rows (see :func:`dfxcorr.align.interpolate_rows`).
-
-    One pass per sample row, in parallel, written straight in ``dtype`` (the numpy expression made four temporaries of
-    the output's size: 3.5 s of a full-resolution clinical scan's retrieval). The columns are read from the whole
-    maps (a copy of ``maps[:, columns]`` is not C-ordered and was copied again: 3 s of that retrieval).
-
-    Parameters
-    ----------
-    maps : ndarray, shape (A, W), A >= 2
-    u : ndarray, shape (K,)
-    columns : ndarray of int, shape (C,), optional
-        Columns of ``maps`` to interpolate (default all).
-    dtype : numpy dtype
-        Of the result; the interpolation runs in float64.
-    add : ndarray, shape (K,), optional
-        Added to each sample row's values (a phase step) before ``wrap``.
-    wrap : bool
-        Wrap the values (rad) to [-pi, pi) before the cast to ``dtype``, in the same pass.
-
-    Returns
-    -------
-    ndarray, shape (K, C)
-    """
-    cols = np.arange(maps.shape[1]) if columns is None else np.asarray(columns, dtype=np.int64)
-    out = np.empty((np.size(u), cols.size), dtype=dtype)
-    shift = np.zeros(np.size(u)) if add is None else np.asarray(add, dtype=np.float64)
-    _interpolate_rows(np.ascontiguousarray(maps, np.float64), cols, np.asarray(u, np.float64), shift, bool(wrap), out)
-    return out
-
-
 # --------------------------------------------------------------------------------------------------
 # Per-sample helpers (inlined into the kernels)
 # --------------------------------------------------------------------------------------------------
