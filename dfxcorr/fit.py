@@ -48,7 +48,7 @@ class FitResult:
         Effect name -> parameters, gauge fixed (paper eq. 22).
     uncertainty : dict
         Effect name -> one-sigma uncertainty from the Fisher information, same shapes (inf where a
-        frame carries no information).
+        frame carries no information); empty where the fit was asked not to compute it.
     cost : ndarray
         Cost after each iteration, all stages.
     stage : list of str
@@ -97,21 +97,25 @@ PRECONDITIONERS = ("profiled", "diagonal")
 #: same minimum; 100 saved a few Hessians at full resolution but cost evaluations on a small scan, 93 -> 138).
 #: 1 -> 10: a Hessian costs about three evaluations of the cost; binned clinical scan 34 -> 27 Fisher passes for
 #: 71 -> 73 evaluations, process CPU 12.1 -> 11.5 s; paper study 6.7 -> 5.8 s at its defaults, 12.4 -> 11.4 s at
-#: every column (100: 23 Fisher passes, 99 evaluations, 12.0 s binned). Not on a small scan with many edge
-#: frames, whose steps need fresh curvature (tests/test_fit.py's 102 x 90 scan on every 2nd column: 78 -> 124
-#: evaluations, 0.45 -> 0.51 s CPU); the clinical and paper scans are what this is set for.
+#: every column (100: 23 Fisher passes, 99 evaluations, 12.0 s binned). A step rejected on a Hessian from
+#: an earlier point is retried on a fresh one before the damping grows: the steps of a small scan with many edge
+#: frames need fresh curvature (tests/test_fit.py's 102 x 90 scan on every 2nd column: 78 evaluations with a
+#: threshold of 1, 124 with 10; with the retry and :data:`STAGE_GTOL` 47, its last stage 50 -> 10).
 REFRESH_DECREASE = 10.0
 #: Gauss-Newton trial steps per stage before L-BFGS takes over: where the Gauss-Newton Hessian misses the
 #: curvature (frames lighting a few rows, whose cost is not near-quadratic) the steps crawl, and L-BFGS learns
 #: that curvature (a small scan of 17 columns with many edge frames crawled for 256 steps, each lowering the
 #: cost by ~0.02; the paper study at every column converges in at most 15 per stage).
 GAUSS_NEWTON_STEPS = 25
-#: Convergence threshold of the stage with the phase effects alone (a whitened gradient of 1: within about a
-#: standard deviation of that stage's minimum). The stage only brings the phases into the basin of the full
-#: model's minimum; with visibility held at 1 its residuals are far above noise, so that the Gauss-Newton
-#: Hessian misses curvature there and the steps converge only linearly (paper study, every column: 56
-#: steps to the default gtol, 15 to this).
-PHASE_STAGE_GTOL = 1.0
+#: Convergence threshold of every stage but the last (a whitened gradient of 1: within about a standard deviation
+#: of that stage's minimum). Such a stage only brings the parameters into the basin of the next one's minimum, and
+#: what it hands on hardly depends on the last standard deviation: the phase stage's estimate is a start (with
+#: visibility held at 1 its residuals are far above noise, so that the Gauss-Newton Hessian misses curvature there
+#: and the steps converge only linearly: paper study, every column, 56 steps to the default gtol, 15 to this); the
+#: weights of a reweighting and the empirical prior change by a small fraction of a sample's variance. The last
+#: stage converges to ``gtol`` from there. Paper study at every column (fit.coarse 7): 75 -> 61 evaluations, 17 -> 9
+#: of them over all columns; the estimates move by at most 1.4e-4 of their standard deviations.
+STAGE_GTOL = 1.0
 #: Smallest factor by which a well-predicted Gauss-Newton step shrinks the damping (Nielsen's rule uses 1/3): the
 #: damping starts at :data:`RIDGE` and, near the minimum, only limits the steps of frames whose information is
 #: far below it, which then crawl until it has shrunk (paper study at every column, evaluations of all stages:
@@ -275,7 +279,8 @@ def gauss_newton(prob: _Problem, *, maxiter: int, gtol: float, on_step: Callable
     Gauss-Newton Hessian is 2 x their profiled Fisher information (:meth:`_Problem.hessian`, from at
     most :data:`FACTOR_PIXELS` pixels of spread columns, refreshed after every accepted step that was predicted to
     lower the cost by more than :data:`REFRESH_DECREASE`: near the minimum the parameters hardly move and
-    the Hessian hardly changes, while computing it costs a few cost evaluations). Each step solves
+    the Hessian hardly changes, while computing it costs a few cost evaluations, and before the damping grows
+    after a step rejected on a Hessian from an earlier point). Each step solves
     (H_s + lambda I) d = -g in the variables scaled by the plain diagonal (eq. 34), H_s's diagonal being
     the profiled share of the information (at most 1); lambda starts at :data:`RIDGE`, shrinks after a
     step that the quadratic model predicted well and doubles (then quadruples...) after a rejected one
@@ -309,9 +314,11 @@ def gauss_newton(prob: _Problem, *, maxiter: int, gtol: float, on_step: Callable
     cost, grad = prob.cost_gradient(theta)
     lam, grow = RIDGE, 2.0
     hs = scale = whiten = None
+    current = False  # whether hs was computed at theta
     for _ in range(maxiter):
         if hs is None:
             h, plain = prob.hessian(prob.unpack(theta))
+            current = True
             positive = plain[plain > 0]
             scale = np.sqrt(np.maximum(plain, 1e-12 * (positive.max() if positive.size else 1.0) + 1e-300))
             hs = h / np.outer(scale, scale)
@@ -346,11 +353,14 @@ def gauss_newton(prob: _Problem, *, maxiter: int, gtol: float, on_step: Callable
         if new_cost < cost:
             rho = (cost - new_cost) / max(predicted, 1e-300)
             theta, cost, grad = trial, new_cost, new_grad
+            current = False
             if predicted > REFRESH_DECREASE:
                 hs = None
             lam, grow = max(lam * max(LAMBDA_SHRINK, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-9), 2.0
             if on_step is not None:
                 on_step(cost)
+        elif not current:
+            hs = None
         else:
             lam, grow = lam * grow, grow * 2.0
     return theta, "iteration limit of the Gauss-Newton steps", False
@@ -476,7 +486,7 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
                    maxiter: int = 300, gtol: float = 1e-3, precondition: bool = True,
                    preconditioner: str = "profiled", optimizer: str = "gauss-newton", prior: bool = True,
                    reweight: int = 1, visibility_gauge: str = "max", visibility_quantile: float = 0.99,
-                   gauge_fraction: float = 0.5, coarse: int = 1,
+                   gauge_fraction: float = 0.5, coarse: int = 1, with_uncertainty: bool = True,
                    on_iteration: Callable[[str, float], None] | None = None) -> FitResult:
     """Estimate per-frame effect parameters by maximum likelihood (paper Sec. II-C to II-E).
 
@@ -522,6 +532,9 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
         estimate (with ``weights`` if given, else with those of its model, as a reweighting): Gauss-Newton reaches
         the same minimum from there in a few steps, so a fit of many columns costs a fit of a few and a few
         passes over all.
+    with_uncertainty : bool
+        Compute ``FitResult.uncertainty`` (a Fisher pass over every sample; the coarse first pass, whose estimate is
+        only a start, does without).
     on_iteration : callable, optional
         Called with (stage, cost) after every iteration.
 
@@ -536,11 +549,12 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
         keep = np.arange(coarse // 2, obs.columns.size, coarse)
         first = fit_vibrations(obs.subset(keep), effects=effects, start=start,
                                weights=None if weights is None else weights[:, keep],
-                               circmean_iterations=circmean_iterations, staged=staged, maxiter=maxiter, gtol=gtol,
+                               circmean_iterations=circmean_iterations, staged=staged, maxiter=maxiter,
+                               gtol=max(gtol, STAGE_GTOL),  # a start, like every stage but the last
                                precondition=precondition, preconditioner=preconditioner, optimizer=optimizer,
                                prior=prior, reweight=reweight, visibility_gauge=visibility_gauge,
                                visibility_quantile=visibility_quantile, gauge_fraction=gauge_fraction,
-                               on_iteration=on_iteration)
+                               with_uncertainty=False, on_iteration=on_iteration)
         costs, stage_of, messages, evaluations = list(first.cost), list(first.stage), first.messages, first.evaluations
         # given weights stay; otherwise those of the coarse estimate's model, as a reweighting
         start, staged = first.params, False
@@ -561,7 +575,10 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
     stages += [("reweight", names, maxiter)] * reweight
     converged = True
     wide = catalogue_prior(names) if prior else None
-    for label, free, iters in stages:
+    good = well_determined(obs, gauge_fraction)
+    weak = np.flatnonzero(~good & (np.bincount(obs.frame, minlength=J) > 0))
+    refine = bool(prior and weak.size and np.any(good))
+    for i, (label, free, iters) in enumerate(stages):
         if not free:
             continue
         phase = None
@@ -573,7 +590,7 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
             weights = _model_weights(obs, params, weights)
         cb: Callable[[float], None] | None = None if on_iteration is None else (
             lambda c, _l=label: on_iteration(_l, c))
-        tol = max(gtol, PHASE_STAGE_GTOL) if label == "phase" and len(free) < len(names) else gtol
+        tol = max(gtol, STAGE_GTOL) if i + 1 < len(stages) or refine else gtol
         params, c, msg, ok, n_eval = minimise(obs, free, params, weights, phase=phase, maxiter=iters, gtol=tol,
                                               precondition=precondition, preconditioner=preconditioner,
                                               optimizer=optimizer, prior=wide, on_iteration=cb, fringe=fringe)
@@ -585,9 +602,7 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
         if label != "circmean":
             converged = ok
     params = wrap_phases(params, obs)
-    good = well_determined(obs, gauge_fraction)
-    weak = np.flatnonzero(~good & (np.bincount(obs.frame, minlength=J) > 0))
-    if prior and weak.size and np.any(good):
+    if refine:
         narrow = empirical_prior(params, good)
         if phase_names:
             params, moved = rescue_frames(obs, params, weights, weak, narrow)
@@ -603,7 +618,7 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
         messages.append(f"prior: {msg}")
         converged = ok
     params = fix_gauge(params, good, visibility_gauge=visibility_gauge, visibility_quantile=visibility_quantile)
-    unc = uncertainty(obs, params, weights)
+    unc = uncertainty(obs, params, weights) if with_uncertainty else {}
     return FitResult(params=params, uncertainty=unc, cost=np.asarray(costs), stage=stage_of,
                      iterations=len(costs), converged=converged, messages=messages, well_determined=good,
                      evaluations=evaluations)
@@ -665,7 +680,7 @@ def _channels(obs: M.Observations, params: dict) -> M.Channels:
 
 def _model_weights(obs: M.Observations, params: dict, weights: np.ndarray) -> np.ndarray:
     """Inverse noise variances of the model solved with ``weights`` (the weights of a second solve)."""
-    return K.retrieve(obs, _channels(obs, params), weights=weights, iterations=2)["weights"]
+    return K.retrieve(obs, _channels(obs, params), weights=weights, next_weights=True)["weights"]
 
 
 def _solve(obs: M.Observations, params: dict, weights: np.ndarray, *, keep_inverse: bool = False) -> M.Images:

@@ -122,53 +122,6 @@ def _bounds(obs) -> np.ndarray:
     return np.append(obs.starts, obs.frame.size).astype(np.int64)
 
 
-@njit(cache=True, parallel=True)
-def _interpolate_rows(maps, cols, u, add, wrap, out):
-    A = maps.shape[0]
-    for k in prange(u.size):
-        f = u[k] - 0.5
-        k0 = min(max(int(np.floor(f)), 0), A - 2)
-        a = f - k0
-        for i in range(cols.size):
-            c = cols[i]
-            v = (1.0 - a) * maps[k0, c] + a * maps[k0 + 1, c] + add[k]
-            if wrap:
-                v -= 2.0 * np.pi * np.floor(v / (2.0 * np.pi) + 0.5)
-            out[k, i] = v
-
-
-def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | None = None,
-                     dtype=np.float64, add: np.ndarray | None = None, wrap: bool = False) -> np.ndarray:
-    """Linear interpolation of row-sampled maps at continuous local rows (see :func:`dfxcorr.align.interpolate_rows`).
-
-    One pass per sample row, in parallel, written straight in ``dtype`` (the numpy expression made four temporaries of
-    the output's size: 3.5 s of a full-resolution clinical scan's retrieval). The columns are read from the whole
-    maps (a copy of ``maps[:, columns]`` is not C-ordered and was copied again: 3 s of that retrieval).
-
-    Parameters
-    ----------
-    maps : ndarray, shape (A, W), A >= 2
-    u : ndarray, shape (K,)
-    columns : ndarray of int, shape (C,), optional
-        Columns of ``maps`` to interpolate (default all).
-    dtype : numpy dtype
-        Of the result; the interpolation runs in float64.
-    add : ndarray, shape (K,), optional
-        Added to each sample row's values (a phase step) before ``wrap``.
-    wrap : bool
-        Wrap the values (rad) to [-pi, pi) before the cast to ``dtype``, in the same pass.
-
-    Returns
-    -------
-    ndarray, shape (K, C)
-    """
-    cols = np.arange(maps.shape[1]) if columns is None else np.asarray(columns, dtype=np.int64)
-    out = np.empty((np.size(u), cols.size), dtype=dtype)
-    shift = np.zeros(np.size(u)) if add is None else np.asarray(add, dtype=np.float64)
-    _interpolate_rows(np.ascontiguousarray(maps, np.float64), cols, np.asarray(u, np.float64), shift, bool(wrap), out)
-    return out
-
-
 # --------------------------------------------------------------------------------------------------
 # Per-sample helpers (inlined into the kernels)
 # --------------------------------------------------------------------------------------------------
@@ -222,6 +175,12 @@ def _derivatives(tt, cs, ss, ct, st, c2, s2, e, f, tf, vf, amp, bc, bs, vis, hc,
     bv = amp * vf * vis
     f_phase = cs * bs - ss * bc - 2.0 * bv * (hc * k + hs * g)
     return f_phase, amp * vf * (q + p2), tf * (tt + vf * vis * (q + p2)), bv * g, -bv * k
+
+
+@njit(cache=True, inline="always")
+def _variance(g, m, dark, electronic):
+    """Noise variance of a sample of expected count m (noise.variance: its photon term at least one count)."""
+    return g * max(m - dark, 1.0) + electronic
 
 
 @njit(cache=True, inline="always")
@@ -447,9 +406,19 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
 # --------------------------------------------------------------------------------------------------
 
 
+@njit(cache=True, inline="always")
+def _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn):
+    """Expected count of sample b of a retrieval tile's column i (pixel (r, c)) at its images and their direction
+    ``dirn`` (_direction); the harmonic's columns Hc, Hs are empty where it is not in the model."""
+    m = off[b, i] + coef[r, c, 0] * A[b, i] + coef[r, c, 1] * Bc[b, i] + coef[r, c, 2] * Bs[b, i]
+    if Hc.shape[0] > 0:
+        m += Hc[b, i] * dirn[2, i] - Hs[b, i] * dirn[3, i]
+    return m
+
+
 @njit(cache=True, parallel=True)
 def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunks, phase, vis, dose, bg, harm,
-              gain, electronic, iterations, from_data, keep_inverse, keep_expected, tile):
+              gain, electronic, iterations, from_data, keep_inverse, keep_expected, next_weights, tile):
     K, C = counts.shape
     R = bounds.size - 1
     n = chunks.size - 1
@@ -479,8 +448,9 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
             A = np.empty((nb, tile))
             Bc = np.empty((nb, tile))
             Bs = np.empty((nb, tile))
-            Hc = np.empty((nb, tile))
-            Hs = np.empty((nb, tile))
+            # the harmonic's columns only where it is in the model (two stores and loads per sample less)
+            Hc = np.empty((nb if steps > 1 else 0, tile))
+            Hs = np.empty((nb if steps > 1 else 0, tile))
             off = np.empty((nb, tile))
             w = np.empty((nb, tile))
             for c0 in range(0, C, tile):
@@ -496,10 +466,12 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                         ct, st = (np.cos(th), np.sin(th)) if keep_inverse else _cos_sin32(th)
                         amp = dose[j] * tf[k, c]
                         _, _, a, bc, bs, hcc, hcs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
-                        A[b, i], Bc[b, i], Bs[b, i], Hc[b, i], Hs[b, i] = a, bc, bs, hcc, hcs
+                        A[b, i], Bc[b, i], Bs[b, i] = a, bc, bs
+                        if steps > 1:
+                            Hc[b, i], Hs[b, i] = hcc, hcs
                         off[b, i] = dark[k, c] + bg[0] + bg[1] * x[c] + bg[2] * y[k]
                         if from_data:
-                            w[b, i] = 1.0 / (gain[r, c] * max(counts[k, c] - dark[k, c], 1.0) + electronic) \
+                            w[b, i] = 1.0 / _variance(gain[r, c], counts[k, c], dark[k, c], electronic) \
                                 if use[k, c] else 0.0
                         else:
                             w[b, i] = start[k, c]
@@ -510,9 +482,8 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                             k = lo + b
                             for i in range(T):
                                 c = c0 + i
-                                m = off[b, i] + coef[r, c, 0] * A[b, i] + coef[r, c, 1] * Bc[b, i] \
-                                    + coef[r, c, 2] * Bs[b, i] + (Hc[b, i] * dirn[2, i] - Hs[b, i] * dirn[3, i])
-                                w[b, i] = 1.0 / (gain[r, c] * max(m - dark[k, c], 1.0) + electronic) if use[k, c] \
+                                m = _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn)
+                                w[b, i] = 1.0 / _variance(gain[r, c], m, dark[k, c], electronic) if use[k, c] \
                                     else 0.0
                     for step in range(steps):
                         N[:, :T] = 0.0
@@ -538,20 +509,21 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                     k = lo + b
                     for i in range(T):
                         c = c0 + i
-                        m = off[b, i] + coef[r, c, 0] * A[b, i] + coef[r, c, 1] * Bc[b, i] + coef[r, c, 2] * Bs[b, i] \
-                            + (Hc[b, i] * dirn[2, i] - Hs[b, i] * dirn[3, i])
+                        m = _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn)
                         if keep_expected:
                             ibar[k, c] = m
-                            w_out[k, c] = w[b, i]
+                            # the weights of this solve, or those of its model (what a further solve would use)
+                            w_out[k, c] = (1.0 / _variance(gain[r, c], m, dark[k, c], electronic) if use[k, c]
+                                           else 0.0) if next_weights else w[b, i]
                         if valid[r, c] and use[k, c]:
                             # Pearson residual with the variance of the weights (noise.variance)
-                            chi2[t] += (counts[k, c] - m) ** 2 / (gain[r, c] * max(m - dark[k, c], 1.0) + electronic)
+                            chi2[t] += (counts[k, c] - m) ** 2 / _variance(gain[r, c], m, dark[k, c], electronic)
                             n_sel[t] += 1.0
     return coef, valid, inverse, ibar, w_out, chi2, n_sel
 
 
 def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1, gain: float | None = None,
-             keep_inverse: bool = False, keep_expected: bool = True) -> dict:
+             keep_inverse: bool = False, keep_expected: bool = True, next_weights: bool = False) -> dict:
     """Closed-form images of every pixel, the expected counts and the Pearson chi-square.
 
     Parameters
@@ -570,12 +542,16 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         Also return the inverse normal matrices.
     keep_expected : bool
         Return the expected counts and the weights (a retrieval for the images alone writes nothing per sample).
+    next_weights : bool
+        Return as 'weights' the inverse noise variances of the last solve's model (the weights of a further solve,
+        as ``iterations + 1`` would use them, without that solve) instead of those of the last solve.
 
     Returns
     -------
     dict
         'coef' (R, C, 3), 'valid' (R, C), 'inverse' (R, C, 3, 3) or None, 'expected' (K, C) counts,
-        'weights' (K, C) of the last solve (both (0, C) without ``keep_expected``), 'chi2' (Pearson chi-square
+        'weights' (K, C) of the last solve or with ``next_weights`` of its model (both (0, C) without
+        ``keep_expected`` or ``next_weights``), 'chi2' (Pearson chi-square
         over the used samples of valid pixels), 'samples' (their number).
     """
     if iterations < 1:
@@ -588,7 +564,7 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         _c(obs.counts), _c(obs.tf), _c(obs.vf), _c(obs.phif), _c(obs.dark), _c(obs.use), start, obs.frame, obs.y, obs.x,
         bounds, row_chunks(bounds[:-1], obs.frame.size), _c(ch.phase, np.float64), _c(ch.vis, np.float64), ch.dose,
         ch.background, ch.harmonic, _c(g, np.float64), float(obs.electronic), int(iterations), weights is None,
-        keep_inverse, keep_expected, TILE)
+        keep_inverse, keep_expected or next_weights, next_weights, TILE)
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
 

@@ -108,6 +108,9 @@ def test_retrieval_matches_the_model(rng, masked, iterations):
     assert out["chi2"] == pytest.approx(float(M.pearson(obs, ibar)[sel].sum()), rel=TRIG32)
     start = K.retrieve(obs, dsg.channels, weights=w)
     close(start["coef"], M.solve_images(obs, dsg, w).coef, rtol=TRIG32)
+    # the weights of a solve's model without the next solve: those that iterations + 1 would solve with
+    ahead = K.retrieve(obs, dsg.channels, iterations=iterations, next_weights=True)["weights"]
+    assert np.array_equal(ahead, K.retrieve(obs, dsg.channels, iterations=iterations + 1)["weights"])
 
 
 def correction_oracle(obs, dsg, images, w, names):

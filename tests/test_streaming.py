@@ -209,10 +209,13 @@ def test_subsample_auto_reaches_the_target_uncertainty_it_predicts(small_scan, c
     budget = pipeline.plan_columns(prep, C.load([], [f"fit.time_budget={plan.seconds / 2}"]))
     assert budget.seconds <= plan.seconds / 2 and budget.columns.size >= plan.columns.size // 2 - 1
     assert budget.uncertainty == pytest.approx(plan.uncertainty * np.sqrt(plan.columns.size / budget.columns.size))
-    floor = pipeline.plan_columns(prep, C.load([], ["fit.target_uncertainty=0.012", f"fit.time_floor={plan.seconds}"]))
+    # the floor is the whole run's: the fit's predicted seconds and the other stages' for every sample of the scan
+    rest = pipeline.REST_SECONDS_PER_SAMPLE * prep.store.samples_per_column() * scan.shape[2]
+    floor = pipeline.plan_columns(prep, C.load([], ["fit.target_uncertainty=0.012",
+                                                    f"fit.time_floor={plan.seconds + rest}"]))
     assert floor.columns.size >= plan.columns.size and floor.seconds <= plan.seconds
     every = pipeline.plan_columns(prep, C.load([], ["fit.target_uncertainty=0.012"]))
-    assert every.columns.size == scan.shape[2] and every.seconds <= C.defaults()["fit"]["time_floor"]
+    assert every.columns.size == scan.shape[2] and every.seconds + rest <= C.defaults()["fit"]["time_floor"]
 
 
 @pytest.mark.slow
