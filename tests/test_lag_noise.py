@@ -172,3 +172,29 @@ def test_the_readout_of_unlit_rows_measures_the_read_noise(read_noise):
     assert unlit_readout(S.simulate(sim_config(**{"simulate.seed": 4}))[0]).size == 0
     stepping, _ = S.simulate(sim_config(**{**S.FLAT_PANEL_STEPPING, "simulate.seed": 4}))
     assert unlit_readout(stepping).size == 0
+
+
+def _class_chi2(rng, factor_seen):
+    """Per-pixel chi-square (dof 27) of a 60 x 40 detector whose columns 10-11 are a pixel class, each pixel's
+    variance ``factor_seen(row)`` times what the model states (1: the class's factor in the model is right)."""
+    dof = np.full((60, 40), 27.0)
+    scale = np.ones((60, 40))
+    scale[:, 10:12] = [[factor_seen(r)] for r in range(60)]
+    return scale * rng.chisquare(27, (60, 40)), dof
+
+
+def test_a_pixel_class_has_one_factor_along_its_lines_and_a_patch_does_not():
+    from dfxcorr.effects.pixel_noise import line_consistency
+
+    rng = np.random.default_rng(5)
+    factors = np.ones((60, 40))
+    factors[:, 10:12] = 1.5
+    # a real class: its factor in the model, its pixels at noise along the whole column
+    X, dof = _class_chi2(rng, lambda r: 1.0)
+    odd = line_consistency(factors, X, dof)
+    assert odd.log_p > np.log(0.01) and odd.payload["spread"] < 1.0, odd
+    # a patch (rows 20-29 at 3x, the rest at 1) fitted as a class of factor 1.5: the strata's factors differ
+    X, dof = _class_chi2(rng, lambda r: 3.0 / 1.5 if 20 <= r < 30 else 1.0 / 1.5)
+    odd = line_consistency(factors, X, dof)
+    assert odd.log_p < np.log(1e-6) and odd.payload["spread"] > 2.0 and odd.payload["along"] == "rows", odd
+    assert line_consistency(np.ones((60, 40)), X, dof) is None  # no class, nothing to test

@@ -154,7 +154,9 @@ def held_band(width: int, samples_per_column: int, *, most: float) -> np.ndarray
 
 #: What a catalogue effect of another size along each axis of :meth:`EffectBase.consistency` suggests.
 _SUSPECTS = {"count": ("expected count, dimmest", "a detector non-linearity or an additive artefact"),
-             "row": ("detector row, top", "an artefact on some rows, as a ghost of an earlier frame")}
+             "row": ("detector row, top", "an artefact on some rows, as a ghost of an earlier frame"),
+             "pixel": ("position along the class's lines, first",
+                       "a patch, as a moving part of the sample or a localised artefact, not a class of pixels")}
 
 
 def _proxy(name: str, test: Test, odd: Test) -> dict:
