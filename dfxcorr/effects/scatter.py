@@ -144,18 +144,45 @@ def unit_scatter(primary: Callable[[np.ndarray], np.ndarray], row: np.ndarray, f
         p = primary(idx)
         if out is None:
             out = np.zeros((row.size, p.shape[1] if columns is None else len(columns)), np.float32)
-        # the frame's lit band as an image (rows left out by alignment stay empty and get no weight)
+        # the frame's lit band as an image (rows left out by alignment stay empty and get no weight), in blocks of
+        # b x b pixels: a kernel of hundreds of pixels (50 mm at 0.148 mm: 338) is blurred as well on a grid
+        # b = sigma / 32 coarser and interpolated back, at about a b^2-th of the cost (a binned clinical scan,
+        # sigma 169: 7.5 -> 0.8 s, the field within 1e-4 of the pixel-wise blur at the median and 0.7 % at worst,
+        # at the lit band's edges; sigma / 16: 0.6 s, 1.5 %)
+        b = max(int(min(width) // COARSE_PER_SIGMA), 1)
         local = row[idx] - row[idx].min()
-        band = np.zeros((int(local.max()) + 1, p.shape[1]))
-        lit = np.zeros(band.shape[0])
-        band[local], lit[local] = p, 1.0
-        blurred = blur(blur(band, width[0], axis=0), width[1], axis=1)
-        inside = np.outer(blur(lit, width[0]), blur(np.ones(p.shape[1]), width[1]))
-        spread = blurred[local] / inside[local]
-        total = spread.sum()
+        nr, nc = -(-(int(local.max()) + 1) // b), -(-p.shape[1] // b)
+        band = np.zeros((nr * b, nc * b))
+        lit, across = np.zeros(nr * b), np.zeros(nc * b)
+        band[local, :p.shape[1]], lit[local], across[:p.shape[1]] = p, 1.0, 1.0
+        band, lit, across = band.reshape(nr, b, nc, b).sum(axis=(1, 3)), lit.reshape(nr, b).sum(1), \
+            across.reshape(nc, b).sum(1)
+        blurred = blur(blur(band, width[0] / b, axis=0), width[1] / b, axis=1)
+        inside = np.outer(blur(lit, width[0] / b), blur(across, width[1] / b))
+        spread = np.where(inside > 0, blurred / np.where(inside > 0, inside, 1.0), 0.0)
+        total = float(np.sum(spread * np.outer(lit, across)))
         if total > 0:
-            out[idx] = (spread if columns is None else spread[:, columns]) * (p.sum() / total)
+            cols = np.arange(p.shape[1]) if columns is None else np.asarray(columns)
+            out[idx] = _at_pixels(spread, local, cols, b) * (p.sum() / total)
     return np.zeros((row.size, 0), np.float32) if out is None else out
+
+
+#: unit_scatter blurs on blocks of sigma / COARSE_PER_SIGMA pixels (at least one).
+COARSE_PER_SIGMA = 32
+
+
+def _at_pixels(grid: np.ndarray, rows: np.ndarray, cols: np.ndarray, b: int) -> np.ndarray:
+    """Values of a field given on blocks of b x b pixels (centres at (i + 1/2) b) at pixel rows x columns, by
+    linear interpolation between block centres (held beyond the outer ones); the grid itself where b = 1."""
+    def weights(pixels: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        at = np.clip((pixels + 0.5) / b - 0.5, 0, n - 1)
+        lo = np.minimum(np.floor(at).astype(int), n - 1)
+        return lo, np.minimum(lo + 1, n - 1), at - lo
+
+    r0, r1, a = weights(rows, grid.shape[0])
+    c0, c1, c = weights(cols, grid.shape[1])
+    by_row = grid[r0] * (1 - a)[:, None] + grid[r1] * a[:, None]
+    return by_row[:, c0] * (1 - c) + by_row[:, c1] * c
 
 
 def retrieved(store: LitStore, reference: Reference, *, modulated: bool = True) -> tuple[np.ndarray, np.ndarray]:
