@@ -65,7 +65,7 @@ def locate(obs: M.Observations, params: dict, images: M.Images, *, counts: np.nd
     phase = np.zeros((2, edges.size - 1))
     count = np.zeros((2, cedges.size - 1))
     for cols in obs.column_chunks(chunk):
-        sub, im = obs.subset(cols), images.subset(cols)
+        sub, im = obs.subset(cols, copy=False), images.subset(cols)
         dsg = M.design(sub, params)
         ibar = M.expected(sub, dsg, im)
         z2 = np.where(sub.use, M.pearson(sub, ibar), np.nan)

@@ -68,7 +68,7 @@ def _squared_residuals(obs: Observations, params: dict, images: M.Images, exclud
     (from ``images`` and the model at ``params``), the samples that count (used, of solved pixels, not in
     ``exclude`` (H, W)) and their squared Pearson residuals (0 elsewhere)."""
     for cols in obs.column_chunks():
-        sub, im = obs.subset(cols), images.subset(cols)
+        sub, im = obs.subset(cols, copy=False), images.subset(cols)
         ibar = M.expected(sub, M.design(sub, params), im)
         sel = sub.use & im.valid[sub.pixel]
         if exclude is not None:
@@ -184,6 +184,7 @@ def pixel_noise_test(obs: Observations, params: dict, images: M.Images, *, alpha
     n = N.sum(axis=2)
     dof = np.maximum(n - 3, 0.0)
     share = dof / np.maximum(n, 1)  # a sample's share of its pixel's dof
+    SN = N * share[..., None].astype(np.float32)  # the samples' share of the dof per cell
     V = np.where(dof > 0, kv_sum * dof / np.maximum(n, 1), 0.0)
     img = {k: obs.to_image(v, fill=0.0) for k, v in (("dof", dof), ("V", V))}
     H, W = obs.shape[1:]
@@ -198,13 +199,16 @@ def pixel_noise_test(obs: Observations, params: dict, images: M.Images, *, alpha
         regular = (groups[1][:, None] == 0) & (groups[0][None, :] == 0)
         # per count bin (columns fitted or not) the regular pixels' sum of z^2 against their share of the dof
         per_count = np.ones((2, edges.size + 1))
+        # regular = regular rows x regular columns: the cells summed over the rows (float32, a few hundred each),
+        # then over the columns of each kind in float64
+        rows = (groups[1][obs.rows] == 0).astype(np.float32)
+        by_column = [np.tensordot(rows, A, 1).astype(np.float64) for A in (Z, SN)]
         for k in (0, 1):
-            reg = obs.held(regular) & (kind == k)[None, :]
-            # summed in float64 (the cells are float32)
-            num = np.einsum("rc,rcb->b", reg, Z, dtype=np.float64)
-            den = np.einsum("rc,rcb->b", reg * share, N, dtype=np.float64)
+            cols = ((groups[0][obs.columns] == 0) & (kind == k)).astype(np.float64)
+            num, den = cols @ by_column[0], cols @ by_column[1]
             per_count[k] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
-        img["X"] = obs.to_image(np.where(dof > 0, np.einsum("rcb,cb->rc", Z, 1.0 / per_count[kind]), 0.0), fill=0.0)
+        X = (Z * (1.0 / per_count[kind]).astype(np.float32)[None]).sum(axis=2, dtype=np.float64)
+        img["X"] = obs.to_image(np.where(dof > 0, X, 0.0), fill=0.0)
         c = _dispersion(img, regular)
         tests, lines = [], []
         for axis in (0, 1):
