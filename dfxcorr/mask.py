@@ -21,7 +21,7 @@ from . import kernels as K
 from . import model as M
 
 
-def motion_statistics(obs: M.Observations, params: dict | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def motion_statistics(obs: M.Observations, params: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-pixel reduced residual, fringe sensitivity and degrees of freedom: what :func:`motion_score` and
     :func:`mask_from_score` need.
 
@@ -37,10 +37,9 @@ def motion_statistics(obs: M.Observations, params: dict | None = None) -> tuple[
     Parameters
     ----------
     obs : Observations
-    params : dict, optional
-        Effect parameters of the model to compare with. Default: a pilot estimate of the paper's
-        vibration model (:func:`pilot_vibrations`); ``{}`` compares with a model without per-frame terms
-        (paper eq. 35).
+    params : dict
+        Effect parameters of the model to compare with (e.g. a pilot estimate of the paper's vibration model,
+        :func:`pilot_vibrations`); ``{}`` compares with a model without per-frame terms (paper eq. 35).
 
     Returns
     -------
@@ -50,8 +49,6 @@ def motion_statistics(obs: M.Observations, params: dict | None = None) -> tuple[
     dof : ndarray, shape (R, C)
         n - 3, the degrees of freedom of ``eps``.
     """
-    if params is None:
-        params = pilot_vibrations(obs)
     K.set_threads()
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
     # the model's weights (a solve with the data's first): the score compares the residual with the noise the
@@ -77,7 +74,7 @@ def score_from_statistics(eps: np.ndarray, q: np.ndarray) -> np.ndarray:
         return np.where(ok, eps / (1.0 + gamma * q), np.nan)
 
 
-def motion_score(obs: M.Observations, params: dict | None = None, *, chunk: float = 1e6) -> np.ndarray:
+def motion_score(obs: M.Observations, params: dict, *, chunk: float = 1e6) -> np.ndarray:
     """Per-pixel residual relative to what noise and (unmodelled) vibrations explain.
 
     ``params`` as :func:`motion_statistics`'s. The statistics are taken a run of about ``chunk`` samples' columns
@@ -90,8 +87,6 @@ def motion_score(obs: M.Observations, params: dict | None = None, *, chunk: floa
         About 1 for consistent pixels (a reduced chi-square with n - 3 degrees of freedom), NaN where
         the pixel could not be solved.
     """
-    if params is None:
-        params = pilot_vibrations(obs)
     eps, q, _ = (np.concatenate(a, axis=1) for a in zip(*(motion_statistics(obs.subset(c), params)
                                                           for c in obs.column_chunks(chunk)), strict=True))
     return score_from_statistics(eps, q)
