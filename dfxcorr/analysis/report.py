@@ -120,7 +120,7 @@ FIXED_FILES = ("diagnosis.json", "report.md", "residuals.png", "signatures.png",
 
 def residuals(state) -> Residuals:
     """Where the fit ``state`` and its observations disagree (:func:`dfxcorr.analysis.signatures.locate`)."""
-    return locate(state.obs, state.params, state.rec.images, counts=fit_counts(state, state.obs.columns))
+    return locate(state.obs, state.params, state.rec.images, counts=fit_counts(state))
 
 
 def change_picture(effect: EffectBase, before, after, extra: dict, *,

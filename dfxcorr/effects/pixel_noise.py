@@ -313,7 +313,7 @@ class PixelNoise(EffectBase):
         from scipy import ndimage
 
         return pixel_noise_test(state.obs, state.params, state.rec.images, alpha=ctx.cfg["diagnose"]["alpha"],
-                                counts=fit_counts(state, state.obs.columns), fitted=ctx.fitted,
+                                counts=fit_counts(state), fitted=ctx.fitted,
                                 exclude=ndimage.binary_dilation(flagged))
 
     def consistency(self, ctx: Context, state: State) -> Test | None:
