@@ -45,7 +45,7 @@ The names of the catalogue, the observations and the noise model are available h
 """
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -437,6 +437,18 @@ def expected(obs: Observations, dsg: Design, images: Images) -> np.ndarray:
     c = images.coef[obs.pixel]
     linear = c[..., 0] * dsg.A + c[..., 1] * dsg.Bc + c[..., 2] * dsg.Bs + dsg.offset
     return linear + harmonic_term(obs, dsg, images) if any(dsg.harmonic) else linear
+
+
+def expected_by_columns(obs: Observations, params: dict, images: Images, *, samples: float = 1e6
+                        ) -> Iterator[tuple[np.ndarray, Observations, Images, Design, np.ndarray]]:
+    """The expected counts of ``obs`` at ``params`` and ``images``, a run of about ``samples`` samples' columns at a
+    time (:meth:`Observations.column_chunks`; views of the samples, for numpy work): each run's column positions,
+    samples, images, design and expected counts (K, c). Per-pixel work over many columns holds one run's
+    temporaries."""
+    for cols in obs.column_chunks(samples):
+        sub, im = obs.subset(cols, copy=False), images.subset(cols)
+        dsg = design(sub, params)
+        yield cols, sub, im, dsg, expected(sub, dsg, im)
 
 
 def circular_mean(phi: np.ndarray, weights: np.ndarray | None = None) -> float:

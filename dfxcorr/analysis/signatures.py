@@ -49,7 +49,7 @@ def locate(obs: M.Observations, params: dict, images: M.Images, *, counts: np.nd
            chunk: float = 5e5) -> Residuals:
     """Mean squared standardized residual per pixel, frame, lateral position, fringe phase and count.
 
-    Computed a run of columns at a time (about ``chunk`` samples: :meth:`Observations.column_chunks`), the
+    Computed a run of columns at a time (about ``chunk`` samples: :func:`dfxcorr.model.expected_by_columns`), the
     expected counts from ``images`` and the model at ``params``, so that a scan of every column holds one run's
     temporaries. ``counts``: expected counts whose 0.5 and 99.5 percentiles bound the count bins (the fit's
     columns' do: the bins need not see every sample).
@@ -64,10 +64,7 @@ def locate(obs: M.Observations, params: dict, images: M.Images, *, counts: np.nd
     cedges = np.geomspace(max(lo, 1e-3), max(hi, 2 * max(lo, 1e-3)), 13)
     phase = np.zeros((2, edges.size - 1))
     count = np.zeros((2, cedges.size - 1))
-    for cols in obs.column_chunks(chunk):
-        sub, im = obs.subset(cols, copy=False), images.subset(cols)
-        dsg = M.design(sub, params)
-        ibar = M.expected(sub, dsg, im)
+    for cols, sub, im, dsg, ibar in M.expected_by_columns(obs, params, images, samples=chunk):
         z2 = np.where(sub.use, M.pearson(sub, ibar), np.nan)
         used = sub.use.astype(float)
         n[:, cols] = sub.segment_sum(used)

@@ -64,12 +64,10 @@ class PixelNoiseError(DfxcorrError, ValueError):
 
 def _squared_residuals(obs: Observations, params: dict, images: M.Images, exclude: np.ndarray | None = None
                        ) -> Iterator[tuple[np.ndarray, Observations, np.ndarray, np.ndarray, np.ndarray]]:
-    """A run of columns at a time (:meth:`Observations.column_chunks`): its positions, samples, expected counts
+    """A run of columns at a time (:func:`dfxcorr.model.expected_by_columns`): its positions, samples, expected counts
     (from ``images`` and the model at ``params``), the samples that count (used, of solved pixels, not in
     ``exclude`` (H, W)) and their squared Pearson residuals (0 elsewhere)."""
-    for cols in obs.column_chunks():
-        sub, im = obs.subset(cols, copy=False), images.subset(cols)
-        ibar = M.expected(sub, M.design(sub, params), im)
+    for cols, sub, im, _, ibar in M.expected_by_columns(obs, params, images):
         sel = sub.use & im.valid[sub.pixel]
         if exclude is not None:
             sel &= ~sub.pixel_mask(exclude)
