@@ -10,6 +10,7 @@ information (:mod:`dfxcorr.identify`).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
 
@@ -108,8 +109,8 @@ def strata(obs: Observations, expected: np.ndarray, *, by: str, n: int = 6) -> n
 
 
 def heterogeneity(obs: Observations, params: dict, weights: np.ndarray, model, name: str, *,
-                  labels: np.ndarray) -> Test:
-    """Whether an effect in the model has one size in every stratum of pixels.
+                  labels: Mapping[str, np.ndarray]) -> Test:
+    """Whether an effect in the model has one size in every stratum of pixels, along each of some axes.
 
     A score test at the fit with the effect (``params``, theta), of the alternative that its parameters
     are theta (1 + gamma_k) in stratum k, everything else shared: a catalogue effect that a detector
@@ -120,7 +121,8 @@ def heterogeneity(obs: Observations, params: dict, weights: np.ndarray, model, n
     freedom, a quasi-likelihood), so a noise model that is off by a factor that changes with the count
     does not pose as a change of size. Two contrasts of the gamma_k, Bonferroni over both: a trend
     along the strata's order (1 dof) and any difference (strata - 1 dof); S = U*^T I*^+ U*, U* and I*
-    the contrasts' score and information with what the shared parameters explain taken out.
+    the contrasts' score and information with what the shared parameters explain taken out. Each axis is
+    tested so, and the strongest of them counts (Bonferroni over the axes); the images are solved once.
 
     Parameters
     ----------
@@ -133,23 +135,32 @@ def heterogeneity(obs: Observations, params: dict, weights: np.ndarray, model, n
     model : sequence of str
         The mean effects in the model (``name`` included).
     name : str
-    labels : ndarray of int, shape (K, C)
-        Stratum of each sample (:func:`strata`; negative: left out).
+    labels : mapping
+        Axis name -> stratum of each sample, ndarray of int, shape (K, C) (:func:`strata`; negative: left out).
 
     Returns
     -------
     Test
-        Its payload holds 'strata': the size of the effect in each stratum under the contrast that decided, relative
-        to the shared fit's (1; one step from it), in the strata's order; 'alternative': 'trend' or 'any' (or
-        'none': fewer than two strata, nothing tested).
+        Its payload holds 'axis', the axis that decided; 'strata': the size of the effect in each of its strata
+        under the contrast that decided, relative to the shared fit's (1; one step from it), in the strata's
+        order; 'alternative': 'trend' or 'any' (or 'none': fewer than two strata, nothing tested).
     """
+    dsg = M.design(obs, params)
+    images = M.solve_images(obs, dsg, weights, keep_inverse=True)
+    resid = obs.counts - M.expected(obs, dsg, images)
+    found = {axis: _heterogeneity(obs, dsg, images, resid, params, weights, model, name, labels=lab)
+             for axis, lab in labels.items()}
+    axis, t = strongest(found)
+    return replace(t, payload={**t.payload, "axis": axis})
+
+
+def _heterogeneity(obs: Observations, dsg: M.Design, images: M.Images, resid: np.ndarray, params: dict,
+                   weights: np.ndarray, model, name: str, *, labels: np.ndarray) -> Test:
+    """:func:`heterogeneity` along one axis, at the fit's design, images and residuals (K, C)."""
     n = int(labels.max()) + 1
     if n < 2:
         return chi2_test(0.0, 0, payload={"strata": [], "alternative": "none"})
     names = list(model)
-    dsg = M.design(obs, params)
-    images = M.solve_images(obs, dsg, weights, keep_inverse=True)
-    resid = obs.counts - M.expected(obs, dsg, images)
     e = M.effect(name)
     total, U_eta = 0.0, 0.0
     u, own, cross = np.zeros(n), np.zeros(n), []
@@ -225,12 +236,9 @@ class ChannelEffect(EffectBase):
         # by count (a non-linearity, an additive artefact) and by detector row (an artefact on some rows of a
         # frame, as a ghost of an earlier frame): the stronger of the two, Bonferroni over both
         obs, expected = state.fit_obs, state.fit_rec.expected
-        weights = M.noise_weights(obs, expected)
-        found = {by: heterogeneity(obs, state.params, weights, state.hypothesis.effects, self.name,
-                                   labels=strata(obs, expected, by=by)) for by in ("count", "row")}
-        by, t = strongest(found)
-        return replace(t, material=float(np.ptp(t.payload["strata"])) > ctx.cfg["diagnose"]["proxy_spread"],
-                       payload={**t.payload, "axis": by})
+        t = heterogeneity(obs, state.params, M.noise_weights(obs, expected), state.hypothesis.effects, self.name,
+                          labels={by: strata(obs, expected, by=by) for by in ("count", "row")})
+        return replace(t, material=float(np.ptp(t.payload["strata"])) > ctx.cfg["diagnose"]["proxy_spread"])
 
     def where(self, test: Test, obs: Observations) -> str:
         if not self.entry.per_frame:
