@@ -200,7 +200,7 @@ def retrieved(store: LitStore, reference: Reference, *, modulated: bool = True) 
     """
     J, H, W = store.shape
     t = np.zeros((H, W))
-    primary = np.zeros(store.counts.shape if modulated else (0, W), np.float32)
+    held = np.zeros(store.counts.shape if modulated else (0, W), np.float32)
     ref = replace(reference, phase=np.unwrap(reference.phase, axis=0))
     for r0, r1 in store.row_runs(BLOCK_SAMPLES):
         obs = store.observations(ref, rows=(r0, r1), phase_unwrapped=True)
@@ -208,8 +208,8 @@ def retrieved(store: LitStore, reference: Reference, *, modulated: bool = True) 
         obs.place(t, np.where(rec.images.valid, rec.images.t, 0.0))
         if modulated:
             lo, hi = np.searchsorted(store.row, (r0, r1))
-            primary[lo:hi] = rec.expected - obs.dark
-    return t, primary
+            held[lo:hi] = rec.expected - obs.dark
+    return t, held
 
 
 def with_scatter(store: LitStore, scatter: np.ndarray, modulated: np.ndarray) -> LitStore:
