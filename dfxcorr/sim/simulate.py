@@ -19,6 +19,7 @@ import numpy as np
 from .. import model as M
 from ..align import interpolate_rows, lit_blocks
 from ..config import ConfigError, Option, _fraction, _nonneg, _positive, _within
+from ..effects.scatter import unit_scatter
 from ..io import Reference, Scan, SteppingReference, write_scan
 from ..reference import stepping_observations
 
@@ -388,8 +389,10 @@ class Simulation:
             ibar = np.where(self.moving[row], (ibar - dsg.offset) * swing + dsg.offset, ibar)
             primary = np.where(self.moving[row], primary * swing, primary)
         if e["scatter"]:
-            ibar = ibar + scatter(primary, ratio=e["scatter"],
-                                  width=e["scatter_width_mm"] / self.cfg["simulate"]["pixel_mm"])
+            # the model's own scatter field (one definition of the physics), of this frame's true primary
+            width = e["scatter_width_mm"] / self.cfg["simulate"]["pixel_mm"]
+            ibar = ibar + e["scatter"] * unit_scatter(primary.__getitem__, row, np.zeros(row.size, int),
+                                                      (width, width))
         return int(row[0]), _detect(ibar, self.cfg, np.random.default_rng(self._streams[j]),
                                     factor=self.noise_factor[row])
 
@@ -582,42 +585,6 @@ def pixel_noise_map(height: int, width: int, *, factor: float, module: int) -> n
         k = np.arange(n) % module
         return (k == 0) | (k == module - 1)
     return np.where(edge(height)[:, None] | edge(width)[None, :], float(factor), 1.0)
-
-
-def scatter(primary: np.ndarray, *, ratio: float, width: float) -> np.ndarray:
-    """Compton scatter of one frame: its primary blurred within its lit rows, scaled to a scatter-to-primary ratio.
-
-    Photons scattered in the sample reach the detector without the gratings' modulation, spread over a
-    wide area around where the primary went. The blur is a normalised convolution with a Gaussian
-    (zero outside the frame's lit rows and the detector, the kernel renormalised to what is inside), so
-    the scatter keeps its level up to the edges; it is then scaled so that its total over the samples is
-    ``ratio`` times the primary's: the mean scatter-to-primary ratio over the lit samples (the ratio of
-    the means; the per-sample ratio is larger behind dense parts of the sample and smaller in air).
-
-    Parameters
-    ----------
-    primary : ndarray, shape (n, W)
-        The unmodulated primary (dose x t^f x t) of the frame's lit rows (detector units).
-    ratio : float
-        Scatter-to-primary ratio s.
-    width : float
-        Standard deviation of the Gaussian kernel along rows and columns (pixels).
-
-    Returns
-    -------
-    ndarray, shape (n, W)
-        The scatter (detector units).
-    """
-    from scipy import signal
-
-    # the kernel, truncated at 4 std and never longer than the frame (entries beyond it touch nothing)
-    g = [np.exp(-0.5 * (np.arange(-r, r + 1) / width) ** 2)
-         for r in (min(int(np.ceil(4 * width)), n - 1) for n in primary.shape)]
-    # a wide kernel: the FFT's cost does not grow with it
-    blurred = signal.fftconvolve(primary, np.outer(*g), mode="same")
-    inside = np.outer(*(signal.convolve(np.ones(n), k, mode="same") for n, k in zip(primary.shape, g, strict=True)))
-    spread = blurred / inside
-    return ratio * spread * (primary.sum() / spread.sum())
 
 
 def _detect(mean: np.ndarray, cfg: dict, rng: np.random.Generator, *, factor: np.ndarray | None = None) -> np.ndarray:
