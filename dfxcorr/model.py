@@ -1,8 +1,8 @@
 """The forward model: paper eq. 19 extended by the effect catalogue of ``spec/diagnosis.md``.
 
-"The paper" throughout this package is J. Haeusele, C. Schmid, M. Viermetz, N. Gustschin, T. Lasser,
-T. Koehler and F. Pfeiffer, "Correction for mechanical inaccuracies in a scanning Talbot-Lau
-interferometer", IEEE Transactions on Medical Imaging 43(1), 2024, doi:10.1109/TMI.2023.3288358.
+"The paper" throughout this package is "Correction for mechanical inaccuracies in a scanning Talbot-Lau
+interferometer", the text the project was built from (its equation and section numbers are cited here; that
+text names no authors, journal or DOI, so none are given).
 
 This module is the only definition of the expected count and its derivatives; the effects it is
 made of are the entries of :mod:`dfxcorr.catalogue`, the data it is evaluated on are
