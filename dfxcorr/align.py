@@ -162,12 +162,10 @@ class LitStore:
         Detector lag fraction already taken out of ``counts`` (:func:`dfxcorr.effects.detector_lag.without_lag`).
     offset : ndarray, shape (K, W), or None
         Known unmodulated photons of each sample beyond the dark (counts; a correction of the preparation,
-        e.g. Compton scatter): the observations add them to ``dark``, the model's additive term. A field
+        e.g. Compton scatter): the observations add them to ``dark``, the model's additive term, and count
+        their shot noise (:attr:`Observations.offset <dfxcorr.observations.Observations>`). A field
         that couples neighbouring pixels cannot enter the per-pixel solve; as a known offset it enters
         every stage alike (the compiled kernels, the numpy model, the Fisher information). None: none.
-    offset_noise : ndarray, shape (H, W), or None
-        The per-pixel factor on the photon variance that those photons' shot noise makes
-        (:attr:`Observations.offset_noise <dfxcorr.observations.Observations>`); None: 1.
     good : ndarray of bool, shape (K, W), or None
         False for samples left out as detector faults (:meth:`without`); None: every sample is good.
     bad_frames : tuple of int
@@ -186,7 +184,6 @@ class LitStore:
     left_prev: np.ndarray | None = None
     lag: float = 0.0
     offset: np.ndarray | None = None
-    offset_noise: np.ndarray | None = None
     good: np.ndarray | None = None
     bad_frames: tuple[int, ...] = ()
 
@@ -288,8 +285,10 @@ class LitStore:
         counts = (self.counts[lo:hi] if columns is None else self.counts[lo:hi, cols]).astype(dtype, order="C")
         # whole rows are taken by row (a 2-d fancy index of every column was most of a block's own time)
         dark = (self.dark[row] if columns is None else self.dark[row[:, None], cols[None, :]]).astype(dtype, copy=False)
+        offset = None
         if self.offset is not None:
-            dark = dark + (self.offset[lo:hi] if columns is None else self.offset[lo:hi, cols])
+            offset = (self.offset[lo:hi] if columns is None else self.offset[lo:hi, cols]).astype(dtype, copy=False)
+            dark = dark + offset
         use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
         held = np.ix_(np.unique(row), cols)
         if self.good is not None:
@@ -298,7 +297,7 @@ class LitStore:
                             row=row, frame=frame, columns=cols, shape=(J, H, W),
                             gain=self.gain if gain is None else gain, electronic=electronic,
                             noise=None if noise is None else noise[held],
-                            offset_noise=None if self.offset_noise is None else self.offset_noise[held])
+                            offset=offset)
 
 
 def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: int = 3) -> LitStore:

@@ -178,9 +178,10 @@ def _derivatives(tt, cs, ss, ct, st, c2, s2, e, f, tf, vf, amp, bc, bs, vis, hc,
 
 
 @njit(cache=True, inline="always")
-def _variance(g, m, dark, electronic):
-    """Noise variance of a sample of expected count m (noise.variance: its photon term at least one count)."""
-    return g * max(m - dark, 1.0) + electronic
+def _variance(g, m, quiet, electronic):
+    """Noise variance of a sample of expected count m, ``quiet`` its additive term without photon noise
+    (noise.variance: its photon term at least one count)."""
+    return g * max(m - quiet, 1.0) + electronic
 
 
 @njit(cache=True, inline="always")
@@ -417,7 +418,7 @@ def _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn):
 
 
 @njit(cache=True, parallel=True)
-def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunks, phase, vis, dose, bg, harm,
+def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds, chunks, phase, vis, dose, bg, harm,
               gain, electronic, iterations, from_data, keep_inverse, keep_expected, next_weights, tile):
     K, C = counts.shape
     R = bounds.size - 1
@@ -471,7 +472,7 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                             Hc[b, i], Hs[b, i] = hcc, hcs
                         off[b, i] = dark[k, c] + bg[0] + bg[1] * x[c] + bg[2] * y[k]
                         if from_data:
-                            w[b, i] = 1.0 / _variance(gain[r, c], counts[k, c], dark[k, c], electronic) \
+                            w[b, i] = 1.0 / _variance(gain[r, c], counts[k, c], quiet[k, c], electronic) \
                                 if use[k, c] else 0.0
                         else:
                             w[b, i] = start[k, c]
@@ -483,7 +484,7 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                             for i in range(T):
                                 c = c0 + i
                                 m = _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn)
-                                w[b, i] = 1.0 / _variance(gain[r, c], m, dark[k, c], electronic) if use[k, c] \
+                                w[b, i] = 1.0 / _variance(gain[r, c], m, quiet[k, c], electronic) if use[k, c] \
                                     else 0.0
                     for step in range(steps):
                         N[:, :T] = 0.0
@@ -513,11 +514,11 @@ def _retrieve(counts, tf, vf, phif, dark, use, start, frame, y, x, bounds, chunk
                         if keep_expected:
                             ibar[k, c] = m
                             # the weights of this solve, or those of its model (what a further solve would use)
-                            w_out[k, c] = (1.0 / _variance(gain[r, c], m, dark[k, c], electronic) if use[k, c]
+                            w_out[k, c] = (1.0 / _variance(gain[r, c], m, quiet[k, c], electronic) if use[k, c]
                                            else 0.0) if next_weights else w[b, i]
                         if valid[r, c] and use[k, c]:
                             # Pearson residual with the variance of the weights (noise.variance)
-                            chi2[t] += (counts[k, c] - m) ** 2 / _variance(gain[r, c], m, dark[k, c], electronic)
+                            chi2[t] += (counts[k, c] - m) ** 2 / _variance(gain[r, c], m, quiet[k, c], electronic)
                             n_sel[t] += 1.0
     return coef, valid, inverse, ibar, w_out, chi2, n_sel
 
@@ -561,10 +562,10 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
     # weights in float64 whatever the caller's dtype: one compiled specialisation fewer (about 6 s of a first run)
     start = np.zeros((0, 0)) if weights is None else _c(weights, np.float64)
     coef, valid, inverse, ibar, w, chi2, n_sel = _retrieve(
-        _c(obs.counts), _c(obs.tf), _c(obs.vf), _c(obs.phif), _c(obs.dark), _c(obs.use), start, obs.frame, obs.y, obs.x,
-        bounds, row_chunks(bounds[:-1], obs.frame.size), _c(ch.phase, np.float64), _c(ch.vis, np.float64), ch.dose,
-        ch.background, ch.harmonic, _c(g, np.float64), float(obs.electronic), int(iterations), weights is None,
-        keep_inverse, keep_expected or next_weights, next_weights, TILE)
+        _c(obs.counts), _c(obs.tf), _c(obs.vf), _c(obs.phif), _c(obs.dark), _c(obs.quiet), _c(obs.use), start,
+        obs.frame, obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), _c(ch.phase, np.float64),
+        _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, _c(g, np.float64), float(obs.electronic),
+        int(iterations), weights is None, keep_inverse, keep_expected or next_weights, next_weights, TILE)
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
 

@@ -99,8 +99,8 @@ def deviance(obs: M.Observations, ibar: np.ndarray) -> np.ndarray:
     each pixel's gain (times its ``pixel_noise`` factor).
     """
     g = obs.pixel_gain()[obs.pixel]
-    mu = np.maximum(ibar - obs.dark, 1e-6) / g
-    y = np.maximum(obs.counts - obs.dark, 0.0) / g
+    mu = np.maximum(obs.photons(ibar), 1e-6) / g
+    y = np.maximum(obs.photons(obs.counts), 0.0) / g
     with np.errstate(divide="ignore", invalid="ignore"):
         d = 2.0 * (np.where(y > 0, y * np.log(np.where(y > 0, y, 1.0) / mu), 0.0) - (y - mu))
     return d * (g * mu / (g * mu + obs.electronic))

@@ -1,7 +1,8 @@
 """The noise model: the variance of a sample, its Pearson residual and the weights of the fits.
 
 variance = f_i * g * (Ibar - dark) + sigma_e^2: scaled Poisson noise of the photons (g detector units per
-photon, f_i the pixel's variance factor, ``pixel_noise``) plus the detector's electronic (readout) noise.
+photon, f_i the pixel's variance factor, ``pixel_noise``; dark the detector's own, not known unmodulated photons
+such as scatter: :meth:`~dfxcorr.observations.Observations.photons`) plus the detector's electronic noise.
 
 One variance serves the chi-square and the weights alike (and the compiled retrieval, :mod:`dfxcorr.kernels`):
 the photon term is taken at least at one count (:data:`MIN_SIGNAL`), so a sample whose expected count is at
@@ -19,11 +20,12 @@ MIN_SIGNAL = 1.0
 
 
 def variance(obs: Observations, ibar: np.ndarray, *, gain: float | None = None) -> np.ndarray:
-    """Noise variance of each sample, f g max(Ibar - dark, 1) + electronic (f g: :meth:`Observations.pixel_gain`)."""
+    """Noise variance of each sample, f g max(photons, 1) + electronic (f g: :meth:`Observations.pixel_gain`; the
+    photon signal Ibar minus the detector's dark: :meth:`Observations.photons`)."""
     g: np.ndarray | float = obs.gain if gain is None else gain
-    if obs.noise is not None or obs.offset_noise is not None:
+    if obs.noise is not None:
         g = obs.pixel_gain(gain)[obs.pixel]
-    return g * np.maximum(ibar - obs.dark, MIN_SIGNAL) + obs.electronic
+    return g * np.maximum(obs.photons(ibar), MIN_SIGNAL) + obs.electronic
 
 
 def pearson(obs: Observations, ibar: np.ndarray, *, gain: float | None = None) -> np.ndarray:

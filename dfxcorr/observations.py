@@ -54,9 +54,8 @@ class Observations:
         (outside the region of interest): there the model has no modulation.
     dark : ndarray, shape (K, C)
         The additive term of each sample, unmodulated by the gratings (counts): the detector's dark signal,
-        plus any known unmodulated photons the preparation put there (:attr:`LitStore.offset
-        <dfxcorr.align.LitStore>`); the model adds it to the expected count, the noise model counts no
-        photon noise of it (the photons' share is in ``offset_noise``).
+        plus any known unmodulated photons the preparation put there (``offset``); the model adds it to the
+        expected count.
     use : ndarray of bool, shape (K, C)
         Samples that enter the fit or the retrieval (False for masked pixels).
     row, frame : ndarray of int, shape (K,)
@@ -74,11 +73,10 @@ class Observations:
         + electronic; None: 1 everywhere.
     roi : ndarray of bool, shape (K, C), or None
         The region of interest: samples whose flat field carries a fringe. None: every sample.
-    offset_noise : ndarray, shape (R, C), or None
-        Factor on each held pixel's photon variance for the shot noise of the known unmodulated photons in
-        ``dark`` (1 + their mean share of the pixel's modulated count): the variance of a sample,
-        g (Ibar - dark), leaves them out, and the compiled kernels take one variance factor per pixel,
-        so their noise enters per pixel. None: 1 (no such photons).
+    offset : ndarray, shape (K, C), or None
+        The part of ``dark`` that is photons (counts): known unmodulated photons of each sample, such as Compton
+        scatter (:attr:`LitStore.offset <dfxcorr.align.LitStore>`). Their shot noise is in every sample's
+        variance (:meth:`photons`); the rest of ``dark`` is the detector's, without photon noise. None: none.
     """
 
     counts: np.ndarray
@@ -95,7 +93,7 @@ class Observations:
     electronic: float = 0.0
     noise: np.ndarray | None = None
     roi: np.ndarray | None = None
-    offset_noise: np.ndarray | None = None
+    offset: np.ndarray | None = None
     rows: np.ndarray = field(init=False)
     starts: np.ndarray = field(init=False)
     pixel: np.ndarray = field(init=False)
@@ -173,7 +171,7 @@ class Observations:
                             self.row, self.frame, self.columns[idx], self.shape, self.gain, self.electronic,
                             None if self.noise is None else cut(self.noise),
                             None if self.roi is None else cut(self.roi),
-                            None if self.offset_noise is None else cut(self.offset_noise))
+                            None if self.offset is None else cut(self.offset))
 
     def column_chunks(self, samples: float = 1e6) -> list[np.ndarray]:
         """Positions of ``self.columns`` in consecutive runs holding about ``samples`` samples each (at least one
@@ -188,11 +186,19 @@ class Observations:
                        noise=None if noise.factors is None else self.held(noise.factors))
 
     def pixel_gain(self, gain: float | None = None) -> np.ndarray:
-        """The photon variance per unit of Ibar - dark of each pixel held, shape (R, C).
+        """The photon variance per unit of photon signal (:meth:`photons`) of each pixel held, shape (R, C).
 
-        gain * f (``pixel_noise``) * ``offset_noise``: the kernels and :func:`dfxcorr.noise.variance` read this one
-        factor per pixel.
+        gain * f (``pixel_noise``): the kernels and :func:`dfxcorr.noise.variance` read this one factor per pixel.
         """
         g = self.gain if gain is None else gain
-        out = g * (np.ones((self.rows.size, self.columns.size)) if self.noise is None else self.noise)
-        return out if self.offset_noise is None else out * self.offset_noise
+        return g * (np.ones((self.rows.size, self.columns.size)) if self.noise is None else self.noise)
+
+    @property
+    def quiet(self) -> np.ndarray:
+        """The part of ``dark`` without photon noise (the detector's dark signal), shape (K, C)."""
+        return self.dark if self.offset is None else self.dark - self.offset
+
+    def photons(self, ibar: np.ndarray) -> np.ndarray:
+        """The photon signal of expected counts ``ibar`` (K, C) in detector units: Ibar minus :attr:`quiet`, every
+        photon counted (the modulated ones and those of ``offset``)."""
+        return ibar - self.quiet

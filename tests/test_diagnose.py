@@ -110,6 +110,20 @@ def test_unstated_gain_is_named_first_and_alone():
     assert diag.unexplained == [], diag.unexplained
 
 
+@pytest.mark.slow
+def test_motion_below_its_detection_limit_is_not_named_a_gain():
+    # a patch whose transmission swings by 5 % (half the per-pixel detection limit): its variance excess raised a
+    # gain by 3 %, which a gain cannot do (one factor for every pixel: its strata by row asked for 6.5 times the
+    # change where the patch is and none elsewhere); what the motion mask does not take is located, not explained
+    scan, _, cfg = concealed("sample_motion", amplitude=0.05)
+    diag = diagnose(scan, cfg)
+    found = [e.name for e in diag.effects if e.detected]
+    assert set(found) <= {"sample_motion"}, found
+    gain = next(e for e in diag.effects if e.name == "detector_gain")
+    assert gain.extra.get("refused_as_proxy") == "pixel" or not gain.detected, gain.extra
+    assert diag.unexplained, "the motion's misfit left over is located"
+
+
 # Physics in no catalogue, made here (not in the simulator): the diagnosis must locate it, not explain it away.
 
 def nonlinear_scan(*, seed=31, saturation=1e5):

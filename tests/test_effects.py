@@ -393,7 +393,7 @@ class OfOneSize(Fake):
         super().__init__(name, statistic, until=until)
         self.p, self.spread = p, spread
 
-    def consistency(self, ctx, state):
+    def consistency(self, ctx, before, state):
         return EffectTest(20.0, 1, self.p, float(np.log(self.p)), material=self.spread > 1.0,
                     payload={"axis": "count", "strata": [1 - self.spread / 2, 1 + self.spread / 2]})
 

@@ -184,7 +184,7 @@ def _class_chi2(rng, factor_seen):
 
 
 def test_a_pixel_class_has_one_factor_along_its_lines_and_a_patch_does_not():
-    from dfxcorr.effects.pixel_noise import line_consistency
+    from dfxcorr.effects.base import line_consistency
 
     rng = np.random.default_rng(5)
     factors = np.ones((60, 40))

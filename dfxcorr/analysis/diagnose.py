@@ -155,14 +155,16 @@ def held_band(width: int, samples_per_column: int, *, most: float) -> np.ndarray
 #: What a catalogue effect of another size along each axis of :meth:`EffectBase.consistency` suggests.
 _SUSPECTS = {"count": ("expected count, dimmest", "a detector non-linearity or an additive artefact"),
              "row": ("detector row, top", "an artefact on some rows, as a ghost of an earlier frame"),
-             "pixel": ("position along the class's lines, first",
-                       "a patch, as a moving part of the sample or a localised artefact, not a class of pixels")}
+             "pixel": ("detector {along}, first",
+                       "a patch, as a moving part of the sample or a localised artefact, not a class of pixels "
+                       "nor all of them")}
 
 
 def _proxy(name: str, test: Test, odd: Test) -> dict:
     """The ``unexplained`` entry of a candidate refused as a proxy: its signature, located where its size changes."""
     axis = odd.payload["axis"]
     strata, suspect = _SUSPECTS[axis]
+    strata = strata.format(along=odd.payload.get("along", ""))
     return {"axis": axis, "statistic": odd.statistic, "dof": odd.dof, "p_value": odd.p_value,
             "where": f"pixels in {len(odd.payload['strata'])} strata by {strata} first: size against the shared fit "
                      + ", ".join(f"{v:.2g}" for v in odd.payload["strata"]),

@@ -203,7 +203,7 @@ def _admitted(effect: EffectBase, ctx: Context, before: State, trial: Trial, *, 
     if trial.astray or not accepts(before.signatures, trial.state.signatures, explain_share=explain_share,
                                    judged=effect.judged_on):
         return False, None
-    odd = effect.consistency(ctx, trial.state)
+    odd = effect.consistency(ctx, before, trial.state)
     if odd is not None and odd.material and odd.log_p < np.log(alpha):
         return False, odd
     return True, None
@@ -292,8 +292,9 @@ def run(effects: Mapping[str, EffectBase], ctx: Context, start: State, *, fit: F
                                 settle=_settled(name, effects, out.steps), alpha=alpha)
                 break
             if odd is not None:
-                log.info("round %d: %s has another size in pixels of another %s (S = %.4g, dof %d): what its test "
-                         "sees is not this effect: rejected", rnd, name, odd.payload["axis"], odd.statistic, odd.dof)
+                where = f"detector {odd.payload['along']}" if "along" in odd.payload else f"{odd.payload['axis']}s"
+                log.info("round %d: %s has another size in pixels of other %s (S = %.4g, dof %d): what its test "
+                         "sees is not this effect: rejected", rnd, name, where, odd.statistic, odd.dof)
                 out.inconsistent[name] = (tests[name], odd)
             else:
                 log.info("round %d: %s removes %.0f %% of the significant residual signatures' excess%s: rejected",

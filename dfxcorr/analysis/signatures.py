@@ -162,11 +162,11 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
     z = np.where(sel, (obs.counts - ibar) / np.sqrt(var), 0.0)
     c = float(np.sum(z ** 2) / np.sum(keep))
     g_true = c * obs.pixel_gain()[obs.pixel]
-    kurt = g_true ** 3 * np.maximum(ibar - obs.dark, 1e-3) / (c * var) ** 2
+    kurt = g_true ** 3 * np.maximum(obs.photons(ibar), 1e-3) / (c * var) ** 2
     e = np.where(sel, z ** 2 - c * keep, 0.0)
     # at a few photons the weighted fit's mean is biased towards low counts: dim samples would give the
     # mean signatures a sign they do not have
-    bright = sel & (np.maximum(ibar - obs.dark, 0.0) >= min_photons * g_true)
+    bright = sel & (np.maximum(obs.photons(ibar), 0.0) >= min_photons * g_true)
     kappa = np.where(sel, c ** 2 * keep ** 2 * (2.0 + kurt), 0.0)
     # the residuals of one pixel are correlated (covariance 1 - H, H its hat matrix): var sum_pixel z^2 =
     # 2 tr((1 - H)^2) = 2 sum (1 - h), not 2 sum (1 - h)^2. Bins that hold whole pixels (rows, columns)

@@ -19,7 +19,7 @@ rejected trial is dropped, never undone.
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 from scipy import stats
 
+from .. import model as M
 from ..align import LitStore
 from ..catalogue import Effect
 from ..io import Reference
@@ -214,6 +215,72 @@ def fit_counts(state: State) -> np.ndarray:
 Realign = Callable[[Observations, "np.ndarray | float"], Observations]
 
 
+def squared_residuals(obs: Observations, params: dict, images: M.Images, exclude: np.ndarray | None = None
+                       ) -> Iterator[tuple[np.ndarray, Observations, np.ndarray, np.ndarray, np.ndarray]]:
+    """A run of columns at a time (:func:`dfxcorr.model.expected_by_columns`): its positions, samples, expected counts
+    (from ``images`` and the model at ``params``), the samples that count (used, of solved pixels, not in
+    ``exclude`` (H, W)) and their squared Pearson residuals (0 elsewhere)."""
+    for cols, sub, im, _, ibar in M.expected_by_columns(obs, params, images):
+        sel = sub.use & im.valid[sub.pixel]
+        if exclude is not None:
+            sel &= ~sub.pixel_mask(exclude)
+        yield cols, sub, ibar, sel, np.where(sel, M.pearson(sub, ibar), 0.0)
+
+
+def pixel_chi2(obs: Observations, params: dict, images: M.Images) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, the Pearson chi-square of its samples under the noise model of ``obs`` and its degrees of
+    freedom (samples - 3), detector images (H, W), 0 where nothing counts."""
+    X, n = np.zeros((obs.starts.size, obs.columns.size)), np.zeros((obs.starts.size, obs.columns.size))
+    for cols, sub, _, sel, z2 in squared_residuals(obs, params, images):
+        X[:, cols], n[:, cols] = sub.segment_sum(z2), sub.segment_sum(sel, dtype=np.float64)
+    return obs.to_image(X, fill=0.0), obs.to_image(np.maximum(n - 3, 0.0), fill=0.0)
+
+
+def line_consistency(factors: np.ndarray, X: np.ndarray, dof: np.ndarray, *, strata: int = 6,
+                     min_pixels: int = 24) -> Test | None:
+    """Whether each pixel class of a factor map has one variance factor along its detector lines.
+
+    A class of pixels whose noise differs (module boundaries, a bad readout line) has it wherever the line runs;
+    a moving part of the sample, or a localised artefact, raises the variance of a patch, which the class's
+    lines only cross. Per class (pixels of one factor other than 1) and per axis, its pixels in ``strata`` groups
+    of equal size by detector row (and by column), a one-way analysis of variance of the per-pixel reduced
+    chi-square X / dof (weights dof) at the fit with the factors in the model: F = the between-strata mean
+    square over the within-strata one (the dispersion is the data's own), F(strata - 1, pixels - strata).
+
+    Returns
+    -------
+    Test or None
+        The strongest over classes and axes (Bonferroni, :func:`~dfxcorr.effects.base.strongest`); ``material``
+        with its spread (the strata's own factors f_s - 1 against the class's f - 1: max - min) for the caller
+        to judge; payload 'axis' 'pixel', 'strata' (f_s - 1) / (f - 1), 'factor'. None without a class to test.
+    """
+    found = {}
+    index = np.indices(factors.shape)
+    for f in np.unique(factors[(factors != 1.0) & (dof > 0)]):
+        m = (factors == f) & (dof > 0)
+        if m.sum() < min_pixels:
+            continue
+        y, w = X[m] / dof[m], dof[m]
+        for name, where in (("rows", index[0][m]), ("columns", index[1][m])):
+            order = np.argsort(where, kind="stable")
+            group = np.empty(order.size, int)
+            group[order] = np.arange(order.size) * strata // order.size
+            W = np.bincount(group, weights=w, minlength=strata)
+            mean = np.bincount(group, weights=w * y, minlength=strata) / W
+            pooled = float(np.sum(w * y) / np.sum(w))
+            between = float(np.sum(W * (mean - pooled) ** 2)) / (strata - 1)
+            within = float(np.sum(w * (y - mean[group]) ** 2)) / max(order.size - strata, 1)
+            F = between / within if within > 0 else 0.0
+            log_p = float(stats.f.logsf(F, strata - 1, max(order.size - strata, 1)))
+            sizes = (f * mean / pooled - 1.0) / (f - 1.0)
+            found[f"{f:.6g} {name}"] = Test(F * (strata - 1), strata - 1, float(np.exp(log_p)), log_p,
+                                            payload={"axis": "pixel", "strata": sizes.tolist(), "factor": float(f),
+                                                     "along": name, "spread": float(np.ptp(sizes))})
+    if not found:
+        return None
+    return strongest(found)[1]
+
+
 class Context(Protocol):
     """What a diagnosis offers the effects it tests."""
 
@@ -325,9 +392,9 @@ class EffectBase:
         """
         return self.role == "noise" or signature["kind"] != "level"
 
-    def consistency(self, ctx: Context, state: State) -> Test | None:
-        """Whether the effect, in the model of its trial fit ``state``, is one effect across the recording: of one
-        size wherever the count or the detector row differs (None: not tested).
+    def consistency(self, ctx: Context, before: State, state: State) -> Test | None:
+        """Whether the effect, in the model of its trial fit ``state`` (from ``before``), is one effect across the
+        recording: of one size wherever the count or the detector row or column differs (None: not tested).
 
         A detector effect in no catalogue can leave the signature of a catalogue effect (a non-linearity a
         second harmonic, a ghost of an earlier frame a change of dose) but not with one size everywhere: a

@@ -232,7 +232,7 @@ class ChannelEffect(EffectBase):
     def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
         return state.hypothesis.but(effects=(*state.hypothesis.effects, self.name))
 
-    def consistency(self, ctx: Context, state: State) -> Test | None:
+    def consistency(self, ctx: Context, before: State, state: State) -> Test | None:
         # by count (a non-linearity, an additive artefact) and by detector row (an artefact on some rows of a
         # frame, as a ghost of an earlier frame): the stronger of the two, Bonferroni over both
         obs, expected = state.fit_obs, state.fit_rec.expected

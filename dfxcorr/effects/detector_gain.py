@@ -23,7 +23,7 @@ from ..catalogue import Effect
 from ..io import Scan, frame_rows, lit_rows
 from ..noise import MIN_SIGNAL
 from ..observations import Observations
-from .base import Context, EffectBase, Hypothesis, State, Test, chi2_test
+from .base import Context, EffectBase, Hypothesis, State, Test, chi2_test, line_consistency, pixel_chi2
 
 #: The least gain the regression returns (detector units per photon): a variance needs a photon term.
 MIN_GAIN = 1e-6
@@ -179,7 +179,7 @@ def noise_model(obs: Observations, ibar: np.ndarray, h: np.ndarray, *, exclude: 
         sel &= ~exclude
     r2 = ((obs.counts - ibar) ** 2 / (1 - h))[sel]
     # the photon variance per unit gain: the mean times the pixel's variance factor (pixel_noise)
-    mu = (np.maximum(ibar - obs.dark, MIN_SIGNAL) * obs.pixel_gain(1.0)[obs.pixel])[sel]
+    mu = (np.maximum(obs.photons(ibar), MIN_SIGNAL) * obs.pixel_gain(1.0)[obs.pixel])[sel]
     fit = NoiseFit(r2, mu, M.variance(obs, ibar)[sel], obs.gain, obs.electronic, (obs.gain, obs.electronic))
     return replace(fit, joint=fit.regression())
 
@@ -225,6 +225,17 @@ class DetectorGain(EffectBase):
         g, e = (test.payload["gain"], test.payload["electronic"]) if state.obs.electronic > 0 else \
             test.payload["profiled"]
         return state.hypothesis.but(noise=replace(state.hypothesis.noise, gain=g, electronic=e))
+
+    def consistency(self, ctx: Context, before: State, state: State) -> Test | None:
+        # a gain scales the variance of every pixel alike: its change must be one factor along the detector's rows
+        # and columns (:func:`line_consistency` with all pixels one class). The variance excess of a moving patch
+        # (sample motion below its per-pixel detection limit) raised the gain by 3 % where it was 1, the patch's
+        # stratum asking for 6.5 times that change and the others for none.
+        f = state.hypothesis.noise.gain / before.hypothesis.noise.gain
+        X, dof = pixel_chi2(state.obs, state.params, state.rec.images)
+        odd = line_consistency(np.where(dof > 0, f, 1.0), X, dof)
+        return None if odd is None else replace(
+            odd, material=odd.payload["spread"] > ctx.cfg["diagnose"]["proxy_spread"])
 
     def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
         return {"gain": after.hypothesis.noise.gain}

@@ -6,7 +6,6 @@ scales each pixel's noise variance in the fit's and the retrieval's weights.
 """
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -29,8 +28,10 @@ from .base import (
     chi2_test,
     fit_counts,
     holm,
+    line_consistency,
+    pixel_chi2,
     ranges,
-    strongest,
+    squared_residuals,
 )
 
 
@@ -60,72 +61,6 @@ def read_pixel_noise(path: str | Path | None, shape: tuple[int, int]) -> np.ndar
 class PixelNoiseError(DfxcorrError, ValueError):
     """A pixel noise map (``load.pixel_noise``) that does not fit the scan."""
 
-
-
-def _squared_residuals(obs: Observations, params: dict, images: M.Images, exclude: np.ndarray | None = None
-                       ) -> Iterator[tuple[np.ndarray, Observations, np.ndarray, np.ndarray, np.ndarray]]:
-    """A run of columns at a time (:func:`dfxcorr.model.expected_by_columns`): its positions, samples, expected counts
-    (from ``images`` and the model at ``params``), the samples that count (used, of solved pixels, not in
-    ``exclude`` (H, W)) and their squared Pearson residuals (0 elsewhere)."""
-    for cols, sub, im, _, ibar in M.expected_by_columns(obs, params, images):
-        sel = sub.use & im.valid[sub.pixel]
-        if exclude is not None:
-            sel &= ~sub.pixel_mask(exclude)
-        yield cols, sub, ibar, sel, np.where(sel, M.pearson(sub, ibar), 0.0)
-
-
-def pixel_chi2(obs: Observations, params: dict, images: M.Images) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel, the Pearson chi-square of its samples under the noise model of ``obs`` and its degrees of
-    freedom (samples - 3), detector images (H, W), 0 where nothing counts."""
-    X, n = np.zeros((obs.starts.size, obs.columns.size)), np.zeros((obs.starts.size, obs.columns.size))
-    for cols, sub, _, sel, z2 in _squared_residuals(obs, params, images):
-        X[:, cols], n[:, cols] = sub.segment_sum(z2), sub.segment_sum(sel, dtype=np.float64)
-    return obs.to_image(X, fill=0.0), obs.to_image(np.maximum(n - 3, 0.0), fill=0.0)
-
-
-def line_consistency(factors: np.ndarray, X: np.ndarray, dof: np.ndarray, *, strata: int = 6,
-                     min_pixels: int = 24) -> Test | None:
-    """Whether each pixel class of a factor map has one variance factor along its detector lines.
-
-    A class of pixels whose noise differs (module boundaries, a bad readout line) has it wherever the line runs;
-    a moving part of the sample, or a localised artefact, raises the variance of a patch, which the class's
-    lines only cross. Per class (pixels of one factor other than 1) and per axis, its pixels in ``strata`` groups
-    of equal size by detector row (and by column), a one-way analysis of variance of the per-pixel reduced
-    chi-square X / dof (weights dof) at the fit with the factors in the model: F = the between-strata mean
-    square over the within-strata one (the dispersion is the data's own), F(strata - 1, pixels - strata).
-
-    Returns
-    -------
-    Test or None
-        The strongest over classes and axes (Bonferroni, :func:`~dfxcorr.effects.base.strongest`); ``material``
-        with its spread (the strata's own factors f_s - 1 against the class's f - 1: max - min) for the caller
-        to judge; payload 'axis' 'pixel', 'strata' (f_s - 1) / (f - 1), 'factor'. None without a class to test.
-    """
-    found = {}
-    index = np.indices(factors.shape)
-    for f in np.unique(factors[(factors != 1.0) & (dof > 0)]):
-        m = (factors == f) & (dof > 0)
-        if m.sum() < min_pixels:
-            continue
-        y, w = X[m] / dof[m], dof[m]
-        for name, where in (("rows", index[0][m]), ("columns", index[1][m])):
-            order = np.argsort(where, kind="stable")
-            group = np.empty(order.size, int)
-            group[order] = np.arange(order.size) * strata // order.size
-            W = np.bincount(group, weights=w, minlength=strata)
-            mean = np.bincount(group, weights=w * y, minlength=strata) / W
-            pooled = float(np.sum(w * y) / np.sum(w))
-            between = float(np.sum(W * (mean - pooled) ** 2)) / (strata - 1)
-            within = float(np.sum(w * (y - mean[group]) ** 2)) / max(order.size - strata, 1)
-            F = between / within if within > 0 else 0.0
-            log_p = float(stats.f.logsf(F, strata - 1, max(order.size - strata, 1)))
-            sizes = (f * mean / pooled - 1.0) / (f - 1.0)
-            found[f"{f:.6g} {name}"] = Test(F * (strata - 1), strata - 1, float(np.exp(log_p)), log_p,
-                                            payload={"axis": "pixel", "strata": sizes.tolist(), "factor": float(f),
-                                                     "along": name, "spread": float(np.ptp(sizes))})
-    if not found:
-        return None
-    return strongest(found)[1]
 
 
 def pixel_noise_test(obs: Observations, params: dict, images: M.Images, *, alpha: float, counts: np.ndarray,
@@ -170,9 +105,9 @@ def pixel_noise_test(obs: Observations, params: dict, images: M.Images, *, alpha
     # per pixel and count bin: the sum of z^2 and the number of samples (float32: a few samples each)
     Z, N = np.zeros((R, C, edges.size + 1), np.float32), np.zeros((R, C, edges.size + 1), np.float32)
     kv_sum = np.zeros((R, C))
-    for cols, sub, ibar, sel, z2 in _squared_residuals(obs, params, images, exclude):
+    for cols, sub, ibar, sel, z2 in squared_residuals(obs, params, images, exclude):
         kv_sum[:, cols] = sub.segment_sum(np.where(sel, 2.0 + sub.pixel_gain()[sub.pixel]
-                                                   / np.maximum(ibar - sub.dark, 1e-3), 0.0))
+                                                   / np.maximum(sub.photons(ibar), 1e-3), 0.0))
         # one bincount per sum over (pixel, count bin) cells, not a segment sum per bin
         cell = ((sub.pixel[:, None] * cols.size + np.arange(cols.size)) * (edges.size + 1)
                 + np.digitize(ibar, edges)).ravel()
@@ -314,7 +249,7 @@ class PixelNoise(EffectBase):
                                 counts=fit_counts(state), fitted=ctx.fitted,
                                 exclude=ndimage.binary_dilation(flagged))
 
-    def consistency(self, ctx: Context, state: State) -> Test | None:
+    def consistency(self, ctx: Context, before: State, state: State) -> Test | None:
         # the classes' factors in the trial's model: each class must have one factor along its lines
         # (:func:`line_consistency`); material where the strata's factors span more than diagnose.proxy_spread
         # times the class's own departure from 1

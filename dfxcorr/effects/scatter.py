@@ -11,9 +11,10 @@ Where it enters: S couples neighbouring pixels, so it cannot be an unknown of th
 solve. It is a known field added to the model's unmodulated offset, the dark (:attr:`LitStore.offset
 <dfxcorr.align.LitStore>`, then :attr:`Observations.dark <dfxcorr.observations.Observations>`), which the
 compiled kernels, the numpy model and the Fisher information all read, so every stage sees the same
-model. Its photons carry shot noise that g (Ibar - dark) leaves out; the kernels take one variance factor
-per pixel, so it enters as the pixel's factor 1 + (mean share of the scatter in its modulated count),
-right on average over the pixel's samples (:attr:`Observations.offset_noise`).
+model. Its photons carry shot noise: each sample's variance counts them (:attr:`Observations.offset
+<dfxcorr.observations.Observations>`). Counted instead as one factor per pixel (its mean share), the
+variance was too low where the modulated count is low: 9.7 % above the noise near the fringe minimum at
+s = 0.1, a fringe-phase signature left unexplained.
 
 The primary needs the transmission t: a retrieval at neutral per-frame parameters over every lit sample,
 then fixed-point updates with the previous t's scatter in the offset. Without the offset t comes out too
@@ -185,45 +186,20 @@ def _at_pixels(grid: np.ndarray, rows: np.ndarray, cols: np.ndarray, b: int) -> 
     return by_row[:, c0] * (1 - c) + by_row[:, c1] * c
 
 
-def retrieved(store: LitStore, reference: Reference, *, modulated: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Transmission and modulated primary from a retrieval at neutral per-frame parameters, block by block of rows.
+def retrieved(store: LitStore, reference: Reference) -> np.ndarray:
+    """Transmission from a retrieval at neutral per-frame parameters, block by block of rows, shape (H, W) (0 where
+    not solvable or not lit).
 
     Every lit sample counts (the region of interest too: the scatter comes from wherever the primary is).
-
-    Returns
-    -------
-    t : ndarray, shape (H, W)
-        Transmission (0 where not solvable or not lit).
-    modulated : ndarray, shape (K, W), float32
-        Expected count minus the offset (dark and any offset of the store) of every sample (counts); (0, W) unless
-        ``modulated``.
     """
     J, H, W = store.shape
     t = np.zeros((H, W))
-    held = np.zeros(store.counts.shape if modulated else (0, W), np.float32)
     ref = replace(reference, phase=np.unwrap(reference.phase, axis=0))
     for r0, r1 in store.row_runs(BLOCK_SAMPLES):
         obs = store.observations(ref, rows=(r0, r1), phase_unwrapped=True)
-        rec = retrieve(obs, {}, keep_expected=modulated)
+        rec = retrieve(obs, {}, keep_expected=False)
         obs.place(t, np.where(rec.images.valid, rec.images.t, 0.0))
-        if modulated:
-            lo, hi = np.searchsorted(store.row, (r0, r1))
-            held[lo:hi] = rec.expected - obs.dark
-    return t, held
-
-
-def with_scatter(store: LitStore, scatter: np.ndarray, modulated: np.ndarray) -> LitStore:
-    """The store with ``scatter`` (K, W) counts as its offset, and their shot noise as per-pixel variance factors.
-
-    The factor of a pixel is 1 + the mean over its samples of scatter / modulated primary (floored at one
-    count, the kernels' floor): the expected Pearson chi-square of the pixel is then right, although each
-    sample's share differs from the mean (the primary follows the fringe and t^f, the scatter not).
-    """
-    rows, starts = np.unique(store.row, return_index=True)
-    share = np.add.reduceat(scatter / np.maximum(modulated, 1.0), starts, axis=0)
-    factor = np.ones(store.shape[1:])
-    factor[rows] = 1.0 + share / np.diff(np.r_[starts, store.row.size])[:, None]
-    return replace(store, offset=scatter.astype(np.float32), offset_noise=factor)
+    return t
 
 
 def scattered(store: LitStore, reference: Reference, setting: Setting, pixel_mm: tuple[float, float] | None
@@ -239,13 +215,14 @@ def scattered(store: LitStore, reference: Reference, setting: Setting, pixel_mm:
         raise ValueError("these samples already hold an unmodulated offset")
     width = kernel_pixels(setting.width_mm, pixel_mm)
 
-    def field(t: np.ndarray) -> np.ndarray:
-        return setting.ratio * unit_scatter(primary(store, reference, t), store.row, store.frame, width)
+    def with_field(t: np.ndarray) -> LitStore:
+        return replace(store, offset=setting.ratio * unit_scatter(primary(store, reference, t), store.row,
+                                                                  store.frame, width))
 
-    t, modulated = retrieved(store, reference)
+    t = retrieved(store, reference)
     for _ in range(UPDATES):
-        t, modulated = retrieved(with_scatter(store, field(t), modulated), reference)
-    return with_scatter(store, field(t), modulated)
+        t = retrieved(with_field(t), reference)
+    return with_field(t)
 
 
 def profile(prep: Any, state: State, setting: Setting) -> tuple[float, float]:
@@ -347,8 +324,8 @@ class Scatter(EffectBase):
             raise ValueError("the scatter correction needs the flat field")
         store = prep.store.shifted(prep.shift) if np.any(prep.shift) else prep.store
         # the shift is read again by the preparation: the store keeps its own u
-        return replace(prep, store=replace(prep.store, **_offsets(scattered(store, prep.reference, setting,
-                                                                             prep.pixel_mm))))
+        return replace(prep, store=replace(prep.store, offset=scattered(store, prep.reference, setting,
+                                                                          prep.pixel_mm).offset))
 
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
         prep = ctx.prepared(state.hypothesis)
@@ -364,7 +341,7 @@ class Scatter(EffectBase):
         key = ("scatter field", state.hypothesis.corrections)
         if key not in ctx.memo:
             store, ref = prep.store, prep.reference
-            t, _ = retrieved(store, ref, modulated=False)
+            t = retrieved(store, ref)
             # the fit's columns only, the primary a frame at a time: a clinical scan's field of every sample was
             # most of its diagnosis's peak memory
             ctx.memo[key] = unit_scatter(primary(store, ref, t), store.row, store.frame,
@@ -415,11 +392,6 @@ class Scatter(EffectBase):
     def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
         return [f"load.scatter={extra['value']:.6g}", f"load.scatter_width_mm={extra['width_mm']:g}"] \
             if extra is not None else []
-
-
-def _offsets(store: LitStore) -> dict:
-    """The offset fields of a store (to move them onto another store of the same samples)."""
-    return {"offset": store.offset, "offset_noise": store.offset_noise}
 
 
 EFFECT = Scatter()
