@@ -113,8 +113,8 @@ def test_unstated_gain_is_named_first_and_alone():
 @pytest.mark.slow
 def test_motion_below_its_detection_limit_is_not_named_a_gain():
     # a patch whose transmission swings by 5 % (half the per-pixel detection limit): its variance excess raised a
-    # gain by 3 %, which a gain cannot do (one factor for every pixel: its strata by row asked for 6.5 times the
-    # change where the patch is and none elsewhere); what the motion mask does not take is located, not explained
+    # gain by 3.1 %, which a gain cannot do (one factor for every pixel: its strata by row asked for 6.85 times the
+    # change where the patch is, -0.7 ... 1.3 elsewhere); what the motion mask does not take is located
     scan, _, cfg = concealed("sample_motion", amplitude=0.05)
     diag = diagnose(scan, cfg)
     found = [e.name for e in diag.effects if e.detected]
