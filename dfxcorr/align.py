@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 from numba import njit, prange
@@ -132,6 +133,14 @@ def gauge_frames(rows_per_frame: np.ndarray, fraction: float) -> np.ndarray:
     return rows >= fraction * rows.max(initial=0)
 
 
+class OffsetField(Protocol):
+    """Known unmodulated photons of a store's samples, given where asked (:class:`LitStore` ``offset``)."""
+
+    def take(self, lo: int = 0, hi: int | None = None, columns: np.ndarray | None = None) -> np.ndarray:
+        """The offsets of blocks [lo, hi) at ``columns`` (default all), shape (hi - lo, C) (counts)."""
+        ...
+
+
 @dataclass
 class LitStore:
     """Every lit sample of a scan in the frames' own dtype, as (row, frame) blocks sorted by row.
@@ -160,12 +169,13 @@ class LitStore:
         Index of the block (row, j - 1) of each of them.
     lag : float
         Detector lag fraction already taken out of ``counts`` (:func:`dfxcorr.effects.detector_lag.without_lag`).
-    offset : ndarray, shape (K, W), or None
+    offset : ndarray, shape (K, W), OffsetField, or None
         Known unmodulated photons of each sample beyond the dark (counts; a correction of the preparation,
         e.g. Compton scatter): the observations add them to ``dark``, the model's additive term, and count
         their shot noise (:attr:`Observations.offset <dfxcorr.observations.Observations>`). A field
         that couples neighbouring pixels cannot enter the per-pixel solve; as a known offset it enters
-        every stage alike (the compiled kernels, the numpy model, the Fisher information). None: none.
+        every stage alike (the compiled kernels, the numpy model, the Fisher information). Held as an array, or
+        as a field that gives it for the samples asked for (a smooth field, made coarse). None: none.
     good : ndarray of bool, shape (K, W), or None
         False for samples left out as detector faults (:meth:`without`); None: every sample is good.
     bad_frames : tuple of int
@@ -183,7 +193,7 @@ class LitStore:
     left_counts: np.ndarray | None = None
     left_prev: np.ndarray | None = None
     lag: float = 0.0
-    offset: np.ndarray | None = None
+    offset: np.ndarray | OffsetField | None = None
     good: np.ndarray | None = None
     bad_frames: tuple[int, ...] = ()
 
@@ -286,8 +296,11 @@ class LitStore:
         # whole rows are taken by row (a 2-d fancy index of every column was most of a block's own time)
         dark = (self.dark[row] if columns is None else self.dark[row[:, None], cols[None, :]]).astype(dtype, copy=False)
         offset = None
-        if self.offset is not None:
+        if isinstance(self.offset, np.ndarray):
             offset = (self.offset[lo:hi] if columns is None else self.offset[lo:hi, cols]).astype(dtype, copy=False)
+        elif self.offset is not None:
+            offset = self.offset.take(lo, hi, cols).astype(dtype, copy=False)
+        if offset is not None:
             dark = dark + offset
         use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
         held = np.ix_(np.unique(row), cols)

@@ -216,12 +216,14 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                    "and large enough that they hold at most this many samples (a large scan's every "
                                    "4th column was most of the diagnosis's time; a 5-step 512 x 1536 flat panel named "
                                    "the same effects on every 8th, 38 -> 22 s)", _NUM, check=_within(1e3, 1e12)),
-        "max_held_samples": Option(2e7, "the per-pixel tests (sample motion, pixel noise, reference offset, the "
-                                        "residual maps) hold at most this many samples: on a larger scan (a "
-                                        "clinical one) they see a band of contiguous columns in the middle of the "
-                                        "detector, and the fit and the residual signatures still see columns spread "
-                                        "over all of it (a full-resolution clinical scan's every column, in float32, "
-                                        "is 5 GB)", _NUM, check=_within(1e4, 1e12)),
+        "max_held_samples": Option(1.5e7, "the per-pixel tests (sample motion, pixel noise, reference offset, the "
+                                          "residual maps) hold at most this many samples: on a larger scan (a "
+                                          "clinical one) they see a band of contiguous columns in the middle of the "
+                                          "detector, and the fit and the residual signatures still see columns "
+                                          "spread over all of it (a full-resolution clinical scan's every column, in "
+                                          "float32, is 5 GB; at 2e7 a binned one's diagnosis peaked at 2.08x its "
+                                          "reconstruction's memory, 1205 against 580 MB, at 1.5e7 1074 MB)", _NUM,
+                                   check=_within(1e4, 1e12)),
         "max_rounds": Option(8, "at most this many effects are added", int, check=_within(1, 100)),
         "motion_p": Option(1e-6, "per-pixel p-value below which a pixel's frames disagree", _NUM, check=_fraction),
         "min_pixels": Option(5, "sample_motion needs at least this many flagged pixels", int, check=_within(1, 1e9)),

@@ -561,8 +561,11 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
     bounds = _bounds(obs)
     # weights in float64 whatever the caller's dtype: one compiled specialisation fewer (about 6 s of a first run)
     start = np.zeros((0, 0)) if weights is None else _c(weights, np.float64)
+    # without known photons in it the dark is its own quiet part: one array (not a second copy of a strided one)
+    dark = _c(obs.dark)
+    quiet = dark if obs.offset is None else _c(obs.quiet)
     coef, valid, inverse, ibar, w, chi2, n_sel = _retrieve(
-        _c(obs.counts), _c(obs.tf), _c(obs.vf), _c(obs.phif), _c(obs.dark), _c(obs.quiet), _c(obs.use), start,
+        _c(obs.counts), _c(obs.tf), _c(obs.vf), _c(obs.phif), dark, quiet, _c(obs.use), start,
         obs.frame, obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), _c(ch.phase, np.float64),
         _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, _c(g, np.float64), float(obs.electronic),
         int(iterations), weights is None, keep_inverse, keep_expected or next_weights, next_weights, TILE)

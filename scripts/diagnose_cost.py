@@ -4,10 +4,11 @@
 Each command runs in a process of its own (peak resident memory from getrusage); the scans are made here
 (the shared 11-step recording, imported; a 5-step 512 x 1536 flat-panel stepping simulation; the paper's
 study at 1 mm), the clinical ones are read from ``--dir`` (made there by ``scripts/benchmark.py clinical --dir``:
-195 frames of 1440 x 1440 and of 2880 x 2880). Writes docs/diagnose-cost.json and prints a table.
+195 frames of 1440 x 1440 and of 2880 x 2880; the binned one with Compton scatter, s = 0.1, is made there by this
+script). Writes docs/diagnose-cost.json and prints a table.
 
-Usage: python scripts/diagnose_cost.py [--cases real stepping paper clinical-binned clinical-full]
-       [--dir /tmp/dfx-bench] [--out docs/]
+Usage: python scripts/diagnose_cost.py [--cases real stepping paper clinical-binned clinical-full
+       clinical-binned-scatter] [--dir /tmp/dfx-bench] [--out docs/]
 """
 from __future__ import annotations
 
@@ -44,6 +45,13 @@ def make(case: str, folder: Path, clinical: Path | None = None) -> tuple[Path, s
     from dfxcorr.io import write_scan
     from dfxcorr.sim import simulate as S
 
+    if case == "clinical-binned-scatter":
+        # the binned clinical scan with Compton scatter (s = 0.1 of the primary, 50 mm kernel), made here once
+        path = (clinical or folder) / f"{case}.h5"
+        if not path.exists():
+            cfg = C.load([str(ROOT / "configs" / "clinical-binned.yaml")], ["effects.scatter=0.1"], schema=S.SCHEMA)
+            S.simulate_file(cfg, path)
+        return path, "configured"
     if case.startswith("clinical-"):
         path = (clinical or folder) / f"{case}.h5"
         if not path.exists():
@@ -80,7 +88,8 @@ def measure(command: str, path: Path, base: str) -> dict:
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", nargs="*", default=["real", "stepping", "paper"],
-                    choices=["real", "stepping", "paper", "clinical-binned", "clinical-full"])
+                    choices=["real", "stepping", "paper", "clinical-binned", "clinical-full",
+                             "clinical-binned-scatter"])
     ap.add_argument("--dir", type=Path, default=None, help="where the clinical scans are")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
     args = ap.parse_args()

@@ -43,8 +43,9 @@ def test_configured_scatter_is_the_simulators_to_a_fraction_of_a_percent():
     truth = true_scatter(store, **SCATTER)
     lit = truth > 0
     # the transmission behind the primary is estimated from the scan itself (two fixed-point updates)
-    assert np.sqrt(np.mean((store.offset - truth)[lit] ** 2)) < 0.01 * np.sqrt(np.mean(truth[lit] ** 2))
-    assert store.offset.sum() / truth.sum() == pytest.approx(1.0, abs=0.003)
+    offset = store.offset.take()
+    assert np.sqrt(np.mean((offset - truth)[lit] ** 2)) < 0.01 * np.sqrt(np.mean(truth[lit] ** 2))
+    assert offset.sum() / truth.sum() == pytest.approx(1.0, abs=0.003)
     assert prepare(scan, C.defaults()).store.offset is None
 
 
@@ -137,14 +138,31 @@ def test_unit_scatter_keeps_the_primarys_total_per_frame_and_its_level_at_the_ed
     row = np.repeat(np.arange(10), 3)
     frame = np.tile(np.arange(3), 10)
     primary = np.full((30, 40), 5.0)
-    out = SC.unit_scatter(lambda idx: primary[idx], row, frame, (4.0, 6.0))
+    out = SC.unit_scatter(lambda idx: primary[idx], row, frame, (4.0, 6.0)).take()
     np.testing.assert_allclose(out, 5.0, rtol=1e-6)  # a uniform primary stays uniform (normalised blur)
     primary = rng.uniform(1, 9, (30, 40))
-    out = SC.unit_scatter(lambda idx: primary[idx], row, frame, (4.0, 6.0))
+    out = SC.unit_scatter(lambda idx: primary[idx], row, frame, (4.0, 6.0)).take()
     for j in range(3):
         assert out[frame == j].sum() == pytest.approx(primary[frame == j].sum(), rel=1e-5)
     with pytest.raises(SC.ScatterError, match="pixel size"):
         SC.kernel_pixels(50.0, None)
+
+
+def test_the_coarse_field_gives_any_run_of_samples_and_columns_as_the_whole():
+    # a kernel of 100 pixels: blocks of 3 x 3; frames lighting rows at different offsets (their own grids)
+    rng = np.random.default_rng(4)
+    row = np.sort(np.concatenate([np.arange(j, j + 40) for j in range(0, 30, 6)]))
+    frame = np.concatenate([np.full(40, j) for j in range(5)])[np.argsort(
+        np.concatenate([np.arange(j, j + 40) for j in range(0, 30, 6)]), kind="stable")]
+    primary = rng.uniform(1, 9, (row.size, 250))
+    S = SC.unit_scatter(lambda idx: primary[idx], row, frame, (100.0, 100.0))
+    assert S.b == 3
+    whole = S.take()
+    cols = np.array([0, 1, 7, 124, 248, 249])
+    np.testing.assert_array_equal(S.take(17, 90, cols), whole[17:90][:, cols])
+    np.testing.assert_allclose(S.scaled(0.1).take(), 0.1 * whole, rtol=3e-7)  # float32 both
+    for j in range(5):
+        assert whole[frame == j].sum() == pytest.approx(primary[frame == j].sum(), rel=1e-3)
 
 
 @pytest.mark.parametrize("sigma", [0.7, 3.2, 167.0])

@@ -14,17 +14,25 @@ compiled kernels, the numpy model and the Fisher information all read, so every 
 model. Its photons carry shot noise: each sample's variance counts them (:attr:`Observations.offset
 <dfxcorr.observations.Observations>`). Counted instead as one factor per pixel (its mean share), the
 variance was too low where the modulated count is low: 9.7 % above the noise near the fringe minimum at
-s = 0.1, a fringe-phase signature left unexplained.
+s = 0.1, a fringe-phase signature left unexplained. The store holds S coarse (:class:`ScatterField`: each
+frame's field on the blur's blocks, interpolated to the samples each stage asks for), not per sample: that
+was 2.2 GB of float32 at full clinical resolution.
 
 The primary needs the transmission t: a retrieval at neutral per-frame parameters over every lit sample,
 then fixed-point updates with the previous t's scatter in the offset. Without the offset t comes out too
 high by the local scatter share (median 23 % at s = 0.1 on the thorax, where the scatter reaches 5x the
 primary behind the spine); each update shrinks that error about fivefold (measured: S off by 8.8 %, 0.86 %,
-0.36 %, 0.35 % RMS after 0-3 updates; the last is the noise of t), so three are taken.
+0.36 %, 0.35 % RMS after 0-3 updates; the last is the noise of t), so three are taken. Where the blur's blocks
+are b > 1 pixels wide, t is retrieved on every b-th column only (:func:`retrieved`): on the binned clinical
+scan with s = 0.1 the estimate moved from 0.097228 to 0.097234 (se 0.0004).
 
-The diagnosis tests s by its efficient score at the configured kernel width, and its trial fits s by
-Gauss-Newton on a grid of widths (the configured one times 1/4 ... 4, then the vertex of a parabola in log
-width through the best three), keeping the width whose weighted least-squares cost is lowest: a wrong
+The diagnosis tests s by its efficient score at the configured kernel width, and its trial fits s on a grid
+of widths (the configured one times 1/4 ... 4, then the vertex of a parabola in log width through the best
+three): for a given S the model is linear in s, so one Gauss-Newton step from s = 0 with the images profiled
+is the weighted least-squares estimate. S follows t, which follows s: the grid uses the t of the test's
+estimate, and s is fitted again with the t of the best setting (two transmissions per trial; one per width
+and step had made a binned clinical scan's diagnosis 206 s, now 49). It keeps the width whose weighted
+least-squares cost is lowest: a wrong
 width misplaces the scatter (measured on the 5 mm test scan: true width 100 mm fitted at 50 mm gave
 s = 0.117 for 0.1). The cost is nearly flat in the width around its minimum while s moves with it (a few
 % per 10 % of width), so the reported se, at the chosen width, understates the error of s.
@@ -54,8 +62,6 @@ from .base import Context, EffectBase, Hypothesis, Preparation, State, Test, chi
 
 #: Fixed-point updates of the transmission behind the primary (see the module's text).
 UPDATES = 3
-#: Gauss-Newton steps of s in a trial (the model is linear in s for a given S; S follows t).
-STEPS = 2
 #: Kernel widths a trial fits s at, relative to the configured one (then refined between the best three).
 WIDTHS = np.array([0.25, 0.5, 1.0, 2.0, 4.0])
 #: Samples per retrieval block of the transmission estimate (about 160 bytes each at the peak).
@@ -112,8 +118,62 @@ def primary(store: LitStore, reference: Reference, t: np.ndarray) -> Callable[[n
     return lambda idx: interpolate_rows(reference.transmission, store.u[idx], dtype=np.float32) * t[store.row[idx]]
 
 
+@dataclass(frozen=True)
+class ScatterField:
+    """S of a store's samples, held coarse: each frame's blurred primary on blocks of b x b pixels (scaled to the
+    frame's total), interpolated to the samples asked for (:meth:`take`). S of every lit sample of a full-resolution
+    clinical scan, in float32, is 2.2 GB; its blocks are about 10 MB.
+
+    Attributes
+    ----------
+    grids : ndarray, shape (J, N, M), float32
+        Frame j's field on blocks (rows from ``origin[j]``, its first ``rows[j]`` block rows), counts per unit s.
+    rows, origin : ndarray of int, shape (J,)
+        Block rows of each frame's grid, and the detector row of its first pixel row.
+    b : int
+        Block side (pixels).
+    row, frame : ndarray of int, shape (K,)
+        Detector row and frame of each block of samples.
+    width : int
+        Detector columns.
+    ratio : float
+        Factor on the field (s).
+    """
+
+    grids: np.ndarray
+    rows: np.ndarray
+    origin: np.ndarray
+    b: int
+    row: np.ndarray
+    frame: np.ndarray
+    width: int
+    ratio: float = 1.0
+
+    def scaled(self, ratio: float) -> ScatterField:
+        """The field times ``ratio``."""
+        return replace(self, ratio=self.ratio * ratio)
+
+    def take(self, lo: int = 0, hi: int | None = None, columns: np.ndarray | None = None) -> np.ndarray:
+        """The field at blocks [lo, hi) and ``columns`` (default all), shape (hi - lo, C), float32: linear
+        interpolation between block centres (held beyond the outer ones); the grid itself where b = 1."""
+        hi = self.row.size if hi is None else hi
+        cols = np.arange(self.width) if columns is None else np.asarray(columns)
+        c0, c1, c = _between(cols, self.grids.shape[2], self.b)
+        out = np.empty((hi - lo, cols.size), np.float32)
+        # about 1e6 values at a time: a clinical scan's every block at once, on a grid of its every column (a kernel
+        # of 12.5 mm at 0.3 mm: b = 1), made 1.3 GB of temporaries
+        step = max(int(1e6 // max(cols.size, self.grids.shape[2], 1)), 1)
+        for a0 in range(lo, hi, step):
+            a1 = min(a0 + step, hi)
+            f = self.frame[a0:a1]
+            r0, r1, a = _between(self.row[a0:a1] - self.origin[f], self.rows[f], self.b)
+            by_row = (self.grids[f, r0] * (1 - a)[:, None] + self.grids[f, r1] * a[:, None]) * self.ratio
+            out[a0 - lo:a1 - lo] = by_row[:, c0] * (1 - c) + by_row[:, c1] * c
+        return out
+
+
 def unit_scatter(primary: Callable[[np.ndarray], np.ndarray], row: np.ndarray, frame: np.ndarray,
-                 width: tuple[float, float], *, columns: np.ndarray | None = None) -> np.ndarray:
+                 width: tuple[float, float]) -> ScatterField:
     """S of every sample: its frame's primary blurred within the frame's lit rows, scaled to the primary's total.
 
     Parameters
@@ -125,80 +185,116 @@ def unit_scatter(primary: Callable[[np.ndarray], np.ndarray], row: np.ndarray, f
         Detector row and frame of each block.
     width : (float, float)
         Kernel std between rows and along a row (pixels).
-    columns : ndarray of int, optional
-        The detector columns to return (default every one); the blur still sees every column.
 
     Returns
     -------
-    ndarray, shape (K, W) or (K, columns), float32
-        S: sum over a frame's samples of S equals that of the primary, so s S has scatter-to-primary ratio s.
-        The blur is normalised by the kernel's weight inside the frame's lit rows and the detector, so the
-        scatter keeps its level up to the edges of the lit band.
+    ScatterField
+        S (``take`` gives it at samples): sum over a frame's samples of S equals that of the primary, so s S has
+        scatter-to-primary ratio s. The blur is normalised by the kernel's weight inside the frame's lit rows and
+        the detector, so the scatter keeps its level up to the edges of the lit band.
     """
-    out: np.ndarray | None = None
+    # the frame's lit band as an image (rows left out by alignment stay empty and get no weight), in blocks of
+    # b x b pixels: a kernel of hundreds of pixels (50 mm at 0.148 mm: 338) is blurred as well on a grid
+    # b = sigma / 32 coarser and interpolated back, at about a b^2-th of the cost (a binned clinical scan,
+    # sigma 169: 7.5 -> 0.8 s, the field within 1e-4 of the pixel-wise blur at the median and 0.7 % at worst,
+    # at the lit band's edges; sigma / 16: 0.6 s, 1.5 %)
+    b = block(width)
+    J = int(frame.max(initial=-1)) + 1
     order = np.argsort(frame, kind="stable")
-    bounds = np.searchsorted(frame[order], np.arange(int(frame.max(initial=-1)) + 2))
-    for j in range(bounds.size - 1):
+    bounds = np.searchsorted(frame[order], np.arange(J + 1))
+    grids: list[np.ndarray] = []
+    rows, origin, W = np.ones(J, int), np.zeros(J, int), 0
+    for j in range(J):
         idx = order[bounds[j]:bounds[j + 1]]
         if idx.size == 0:
+            grids.append(np.zeros((1, 1)))
             continue
         p = primary(idx)
-        if out is None:
-            out = np.zeros((row.size, p.shape[1] if columns is None else len(columns)), np.float32)
-        # the frame's lit band as an image (rows left out by alignment stay empty and get no weight), in blocks of
-        # b x b pixels: a kernel of hundreds of pixels (50 mm at 0.148 mm: 338) is blurred as well on a grid
-        # b = sigma / 32 coarser and interpolated back, at about a b^2-th of the cost (a binned clinical scan,
-        # sigma 169: 7.5 -> 0.8 s, the field within 1e-4 of the pixel-wise blur at the median and 0.7 % at worst,
-        # at the lit band's edges; sigma / 16: 0.6 s, 1.5 %)
-        b = max(int(min(width) // COARSE_PER_SIGMA), 1)
-        local = row[idx] - row[idx].min()
-        nr, nc = -(-(int(local.max()) + 1) // b), -(-p.shape[1] // b)
+        W = p.shape[1]
+        origin[j] = row[idx].min()
+        local = row[idx] - origin[j]
+        nr, nc = -(-(int(local.max()) + 1) // b), -(-W // b)
         band = np.zeros((nr * b, nc * b))
         lit, across = np.zeros(nr * b), np.zeros(nc * b)
-        band[local, :p.shape[1]], lit[local], across[:p.shape[1]] = p, 1.0, 1.0
+        band[local, :W], lit[local], across[:W] = p, 1.0, 1.0
         band, lit, across = band.reshape(nr, b, nc, b).sum(axis=(1, 3)), lit.reshape(nr, b).sum(1), \
             across.reshape(nc, b).sum(1)
         blurred = blur(blur(band, width[0] / b, axis=0), width[1] / b, axis=1)
         inside = np.outer(blur(lit, width[0] / b), blur(across, width[1] / b))
         spread = np.where(inside > 0, blurred / np.where(inside > 0, inside, 1.0), 0.0)
         total = float(np.sum(spread * np.outer(lit, across)))
-        if total > 0:
-            cols = np.arange(p.shape[1]) if columns is None else np.asarray(columns)
-            out[idx] = _at_pixels(spread, local, cols, b) * (p.sum() / total)
-    return np.zeros((row.size, 0), np.float32) if out is None else out
+        grids.append(spread * (p.sum() / total) if total > 0 else np.zeros_like(spread))
+        rows[j] = nr
+    # float32: where b = 1 the grids are every sample's field (a binned clinical scan's at 12.5 mm: 0.25 GB)
+    stack = np.zeros((J, max((g.shape[0] for g in grids), default=1), max((g.shape[1] for g in grids), default=1)),
+                     np.float32)
+    for j, g in enumerate(grids):
+        stack[j, :g.shape[0], :g.shape[1]] = g
+    return ScatterField(stack, rows, origin, b, row, frame, W)
 
 
 #: unit_scatter blurs on blocks of sigma / COARSE_PER_SIGMA pixels (at least one).
 COARSE_PER_SIGMA = 32
 
 
-def _at_pixels(grid: np.ndarray, rows: np.ndarray, cols: np.ndarray, b: int) -> np.ndarray:
-    """Values of a field given on blocks of b x b pixels (centres at (i + 1/2) b) at pixel rows x columns, by
-    linear interpolation between block centres (held beyond the outer ones); the grid itself where b = 1."""
-    def weights(pixels: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        at = np.clip((pixels + 0.5) / b - 0.5, 0, n - 1)
-        lo = np.minimum(np.floor(at).astype(int), n - 1)
-        return lo, np.minimum(lo + 1, n - 1), at - lo
-
-    r0, r1, a = weights(rows, grid.shape[0])
-    c0, c1, c = weights(cols, grid.shape[1])
-    by_row = grid[r0] * (1 - a)[:, None] + grid[r1] * a[:, None]
-    return by_row[:, c0] * (1 - c) + by_row[:, c1] * c
+def block(width: tuple[float, float]) -> int:
+    """The side (pixels) of the blocks on which :func:`unit_scatter` blurs, for a kernel of std ``width``."""
+    return max(int(min(width) // COARSE_PER_SIGMA), 1)
 
 
-def retrieved(store: LitStore, reference: Reference) -> np.ndarray:
+def _between(pixels: np.ndarray, n: np.ndarray | int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The block centres (at (i + 1/2) b) each pixel lies between, and its weight on the second: lower and upper
+    index and fraction, held at the outer centres (``n`` blocks, per pixel or one for all)."""
+    at = np.clip((pixels + 0.5) / b - 0.5, 0, np.asarray(n) - 1)
+    lo = np.minimum(np.floor(at).astype(int), np.asarray(n) - 1)
+    return lo, np.minimum(lo + 1, np.asarray(n) - 1), at - lo
+
+
+def retrieved(store: LitStore, reference: Reference, *, step: int = 1) -> np.ndarray:
     """Transmission from a retrieval at neutral per-frame parameters, block by block of rows, shape (H, W) (0 where
     not solvable or not lit).
 
-    Every lit sample counts (the region of interest too: the scatter comes from wherever the primary is).
+    Every lit sample counts (the region of interest too: the scatter comes from wherever the primary is). With
+    ``step`` > 1 only every step-th column is retrieved and stands for the strip of ``step`` columns around it:
+    enough for a primary that :func:`unit_scatter` sums on blocks of that side (:func:`block`) before a blur of 32
+    of them, at a step-th of the cost (a binned clinical scan: step 5; its diagnosis with scatter retrieved every
+    lit sample 13 times).
     """
     J, H, W = store.shape
-    t = np.zeros((H, W))
+    cols = np.arange(step // 2, W, step) if step > 1 else None
+    held = np.zeros((H, W if cols is None else cols.size))
     ref = replace(reference, phase=np.unwrap(reference.phase, axis=0))
-    for r0, r1 in store.row_runs(BLOCK_SAMPLES):
-        obs = store.observations(ref, rows=(r0, r1), phase_unwrapped=True)
+    for r0, r1 in store.row_runs(BLOCK_SAMPLES * step):
+        obs = store.observations(ref, columns=cols, rows=(r0, r1), phase_unwrapped=True)
         rec = retrieve(obs, {}, keep_expected=False)
-        obs.place(t, np.where(rec.images.valid, rec.images.t, 0.0))
+        rows = obs.rows
+        held[rows] = np.where(rec.images.valid, rec.images.t, 0.0)
+    return held if cols is None else held[:, np.minimum(np.arange(W) // step, cols.size - 1)]
+
+
+def field(store: LitStore, reference: Reference, t: np.ndarray, width: tuple[float, float]) -> ScatterField:
+    """S of the store's samples with the primary of transmission ``t`` (H, W) and a kernel of std ``width``
+    (pixels: between rows, along a row), counts per unit s."""
+    return unit_scatter(primary(store, reference, t), store.row, store.frame, width)
+
+
+def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_mm: tuple[float, float] | None
+                 ) -> np.ndarray:
+    """The sample's transmission (H, W) under the scatter of ``setting``: a retrieval without it, then
+    :data:`UPDATES` fixed-point updates with the previous transmission's scatter in the offset.
+
+    Raises
+    ------
+    ValueError
+        If the store already holds an offset.
+    """
+    if store.offset is not None:
+        raise ValueError("these samples already hold an unmodulated offset")
+    width = kernel_pixels(setting.width_mm, pixel_mm)
+    t = retrieved(store, reference, step=block(width))
+    for _ in range(UPDATES):
+        t = retrieved(replace(store, offset=field(store, reference, t, width).scaled(setting.ratio)), reference,
+                      step=block(width))
     return t
 
 
@@ -211,25 +307,16 @@ def scattered(store: LitStore, reference: Reference, setting: Setting, pixel_mm:
     ValueError
         If the store already holds an offset.
     """
-    if store.offset is not None:
-        raise ValueError("these samples already hold an unmodulated offset")
-    width = kernel_pixels(setting.width_mm, pixel_mm)
-
-    def with_field(t: np.ndarray) -> LitStore:
-        return replace(store, offset=setting.ratio * unit_scatter(primary(store, reference, t), store.row,
-                                                                  store.frame, width))
-
-    t = retrieved(store, reference)
-    for _ in range(UPDATES):
-        t = retrieved(with_field(t), reference)
-    return with_field(t)
+    t = transmission(store, reference, setting, pixel_mm)
+    return replace(store, offset=field(store, reference, t, kernel_pixels(setting.width_mm, pixel_mm)).scaled(
+        setting.ratio))
 
 
-def profile(prep: Any, state: State, setting: Setting) -> tuple[float, float]:
-    """s by Gauss-Newton at the setting's kernel width from its ratio, at the fit's per-frame parameters.
+def profile(prep: Any, state: State, t: np.ndarray, width_mm: float) -> tuple[float, float]:
+    """s at a kernel width, the primary's transmission ``t`` given, at the fit's per-frame parameters.
 
-    The model is linear in s for a given field S (the images profiled per pixel), so a step is exact for that
-    S; S follows the transmission estimated under s, so :data:`STEPS` steps are taken.
+    For a given field S the model is linear in s and the images are profiled per pixel: one Gauss-Newton step
+    from s = 0 is the weighted least-squares estimate, exactly.
 
     Parameters
     ----------
@@ -237,34 +324,29 @@ def profile(prep: Any, state: State, setting: Setting) -> tuple[float, float]:
         The preparation of the fit's hypothesis (without scatter).
     state : State
         The fit: its per-frame parameters and the samples of its columns (their use, noise model and alignment).
-    setting : Setting
-        Kernel width, and the ratio to start from.
+    t : ndarray, shape (H, W)
+        Transmission behind the primary (:func:`transmission`).
+    width_mm : float
+        Kernel std (mm at the detector).
 
     Returns
     -------
     s : float
         The estimate (at least 0).
     cost : float
-        The weighted least-squares cost (the fit's weights) that the last step predicts at it, images profiled.
+        The weighted least-squares cost (the fit's weights) at it, images profiled.
     """
-    s, chi2 = setting.ratio, np.inf
     # the fit's weights, the same for every candidate: the Pearson chi-square's variance floors would turn a
     # candidate that over-subtracts somewhere into a huge cost (measured: 164137 at 50 mm against 118789 at
     # 100 mm, the true width, and 2e7 at 200 mm), and without the scatter in the model its variance is in t.
     # On the fit's columns, as its test: every held column's solve was (K, C) float64 arrays times seven
     weights = state.fit_rec.weights
-    for _ in range(STEPS):
-        if s <= 0:
-            break
-        store = scattered(prep.store, prep.reference, replace(setting, ratio=s), pixel_mm(prep.scan))
-        obs = realign(store, prep.reference, state.fit_obs, state.hypothesis.shift)
-        images = M.solve_images(obs, M.design(obs, state.params), weights)
-        assert store.offset is not None
-        U, info, _, cost = score(obs, state.params, images, weights,
-                                 store.offset[:, obs.columns].astype(np.float64) / s)
-        step = max(U / info, -s)
-        s, chi2 = s + step, cost - info * step * (2 * U / info - step)
-    return s, chi2
+    obs = realign(prep.store, prep.reference, state.fit_obs, state.hypothesis.shift)
+    S = field(prep.store, prep.reference, t, kernel_pixels(width_mm, pixel_mm(prep.scan))).take(columns=obs.columns)
+    images = M.solve_images(obs, M.design(obs, state.params), weights)
+    U, info, _, cost = score(obs, state.params, images, weights, S.astype(np.float64))
+    s = max(U / info, 0.0)
+    return s, cost - info * s * (2 * U / info - s)
 
 
 def score(obs: Observations, params: dict, images: M.Images, weights: np.ndarray, field_: np.ndarray
@@ -340,12 +422,11 @@ class Scatter(EffectBase):
         # share of S's information left after profiling the images is ~1e-31 (5-step simulation), in a scan ~0.1
         key = ("scatter field", state.hypothesis.corrections)
         if key not in ctx.memo:
-            store, ref = prep.store, prep.reference
-            t = retrieved(store, ref)
             # the fit's columns only, the primary a frame at a time: a clinical scan's field of every sample was
             # most of its diagnosis's peak memory
-            ctx.memo[key] = unit_scatter(primary(store, ref, t), store.row, store.frame,
-                                         kernel_pixels(width_mm, pixel_mm(prep.scan)), columns=state.fit_obs.columns)
+            width = kernel_pixels(width_mm, pixel_mm(prep.scan))
+            ctx.memo[key] = field(prep.store, prep.reference, retrieved(prep.store, prep.reference, step=block(width)),
+                                  width).take(columns=state.fit_obs.columns)
         # on the fit's columns, as the channel effects' tests: the score of every column was a fifth of the paper
         # study's tests (a stepping recording shows its ~1e-31 share of information there as well)
         obs = state.fit_obs
@@ -363,10 +444,12 @@ class Scatter(EffectBase):
         hyp = state.hypothesis
         prep = ctx.prepared(hyp)
         start = max(test.payload["value"], 0.0)
-        # The kernel's width is profiled too: a wrong one misplaces the scatter (measured: true 100 mm fitted with
-        # 50 mm gave s = 0.117 for 0.1 and a dark field 12 % low), so s is fitted on a grid of widths, factor 2
-        # apart around the configured one, then at the vertex of a parabola in log width through the best three
-        fitted = {w: profile(prep, state, Setting(start, w)) for w in test.payload["width_mm"] * WIDTHS}
+        # the kernel's width is profiled too (a wrong one misplaces the scatter: true 100 mm fitted with 50 mm gave
+        # s = 0.117 for 0.1 and a dark field 12 % low); the search's t at the test's estimate, the final one at the
+        # best setting (the module's text)
+        configured = float(test.payload["width_mm"])
+        t = transmission(prep.store, prep.reference, Setting(start, configured), pixel_mm(prep.scan))
+        fitted = {w: profile(prep, state, t, w) for w in configured * WIDTHS}
         widths = sorted(fitted)
         best = min(range(len(widths)), key=lambda i: fitted[widths[i]][1])
         if 0 < best < len(widths) - 1:
@@ -374,9 +457,12 @@ class Scatter(EffectBase):
             a, b, _ = np.polyfit(x, [fitted[w][1] for w in widths[best - 1:best + 2]], 2)
             if a > 0:
                 w = float(np.exp(np.clip(-b / (2 * a), x[0], x[2])))
-                fitted[w] = profile(prep, state, Setting(fitted[widths[best]][0], w))
+                fitted[w] = profile(prep, state, t, w)
         width_mm = float(min(fitted, key=lambda w: fitted[w][1]))
-        return hyp.but(corrections=(*hyp.corrections, (self.name, Setting(fitted[width_mm][0], width_mm))))
+        t = transmission(prep.store, prep.reference, Setting(fitted[width_mm][0], width_mm),
+                         pixel_mm(prep.scan))
+        s, _ = profile(prep, state, t, width_mm)
+        return hyp.but(corrections=(*hyp.corrections, (self.name, Setting(s, width_mm))))
 
     def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
         setting = dict(after.hypothesis.corrections)[self.name]

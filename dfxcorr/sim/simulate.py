@@ -392,7 +392,7 @@ class Simulation:
             # the model's own scatter field (one definition of the physics), of this frame's true primary
             width = e["scatter_width_mm"] / self.cfg["simulate"]["pixel_mm"]
             ibar = ibar + e["scatter"] * unit_scatter(primary.__getitem__, row, np.zeros(row.size, int),
-                                                      (width, width))
+                                                      (width, width)).take()
         return int(row[0]), _detect(ibar, self.cfg, np.random.default_rng(self._streams[j]),
                                     factor=self.noise_factor[row])
 
