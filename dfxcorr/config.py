@@ -236,10 +236,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                       " the decisions must not depend on it", str,
                         choices=("mean-first", "noise-first")),
         "proxy_spread": Option(1.0, "a candidate whose size, estimated on pixels in strata of count or of detector "
-                                    "row, spans more than this many times the shared fit's (and significantly) is "
-                                    "refused as a proxy for an effect in no catalogue: a real effect has one size (a "
-                                    "true harmonic spanned 0.37, a non-linearity's harmonic and a ghost's dose "
-                                    "5.4-5.7)",
+                                    "row or column, spans more than this many times the shared fit's (and "
+                                    "significantly) is refused as a proxy for an effect in no catalogue: a real "
+                                    "effect has one size (a true harmonic spanned 0.37, a non-linearity's harmonic "
+                                    "and a ghost's dose 5.4-5.7)",
                                _NUM, check=_nonneg),
         "min_gain_change": Option(0.01, "detector_gain is reported only when the gain also moves by more than this "
                                         "fraction (a practical floor: with millions of samples smaller changes are "

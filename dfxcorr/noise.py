@@ -15,7 +15,7 @@ import numpy as np
 
 from .observations import Observations
 
-#: The least signal (detector units above the dark) whose photon noise the variance counts.
+#: The least photon signal (detector units, :meth:`Observations.photons`) whose noise the variance counts.
 MIN_SIGNAL = 1.0
 
 

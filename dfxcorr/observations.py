@@ -23,7 +23,8 @@ def lateral_coordinate(columns: np.ndarray, width: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Noise:
-    """The noise description of a detector: variance = f_i * gain * (Ibar - dark) + electronic.
+    """The noise description of a detector: variance = f_i * gain * photons + electronic (photons: Ibar minus the
+    detector's dark, :meth:`Observations.photons`).
 
     Attributes
     ----------
@@ -67,9 +68,10 @@ class Observations:
     gain : float
         Detector units per photon.
     electronic : float
-        Electronic noise variance (counts^2); the variance of a sample is gain * (Ibar - dark) + electronic.
+        Electronic noise variance (counts^2); the variance of a sample is gain * photons + electronic
+        (:meth:`photons`).
     noise : ndarray, shape (R, C), or None
-        Variance factor f of each pixel held (``pixel_noise``): the variance is f * gain * (Ibar - dark)
+        Variance factor f of each pixel held (``pixel_noise``): the variance is f * gain * photons
         + electronic; None: 1 everywhere.
     roi : ndarray of bool, shape (K, C), or None
         The region of interest: samples whose flat field carries a fringe. None: every sample.

@@ -118,9 +118,7 @@ def test_motion_below_its_detection_limit_is_not_named_a_gain():
     scan, _, cfg = concealed("sample_motion", amplitude=0.05)
     diag = diagnose(scan, cfg)
     found = [e.name for e in diag.effects if e.detected]
-    assert set(found) <= {"sample_motion"}, found
-    gain = next(e for e in diag.effects if e.name == "detector_gain")
-    assert gain.extra.get("refused_as_proxy") == "pixel" or not gain.detected, gain.extra
+    assert set(found) <= {"sample_motion"}, found  # before: detector_gain (1.03), then sample_motion
     assert diag.unexplained, "the motion's misfit left over is located"
 
 

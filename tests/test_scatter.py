@@ -42,7 +42,7 @@ def test_configured_scatter_is_the_simulators_to_a_fraction_of_a_percent():
     store = prepare(scan, C.load([], CORRECTED)).store
     truth = true_scatter(store, **SCATTER)
     lit = truth > 0
-    # the transmission behind the primary is estimated from the scan itself (two fixed-point updates)
+    # the transmission behind the primary is estimated from the scan itself (three fixed-point updates)
     offset = store.offset.take()
     assert np.sqrt(np.mean((offset - truth)[lit] ** 2)) < 0.01 * np.sqrt(np.mean(truth[lit] ** 2))
     assert offset.sum() / truth.sum() == pytest.approx(1.0, abs=0.003)
@@ -101,8 +101,7 @@ def test_diagnose_names_scatter_first_and_estimates_s_within_its_noise():
     extra = diag.effects[0].extra
     # measured: 0.1003 (se 0.0007) against 0.1, the fit's reduced chi-square 1.170 -> 1.008. Seeds 12-18 gave
     # 0.0975-0.0998 (mean of all eight 0.0990, sd 0.0010): the spread is above the se, which counts neither the
-    # width's uncertainty, the noise of the t behind S nor the per-pixel approximation of the scatter's shot
-    # noise, hence 4 se
+    # width's uncertainty nor the noise of the t behind S, hence 4 se
     assert abs(extra["value"] - truth["scatter"]) < 4 * extra["se"] and extra["se"] < 0.002, extra
     assert diag.final_chi2 < 1.015 < diag.initial_chi2
     settings = diag.registry["scatter"].settings(C.defaults(), diag.final, extra, Path("."))
@@ -146,6 +145,19 @@ def test_unit_scatter_keeps_the_primarys_total_per_frame_and_its_level_at_the_ed
         assert out[frame == j].sum() == pytest.approx(primary[frame == j].sum(), rel=1e-5)
     with pytest.raises(SC.ScatterError, match="pixel size"):
         SC.kernel_pixels(50.0, None)
+
+
+def test_the_transmission_on_every_bth_column_stands_for_its_strip():
+    scan, _ = S.simulate(sim_config(**SCATTER))
+    prep = prepare(scan, C.defaults())
+    full = SC.retrieved(prep.store, prep.reference)
+    W = full.shape[1]
+    # 102 columns in strips of 4 (retrieved at 2, 6, ..., 98): the last strip, columns 100 and 101, takes column 98
+    t = SC.retrieved(prep.store, prep.reference, step=4)
+    np.testing.assert_allclose(t, full[:, np.minimum(np.arange(W) // 4, 24) * 4 + 2], rtol=1e-12)
+    # a step wider than the detector: its last column stands for all (a kernel far wider than the detector)
+    t = SC.retrieved(prep.store, prep.reference, step=2 * W + 1)
+    np.testing.assert_allclose(t, np.repeat(full[:, [W - 1]], W, axis=1), rtol=1e-12)
 
 
 def test_the_coarse_field_gives_any_run_of_samples_and_columns_as_the_whole():

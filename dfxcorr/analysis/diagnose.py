@@ -155,7 +155,7 @@ def held_band(width: int, samples_per_column: int, *, most: float) -> np.ndarray
 #: What a catalogue effect of another size along each axis of :meth:`EffectBase.consistency` suggests.
 _SUSPECTS = {"count": ("expected count, dimmest", "a detector non-linearity or an additive artefact"),
              "row": ("detector row, top", "an artefact on some rows, as a ghost of an earlier frame"),
-             "pixel": ("detector {along}, first",
+             "pixel": ("detector {along}, lowest index",
                        "a patch, as a moving part of the sample or a localised artefact, not a class of pixels "
                        "nor all of them")}
 
@@ -169,7 +169,8 @@ def _proxy(name: str, test: Test, odd: Test) -> dict:
             "where": f"pixels in {len(odd.payload['strata'])} strata by {strata} first: size against the shared fit "
                      + ", ".join(f"{v:.2g}" for v in odd.payload["strata"]),
             "description": f"the signature of {name} (S = {test.statistic:.4g}, dof {test.dof}), but of a size that "
-                           f"changes with the {axis}: no catalogue effect ({suspect}?)"}
+                           f"changes {'across the detector' if axis == 'pixel' else f'with the {axis}'}: no "
+                           f"catalogue effect ({suspect}?)"}
 
 
 def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, base: str = "configured",

@@ -36,8 +36,8 @@ class NoiseFit:
     Attributes
     ----------
     r2, mean, variance : ndarray, shape (N,)
-        (I - Ibar)^2 / (1 - h), the photon signal per unit gain (Ibar - dark times the pixel's factor) and the
-        current variance of each sample.
+        (I - Ibar)^2 / (1 - h), the photon signal per unit gain (:meth:`Observations.photons` times the pixel's
+        factor) and the current variance of each sample.
     gain, electronic : float
         The current noise model.
     joint : (float, float)
@@ -167,7 +167,7 @@ def unlit_readout(scan: Scan, *, frames: int = UNLIT_FRAMES, rows: int = UNLIT_R
 
 def noise_model(obs: Observations, ibar: np.ndarray, h: np.ndarray, *, exclude: np.ndarray | None = None
                 ) -> NoiseFit:
-    """The noise model fitted to the residuals: E[r^2 / (1 - h)] = g (Ibar - dark) + sigma_e^2.
+    """The noise model fitted to the residuals: E[r^2 / (1 - h)] = g photons + sigma_e^2 (:meth:`Observations.photons`).
 
     Squared residuals are divided by 1 - h (h (K, C) the leverage of the sample in the fit: its pixel's images,
     and the per-frame parameters where they were fitted on these samples): the fit removes that share of each
@@ -231,8 +231,11 @@ class DetectorGain(EffectBase):
         # and columns (:func:`line_consistency` with all pixels one class). The variance excess of a moving patch
         # (sample motion below its per-pixel detection limit) raised the gain by 3.1 % where it was 1, the strata by
         # row asking for -0.70, -0.74, 1.31, 6.85, -0.59, -0.12 times that change (a true 1.05: 0.77 ... 1.24).
-        f = state.hypothesis.noise.gain / before.hypothesis.noise.gain
         X, dof = pixel_chi2(state.obs, state.params, state.rec.images)
+        # the change of the variance, pooled over the pixels: the trial may refit the electronic noise with the gain,
+        # so the gain's ratio alone is not it (a gain moved by 0.5 % would make its strata's noise a spread of 1)
+        X0, _ = pixel_chi2(state.obs.with_noise(before.hypothesis.noise), state.params, state.rec.images)
+        f = float(X0.sum() / max(X.sum(), 1e-300))
         odd = line_consistency(np.where(dof > 0, f, 1.0), X, dof)
         return None if odd is None else replace(
             odd, material=odd.payload["spread"] > ctx.cfg["diagnose"]["proxy_spread"])

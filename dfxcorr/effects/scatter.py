@@ -255,13 +255,14 @@ def retrieved(store: LitStore, reference: Reference, *, step: int = 1) -> np.nda
     not solvable or not lit).
 
     Every lit sample counts (the region of interest too: the scatter comes from wherever the primary is). With
-    ``step`` > 1 only every step-th column is retrieved and stands for the strip of ``step`` columns around it:
+    ``step`` > 1 only every step-th column is retrieved and stands for its strip of ``step`` columns (the last strip
+    short of a retrieved column: the one before):
     enough for a primary that :func:`unit_scatter` sums on blocks of that side (:func:`block`) before a blur of 32
     of them, at a step-th of the cost (a binned clinical scan: step 5; its diagnosis with scatter retrieved every
     lit sample 13 times).
     """
     J, H, W = store.shape
-    cols = np.arange(step // 2, W, step) if step > 1 else None
+    cols = np.arange(min(step // 2, W - 1), W, step) if step > 1 else None
     held = np.zeros((H, W if cols is None else cols.size))
     ref = replace(reference, phase=np.unwrap(reference.phase, axis=0))
     for r0, r1 in store.row_runs(BLOCK_SAMPLES * step):
