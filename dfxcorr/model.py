@@ -451,6 +451,12 @@ def expected_by_columns(obs: Observations, params: dict, images: Images, *, samp
         yield cols, sub, im, dsg, expected(sub, dsg, im)
 
 
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Angles (rad) wrapped to [-pi, pi), same shape: by a modulo (the complex exp and angle cost a per-sample pass
+    of the residual signatures several times over)."""
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
 def circular_mean(phi: np.ndarray, weights: np.ndarray | None = None) -> float:
     """arg(sum_k w_k exp(i phi_k)) (paper eq. 37), ignoring non-finite entries."""
     ok = np.isfinite(phi)

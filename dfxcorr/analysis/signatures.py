@@ -73,7 +73,7 @@ def locate(obs: M.Observations, params: dict, images: M.Images, *, counts: np.nd
         frame_n += sub.frame_sum(used.sum(axis=1))
         with np.errstate(invalid="ignore", divide="ignore"):
             xs[cols] = np.nansum(z2, axis=0) / used.sum(axis=0)
-        phase += _binned(np.angle(np.exp(1j * (dsg.theta + im.phi[sub.pixel]))), z2, edges)
+        phase += _binned(M.wrap_angle(dsg.theta + im.phi[sub.pixel]), z2, edges)
         count += _binned(ibar, z2, cedges)
     with np.errstate(invalid="ignore", divide="ignore"):
         pixel = obs.to_image(z2_pixel / (n - 3))
@@ -178,7 +178,7 @@ def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float
     kappa_pixels *= tails
     K, C_ = obs.counts.shape
     frame = np.broadcast_to(obs.frame[:, None], (K, C_))
-    psi = np.angle(np.exp(1j * (dsg.theta + images.phi[obs.pixel])))
+    psi = M.wrap_angle(dsg.theta + images.phi[obs.pixel])
     pedges = np.linspace(-np.pi, np.pi, 17)
     cedges = np.quantile(ibar[sel], np.linspace(0, 1, 13)) if sel.any() else np.arange(13.0)
     labels = {

@@ -227,13 +227,18 @@ def squared_residuals(obs: Observations, params: dict, images: M.Images, exclude
         yield cols, sub, ibar, sel, np.where(sel, M.pearson(sub, ibar), 0.0)
 
 
-def pixel_chi2(obs: Observations, params: dict, images: M.Images) -> tuple[np.ndarray, np.ndarray]:
+def pixel_chi2(obs: Observations, params: dict, images: M.Images, *, under: Noise | None = None
+               ) -> tuple[np.ndarray, np.ndarray, float]:
     """Per pixel, the Pearson chi-square of its samples under the noise model of ``obs`` and its degrees of
-    freedom (samples - 3), detector images (H, W), 0 where nothing counts."""
+    freedom (samples - 3), detector images (H, W), 0 where nothing counts; and the whole chi-square of the same
+    residuals under the noise model ``under`` (nan without it), in the same pass over the samples."""
     X, n = np.zeros((obs.starts.size, obs.columns.size)), np.zeros((obs.starts.size, obs.columns.size))
-    for cols, sub, _, sel, z2 in squared_residuals(obs, params, images):
+    total = 0.0 if under is not None else np.nan
+    for cols, sub, ibar, sel, z2 in squared_residuals(obs, params, images):
         X[:, cols], n[:, cols] = sub.segment_sum(z2), sub.segment_sum(sel, dtype=np.float64)
-    return obs.to_image(X, fill=0.0), obs.to_image(np.maximum(n - 3, 0.0), fill=0.0)
+        if under is not None:
+            total += float(np.sum(M.pearson(sub.with_noise(under), ibar), where=sel))
+    return obs.to_image(X, fill=0.0), obs.to_image(np.maximum(n - 3, 0.0), fill=0.0), total
 
 
 def line_consistency(factors: np.ndarray, X: np.ndarray, dof: np.ndarray, *, strata: int = 6,

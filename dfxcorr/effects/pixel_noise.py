@@ -256,7 +256,7 @@ class PixelNoise(EffectBase):
         factors = state.hypothesis.noise.factors
         if factors is None:
             return None
-        X, dof = pixel_chi2(state.obs, state.params, state.rec.images)
+        X, dof, _ = pixel_chi2(state.obs, state.params, state.rec.images)
         odd = line_consistency(factors, X, dof)
         return None if odd is None else replace(
             odd, material=odd.payload["spread"] > ctx.cfg["diagnose"]["proxy_spread"])

@@ -28,10 +28,6 @@ from ..retrieve import per_dof, retrieve
 from .base import Context, EffectBase, Hypothesis, Preparation, Realign, State, Test, chi2_test
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return np.angle(np.exp(1j * a))
-
-
 def _third_difference(a: np.ndarray) -> np.ndarray:
     """a[c+2] - 3 a[c+1] + 3 a[c] - a[c-1] along columns, shape (R, C - 3): zero for any quadratic in c."""
     return a[:, 3:] - 3 * a[:, 2:-1] + 3 * a[:, 1:-2] - a[:, :-3]
@@ -109,10 +105,10 @@ def offset_test(realigned: Realign, obs: Observations, params: dict, shift: np.n
     images, chi2 = _realigned_images(realigned, obs, params, shift, keep_inverse=True)
     phi, var = images.phi, phase_variance(images, max(chi2, 1.0))
     plus, minus = (_realigned_images(realigned, obs, params, shift + d)[0] for d in (step, -step))
-    sens = _wrap(plus.phi - minus.phi) / (2 * step)
+    sens = M.wrap_angle(plus.phi - minus.phi) / (2 * step)
     ok4 = images.valid & plus.valid & minus.valid & np.isfinite(var)
     ok = ok4[:, 3:] & ok4[:, 2:-1] & ok4[:, 1:-2] & ok4[:, :-3]
-    f_phi = np.where(ok, _wrap(_third_difference(np.where(ok4, phi, 0.0))), 0.0)
+    f_phi = np.where(ok, M.wrap_angle(_third_difference(np.where(ok4, phi, 0.0))), 0.0)
     f_s = np.where(ok, _third_difference(np.where(ok4, sens, 0.0)), 0.0)
     v = np.nan_to_num(var)
     f_var = np.where(ok, v[:, 3:] + 9 * v[:, 2:-1] + 9 * v[:, 1:-2] + v[:, :-3], np.inf)
