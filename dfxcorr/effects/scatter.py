@@ -313,11 +313,12 @@ def scattered(store: LitStore, reference: Reference, setting: Setting, pixel_mm:
         setting.ratio))
 
 
-def profile(prep: Any, state: State, t: np.ndarray, width_mm: float) -> tuple[float, float]:
-    """s at a kernel width, the primary's transmission ``t`` given, at the fit's per-frame parameters.
+def profiler(prep: Any, state: State) -> Callable[[np.ndarray, float], tuple[float, float]]:
+    """(t, width_mm) -> s at that kernel width and transmission behind the primary, at the fit's per-frame parameters.
 
     For a given field S the model is linear in s and the images are profiled per pixel: one Gauss-Newton step
-    from s = 0 is the weighted least-squares estimate, exactly.
+    from s = 0 is the weighted least-squares estimate, exactly. The samples and the images at s = 0 are made once,
+    for every width and transmission a trial tries.
 
     Parameters
     ----------
@@ -325,17 +326,12 @@ def profile(prep: Any, state: State, t: np.ndarray, width_mm: float) -> tuple[fl
         The preparation of the fit's hypothesis (without scatter).
     state : State
         The fit: its per-frame parameters and the samples of its columns (their use, noise model and alignment).
-    t : ndarray, shape (H, W)
-        Transmission behind the primary (:func:`transmission`).
-    width_mm : float
-        Kernel std (mm at the detector).
 
     Returns
     -------
-    s : float
-        The estimate (at least 0).
-    cost : float
-        The weighted least-squares cost (the fit's weights) at it, images profiled.
+    callable
+        (t (H, W) the transmission behind the primary (:func:`transmission`), kernel std in mm at the detector) ->
+        (s, at least 0; the weighted least-squares cost at it with the fit's weights, images profiled).
     """
     # the fit's weights, the same for every candidate: the Pearson chi-square's variance floors would turn a
     # candidate that over-subtracts somewhere into a huge cost (measured: 164137 at 50 mm against 118789 at
@@ -343,11 +339,16 @@ def profile(prep: Any, state: State, t: np.ndarray, width_mm: float) -> tuple[fl
     # On the fit's columns, as its test: every held column's solve was (K, C) float64 arrays times seven
     weights = state.fit_rec.weights
     obs = realign(prep.store, prep.reference, state.fit_obs, state.hypothesis.shift)
-    S = field(prep.store, prep.reference, t, kernel_pixels(width_mm, pixel_mm(prep.scan))).take(columns=obs.columns)
     images = M.solve_images(obs, M.design(obs, state.params), weights)
-    U, info, _, cost = score(obs, state.params, images, weights, S.astype(np.float64))
-    s = max(U / info, 0.0)
-    return s, cost - info * s * (2 * U / info - s)
+
+    def fitted(t: np.ndarray, width_mm: float) -> tuple[float, float]:
+        S = field(prep.store, prep.reference, t, kernel_pixels(width_mm, pixel_mm(prep.scan))).take(
+            columns=obs.columns)
+        U, info, _, cost = score(obs, state.params, images, weights, S.astype(np.float64))
+        s = max(U / info, 0.0)
+        return s, cost - info * s * (2 * U / info - s)
+
+    return fitted
 
 
 def score(obs: Observations, params: dict, images: M.Images, weights: np.ndarray, field_: np.ndarray
@@ -450,7 +451,8 @@ class Scatter(EffectBase):
         # best setting (the module's text)
         configured = float(test.payload["width_mm"])
         t = transmission(prep.store, prep.reference, Setting(start, configured), pixel_mm(prep.scan))
-        fitted = {w: profile(prep, state, t, w) for w in configured * WIDTHS}
+        profile = profiler(prep, state)
+        fitted = {w: profile(t, w) for w in configured * WIDTHS}
         widths = sorted(fitted)
         best = min(range(len(widths)), key=lambda i: fitted[widths[i]][1])
         if 0 < best < len(widths) - 1:
@@ -458,11 +460,11 @@ class Scatter(EffectBase):
             a, b, _ = np.polyfit(x, [fitted[w][1] for w in widths[best - 1:best + 2]], 2)
             if a > 0:
                 w = float(np.exp(np.clip(-b / (2 * a), x[0], x[2])))
-                fitted[w] = profile(prep, state, t, w)
+                fitted[w] = profile(t, w)
         width_mm = float(min(fitted, key=lambda w: fitted[w][1]))
         t = transmission(prep.store, prep.reference, Setting(fitted[width_mm][0], width_mm),
                          pixel_mm(prep.scan))
-        s, _ = profile(prep, state, t, width_mm)
+        s, _ = profile(t, width_mm)
         return hyp.but(corrections=(*hyp.corrections, (self.name, Setting(s, width_mm))))
 
     def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
