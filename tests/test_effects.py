@@ -167,7 +167,8 @@ def _run(effects, world, **kw):
     registry = {e.name: e for e in effects}
     start = world.fit(_hypothesis(), {}, "start")
     return loop.run(registry, None, start, fit=world.fit, alpha=kw.get("alpha", 0.01),
-                    explain_share=kw.get("explain_share", 0.25), max_rounds=kw.get("max_rounds", 8))
+                    explain_share=kw.get("explain_share", 0.25), proxy_spread=kw.get("proxy_spread", 1.0),
+                    max_rounds=kw.get("max_rounds", 8))
 
 
 def test_holm_steps_down_and_stops_at_the_first_failure():
@@ -302,7 +303,8 @@ def test_a_fresh_start_effect_is_fitted_from_scratch():
     effect = Fake("data", 300, role="counts")
     effect.fresh_start = True
     start = replace(world.fit(_hypothesis(), {}, "start"), params={"phase_offset": np.zeros((3, 1))})
-    loop.run({"data": effect}, None, start, fit=world.fit, alpha=0.01, explain_share=0.25, max_rounds=3)
+    loop.run({"data": effect}, None, start, fit=world.fit, alpha=0.01, explain_share=0.25, proxy_spread=1.0,
+             max_rounds=3)
     assert world.fits[-1] == (("data",), {})
 
 
@@ -382,7 +384,7 @@ def test_a_mean_effect_whose_trial_raises_the_chi_square_is_refused():
     world.fit = overfit
     registry = {"overfit": Fake("overfit", 200)}
     out = loop.run(registry, None, start_state(_hypothesis(), {}, "start"), fit=world.fit, alpha=0.01,
-                   explain_share=0.25, max_rounds=3)
+                   explain_share=0.25, proxy_spread=1.0, max_rounds=3)
     assert out.steps == [] and "overfit" in out.rejected
 
 
@@ -394,8 +396,8 @@ class OfOneSize(Fake):
         self.p, self.spread = p, spread
 
     def consistency(self, ctx, before, state):
-        return EffectTest(20.0, 1, self.p, float(np.log(self.p)), material=self.spread > 1.0,
-                    payload={"axis": "count", "strata": [1 - self.spread / 2, 1 + self.spread / 2]})
+        return EffectTest(20.0, 1, self.p, float(np.log(self.p)),
+                          payload={"axis": "count", "strata": [1 - self.spread / 2, 1 + self.spread / 2]})
 
 
 @pytest.mark.parametrize(("p", "spread", "named"), [(1e-6, 5.0, False), (1e-6, 0.3, True), (0.5, 5.0, True)])

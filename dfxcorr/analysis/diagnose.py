@@ -218,7 +218,8 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                  d["max_held_samples"], session.fit_columns.size)
     before = located_once(first)
     out = loop.run(registry, session, first, fit=session.fit, alpha=d["alpha"], explain_share=d["explain_share"],
-                   max_rounds=d["max_rounds"], timings=timings, noise_first=d["order"] == "noise-first")
+                   proxy_spread=d["proxy_spread"], max_rounds=d["max_rounds"], timings=timings,
+                   noise_first=d["order"] == "noise-first")
     final = out.state
     effects, changes = [], []
     for step in out.steps:

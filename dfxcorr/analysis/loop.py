@@ -196,15 +196,16 @@ def _trial(effect: EffectBase, ctx: Context, state: State, test: Test, flagged: 
 
 
 def _admitted(effect: EffectBase, ctx: Context, before: State, trial: Trial, *, explain_share: float,
-              alpha: float) -> tuple[bool, Test | None]:
+              alpha: float, proxy_spread: float) -> tuple[bool, Test | None]:
     """Whether a trial justifies adding ``effect``: not astray, explains the signatures it is judged on
     (:func:`accepts`), and of one size across the recording (:meth:`EffectBase.consistency`: refused as a proxy
-    where that test is significant and material). Also the consistency test that refused it, or None."""
+    where that test is significant and its sizes span more than ``proxy_spread``). Also the consistency test that
+    refused it, or None."""
     if trial.astray or not accepts(before.signatures, trial.state.signatures, explain_share=explain_share,
                                    judged=effect.judged_on):
         return False, None
     odd = effect.consistency(ctx, before, trial.state)
-    if odd is not None and odd.material and odd.log_p < np.log(alpha):
+    if odd is not None and float(np.ptp(odd.payload["strata"])) > proxy_spread and odd.log_p < np.log(alpha):
         return False, odd
     return True, None
 
@@ -228,7 +229,7 @@ def contenders(first: str, later: list[str], tests: Mapping[str, Test], effects:
 
 def _best_of(first: Step, others: list[str], tests: Mapping[str, Test], effects: Mapping[str, EffectBase],
              ctx: Context, flagged: np.ndarray, *, fit: Fit, explain_share: float, label: str,
-             settle: Mapping[str, EffectBase], alpha: float) -> Step:
+             settle: Mapping[str, EffectBase], alpha: float, proxy_spread: float) -> Step:
     """Of an accepted candidate and its close contenders (same role), the admitted one (:func:`_admitted`) whose
     trial fits best (least chi-square); each trial settles the noise model as ``first``'s did."""
     best = first
@@ -237,17 +238,21 @@ def _best_of(first: Step, others: list[str], tests: Mapping[str, Test], effects:
         trial = _trial(effect, ctx, first.before, tests[name], flagged, fit=fit,
                        label=f"{label}: trial {name} (beside {first.name})", settle=settle, alpha=alpha)
         if trial.state.chi2 < best.after.chi2 and _admitted(effect, ctx, first.before, trial,
-                                                            explain_share=explain_share, alpha=alpha)[0]:
+                                                            explain_share=explain_share, alpha=alpha,
+                                                            proxy_spread=proxy_spread)[0]:
             best = Step(name, tests[name], first.before, trial.state,
                         explained_share(first.before.signatures, trial.state.signatures, effect.judged_on))
     return best
 
 
 def run(effects: Mapping[str, EffectBase], ctx: Context, start: State, *, fit: Fit, alpha: float,
-        explain_share: float, max_rounds: int, timings: dict | None = None, noise_first: bool = False) -> Outcome:
+        explain_share: float, proxy_spread: float, max_rounds: int, timings: dict | None = None,
+        noise_first: bool = False) -> Outcome:
     """Add effects to the model of ``start`` until no candidate explains what is left (see the module's text).
 
-    ``timings`` receives the seconds of each round's tests; ``noise_first``: see :func:`ranked`."""
+    ``proxy_spread``: a candidate whose consistency test is significant and whose sizes span more than this is
+    refused as a proxy (:meth:`EffectBase.consistency`); ``timings`` receives the seconds of each round's tests;
+    ``noise_first``: see :func:`ranked`."""
     out = Outcome(state=start)
     for rnd in range(max_rounds):
         state = out.state
@@ -284,12 +289,14 @@ def run(effects: Mapping[str, EffectBase], ctx: Context, start: State, *, fit: F
             # where an unidentifiable effect explains the misfit, only an effect that explains as much (within the
             # share a candidate must explain) is no proxy for it
             as_much = blind is None or (share if share is not None else 1.0) >= blind[1] - explain_share
-            admitted, odd = _admitted(effect, ctx, state, trial, explain_share=explain_share, alpha=alpha)
+            admitted, odd = _admitted(effect, ctx, state, trial, explain_share=explain_share, alpha=alpha,
+                                      proxy_spread=proxy_spread)
             if as_much and admitted:
                 close = contenders(name, [n for n in order[i + 1:] if n not in out.rejected], tests, effects)
                 step = _best_of(Step(name, tests[name], state, trial.state, share), close, tests, effects, ctx,
                                 flagged, fit=fit, explain_share=explain_share, label=f"round {rnd}",
-                                settle=_settled(name, effects, out.steps), alpha=alpha)
+                                settle=_settled(name, effects, out.steps), alpha=alpha,
+                                proxy_spread=proxy_spread)
                 break
             if odd is not None:
                 where = f"detector {odd.payload['along']}" if "along" in odd.payload else f"{odd.payload['axis']}s"

@@ -255,9 +255,9 @@ def line_consistency(factors: np.ndarray, X: np.ndarray, dof: np.ndarray, *, str
     Returns
     -------
     Test or None
-        The strongest over classes and axes (Bonferroni, :func:`~dfxcorr.effects.base.strongest`); ``material``
-        with its spread (the strata's own factors f_s - 1 against the class's f - 1: max - min) for the caller
-        to judge; payload 'axis' 'pixel', 'strata' (f_s - 1) / (f - 1), 'factor'. None without a class to test.
+        The strongest over classes and axes (Bonferroni, :func:`~dfxcorr.effects.base.strongest`); payload 'axis'
+        'pixel', 'strata' (the strata's own factors f_s - 1 against the class's f - 1), 'spread' (their max - min),
+        'factor', 'along'. None without a class to test.
     """
     found = {}
     index = np.indices(factors.shape)
@@ -403,8 +403,8 @@ class EffectBase:
 
         A detector effect in no catalogue can leave the signature of a catalogue effect (a non-linearity a
         second harmonic, a ghost of an earlier frame a change of dose) but not with one size everywhere: a
-        significant and ``material`` test (the size, estimated stratum by stratum, spans more than
-        ``diagnose.proxy_spread`` times the shared fit's) refuses the effect as a proxy and its signature is
+        significant test whose sizes, estimated stratum by stratum, span more than ``diagnose.proxy_spread`` times
+        the shared fit's (the diagnosis's loop judges both) refuses the effect as a proxy and its signature is
         reported as unexplained. The payload holds 'axis' and 'strata' (those sizes, the shared fit's being 1).
         """
         return None

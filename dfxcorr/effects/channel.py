@@ -236,9 +236,8 @@ class ChannelEffect(EffectBase):
         # by count (a non-linearity, an additive artefact) and by detector row (an artefact on some rows of a
         # frame, as a ghost of an earlier frame): the stronger of the two, Bonferroni over both
         obs, expected = state.fit_obs, state.fit_rec.expected
-        t = heterogeneity(obs, state.params, M.noise_weights(obs, expected), state.hypothesis.effects, self.name,
-                          labels={by: strata(obs, expected, by=by) for by in ("count", "row")})
-        return replace(t, material=float(np.ptp(t.payload["strata"])) > ctx.cfg["diagnose"]["proxy_spread"])
+        return heterogeneity(obs, state.params, M.noise_weights(obs, expected), state.hypothesis.effects, self.name,
+                             labels={by: strata(obs, expected, by=by) for by in ("count", "row")})
 
     def where(self, test: Test, obs: Observations) -> str:
         if not self.entry.per_frame:

@@ -231,13 +231,12 @@ class DetectorGain(EffectBase):
         # and columns (:func:`line_consistency` with all pixels one class). The variance excess of a moving patch
         # (sample motion below its per-pixel detection limit) raised the gain by 3.1 % where it was 1, the strata by
         # row asking for -0.70, -0.74, 1.31, 6.85, -0.59, -0.12 times that change (a true 1.05: 0.77 ... 1.24).
-        # the change of the variance, pooled over the pixels: the trial may refit the electronic noise with the gain,
-        # so the gain's ratio alone is not it (a gain moved by 0.5 % would make its strata's noise a spread of 1)
+        # The change is that of the variance, pooled over the pixels: the trial may refit the electronic noise with
+        # the gain, so the gain's ratio alone is not it (a gain moved by 0.5 % would make its strata's noise a
+        # spread of 1)
         X, dof, before_total = pixel_chi2(state.obs, state.params, state.rec.images, under=before.hypothesis.noise)
         f = before_total / max(float(X.sum()), 1e-300)
-        odd = line_consistency(np.where(dof > 0, f, 1.0), X, dof)
-        return None if odd is None else replace(
-            odd, material=odd.payload["spread"] > ctx.cfg["diagnose"]["proxy_spread"])
+        return line_consistency(np.where(dof > 0, f, 1.0), X, dof)
 
     def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
         return {"gain": after.hypothesis.noise.gain}

@@ -251,15 +251,12 @@ class PixelNoise(EffectBase):
 
     def consistency(self, ctx: Context, before: State, state: State) -> Test | None:
         # the classes' factors in the trial's model: each class must have one factor along its lines
-        # (:func:`line_consistency`); material where the strata's factors span more than diagnose.proxy_spread
-        # times the class's own departure from 1
+        # (:func:`line_consistency`: its strata's factors against the class's own departure from 1)
         factors = state.hypothesis.noise.factors
         if factors is None:
             return None
         X, dof, _ = pixel_chi2(state.obs, state.params, state.rec.images)
-        odd = line_consistency(factors, X, dof)
-        return None if odd is None else replace(
-            odd, material=odd.payload["spread"] > ctx.cfg["diagnose"]["proxy_spread"])
+        return line_consistency(factors, X, dof)
 
     def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
         noise = state.hypothesis.noise
