@@ -1,5 +1,4 @@
 """Configuration: schema, validation, --set, nearest-name suggestions, commented defaults."""
-from pathlib import Path
 
 import pytest
 import yaml
@@ -9,7 +8,7 @@ from dfxcorr.analysis import compare
 from dfxcorr.estimators import ESTIMATORS
 from dfxcorr.sim import simulate as S
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT
 
 
 def test_defaults_validate_and_round_trip():

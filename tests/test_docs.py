@@ -1,12 +1,10 @@
 """The contracts ship with the repository: docs/spec/ holds the spec pages the docstrings cite."""
 import re
-from pathlib import Path
 
 import pytest
 
-from conftest import SHARED
+from conftest import ROOT, SHARED
 
-ROOT = Path(__file__).resolve().parents[1]
 COPY = ROOT / "docs" / "spec"
 ORIGINAL = SHARED.parent / "spec"
 

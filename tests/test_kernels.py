@@ -3,10 +3,11 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from test_model import ALL, random_params, tiny_obs
 
 from dfxcorr import kernels as K
 from dfxcorr import model as M
+
+from conftest import ALL, random_params, tiny_obs
 
 #: Effect sets: each mean effect with the paper's model, and all together.
 SETS = [tuple(dict.fromkeys((*M.PAPER_MODEL, n))) for n in ALL] + [tuple(ALL)]

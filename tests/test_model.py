@@ -6,30 +6,8 @@ import pytest
 
 from dfxcorr import kernels as K
 from dfxcorr import model as M
-from dfxcorr.align import build_observations
-from dfxcorr.io import Reference, Scan
 
-
-def tiny_obs(rng, *, J=12, H=6, W=7, A=4):
-    """Random flat field and counts on a small scan geometry (positions step by one row)."""
-    ref = Reference(rng.uniform(500, 1500, (A, W)), rng.uniform(0.2, 0.5, (A, W)),
-                    np.cumsum(rng.uniform(0.5, 1.5, (A, W)), axis=0))
-    position = -A + 1.0 + np.arange(J) * (H + A - 2) / (J - 1)
-    data = rng.poisson(800, (J, H, W)).astype(np.float64)
-    return build_observations(Scan(data=data, position=position, reference=ref), ref)
-
-
-def random_params(rng, J, names):
-    p = {}
-    for n in names:
-        e = M.effect(n)
-        shape = (J, e.size) if e.per_frame else (e.size,)
-        scale = {"background": 20.0}.get(n, 0.05)
-        p[n] = e.neutral + rng.normal(0, scale, shape)
-    return p
-
-
-ALL = [n for n in M.MEAN_EFFECTS]
+from conftest import ALL, random_params, tiny_obs
 
 
 def random_images(rng, obs):

@@ -5,7 +5,6 @@ import json
 import subprocess
 import sys
 from dataclasses import replace
-from pathlib import Path
 
 import h5py
 import numpy as np
@@ -20,9 +19,7 @@ from dfxcorr.io import H5Frames, Reference, Scan, read_scan, write_scan
 from dfxcorr.retrieve import retrieve
 from dfxcorr.sim import simulate as S
 
-from conftest import sim_config
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT, sim_config
 
 
 def _open_files() -> int:

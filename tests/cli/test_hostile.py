@@ -3,12 +3,13 @@ dataset, with exit code 2 on the command line and no output left behind."""
 import h5py
 import numpy as np
 import pytest
-from capped import cli_capped, one_error_line
 from click.testing import CliRunner
 
 from dfxcorr.cli import main
 from dfxcorr.export import read_result_h5
 from dfxcorr.io import Reference, Scan, ScanFormatError, read_scan, write_scan
+
+from conftest import cli_capped, one_error_line
 
 DET = "entry/instrument/detector"
 

@@ -24,9 +24,9 @@ from dfxcorr.effects.base import Test as EffectTest
 from dfxcorr.observations import Noise
 from dfxcorr.sim import simulate as S
 
-from conftest import sim_config
+from conftest import ROOT, sim_config
 
-PACKAGE = Path(__file__).resolve().parents[1] / "dfxcorr"
+PACKAGE = ROOT / "dfxcorr"
 
 
 # --------------------------------------------------------------------------------------------------

@@ -4,7 +4,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import tifffile
-from test_diagnose import chi2_tolerance
 
 from dfxcorr import config as C
 from dfxcorr import pipeline
@@ -17,7 +16,7 @@ from dfxcorr.effects.pixel_noise import PixelNoiseError, class_chi2
 from dfxcorr.retrieve import retrieve
 from dfxcorr.sim import simulate as S
 
-from conftest import real_ipp_scan, sim_config
+from conftest import chi2_tolerance, real_ipp_scan, sim_config
 
 #: Mean effects that lag used to pose as (issue 11): none may be detected once lag is named.
 PROXIES = {"visibility_tilt", "dose", "curvature", "harmonic", "detector_gain"}

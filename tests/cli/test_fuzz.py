@@ -9,12 +9,13 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from capped import cli_capped, invoke, one_error_line
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from dfxcorr.export import read_result_h5
 from dfxcorr.io import write_scan
+
+from conftest import cli_capped, invoke, one_error_line
 
 DET = "entry/instrument/detector"
 DATASETS = [f"{DET}/data", "entry/scan/position", "entry/scan/phase_step", "entry/scan/exposure_time",

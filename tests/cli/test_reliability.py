@@ -16,7 +16,6 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
-from capped import cli_capped, one_error_line
 from click.testing import CliRunner
 
 import dfxcorr
@@ -25,7 +24,7 @@ from dfxcorr.cli import main
 from dfxcorr.io import Reference, Scan, write_scan
 from dfxcorr.sim import simulate as S
 
-from conftest import sim_config
+from conftest import cli_capped, one_error_line, sim_config
 
 DET = "entry/instrument/detector"
 ROOT = Path(dfxcorr.__file__).resolve().parents[1]  # of the dfxcorr imported here, for the subprocesses

@@ -9,28 +9,7 @@ from dfxcorr.analysis.diagnose import diagnose, held_band
 from dfxcorr.analysis.report import write_report
 from dfxcorr.sim import simulate as S
 
-from conftest import real_ipp_scan, sim_config
-
-
-def concealed(effect, *, seed=11, amplitude=None):
-    key, realistic, _, extra, conceal = S.CONCEALED[effect]
-    scan, truth = S.simulate(sim_config(**{**extra, key: realistic if amplitude is None else amplitude,
-                                           "simulate.seed": seed}))
-    return scan, truth, C.load([], conceal)
-
-
-def chi2_tolerance(diag, cfg) -> float:
-    """How far the final reduced chi-square may lie from 1 when the model is right.
-
-    The fit runs on every n-th column (``diagnose.subsample``) and the chi-square is read on all of
-    them: each fitted parameter's noise, worth 1 on the fitted columns, adds about n to the chi-square
-    sum, a mean excess of n * n_params / dof. Around it the statistic scatters by sqrt(2 / dof): five
-    of those.
-    """
-    last = diag.rounds[-1]
-    dof = last["chi2_before"] / last["reduced_chi2_before"]
-    n_params = sum(np.size(p) for p in diag.params.values())
-    return cfg["diagnose"]["subsample"] * n_params / dof + 5 * np.sqrt(2 / dof)
+from conftest import chi2_tolerance, concealed, real_ipp_scan, sim_config
 
 
 # one concealed effect stays in the fast tier; the rest take 2-8 s each

@@ -10,7 +10,9 @@ from dfxcorr.errors import DfxcorrError, OutputExistsError
 from dfxcorr.importer import StackImportError, frame_dtype, import_stepping, nominal_steps, read_stack
 from dfxcorr.io import SteppingReference, read_scan
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "tum-ipp-stepping"
+from conftest import SHARED
+
+REAL = SHARED / "real" / "tum-ipp-stepping"
 S, H, W = 5, 6, 8
 EXPECTED_DTYPE = {"uint16": np.uint16, "int32": np.uint32, "float32": np.float32}
 RAW_HEADER = 16

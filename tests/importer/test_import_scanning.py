@@ -5,7 +5,6 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
-from capped import one_error_line, run_capped
 from click.testing import CliRunner
 
 from dfxcorr import pipeline
@@ -13,6 +12,8 @@ from dfxcorr.cli import main
 from dfxcorr.export import read_result_h5
 from dfxcorr.importer import StackImportError, active_area, import_scanning, read_positions, read_stack
 from dfxcorr.io import SteppingReference, read_scan, write_scan
+
+from conftest import one_error_line, run_capped
 
 
 def run(*args):

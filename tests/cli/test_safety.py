@@ -21,7 +21,7 @@ from dfxcorr.cli import main
 from dfxcorr.errors import OutputExistsError
 from dfxcorr.sim import simulate as S
 
-from conftest import sim_config
+from conftest import ROOT, sim_config
 
 SMALL = ["--set", "simulate.pixel_mm=5", "--set", "simulate.step_mm=5", "--set", "simulate.seed=3"]
 
@@ -167,7 +167,7 @@ def test_sigterm_while_writing_leaves_nothing(tmp_path):
         h5py.File.__init__ = init
         main(sys.argv[1:])
     """)
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
     res = subprocess.run([sys.executable, "-c", script, "simulate", "-o", str(tmp_path / "out.h5"), *SMALL],
                          capture_output=True, text=True, env=env, timeout=120, check=False)
     assert res.returncode == 128 + signal.SIGTERM, res.stderr

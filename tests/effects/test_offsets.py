@@ -1,7 +1,6 @@
 """Where the flat field is read: tiled gratings in the simulator, reference_offset and position_error."""
 import numpy as np
 import pytest
-from test_diagnose import chi2_tolerance, concealed
 
 from dfxcorr import config as C
 from dfxcorr import model as M
@@ -11,7 +10,7 @@ from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.analysis.report import reconstruct_settings, write_report
 from dfxcorr.sim import simulate as S
 
-from conftest import sim_config
+from conftest import chi2_tolerance, concealed, sim_config
 
 TILED = {"simulate.tiles": 8, "simulate.flat_nonlinearity": 1.0}
 
