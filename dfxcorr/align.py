@@ -20,9 +20,10 @@ from numpy.typing import DTypeLike
 
 from . import kernels as K
 from .errors import DfxcorrError
-from .faults import Faults, ranges, saturated
+from .faults import Faults, saturated
 from .io import Reference, Scan, frame_rows, lit_rows
 from .observations import Observations, lateral_coordinate
+from .stats import ranges
 
 log = logging.getLogger(__name__)
 

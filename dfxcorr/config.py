@@ -241,6 +241,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                     "effect has one size (a true harmonic spanned 0.37, a non-linearity's harmonic "
                                     "and a ghost's dose 5.4-5.7)",
                                _NUM, check=_nonneg),
+        "replicate": Option(True, "refit the final model on disjoint halves of the detector (by columns; by rows too "
+                                  "in phase stepping) and report whether each finding's estimates agree within their "
+                                  "errors there; a finding that does not replicate is left out of the recommended "
+                                  "reconstruction", bool),
         "min_gain_change": Option(0.01, "detector_gain is reported only when the gain also moves by more than this "
                                         "fraction (a practical floor: with millions of samples smaller changes are "
                                         "significant but immaterial)", _NUM, check=_nonneg),
@@ -447,6 +451,21 @@ def effects_of(cfg: dict) -> tuple[str, ...]:
 def dump(cfg: dict) -> str:
     """YAML of a resolved configuration."""
     return yaml.safe_dump(cfg, sort_keys=False)
+
+
+def as_sets(cfg: dict, *, skip: tuple[str, ...] = (), schema: dict = SCHEMA) -> list[str]:
+    """The ``section.key=value`` options (values as YAML) that turn the defaults into ``cfg``, sections in
+    ``skip`` left out: what reproduces a resolved configuration on a command line."""
+    base = defaults(schema)
+    out = []
+    for section, opts in cfg.items():
+        if section in skip:
+            continue
+        for key, value in opts.items():
+            if value != base[section][key]:
+                text = yaml.safe_dump(value, default_flow_style=True, width=1 << 30).strip()
+                out.append(f"{section}.{key}={text.removesuffix('...').strip()}")
+    return out
 
 
 def commented_defaults(schema: dict = SCHEMA, *, title: str = "dfxcorr reconstruct SCAN -c this.yaml") -> str:

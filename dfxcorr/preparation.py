@@ -63,7 +63,7 @@ class Correction(Protocol):
     @property
     def name(self) -> str: ...
 
-    def configured(self, cfg: dict, *, n_frames: int, detector: tuple[int, int]) -> Any:
+    def configured(self, cfg: dict[str, Any], *, n_frames: int, detector: tuple[int, int]) -> Any:
         """What the configuration asks of this effect, read and checked before any computation (None: nothing)."""
         ...
 
@@ -141,8 +141,8 @@ class Prepared:
         return replace(obs, vf=np.where(roi, obs.vf, 0).astype(obs.vf.dtype, copy=False), roi=roi)
 
 
-def prepare(scan: Scan | str | Path, cfg: dict, *, effects: Iterable[Correction],
-            timings: dict | None = None) -> Prepared:
+def prepare(scan: Scan | str | Path, cfg: dict[str, Any], *, effects: Iterable[Correction],
+            timings: dict[str, Any] | None = None) -> Prepared:
     """Load, resolve the reference, align and collect the lit samples: the one preparation of every analysis.
 
     Parameters

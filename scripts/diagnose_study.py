@@ -83,7 +83,7 @@ def image_errors(images: dict, truth: dict) -> dict:
 def estimate_error(name: str, diag, truth: dict) -> dict:
     """The named effect's estimate against the truth (RMS over well-lit frames for per-frame effects)."""
     report = next(e for e in diag.effects if e.name == name)
-    extra = report.extra
+    extra = report.values
     if name == "detector_gain":
         return {"estimate": extra["gain"], "truth": float(truth["gain"])}
     if name == "sample_motion":
@@ -144,7 +144,7 @@ def run(effect: str | None, amplitude: float | None, *, pixel_mm: float, seed: i
     found = [e.name for e in diag.effects if e.detected]
     out = {"effect": effect, "amplitude": amplitude, "seed": seed, "settings": settings, "found": found,
            "first": found[0] if found else None, "initial_chi2": diag.initial_chi2, "final_chi2": diag.final_chi2,
-           "unexplained": [u["axis"] for u in diag.unexplained], "seconds": round(t_diag, 1),
+           "unexplained": [u.axis for u in diag.unexplained], "seconds": round(t_diag, 1),
            "cost_vs_reconstruct": round(t_diag / t_rec, 2)}
     if effect is not None and found and found[0] == effect:
         change = diag.changes[0]
