@@ -186,7 +186,7 @@ the `pixel_noise.tif` the report writes). The classes and their variance factors
 DIAGNOSIS = """\
 Each catalogue effect is simulated in a small scan ({pixel_mm:g} mm pixels, seed 11) at a realistic amplitude
 and left out of the model (the paper's model, minus the effect where it is one of the paper's three); then the
-amplitude is lowered until it is no longer named first. `reference_offset` and `position_error` are simulated
+amplitude is weakened until it is no longer named first. `reference_offset` and `position_error` are simulated
 with tiled gratings and a flat field that is not linear along the scan (with a smooth flat field they are
 absorbed by `phase_offset` and `curvature`); `electronic_noise` on a flat panel (2000 counts in the open beam, a
 dark of 100, read noise not stated). Estimate: against the truth in brackets (per-frame effects: RMSE in the
@@ -439,8 +439,8 @@ def diagnosis_section(study: dict) -> list[str]:
            "are tests in `tests/analysis/` and `tests/effects/`.", "",
            DIAGNOSIS.format(pixel_mm=study["pixel_mm"], machine=study["machine"]), "",
            *table(["effect", "realistic amplitude: found, reduced chi2 initial -> final", "estimate (truth)",
-                   "images: phase / dark-field RMSE before -> after", "smallest amplitude named first",
-                   "next smaller"], rows), "",
+                   "images: phase / dark-field RMSE before -> after", "weakest amplitude named first",
+                   "next weaker"], rows), "",
            f"{first} of {len(by_effect)} effects are named first at their realistic amplitude. False alarms: "
            f"{alarms} of {len(clean)} clean scans with any detection or unexplained signature "
            f"({'; '.join(sorted(set(r['scan'] for r in clean)))}).", ""]
