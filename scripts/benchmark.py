@@ -69,7 +69,7 @@ CASES = {"default": [], "every column": ["fit.subsample=1"], "every 20th column"
          "no preconditioning": ["fit.subsample=4", "fit.optimizer=lbfgs", "fit.precondition=false"]}
 #: The fit's log line with its iterations and cost evaluations (dfxcorr.pipeline.run_fit).
 FIT_LINE = re.compile(r"vibration fit: (\d+) iterations, (\d+) evaluations of the cost over (\d+) samples")
-#: The log line of the chosen columns (dfxcorr.pipeline.plan_columns).
+#: The log line of the chosen columns (dfxcorr.planning.plan_columns).
 PLAN_LINE = re.compile(r"vibration fit columns: (.*)")
 CLINICAL = {"binned": ROOT / "configs" / "clinical-binned.yaml", "full": ROOT / "configs" / "clinical.yaml"}
 

@@ -29,7 +29,9 @@ from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr.analysis.compare import machine
 from dfxcorr.analysis.diagnose import diagnose
-from dfxcorr.pipeline import prepare, reconstruct
+from dfxcorr.effects import REGISTRY
+from dfxcorr.pipeline import reconstruct
+from dfxcorr.preparation import prepare
 from dfxcorr.sim import simulate as S
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -138,7 +140,7 @@ def run(effect: str | None, amplitude: float | None, *, pixel_mm: float, seed: i
     scan, truth = S.simulate(simulation(pixel_mm, seed, settings))
     cfg = C.load([], conceal)
     t0 = time.perf_counter()
-    reconstruct(prepare(scan, cfg), cfg, progress=False)
+    reconstruct(prepare(scan, cfg, effects=REGISTRY.values()), cfg, progress=False)
     t_rec = time.perf_counter() - t0
     t0 = time.perf_counter()
     diag = diagnose(scan, cfg)

@@ -22,8 +22,10 @@ import numpy as np
 
 from .. import config as C
 from .. import export, pipeline, plots
+from ..effects import REGISTRY
 from ..errors import DfxcorrError
 from ..io import Scan, atomic_path
+from ..preparation import Prepared, prepare
 from ..result import Result, paper_params
 from .evaluate import frames_lighting, image_rmse, vibration_rmse
 
@@ -71,11 +73,11 @@ def machine() -> str:
 # --------------------------------------------------------------------------------------------------
 
 
-#: Configuration sections that :func:`dfxcorr.pipeline.prepare` reads.
+#: Configuration sections that :func:`dfxcorr.preparation.prepare` reads.
 PREPARATION_SECTIONS = ("load", "reference", "align")
 
 
-def run_methods(scan: Scan | str | Path | pipeline.Prepared, cfg: dict, *, methods=METHODS,
+def run_methods(scan: Scan | str | Path | Prepared, cfg: dict, *, methods=METHODS,
                 method_sets: dict | None = None,
                 command_line: str = "") -> tuple[dict[str, Result], dict[str, float]]:
     """Reconstruct one scan with each estimator.
@@ -101,7 +103,7 @@ def run_methods(scan: Scan | str | Path | pipeline.Prepared, cfg: dict, *, metho
         Method -> wall-clock seconds of the reconstruction (s).
     """
     results, runtimes = {}, {}
-    prepared: dict[str, tuple[pipeline.Prepared, float]] = {}
+    prepared: dict[str, tuple[Prepared, float]] = {}
     for method in methods:
         cfg_m = C.merge(cfg, {"fit": {"method": method}})
         for item in (method_sets or {}).get(method, []):
@@ -111,7 +113,7 @@ def run_methods(scan: Scan | str | Path | pipeline.Prepared, cfg: dict, *, metho
         key = json.dumps({k: cfg_m[k] for k in PREPARATION_SECTIONS}, sort_keys=True)
         if key not in prepared:
             t0 = time.perf_counter()
-            prep = scan if isinstance(scan, pipeline.Prepared) else pipeline.prepare(scan, cfg_m)
+            prep = scan if isinstance(scan, Prepared) else prepare(scan, cfg_m, effects=REGISTRY.values())
             prepared[key] = prep, time.perf_counter() - t0
         prep, prep_seconds = prepared[key]
         t0 = time.perf_counter()
@@ -402,7 +404,7 @@ def nps_study(scans, cfg: dict, *, methods=NPS_METHODS, method_sets: dict | None
     names: list[str] = []
     freq = None
     for item in scans:
-        prep = pipeline.prepare(item, cfg)
+        prep = prepare(item, cfg, effects=REGISTRY.values())
         names.append(str(item) if not isinstance(item, Scan) else f"scan {len(names)}")
         fringes.append(fringe_frequency(prep.reference.phase))
         # rings a quarter of the fringe frequency wide, within the command line's bounds (no fringe: 32)

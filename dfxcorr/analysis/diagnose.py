@@ -22,15 +22,16 @@ from pathlib import Path
 import numpy as np
 
 from .. import config as C
-from ..align import pixel_mm, realign, subsample_columns
+from ..align import realign, subsample_columns
 from ..effects import REGISTRY
-from ..effects.base import EffectBase, Hypothesis, Preparation, Realign, State, Test
+from ..effects.base import EffectBase, Hypothesis, Realign, State, Test
 from ..fit import fit_vibrations
 from ..frames import well_determined
 from ..io import Scan
 from ..observations import Observations
-from ..pipeline import Prepared, column_step, prepare, stage
-from ..planning import resolve_effects, visibility_unidentifiable
+from ..planning import column_step, resolve_effects, visibility_unidentifiable
+from ..preparation import Prepared, prepare
+from ..progress import stage
 from ..retrieve import Retrieval, retrieve
 from . import loop
 from .report import Diagnosis, EffectReport, change_picture, residuals
@@ -83,18 +84,14 @@ class Session:
         self._prepared: dict[tuple, Prepared] = {}
         self._aligned: dict[tuple, tuple[Observations, Observations]] = {}
 
-    def prepared(self, hypothesis: Hypothesis) -> Prepared:
+    def corrected(self, hypothesis: Hypothesis) -> Prepared:
         key = hypothesis.corrections
         if key not in self._prepared:
-            made = Preparation(self.prep.store, np.zeros(self.prep.shape[0]), self.prep.noise,
-                               reference=self.prep.reference, pixel_mm=pixel_mm(self.prep.scan))
-            for name, setting in key:
-                made = self.registry[name].prepare(made, setting)
-            self._prepared[key] = replace(self.prep, store=made.store)
+            self._prepared[key] = self.prep.corrected((self.registry[name], setting) for name, setting in key)
         return self._prepared[key]
 
     def realigner(self, hypothesis: Hypothesis) -> Realign:
-        prep = self.prepared(hypothesis)
+        prep = self.corrected(hypothesis)
         return lambda like, shift: realign(prep.store, prep.reference, like, shift)
 
     def observe(self, hypothesis: Hypothesis) -> tuple[Observations, Observations]:
@@ -180,7 +177,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     Parameters
     ----------
     scan : Scan, path or Prepared
-        Prepared by :func:`dfxcorr.pipeline.prepare` (reference options, region of interest), as for
+        Prepared by :func:`dfxcorr.preparation.prepare` (reference options, region of interest), as for
         a reconstruction.
     cfg : dict, optional
         Resolved configuration; its vibration section is the base model, its diagnose section the
@@ -197,7 +194,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     cfg = C.defaults() if cfg is None else cfg
     d = cfg["diagnose"]
     timings: dict = {}
-    prep = scan if isinstance(scan, Prepared) else prepare(scan, cfg, timings=timings)
+    prep = scan if isinstance(scan, Prepared) else prepare(scan, cfg, effects=registry.values(), timings=timings)
     session = Session(prep, cfg, timings, registry)
     J, H, W = prep.shape
     model = list(resolve_effects(cfg, prep.scan, prep.reference, session.fit_base)) \

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..effects.base import Context, EffectBase, Hypothesis, State, Test
-from ..pipeline import stage
+from ..progress import stage
 
 log = logging.getLogger(__name__)
 

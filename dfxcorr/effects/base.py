@@ -22,20 +22,16 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from scipy import stats
 
 from .. import model as M
-from ..align import LitStore
 from ..catalogue import Effect
-from ..io import Reference
 from ..observations import Noise, Observations
+from ..preparation import Correctable, Prepared
 from ..retrieve import Retrieval
-
-if TYPE_CHECKING:
-    from ..pipeline import Prepared
 
 
 @dataclass(frozen=True)
@@ -149,30 +145,6 @@ class Hypothesis:
     def but(self, **changes: Any) -> Hypothesis:
         """The same hypothesis with some fields changed."""
         return replace(self, **changes)
-
-
-@dataclass(frozen=True)
-class Preparation:
-    """What the configured corrections make of a scan's lit samples before any fit.
-
-    Attributes
-    ----------
-    store : LitStore
-    shift : ndarray, shape (J,)
-        Rows by which each frame reads the flat field off its recorded position.
-    noise : Noise
-    reference : Reference or None
-        The flat-field maps the samples are aligned to (a correction that needs the flat field reads them).
-    pixel_mm : (float, float) or None
-        Detector pixel pitch (mm) along the columns of the detector (between rows) and along its rows,
-        where the scan file states it.
-    """
-
-    store: LitStore
-    shift: np.ndarray
-    noise: Noise
-    reference: Reference | None = None
-    pixel_mm: tuple[float, float] | None = None
 
 
 class State(Protocol):
@@ -301,8 +273,8 @@ class Context(Protocol):
     #: Results effects share within a diagnosis (computed once for the state they belong to).
     memo: dict
 
-    def prepared(self, hypothesis: Hypothesis) -> Prepared:
-        """The preparation with the hypothesis's corrections of the counts applied."""
+    def corrected(self, hypothesis: Hypothesis) -> Prepared:
+        """The prepared scan with the hypothesis's corrections of the counts applied."""
         ...
 
     def realigner(self, hypothesis: Hypothesis) -> Realign:
@@ -353,9 +325,9 @@ class EffectBase:
         """What the configuration asks of this effect, read and checked before any computation (None: nothing)."""
         return None
 
-    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
-        """Apply the configured ``setting`` (not None) to the preparation."""
-        return prep
+    def apply(self, data: Correctable, setting: Any) -> Correctable:
+        """``data`` with the configured ``setting`` (not None) applied (default: unchanged)."""
+        return data
 
     # ---- diagnosis -------------------------------------------------------------------------------
 

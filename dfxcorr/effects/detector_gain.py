@@ -204,7 +204,7 @@ def noise_fit(ctx: Context, state: State, flagged: np.ndarray, *, readout: bool 
     if not readout:
         return held[1]
     if "readout" not in ctx.memo:
-        ctx.memo["readout"] = unlit_readout(ctx.prepared(state.hypothesis).scan)
+        ctx.memo["readout"] = unlit_readout(ctx.corrected(state.hypothesis).scan)
     return held[1].and_readout(ctx.memo["readout"])
 
 

@@ -20,7 +20,8 @@ import numpy as np
 from ..align import LitStore
 from ..catalogue import Effect
 from ..observations import Observations
-from .base import Context, EffectBase, Hypothesis, Preparation, State, Test, chi2_test
+from ..preparation import Correctable
+from .base import Context, EffectBase, Hypothesis, State, Test, chi2_test
 
 
 def previous_block(row: np.ndarray, frame: np.ndarray) -> np.ndarray:
@@ -184,11 +185,11 @@ class DetectorLag(EffectBase):
     def configured(self, cfg: dict, *, n_frames: int, detector: tuple[int, int]) -> Any:
         return cfg["load"]["detector_lag"] or None
 
-    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
-        return replace(prep, store=without_lag(prep.store, setting))
+    def apply(self, data: Correctable, setting: Any) -> Correctable:
+        return replace(data, store=without_lag(data.store, setting))
 
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
-        return lag_test(ctx.prepared(state.hypothesis).store)
+        return lag_test(ctx.corrected(state.hypothesis).store)
 
     def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
         return state.hypothesis.but(corrections=(*state.hypothesis.corrections, (self.name, test.payload["value"])))

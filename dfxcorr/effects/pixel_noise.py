@@ -17,11 +17,11 @@ from .. import model as M
 from ..catalogue import Effect
 from ..errors import DfxcorrError
 from ..observations import Observations
+from ..preparation import Correctable
 from .base import (
     Context,
     EffectBase,
     Hypothesis,
-    Preparation,
     State,
     Test,
     Writer,
@@ -239,8 +239,8 @@ class PixelNoise(EffectBase):
     def configured(self, cfg: dict, *, n_frames: int, detector: tuple[int, int]) -> Any:
         return read_pixel_noise(cfg["load"]["pixel_noise"], detector)
 
-    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
-        return replace(prep, noise=replace(prep.noise, factors=setting))
+    def apply(self, data: Correctable, setting: Any) -> Correctable:
+        return replace(data, noise=replace(data.noise, factors=setting))
 
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
         from scipy import ndimage

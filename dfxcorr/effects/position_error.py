@@ -16,8 +16,9 @@ from .. import model as M
 from ..align import read_position_errors
 from ..catalogue import Effect
 from ..observations import Observations
+from ..preparation import Correctable
 from ..retrieve import retrieve
-from .base import Context, EffectBase, Hypothesis, Preparation, Realign, State, Test, Writer, chi2_test, frames_where
+from .base import Context, EffectBase, Hypothesis, Realign, State, Test, Writer, chi2_test, frames_where
 
 
 def _shift_derivative(realigned: Realign, obs: Observations, params: dict, images: M.Images, shift: np.ndarray,
@@ -149,8 +150,8 @@ class PositionError(EffectBase):
         path = cfg["align"]["position_errors"]
         return None if path is None else read_position_errors(path, n_frames)
 
-    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
-        return replace(prep, shift=prep.shift + setting)
+    def apply(self, data: Correctable, setting: Any) -> Correctable:
+        return replace(data, shift=data.shift + setting)
 
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
         if ctx.stepping:

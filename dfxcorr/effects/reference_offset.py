@@ -24,8 +24,9 @@ import numpy as np
 from .. import model as M
 from ..catalogue import Effect
 from ..observations import Observations
+from ..preparation import Correctable
 from ..retrieve import per_dof, retrieve
-from .base import Context, EffectBase, Hypothesis, Preparation, Realign, State, Test, chi2_test
+from .base import Context, EffectBase, Hypothesis, Realign, State, Test, chi2_test
 
 
 def _third_difference(a: np.ndarray) -> np.ndarray:
@@ -153,8 +154,8 @@ class ReferenceOffset(EffectBase):
     def configured(self, cfg: dict, *, n_frames: int, detector: tuple[int, int]) -> Any:
         return cfg["align"]["reference_offset"] or None
 
-    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
-        return replace(prep, shift=prep.shift + setting)
+    def apply(self, data: Correctable, setting: Any) -> Correctable:
+        return replace(data, shift=data.shift + setting)
 
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
         # a phase-stepping recording has no scan positions to be off

@@ -57,8 +57,9 @@ from ..catalogue import Effect
 from ..errors import DfxcorrError
 from ..io import Reference
 from ..observations import Observations
+from ..preparation import Correctable
 from ..retrieve import retrieve
-from .base import Context, EffectBase, Hypothesis, Preparation, State, Test, chi2_test
+from .base import Context, EffectBase, Hypothesis, State, Test, chi2_test
 
 #: Fixed-point updates of the transmission behind the primary (see the module's text).
 UPDATES = 3
@@ -403,16 +404,16 @@ class Scatter(EffectBase):
         load = cfg["load"]
         return Setting(float(load["scatter"]), float(load["scatter_width_mm"])) if load["scatter"] else None
 
-    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
-        if prep.reference is None:
+    def apply(self, data: Correctable, setting: Any) -> Correctable:
+        if data.reference is None:
             raise ValueError("the scatter correction needs the flat field")
-        store = prep.store.shifted(prep.shift) if np.any(prep.shift) else prep.store
+        store = data.store.shifted(data.shift) if np.any(data.shift) else data.store
         # the shift is read again by the preparation: the store keeps its own u
-        return replace(prep, store=replace(prep.store, offset=scattered(store, prep.reference, setting,
-                                                                          prep.pixel_mm).offset))
+        return replace(data, store=replace(data.store, offset=scattered(store, data.reference, setting,
+                                                                          data.pixel_mm).offset))
 
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
-        prep = ctx.prepared(state.hypothesis)
+        prep = ctx.corrected(state.hypothesis)
         if prep.store.offset is not None:
             return None  # in the model already (configured, or a correction of this hypothesis)
         width_mm = float(ctx.cfg["load"]["scatter_width_mm"])
@@ -444,7 +445,7 @@ class Scatter(EffectBase):
 
     def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
         hyp = state.hypothesis
-        prep = ctx.prepared(hyp)
+        prep = ctx.corrected(hyp)
         start = max(test.payload["value"], 0.0)
         # the kernel's width is profiled too (a wrong one misplaces the scatter: true 100 mm fitted with 50 mm gave
         # s = 0.117 for 0.1 and a dark field 12 % low); the search's t at the test's estimate, the final one at the

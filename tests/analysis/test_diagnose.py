@@ -9,7 +9,7 @@ from dfxcorr.analysis.diagnose import diagnose, held_band
 from dfxcorr.analysis.report import write_report
 from dfxcorr.sim import simulate as S
 
-from conftest import chi2_tolerance, concealed, real_ipp_scan, sim_config
+from conftest import chi2_tolerance, concealed, prepare, real_ipp_scan, sim_config
 
 
 # one concealed effect stays in the fast tier; the rest take 2-8 s each
@@ -303,8 +303,6 @@ def test_held_band_is_every_column_or_a_centred_band():
 def test_a_scan_larger_than_the_held_samples_is_tested_on_a_band_and_fitted_over_the_detector():
     # the concealed step errors are still named first with the per-pixel tests on a band of a third of the columns;
     # the pixels outside it are tested by nothing (NaN in the residual map), the fit still sees every part
-    from dfxcorr.pipeline import prepare
-
     scan, truth, cfg = concealed("phase_offset")
     prep = prepare(scan, cfg)
     W, per_column = scan.shape[2], prep.store.samples_per_column()

@@ -19,9 +19,10 @@ from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.analysis.report import write_report
 from dfxcorr.catalogue import PAPER_MODEL, Effect
 from dfxcorr.effects import REGISTRY
-from dfxcorr.effects.base import EffectBase, Hypothesis, Preparation, chi2_test, holm
+from dfxcorr.effects.base import EffectBase, Hypothesis, chi2_test, holm
 from dfxcorr.effects.base import Test as EffectTest
 from dfxcorr.observations import Noise
+from dfxcorr.preparation import Correctable
 from dfxcorr.sim import simulate as S
 
 from conftest import ROOT, sim_config
@@ -323,11 +324,11 @@ class Pedestal(EffectBase):
     tier = -1
     fresh_start = True
 
-    def prepare(self, prep: Preparation, setting) -> Preparation:
-        return replace(prep, store=replace(prep.store, dark=prep.store.dark + setting))
+    def apply(self, data: Correctable, setting) -> Correctable:
+        return replace(data, store=replace(data.store, dark=data.store.dark + setting))
 
     def test(self, ctx, state, flagged):
-        store = ctx.prepared(state.hypothesis).store
+        store = ctx.corrected(state.hypothesis).store
         signal = store.left_counts.astype(float) - store.dark[store.row[store.left_prev]]
         # the file's rounding (0.5 count) bounds the error where nothing else is left
         p, se = float(signal.mean()), max(float(signal.std()), 0.5) / np.sqrt(signal.size)

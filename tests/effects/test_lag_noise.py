@@ -16,7 +16,7 @@ from dfxcorr.effects.pixel_noise import PixelNoiseError, class_chi2
 from dfxcorr.retrieve import retrieve
 from dfxcorr.sim import simulate as S
 
-from conftest import chi2_tolerance, real_ipp_scan, sim_config
+from conftest import chi2_tolerance, prepare, real_ipp_scan, sim_config
 
 #: Mean effects that lag can pose as: none may be detected once lag is named.
 PROXIES = {"visibility_tilt", "dose", "curvature", "harmonic", "detector_gain"}
@@ -114,7 +114,7 @@ def test_reconstruct_with_the_pixel_noise_map_brings_each_class_to_one(tmp_path)
     classes = (truth["pixel_noise"] != 1).astype(int)
     chi2 = {}
     for name, sets in (("plain", []), ("map", [f"load.pixel_noise={tmp_path / 'f.tif'}"])):
-        prep = pipeline.prepare(scan, C.load([], sets))
+        prep = prepare(scan, C.load([], sets))
         result = pipeline.reconstruct(prep, C.load([], sets))
         obs = prep.observations()
         obs = replace(obs, use=obs.roi)
@@ -130,7 +130,7 @@ def test_pixel_noise_map_of_the_wrong_shape_is_refused(tmp_path):
     scan, _ = S.simulate(sim_config())
     tifffile.imwrite(tmp_path / "f.tif", np.ones((3, 4), np.float32))
     with pytest.raises(PixelNoiseError, match="load.pixel_noise"):
-        pipeline.prepare(scan, C.load([], [f"load.pixel_noise={tmp_path / 'f.tif'}"]))
+        prepare(scan, C.load([], [f"load.pixel_noise={tmp_path / 'f.tif'}"]))
 
 
 @pytest.mark.shared
@@ -144,7 +144,7 @@ def test_real_recording_pixel_classes_come_to_one(tmp_path):
     assert min(c["factor"] for c in report.extra["classes"]) < 0.5
     _, labels = np.unique(np.round(diag.pixel_noise, 6), return_inverse=True)
     labels = labels.reshape(diag.pixel_noise.shape)
-    prep = pipeline.prepare(path, C.defaults())
+    prep = prepare(path, C.defaults())
     for noise, expect_one in ((None, False), (diag.pixel_noise, True)):
         obs = replace(prep, noise=replace(prep.noise, factors=noise)).observations()
         obs = replace(obs, use=obs.roi)

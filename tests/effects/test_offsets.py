@@ -10,7 +10,7 @@ from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.analysis.report import reconstruct_settings, write_report
 from dfxcorr.sim import simulate as S
 
-from conftest import chi2_tolerance, concealed, sim_config
+from conftest import chi2_tolerance, concealed, prepare, sim_config
 
 TILED = {"simulate.tiles": 8, "simulate.flat_nonlinearity": 1.0}
 
@@ -87,7 +87,7 @@ def test_the_preparation_reads_the_flat_field_where_the_scan_was_made(tmp_path):
               "visibility_loss": truth["vib_visibility"][:, None]}
 
     def misfit(settings):
-        prep = P.prepare(scan, C.load([], settings))
+        prep = prepare(scan, C.load([], settings))
         obs = prep.store.observations(prep.reference)
         t, v, phi = (truth[f"image_{k}"][np.ix_(obs.rows, obs.columns)]
                      for k in ("transmission", "dark_field", "differential_phase"))
@@ -103,7 +103,7 @@ def test_a_bad_position_error_file_is_refused_naming_it(tmp_path, small_scan):
     bad = tmp_path / "deltas.txt"
     bad.write_text("0.1\n0.2\n")
     with pytest.raises(AlignmentError, match="deltas.txt"):
-        P.prepare(scan, C.load([], [f"align.position_errors={bad}"]))
+        prepare(scan, C.load([], [f"align.position_errors={bad}"]))
 
 
 @pytest.mark.slow

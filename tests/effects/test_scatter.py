@@ -11,11 +11,11 @@ from dfxcorr import model as M
 from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.effects import scatter as SC
 from dfxcorr.noise import MIN_SIGNAL
-from dfxcorr.pipeline import prepare, reconstruct
+from dfxcorr.pipeline import reconstruct
 from dfxcorr.retrieve import reduced_chi2, retrieve
 from dfxcorr.sim import simulate as S
 
-from conftest import sim_config
+from conftest import prepare, sim_config
 
 SCATTER = {"effects.scatter": 0.1, "simulate.seed": 11}
 EXACT = {"simulate.noise": False, "simulate.dtype": "float64"}
