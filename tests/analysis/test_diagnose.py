@@ -231,7 +231,7 @@ def test_real_recording_is_diagnosed(tmp_path, order):
 
 def test_unidentifiable_effect_that_explains_the_misfit_stops_the_naming():
     # phase stepping with a per-step visibility loss: the configured model drops visibility_loss (not
-    # identifiable, paper Sec. II-F); proxies (sample_motion, curvature, pixel_noise) used to be named for it
+    # identifiable, paper Sec. II-F); proxies (sample_motion, curvature, pixel_noise) must not be named for it
     sets = ["simulate.geometry=stepping", "simulate.steps=5", "simulate.steps_per_period=5", "simulate.pixel_mm=2.4",
             "simulate.height_mm=153.6", "simulate.width_mm=460.8", "simulate.seed=5", "effects.visibility_loss=0.2"]
     scan, _ = S.simulate(C.load([], sets, schema=S.SCHEMA))

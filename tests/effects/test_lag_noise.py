@@ -18,7 +18,7 @@ from dfxcorr.sim import simulate as S
 
 from conftest import chi2_tolerance, prepare, real_ipp_scan, sim_config
 
-#: Mean effects that lag used to pose as (issue 11): none may be detected once lag is named.
+#: Mean effects that lag can pose as: none may be detected once lag is named.
 PROXIES = {"visibility_tilt", "dose", "curvature", "harmonic", "detector_gain"}
 
 
