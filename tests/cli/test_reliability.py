@@ -8,7 +8,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 import zlib
 from pathlib import Path
 
@@ -194,13 +193,22 @@ def test_huge_unlit_declaration_refused_within_memory_cap(tmp_path):
         assert res.exit_code == 2 and one_error_line(res.stderr, "no detector row is lit"), res.stderr + res.traceback
 
 
-def test_unlit_float_frames_are_not_read(tmp_path):
+def test_unlit_float_frames_are_not_read(tmp_path, monkeypatch):
     path = tmp_path / "wide.h5"
     _unlit(path, 2000, 20000, 500, np.float64, (1, 64, 500))
-    t0 = time.perf_counter()
+    read = []
+    real = h5py.Dataset.__getitem__
+
+    def spy(dset, key):
+        out = real(dset, key)
+        if dset.name == f"/{DET}/data":
+            read.append(np.size(out))
+        return out
+    monkeypatch.setattr(h5py.Dataset, "__getitem__", spy)
     for command in ("check", "reconstruct"):
         refused(run(command, path, "-o", tmp_path / "r.h5"), "no detector row is lit")
-    assert time.perf_counter() - t0 < 5  # reading every declared frame would take tens of seconds
+    # the float frames' counts are checked on the lit rows only: here none (160 GB declared)
+    assert sum(read) == 0
 
 
 def test_sigterm_inside_a_compiled_kernel_ends_cleanly(tmp_path):
