@@ -52,6 +52,7 @@ def test_lazy_scan_reads_only_the_lit_rows_and_those_just_left_and_closes_the_fi
                                                                store.row[store.left_prev]])
 
 
+@pytest.mark.slow
 def test_reading_a_scan_holds_a_fraction_of_its_frames(tmp_path):
     # 100 frames of 800 x 800 uint16 (128 MB) with a 40-row active area: the lit rows are 5 MB
     J, H, W, A = 100, 800, 800, 40

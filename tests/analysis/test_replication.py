@@ -79,7 +79,7 @@ def _series(folder, sample, flat):
 
 
 @pytest.mark.shared
-@pytest.mark.parametrize("recording", ["tum-ipp-stepping", "psi-microspheres"])
+@pytest.mark.parametrize("recording", [pytest.param("tum-ipp-stepping", marks=pytest.mark.slow), "psi-microspheres"])
 def test_no_half_of_a_real_recording_names_what_the_whole_does_not(tmp_path, recording):
     """Each half of the detector may lack the power to name an effect, but may not name a whole-detector one
     that the whole does not; and the whole's findings agree with themselves on its halves."""

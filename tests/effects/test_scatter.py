@@ -76,6 +76,7 @@ def test_one_model_in_kernels_and_numpy_oracle():
     np.testing.assert_array_equal(sub.offset, obs.offset[:, 3:40])
 
 
+@pytest.mark.slow
 def test_reconstruct_with_the_scatter_removes_the_false_dark_field():
     scan, truth = S.simulate(sim_config(**SCATTER))
     twin, _ = S.simulate(sim_config(**{**SCATTER, "effects.scatter": 0.0}))
@@ -108,6 +109,7 @@ def test_diagnose_names_scatter_first_and_estimates_s_within_its_noise():
     assert {f"load.scatter={extra['value']:.6g}", "load.scatter_width_mm=50"} <= set(settings), settings
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("width", [25.0, 100.0])
 def test_the_kernel_width_is_found_with_s(width):
     # the configured width is 50 mm: the trial profiles the width (factor-2 grid) with s
