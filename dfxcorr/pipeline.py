@@ -129,7 +129,7 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
     with that set's ``n_params`` per-frame parameters.
 
     The blocks are float32 observations, as the fit's, the pilot's and the motion mask's: a reconstruction
-    then compiles each kernel for one dtype only (the float64 variants were about 14 s of a first run), and the
+    then compiles each kernel for one dtype only (float64 variants would add about 14 s to a first run), and the
     images differ from a float64 retrieval by far less than their noise (the demo: 1e-4 of their spread).
     The expected counts and weights are not written (the images and the chi-square are all that is kept).
     """

@@ -221,8 +221,8 @@ def _trial(effect: EffectBase[Any], ctx: Context, state: State, test: Test[Any],
 
     ``settle``: the noise effects in the model, whose estimates are settled again on the trial's fit where their
     test (at ``alpha``) says they moved materially: a noise model estimated while a mean effect was missing is too
-    wide once it is added (a 5-step flat panel whose noise model was decided first ended at a reduced chi-square of
-    0.93 with four signatures unexplained), so the decisions do not depend on the order."""
+    wide once it is added (without this, a 5-step flat panel whose noise model is decided first ends at a reduced
+    chi-square of 0.93 with four signatures unexplained), so the decisions do not depend on the order."""
     policy = effect.policy
     hypothesis = effect.trial(ctx, state, test)
     for other in together:

@@ -235,7 +235,7 @@ def change_picture(effect: EffectBase[Any], before: State, after: State, finding
     ``after`` (each on its own observations: the change may alter the data or their noise model) (H, W), and
     its per-frame estimate (J, n) where it has one. ``located``: the residuals of a fit (the caller may keep
     them: one step's fit after is the next one's before). The maps are float32: they are drawn, and six per step
-    in float64 were the largest item of a diagnosis's peak memory."""
+    in float64 would be the largest item of a diagnosis's peak memory."""
     out: dict[str, Any] = {"name": effect.name, "reduced_chi2": (before.reduced_chi2, after.reduced_chi2)}
     for key, state in (("before", before), ("after", after)):
         out[key] = {k: v.astype(np.float32) for k, v in image_maps(state.obs, state.rec.images).items()}
