@@ -135,6 +135,16 @@ def strongest_unidentifiable(tests: Mapping[str, Test[Any]], effects: Effects, a
 
 Judge = Callable[[Signature], bool]
 
+#: A reduced chi-square beyond this, with signatures of the mean significant, is a gross misfit of the mean model.
+GROSS = 2.0
+
+
+def gross(state: State) -> bool:
+    """Whether the mean model is grossly off at ``state``: a reduced chi-square beyond :data:`GROSS` with a
+    significant signature of the residuals' mean (by frame, or by frame and row). A noise model judged then would
+    absorb the misfit (any misfit is matched by a variance large enough)."""
+    return state.reduced_chi2 > GROSS and any(s["significant"] and s["kind"] == "mean" for s in state.signatures)
+
 
 def _all(signature: Signature) -> bool:
     return True
@@ -366,6 +376,10 @@ def run(effects: Effects, ctx: Context, start: State, *, fit: Fit, alpha: float,
                 break
         step = None
         order = ranked(tests, effects, alpha, noise_first=noise_first)
+        if gross(state) and any(effects[n].policy.noise_model for n in order):
+            log.info("round %d: the mean model is grossly off (reduced chi-square %.4g, the residuals' mean "
+                     "significant): the noise model is not judged in this round", rnd, state.reduced_chi2)
+            order = [n for n in order if not effects[n].policy.noise_model]
         threshold = float(np.log(alpha / max(len(tests), 1)))
         passed: set[str] = set()  # decided in a pair: tried in another's place, or one finding with it
         for i, first in enumerate(order):

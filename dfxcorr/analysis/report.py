@@ -23,7 +23,7 @@ from ..effects.base import Consistency, EffectBase, Finding, Hypothesis, Params,
 from ..effects.residuals import fit_counts
 from ..io import atomic_path
 from ..retrieve import image_maps
-from .loop import Blind, Rejection
+from .loop import GROSS, Blind, Rejection
 from .replication import Replication
 from .signatures import Residuals, locate
 
@@ -341,8 +341,6 @@ def _markdown(diag: Diagnosis, out_dir: Path | None = None) -> str:
     return "\n".join(lines)
 
 
-#: A final reduced chi-square beyond this, with signatures left unexplained, is reported as a gross misfit.
-GROSS = 2.0
 
 
 def _replicated(e: EffectReport) -> str:

@@ -176,7 +176,7 @@ class DetectorLag(EffectBase[Estimate]):
                    "the detector carries a fraction a of the previous frame's signal into the next: "
                    "I_j = S_j + a S_(j-1)")
     # measured directly outside the active area: the mean effects would only soak up its traces
-    policy = Policy(order=0, fresh_start=True)
+    policy = Policy(order=0, fresh_start=True, astray_check=True)
 
     def configured(self, cfg: dict[str, Any], *, n_frames: int, detector: tuple[int, int]) -> Any:
         return cfg["load"]["detector_lag"] or None
