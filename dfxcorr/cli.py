@@ -150,7 +150,8 @@ def reconstruct_options(func):
                         help="Also write <output stem>_preview.png (uncorrected and corrected images) and "
                              "<output stem>_fit.png.")(func)
     func = click.option("--dicom-sidecar", type=click.Path(dir_okay=False),
-                        help="DICOM: patient and study attributes (YAML or JSON of DICOM keywords).")(func)
+                        help="DICOM: patient and study attributes (YAML or JSON of DICOM keywords); none "
+                             "are invented.")(func)
     func = click.option("--dicom", "dicom_dir", type=click.Path(file_okay=False),
                         help="Also write the images as DICOM here: one study, three series (needs pydicom).")(func)
     func = click.option("--tiff", "tiff_dir", type=click.Path(file_okay=False),
@@ -275,7 +276,7 @@ def dicom_cmd(result_file, output_dir, sidecar, overwrite):
     """Write the images of RESULT_FILE as DICOM for a PACS: one study, three series (needs pydicom).
 
     Physical values are recoverable from the stored pixels (Rescale Slope and Intercept); NaN pixels
-    hold the PixelPaddingValue 0. The same result gives the same UIDs every time.
+    hold the PixelPaddingValue 0. The same result and sidecar give the same UIDs every time.
     """
     from . import dicom as D
 

@@ -1,12 +1,12 @@
 """DICOM export: the three images of a result as one study of three series, for a PACS.
 
 Object. Each image is a Secondary Capture Image (SOP class 1.2.840.10008.5.1.4.1.1.7), the one image
-object every PACS stores and every viewer opens, and whose IOD leaves the Modality LUT free: Rescale
+object that every PACS stores and every viewer opens, and whose IOD leaves the Modality LUT free: Rescale
 Slope and Intercept recover the physical value of every stored pixel. The Digital X-Ray classes would
 name the modality better, but their DX Image module fixes Rescale Slope to 1 and Intercept to 0, so the
 stored pixels could not carry t, v or phi. The Parametric Map class (float pixels) is made for
-quantitative maps, but few PACS viewers display it; highdicom, which builds it, is therefore not used,
-and pydicom alone writes the Secondary Capture object.
+quantitative maps, but few PACS viewers display it. highdicom, which writes it, is therefore not needed:
+pydicom alone writes the Secondary Capture object.
 
 Values. Pixels are stored as uint16: the finite values of an image span the stored values 1 ... 65535
 linearly, so a value comes back within (max - min) / 131068 of what the result holds. The stored value
@@ -30,8 +30,8 @@ gives it.
 
 Identity. The study, series and instance UIDs derive from the result (its three images, its provenance,
 its pixel size) and from the sidecar's attributes: the same result written twice gives the same UIDs
-(re-sending it to a PACS replaces, never duplicates), another result or other patient attributes give
-others. A sidecar's StudyInstanceUID joins the series to an existing study.
+(sent to a PACS again, they are the same images, not new ones), another result or other patient
+attributes give others. A sidecar's StudyInstanceUID joins the series to an existing study.
 
 Patient and study. Attributes come only from the optional sidecar (YAML or JSON, :data:`SIDECAR_KEYS`);
 the type-2 attributes it does not give are present and empty, never invented. The program, its version,

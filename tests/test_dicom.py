@@ -133,7 +133,7 @@ def test_uids_are_stable_for_a_result_and_differ_between_results(tmp_path):
 
 
 SIDECAR = """\
-PatientName: Doe^Jane
+PatientName: Müller^Jürgen
 PatientID: 00123
 PatientBirthDate: 1960-02-29
 PatientSex: F
@@ -147,9 +147,10 @@ PatientOrientation: [L, F]
 
 def test_sidecar_attributes_are_carried_and_absent_ones_left_empty(tmp_path):
     side = tmp_path / "patient.yaml"
-    side.write_text(SIDECAR)
+    side.write_text(SIDECAR, encoding="utf-8")
     ds = read(D.write_dicom(result(), tmp_path / "out", sidecar=D.read_sidecar(side)))[0]
-    assert (ds.PatientName, ds.PatientID, ds.PatientBirthDate, ds.PatientSex) == ("Doe^Jane", "00123", "19600229", "F")
+    patient = (ds.PatientName, ds.PatientID, ds.PatientBirthDate, ds.PatientSex)
+    assert patient == ("Müller^Jürgen", "00123", "19600229", "F")  # 00123 is not read as the octal 83
     assert (ds.StudyDate, ds.StudyTime, ds.AccessionNumber) == ("20240105", "143000", "A17")
     assert list(ds.PatientOrientation) == ["L", "F"] and ds.BodyPartExamined == "CHEST"
     for key in ("StudyID", "ReferringPhysicianName"):  # type 2, not in the sidecar: present and empty
