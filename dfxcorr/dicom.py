@@ -282,6 +282,11 @@ def window(image: np.ndarray) -> tuple[float, float]:
     ----------
     image : ndarray
         Values in the Rescale output's units.
+
+    Returns
+    -------
+    centre, width : float
+        WindowCenter and WindowWidth in the same units.
     """
     finite = image[np.isfinite(image)]
     if finite.size == 0:
@@ -330,7 +335,7 @@ def _digest(src: _Source, sidecar: dict) -> str:
     """SHA-256 of everything that makes the result and the sidecar what they are."""
     h = hashlib.sha256()
     for name in Result.IMAGES:
-        image = np.ascontiguousarray(src.images[name])
+        image = np.ascontiguousarray(src.images[name], dtype="<f4")  # the same bytes on every machine
         h.update(f"{name}{image.shape}".encode())
         h.update(image.tobytes())
     h.update(json.dumps([src.provenance, src.pixel_size, sidecar], sort_keys=True).encode())
