@@ -116,7 +116,8 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
                   differential_phase=maps["differential_phase"], params=params, estimated=estimated,
                   uncertainty=uncertainty, fit_mask=fit_mask, motion_mask=moving.astype(np.uint8),
                   cost=fitted.cost, cost_stage=fitted.stage, reduced_chi2=chi2, method=method,
-                  config=cfg, provenance=provenance, uncorrected=uncorrected, timings=timings)
+                  config=cfg, provenance=provenance, uncorrected=uncorrected, timings=timings,
+                  pixel_size=prep.scan.pixel_size)
 
 
 def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: list[dict], *, iterations: int,
@@ -129,7 +130,7 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
     with that set's ``n_params`` per-frame parameters.
 
     The blocks are float32 observations, as the fit's, the pilot's and the motion mask's: a reconstruction
-    then compiles each kernel for one dtype only (the float64 variants were about 14 s of a first run), and the
+    then compiles each kernel for one dtype only (float64 variants would add about 14 s to a first run), and the
     images differ from a float64 retrieval by far less than their noise (the demo: 1e-4 of their spread).
     The expected counts and weights are not written (the images and the chi-square are all that is kept).
     """

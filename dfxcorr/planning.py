@@ -160,8 +160,7 @@ COARSE_SAMPLES = 1_000_000
 COARSE_MIN_COLUMNS = 16
 #: Wall seconds per sample of the fit's last stages on all its columns after a coarse pass (the predicted time
 #: adds :data:`FIT_SECONDS_PER_SAMPLE` per sample of the coarse pass): 0.53 us on the paper study at every column
-#: with both cores free (fit 5.7 s, its coarse pass on every 7th column about 2 s; 0.6 before its intermediate
-#: stages stopped at :data:`dfxcorr.fit.STAGE_GTOL`).
+#: with both cores free (fit 5.7 s, its coarse pass on every 7th column about 2 s).
 POLISH_SECONDS_PER_SAMPLE = 0.5e-6
 #: Wall seconds of a reconstruction's other stages (alignment, motion mask, retrieval of every pixel) per lit sample
 #: of the scan: what ``fit.time_floor`` leaves to the fit (0.076 us on the binned and 0.077 on the full-resolution

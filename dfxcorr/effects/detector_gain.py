@@ -6,8 +6,8 @@ likelihood-ratio test, 1 dof), so that a gain error is not named electronic nois
 The electronic variance's test also reads the readout of rows that no frame lights near then, where the file
 holds it (:func:`unlit_readout`: a direct measurement of sigma_e^2). The gain's does not: with sigma_e^2
 pinned by them, the lit residuals' small bias at low counts (2.6 % below the stated noise on a clean flat
-panel at ~40 photons and read noise 25, where a nonlinear fit takes more than its linear leverage) was all
-put on the gain (g = 0.42 named, truth 1). This module tests the gain; :mod:`dfxcorr.effects.electronic_noise`
+panel at ~40 photons and read noise 25, where a nonlinear fit takes more than its linear leverage) would all
+be put on the gain (g = 0.42 where the truth is 1). This module tests the gain; :mod:`dfxcorr.effects.electronic_noise`
 the electronic variance.
 """
 from __future__ import annotations
@@ -45,13 +45,11 @@ MIN_GAIN = 1e-6
 @dataclass(frozen=True)
 class NoiseEstimate:
     """A noise model's test payload: the gain and electronic variance fitted together, and the tested parameter's
-    estimate with the other at its current value (``profiled``: gain, electronic variance), with the standard
-    error of the tested parameter in that profile (``se``)."""
+    estimate with the other at its current value (``profiled``: gain, electronic variance)."""
 
     gain: float
     electronic: float
     profiled: tuple[float, float]
-    se: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -88,7 +86,7 @@ class NoiseFit:
         """The same with unlit readout (:func:`unlit_readout`, (N,)) added: samples whose photon signal is known to
         be nil, E[r^2] = sigma_e^2 exactly (the model's floor of :data:`dfxcorr.noise.MIN_SIGNAL`, there for
         expected counts that a fit puts at or below the dark, does not apply: taken at one count, a read noise of 1
-        was indistinguishable from none). Their regression weight is that of the current electronic variance, or of
+        would be indistinguishable from none). Their regression weight is that of the current electronic variance, or of
         one count where it is nil."""
         if not readout.size:
             return self
@@ -130,8 +128,7 @@ class NoiseFit:
         null = self.regression(**held)
         stat = max(self.deviance(*null) - self.deviance(g1, e1), 0.0)
         other = {"electronic": self.electronic} if "gain" in held else {"gain": self.gain}
-        profiled = self.regression(**other)
-        return chi2_test(stat, 1, NoiseEstimate(g1, e1, profiled, self.standard_error("gain" in held, profiled)))
+        return chi2_test(stat, 1, NoiseEstimate(g1, e1, self.regression(**other)))
 
     def standard_error(self, gain: bool, at: tuple[float, float]) -> float:
         """The standard error of the gain (``gain``) or of the electronic variance with the other held, at the

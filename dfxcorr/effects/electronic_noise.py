@@ -22,8 +22,8 @@ class ElectronicNoise(EffectBase[NoiseEstimate]):
     # a variance floor that the photon term cannot take up: modelled before the gain is judged against it.
     # It changes the samples' relative weights, most where the counts are low, where a fit under the wrong noise
     # model is worst: its trial fits afresh (measured on a flat panel, sigma_e 25 at 2000 counts: from the
-    # current parameters the refit stalled at reduced chi-square 4.4 with column and block signatures appearing,
-    # afresh it reached 0.86 with them gone); and its estimate from that fit's residuals is biased: one refit at
+    # current parameters the refit stalls at reduced chi-square 4.4 with column and block signatures appearing,
+    # afresh it reaches 0.86 with them gone); and its estimate from that fit's residuals is biased: one refit at
     # the estimate of the trial's own fit
     policy = Policy(order=1, noise_model=True, fresh_start=True, refinements=1)
 

@@ -55,7 +55,7 @@ def phase_variance(images: M.Images, dispersion: float = 1.0) -> np.ndarray:
 def _realigned_images(realigned: Realign, obs: Observations, params: dict[str, Any], shift: np.ndarray | float, *,
                       keep_inverse: bool = False) -> tuple[M.Images, float]:
     """The images of the samples of ``obs`` with the flat field read ``shift`` rows off the prepared alignment, and
-    their reduced chi-square, solved a run of columns at a time (a clinical scan's realigned samples at once were
+    their reduced chi-square, solved a run of columns at a time (a clinical scan's realigned samples at once would be
     most of its diagnosis's peak memory)."""
     parts = [retrieve(realigned(obs.subset(c), shift), params, keep_inverse=keep_inverse, keep_expected=False)
              for c in obs.column_chunks()]
@@ -109,7 +109,7 @@ def offset_test(realigned: Realign, obs: Observations, params: dict[str, Any], s
         Statistic z^2 with 1 dof; payload the offset beyond ``shift`` (rows) and its standard error.
     """
     # the compiled retrieval keeps the inverse normal matrices the phase variance needs (the numpy model's solve of
-    # every column was 2.5 s of the paper study's 10 s of tests)
+    # every column would take a quarter of the paper study's tests)
     images, chi2 = _realigned_images(realigned, obs, params, shift, keep_inverse=True)
     phi, var = images.phi, phase_variance(images, max(chi2, 1.0))
     plus, minus = (_realigned_images(realigned, obs, params, shift + d)[0] for d in (step, -step))

@@ -38,7 +38,7 @@ def motion_test(obs: Observations, params: Params, *, p_pixel: float = 1e-6, min
     dof = np.maximum(obs.segment_sum(obs.use, dtype=np.int64) - 3, 1)
     ok = np.isfinite(score)
     # the chi-square tail beyond p_pixel as a critical value per degree of freedom (a few distinct ones): the
-    # log-tail of every pixel was 0.3 s a round on a 512 x 1536 detector
+    # log-tail of every pixel would take 0.3 s a round on a 512 x 1536 detector
     dofs, at = np.unique(dof, return_inverse=True)
     critical = stats.chi2.isf(p_pixel, dofs)[at.reshape(dof.shape)]
     flag = obs.to_image(ok & (np.nan_to_num(score) * dof > critical), fill=False).astype(bool)
@@ -71,7 +71,7 @@ def _flagged(test: Test[None]) -> np.ndarray:
 class SampleMotion(EffectBase[None]):
     entry = Effect("sample_motion", None, False, (), 0.0, "none",
                    "part of the sample moved during the scan: pixels whose frames disagree")
-    policy = Policy(localised=True, pixelwise=True)
+    policy = Policy(localised=True, pixelwise=True, astray_check=True)
     files = ("motion_mask.tif",)
 
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[None] | None:

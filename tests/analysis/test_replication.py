@@ -45,6 +45,7 @@ def _named(diag) -> set[str]:
             for n in (e.name, *e.alternatives)}
 
 
+@pytest.mark.slow
 def test_a_dose_that_only_half_the_detector_sees_does_not_replicate():
     """A per-frame dose is the whole detector's: one that only the left half's columns carry is named (its test
     sees it) but its halves disagree, so it stays out of the recommended reconstruction."""
@@ -79,7 +80,8 @@ def _series(folder, sample, flat):
 
 
 @pytest.mark.shared
-@pytest.mark.parametrize("recording", [pytest.param("tum-ipp-stepping", marks=pytest.mark.slow), "psi-microspheres"])
+@pytest.mark.slow
+@pytest.mark.parametrize("recording", ["tum-ipp-stepping", "psi-microspheres"])
 def test_no_half_of_a_real_recording_names_what_the_whole_does_not(tmp_path, recording):
     """Each half of the detector may lack the power to name an effect, but may not name a whole-detector one
     that the whole does not; and the whole's findings agree with themselves on its halves."""
