@@ -196,7 +196,7 @@ scan_mutations = given(mutations=mutations, seed=st.integers(0, 2 ** 16),
 
 
 # a few examples in the fast tier, many in the slow one (80 ms each)
-@settings(max_examples=25, **SETTINGS)
+@settings(max_examples=12, **SETTINGS)
 @scan_mutations
 def test_a_few_mutated_scans_end_cleanly(template, mutations, seed, method):
     mutated_scan_ends_cleanly(template, mutations, seed, method)
@@ -240,7 +240,7 @@ yaml_edits = given(edits=st.lists(st.tuples(st.integers(0, len(VALID_YAML)), st.
                                             st.integers(0, 3)), min_size=1, max_size=4))
 
 
-@settings(max_examples=20, **SETTINGS)
+@settings(max_examples=10, **SETTINGS)
 @yaml_edits
 def test_a_few_mutated_configs_end_cleanly(template, edits):
     mutated_config_ends_cleanly(edits)
@@ -277,7 +277,7 @@ absurd_sets = given(sets=st.lists(st.tuples(st.sampled_from(_numeric_keys()), st
                                   min_size=1, max_size=2))
 
 
-@settings(max_examples=30, **SETTINGS)
+@settings(max_examples=15, **SETTINGS)
 @absurd_sets
 def test_a_few_absurd_configuration_numbers_end_cleanly(template, sets):
     absurd_numbers_end_cleanly(template, sets)

@@ -94,6 +94,7 @@ def test_reconstruct_with_the_scatter_removes_the_false_dark_field():
     assert plain.reduced_chi2 > 1.1 and fixed.reduced_chi2 == pytest.approx(clean.reduced_chi2, abs=0.01)
 
 
+@pytest.mark.slow
 def test_diagnose_names_scatter_first_and_estimates_s_within_its_noise():
     scan, truth = S.simulate(sim_config(**SCATTER))
     diag = diagnose(scan, C.defaults())
