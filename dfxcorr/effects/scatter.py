@@ -1,11 +1,22 @@
 """``scatter``: Compton scatter, photons that reach the detector without the gratings' modulation.
 
-The model (``spec/diagnosis.md`` version 3): sample k of frame j gains the unmodulated count s S_k, S the
-frame's primary P = t^f t on its lit rows, blurred by a Gaussian of std ``load.scatter_width_mm`` (a
-normalised blur within the frame's lit rows and the detector) and scaled so that its total over the frame
-is the primary's: s is the scatter-to-primary ratio of the totals, the mean ratio over the lit samples (the
-paper's Sec. V: "effects that are not included in the model must be corrected for beforehand ... Compton
-scatter can be estimated").
+The model (``spec/diagnosis.md`` version 4): sample (r, c) of frame j gains the unmodulated count s S_j(r, c),
+S_j the superposition of the frame's primary under the kernel, S_j(r, c) = sum over the frame's lit samples
+(r', c') of P_j(r', c') K(r - r', c - c'), P = t^f t the primary on the lit rows (none elsewhere, none beyond the
+detector), K a normalised Gaussian of std ``load.scatter_width_mm``. Nothing is renormalised: what the kernel
+carries off the lit band or the detector is lost, so S falls towards their edges, and a band narrow against the
+kernel gets much less scatter than a full field (why slot scanners reject scatter). Two ratios follow:
+
+- s, the scatter per unit primary before the band's loss (``load.scatter``; ``"s"`` in ``diagnosis.json``): a
+  pixel in the middle of a wide band under a narrow kernel gets s times its local primary;
+- the measured scatter-to-primary ratio over the lit samples, sum of s S over them / sum of P
+  (:meth:`ScatterField.share`; the spec's ``"value"``): smaller, by the band's loss (on the 5 mm test scan, a
+  15-row band under a 10-row kernel, 0.35 s; 0.17 s at 100 mm).
+
+The paper's Sec. V: "effects that are not included in the model must be corrected for beforehand ... Compton
+scatter can be estimated". The simulator makes the field independently (:func:`dfxcorr.sim.simulate.scatter_field`:
+a direct sum between rows, an FFT convolution along them, the kernel untruncated); the two agree to 1e-3 of the
+field (tests/effects/test_scatter.py).
 
 Where it enters: S couples neighbouring pixels, so it cannot be an unknown of the per-pixel closed-form
 solve. It is a known field added to the model's unmodulated offset, the dark (:attr:`LitStore.offset
@@ -18,27 +29,27 @@ s = 0.1, a fringe-phase signature left unexplained. The store holds S coarse (:c
 frame's field on the blur's blocks, interpolated to the samples each stage asks for), not per sample: that
 was 2.2 GB of float32 at full clinical resolution.
 
-The primary needs the transmission t: a retrieval at neutral per-frame parameters over every lit sample,
-then fixed-point updates with the previous t's scatter in the offset. Without the offset t comes out too
-high by the local scatter share (median 23 % at s = 0.1 on the thorax, where the scatter reaches 5x the
-primary behind the spine); each update shrinks that error about fivefold (measured: S off by 8.8 %, 0.86 %,
-0.36 %, 0.35 % RMS after 0-3 updates; the last is the noise of t), so three are taken. Where the blur's blocks
-are b > 1 pixels wide, t is retrieved on every b-th column only (:func:`retrieved`): on the binned clinical
-scan with s = 0.1 the estimate moved from 0.097228 to 0.097234 (se 0.0004).
+The primary needs the transmission t: a retrieval at neutral per-frame parameters over every lit sample takes
+the scatter for transmission; it is divided by 1 + the measured ratio, then updated with the previous t's
+scatter in the offset. An update maps an error e of t to about -s L e (L the superposition over the band, of
+gain at most 1), so plain updates diverge for s > 1: they are damped, each error shrinking by at least
+s / (2 + s), until the change bounds the remaining error below :data:`TOLERANCE` (s = 0.1: two updates; 1.5:
+seven). Where the blur's blocks are b > 1 pixels wide, t is retrieved on every b-th column only
+(:func:`retrieved`).
 
 The diagnosis tests s by its efficient score at the configured kernel width, and its trial fits s on a grid
 of widths (the configured one times 1/4 ... 4, then the vertex of a parabola in log width through the best
 three): for a given S the model is linear in s, so one Gauss-Newton step from s = 0 with the images profiled
-is the weighted least-squares estimate. S follows t, which follows s: the grid uses the t of the test's
-estimate, and s is fitted again with the t of the best setting (two transmissions per trial; one per width
-and step had made a binned clinical scan's diagnosis 206 s, now 49). It keeps the width whose weighted
-least-squares cost is lowest: a wrong
-width misplaces the scatter (measured on the 5 mm test scan: true width 100 mm fitted at 50 mm gave
-s = 0.117 for 0.1). The cost is nearly flat in the width around its minimum while s moves with it (a few
-% per 10 % of width), so the reported se, at the chosen width, understates the error of s.
+is the weighted least-squares estimate. The grid uses the t of the test's estimate. It keeps the width whose
+weighted least-squares cost is lowest: a wrong width misplaces the scatter (true width 100 mm fitted at 50 mm
+gave s = 0.117 for 0.1). Then s, at that width, in rounds (:data:`ROUNDS`): the t behind the field at the last s,
+s at it, and s again after the per-frame parameters are refitted with s S in the model (:func:`refitted`: the
+base fit's parameters take up part of the scatter, 5-10 % of s). The cost is nearly flat in the width around its
+minimum while s moves with it (a few % per 10 % of width), so the reported se, at the chosen width, understates
+the error of s.
 
-What identifies s: in a scan the active area moves over the detector, so a pixel's scatter (a blur of the
-frame's lit band) changes from frame to frame unlike its primary (which follows t^f at its local row); in
+What identifies s: in a scan the active area moves over the detector, so a pixel's scatter (the superposition of
+the frame's lit band) changes from frame to frame unlike its primary (which follows t^f at its local row); in
 phase stepping every pixel sees the same primary in every step and s S is a share of the transmission.
 """
 from __future__ import annotations
@@ -68,7 +79,7 @@ log = logging.getLogger(__name__)
 #: Most fixed-point updates of the transmission behind the primary (see the module's text).
 MAX_UPDATES = 12
 #: The updates stop once the transmission's remaining error, bounded from its last change, is below this (relative
-#: RMS; the noise of t behind the field of the 5 mm test scan is about 3e-3).
+#: RMS): the field then matches the simulator's to the noise of t (0.26-0.27 % RMS at s = 0.1 and 1.5, 5 mm scan).
 TOLERANCE = 5e-4
 #: Kernel widths a trial fits s at, relative to the configured one (then refined between the best three).
 WIDTHS = np.array([0.25, 0.5, 1.0, 2.0, 4.0])
