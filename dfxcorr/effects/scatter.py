@@ -341,13 +341,14 @@ def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_
     # an update maps an error e of t to about -s L e, L the superposition over the band, of gain at most 1: plain
     # updates (omega = 1) diverge for s > 1 (t fell to 0 and the field with it: the correction vanished). Damped,
     # every error shrinks by at least q = s / (2 + s) a step (s = 0.1: 0.05)
-    omega, q = 2.0 / (2.0 + s), s / (2.0 + s)
+    omega = 2.0 / (2.0 + s)
     for _ in range(MAX_UPDATES):
         update = retrieved(replace(store, offset=field(store, reference, t, width).scaled(s)), reference, step=step)
         new = (1.0 - omega) * t + omega * update
         change = float(np.sqrt(np.mean((new - t) ** 2) / max(np.mean(t ** 2), 1e-300)))
         t = new
-        if change * q / (1.0 - q) < TOLERANCE:
+        # the remaining error, at most change q / (1 - q) = change s / 2
+        if change * s / 2.0 < TOLERANCE:
             break
     else:
         log.warning("scatter: the transmission behind the primary changed by %.2g (relative RMS) in its last of %d "

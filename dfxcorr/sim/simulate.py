@@ -19,7 +19,7 @@ from scipy import signal
 
 from .. import model as M
 from ..align import interpolate_rows, lit_blocks
-from ..config import ConfigError, Option, _fraction, _nonneg, _positive, _within
+from ..config import MAX_SCATTER, ConfigError, Option, _fraction, _nonneg, _positive, _within
 from ..io import Reference, Scan, SteppingReference, write_scan
 from ..reference import stepping_observations
 
@@ -106,7 +106,7 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                "times the superposition of its frame's primary (dose x t^f x t on the lit rows) "
                                "under a normalised Gaussian of scatter_width_mm, nothing renormalised (a narrow "
                                "band under a wide kernel gets less than s times its primary); 0: none", _NUM,
-                               check=_nonneg),
+                               check=_within(0, MAX_SCATTER)),
         "scatter_width_mm": Option(50.0, "std of the scatter's Gaussian kernel at the detector (mm)", _NUM,
                                    check=_positive),
         "detector_nonlinearity": Option(0.0, "relative count loss beta at the flat-field level simulate.flux: a "

@@ -6,7 +6,7 @@ import pytest
 from dfxcorr.io import write_scan
 from dfxcorr.sim import simulate as S
 
-from conftest import cli_capped, sim_config
+from conftest import cli_capped, one_error_line, sim_config
 
 
 def scatter_scan(folder, s: float):
@@ -46,3 +46,13 @@ def test_a_scatter_above_the_primary_changes_the_reconstruction(tmp_path):
     ok = np.isfinite(images["0"]) & np.isfinite(images["1.5"])
     # the scatter taken for transmission without the correction: t lower with it
     assert np.nanmedian(images["1.5"][ok] / images["0"][ok]) < 0.9
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "simulate"])
+def test_a_scatter_beyond_any_sample_is_refused_in_one_line(scan_file, tmp_path, command):
+    # 1e300 underflowed the field to zero: the correction vanished while the log said it was applied
+    args = ("simulate", "-o", tmp_path / "s.h5", "--set", "effects.scatter=1e300") if command == "simulate" else \
+        ("reconstruct", scan_file, "-o", tmp_path / "r.h5", "--set", "load.scatter=1e300")
+    res = cli_capped(*args, timeout=60)
+    assert res.exit_code == 2 and one_error_line(res.stderr, "scatter", "[0, 100]"), (res.exit_code, res.stderr)
+    assert not (tmp_path / "r.h5").exists() and not (tmp_path / "s.h5").exists()
