@@ -69,7 +69,7 @@ def _within(lo, hi):
 
 _NUM = (int, float)
 #: Largest scatter per unit primary (load.scatter, effects.scatter): thick samples reach several times the primary;
-#: beyond this the primary behind it is lost in the scatter's noise (and 1e300 underflowed the field to zero).
+#: beyond this the primary behind it is lost in the scatter's noise (a field scaled by 1e300 underflows to zero).
 MAX_SCATTER = 100.0
 #: Vibration estimators (``fit.method``): this paper's, its two baselines, and no correction.
 METHODS = ("ml", "alternating", "correlation", "none")

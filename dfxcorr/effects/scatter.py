@@ -283,7 +283,7 @@ def _between(pixels: np.ndarray, n: np.ndarray | int, b: int) -> tuple[np.ndarra
     """The block centres (at (i + 1/2) b) each pixel lies between, and its weight on the second: lower and upper
     index and fraction (``n`` blocks, per pixel or one for all). Beyond the outer centres the line through the outer
     two is extended (the half block there is where the field falls fastest, towards the band's and the detector's
-    edges: held constant it was 1.5 % off at a kernel of 333 pixels)."""
+    edges: held constant, 1.5 % off at a kernel of 333 pixels)."""
     n = np.asarray(n)
     at = np.clip((pixels + 0.5) / b - 0.5, -0.5, n - 0.5)
     lo = np.clip(np.floor(at).astype(int), 0, np.maximum(n - 2, 0))
@@ -339,7 +339,7 @@ def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_
     # dividing that out leaves the error's variation across the sample, which the updates take out
     t = t / (1.0 + field(store, reference, t, width).scaled(s).share())
     # an update maps an error e of t to about -s L e, L the superposition over the band, of gain at most 1: plain
-    # updates (omega = 1) diverge for s > 1 (t fell to 0 and the field with it: the correction vanished). Damped,
+    # updates (omega = 1) diverge for s > 1 (t falls to 0 and the field with it: no correction at all). Damped,
     # every error shrinks by at least q = s / (2 + s) a step (s = 0.1: 0.05)
     omega = 2.0 / (2.0 + s)
     for _ in range(MAX_UPDATES):

@@ -23,7 +23,7 @@ def scan_file(tmp_path_factory):
 
 @pytest.mark.parametrize("command", ["check", "reconstruct", "diagnose"])
 def test_a_kernel_wider_than_the_detector_runs_in_bounded_memory(scan_file, tmp_path, command):
-    # 1e9 mm: 2e8 pixels of std. Its blur on blocks of sigma / 32 pixels once asked for a band of 284 TiB; the block
+    # 1e9 mm: 2e8 pixels of std. A band padded to whole blocks of sigma / 32 pixels would be 284 TiB; the block
     # sums hold only the band's blocks (one), the field is the constant it is
     out = tmp_path / ("d" if command == "diagnose" else "r.h5")
     res = cli_capped(command, scan_file, "-o", out, "--set", "load.scatter=0.1", "--set",
@@ -32,7 +32,7 @@ def test_a_kernel_wider_than_the_detector_runs_in_bounded_memory(scan_file, tmp_
 
 
 def test_a_scatter_above_the_primary_changes_the_reconstruction(tmp_path):
-    # s >= 1 (thick samples) is applied: the images differ from those without (they were bit-identical)
+    # s >= 1 (thick samples) is applied: the images differ from those without
     import h5py
 
     scan_file = scatter_scan(tmp_path, 1.5)
@@ -50,7 +50,7 @@ def test_a_scatter_above_the_primary_changes_the_reconstruction(tmp_path):
 
 @pytest.mark.parametrize("command", ["reconstruct", "simulate"])
 def test_a_scatter_beyond_any_sample_is_refused_in_one_line(scan_file, tmp_path, command):
-    # 1e300 underflowed the field to zero: the correction vanished while the log said it was applied
+    # a field scaled by 1e300 underflows to zero: the correction would vanish while the log says it is applied
     args = ("simulate", "-o", tmp_path / "s.h5", "--set", "effects.scatter=1e300") if command == "simulate" else \
         ("reconstruct", scan_file, "-o", tmp_path / "r.h5", "--set", "load.scatter=1e300")
     res = cli_capped(*args, timeout=60)

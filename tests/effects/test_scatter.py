@@ -181,7 +181,7 @@ def test_a_narrow_band_under_a_wide_kernel_gets_little_scatter():
 
 
 def test_a_scatter_above_the_primary_is_applied():
-    # s = 1.5 (thick samples): plain fixed-point updates of t diverged, t fell to 0 and the field with it
+    # s = 1.5 (thick samples): plain fixed-point updates of t diverge, t falls to 0 and the field with it
     sets = {**SCATTER, "effects.scatter": 1.5}
     scan, _ = S.simulate(sim_config(**sets))
     store = prepare(scan, C.load([], ["load.scatter=1.5", "load.scatter_width_mm=50"])).store
@@ -236,7 +236,7 @@ def test_the_scatter_blur_is_the_gaussian_filter_with_zeros_beyond_the_edges(sig
 
 
 def test_a_field_without_information_leaves_s_at_zero():
-    # a transmission of 0 behind the primary (what diverging updates of t made at s = 1.5) has no field: the fit's
+    # a transmission of 0 behind the primary (what diverging updates of t make at s = 1.5) has no field: the fit's
     # s is 0, not a division by its zero information
     from dfxcorr.analysis.diagnose import Session
     from dfxcorr.effects import REGISTRY
