@@ -327,9 +327,20 @@ _StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float",
                                     list("-+0123456789"))
 
 
-def parse_yaml(text: str) -> Any:
-    """Parse configuration YAML with :class:`_StrictLoader` (no aliases, no duplicate keys)."""
-    loader = _StrictLoader(text)
+class _TextLoader(_StrictLoader):
+    """:class:`_StrictLoader` reading every scalar as text: identifiers stay as written (YAML 1.1 would read
+    00123 as the octal 83 and 14:30:00 as seconds)."""
+
+
+_TextLoader.yaml_implicit_resolvers = {}
+
+
+def parse_yaml(text: str, *, as_text: bool = False) -> Any:
+    """Parse configuration YAML with :class:`_StrictLoader` (no aliases, no duplicate keys).
+
+    ``as_text`` reads every scalar as a string (no numbers, booleans, dates or nulls).
+    """
+    loader = (_TextLoader if as_text else _StrictLoader)(text)
     try:
         return loader.get_single_data()
     finally:

@@ -116,7 +116,8 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
                   differential_phase=maps["differential_phase"], params=params, estimated=estimated,
                   uncertainty=uncertainty, fit_mask=fit_mask, motion_mask=moving.astype(np.uint8),
                   cost=fitted.cost, cost_stage=fitted.stage, reduced_chi2=chi2, method=method,
-                  config=cfg, provenance=provenance, uncorrected=uncorrected, timings=timings)
+                  config=cfg, provenance=provenance, uncorrected=uncorrected, timings=timings,
+                  pixel_size=prep.scan.pixel_size)
 
 
 def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: list[dict], *, iterations: int,

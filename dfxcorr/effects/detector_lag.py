@@ -176,7 +176,7 @@ class DetectorLag(EffectBase[Estimate]):
                    "the detector carries a fraction a of the previous frame's signal into the next: "
                    "I_j = S_j + a S_(j-1)")
     # measured directly outside the active area: the mean effects would only soak up its traces
-    policy = Policy(order=0, fresh_start=True)
+    policy = Policy(order=0, fresh_start=True, astray_check=True)
 
     def configured(self, cfg: dict[str, Any], *, n_frames: int, detector: tuple[int, int]) -> Any:
         return cfg["load"]["detector_lag"] or None
@@ -197,9 +197,9 @@ class DetectorLag(EffectBase[Estimate]):
                        options=(Option("load.detector_lag", f"{a:.6g}"),))
 
     def measure(self, ctx: Context, state: State) -> Estimate | None:
-        # measured on the counts before this hypothesis's correction of them
-        before = state.hypothesis.but(corrections=tuple(c for c in state.hypothesis.corrections if c[0] != self.name))
-        return lag_test(ctx.corrected(before).store).payload
+        # measured in the rows the active area has just left, over the whole detector: a fit on part of it does
+        # not measure it again
+        return None
 
 
 EFFECT = DetectorLag()

@@ -71,7 +71,7 @@ def _flagged(test: Test[None]) -> np.ndarray:
 class SampleMotion(EffectBase[None]):
     entry = Effect("sample_motion", None, False, (), 0.0, "none",
                    "part of the sample moved during the scan: pixels whose frames disagree")
-    policy = Policy(localised=True, pixelwise=True)
+    policy = Policy(localised=True, pixelwise=True, astray_check=True)
     files = ("motion_mask.tif",)
 
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[None] | None:

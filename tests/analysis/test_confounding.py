@@ -33,6 +33,9 @@ def test_dose_and_phase_errors_are_told_apart_where_the_data_do(effects, named):
     diag = diagnose(scan, C.defaults(), base="none")
     assert _found(diag) == named, [(e.name, e.verdict) for e in diag.effects]
     assert diag.final_chi2 == pytest.approx(1.0, abs=0.03)
+    # each finding holds on the halves of the detector (or, fitted with a partner, is not compared)
+    assert all(e.replication is not None and e.replication.replicated is not False
+               for e in diag.effects if e.detected), [(e.name, e.replication) for e in diag.effects if e.detected]
     assert not [u for u in diag.unexplained if u.axis in ("frame", "phase")], diag.unexplained
 
 

@@ -1,5 +1,6 @@
 """The diagnosis, proven on concealed effects: each is named first and the fit returns to the noise."""
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -175,7 +176,8 @@ def test_unidentifiable_effects_are_never_detected():
     for name in ("visibility_loss", "background"):
         assert not verdict[name].identifiable and not verdict[name].detected, name
     steps = scan.shape[0]
-    assert verdict["dose"].excess == 2 and verdict["dose"].dof == steps - 1 - 2 and not verdict["dose"].detected
+    assert verdict["dose"].shared == 2 and verdict["dose"].dof == steps - 1 - 2 and not verdict["dose"].detected
+    assert verdict["dose"].identifiable and verdict["dose"].excess == 0
     assert not any(e.detected for e in diag.effects)
 
 
@@ -189,7 +191,9 @@ def test_report_files_follow_the_contract(tmp_path):
     assert doc["base_model"] == ["phase_offset", "tilt", "visibility_loss"]
     assert set(doc["reduced_chi2"]) == {"initial", "final"}
     first = doc["effects"][0]
-    assert first["name"] == "dose" and first["detected"] and first["identifiable"]
+    assert first["name"] == "dose" and first["detected"] and first["identifiable"] and first["verdict"] == "added"
+    # a per-frame dose is the whole detector's: the halves of its columns agree within their errors
+    assert first["replication"]["replicated"] and len(first["replication"]["halves"]) == 2
     for key in ("statistic", "dof", "p_value", "delta_chi2", "reduced_chi2_after", "where", "estimate"):
         assert key in first
     stats_ = [e["statistic"] for e in doc["effects"][1:]]
@@ -204,6 +208,7 @@ def test_report_files_follow_the_contract(tmp_path):
     assert np.nanmean(change["after"]["residual"]) < np.nanmean(change["before"]["residual"])
     report = (tmp_path / "report.md").read_text()
     assert "Criterion" in report and "--set vibration.dose=true" in report and "## Unexplained" in report
+    assert "| replicated |" in report and "| yes (p " in report
     assert "![adding dose](effect-dose.png)" in report
     # a second report into the same folder: refused, or replaced with --overwrite (every picture included)
     from dfxcorr.errors import OutputExistsError
@@ -317,3 +322,17 @@ def test_a_scan_larger_than_the_held_samples_is_tested_on_a_band_and_fitted_over
     assert band.size == W // 3 and diag.tested_columns == (band[0], band[-1] + 1)
     assert diag.to_json()["tested_columns"] == [band[0], band[-1] + 1] and f"{band[0]}-{band[-1]}" in diag.band
     assert not tested[:band[0]].any() and not tested[band[-1] + 1:].any() and tested[band].mean() > 0.5
+
+
+def test_a_gross_misfit_of_the_mean_is_not_absorbed_by_the_noise_model():
+    """Frames in reversed order: the mean model is off everywhere (reduced chi-square ~1e5). Any misfit is matched
+    by a variance large enough, so no noise-model effect may be named for it; the misfit is located and called
+    gross, and nothing is recommended."""
+    from dfxcorr.analysis.report import GROSS, _markdown, reconstruct_settings
+
+    scan, _ = S.simulate(sim_config(**{"simulate.seed": 7}))
+    scan = replace(scan, data=np.asarray(scan.data)[::-1].copy())
+    diag = diagnose(scan, C.defaults())
+    assert not [e.name for e in diag.effects if e.detected], [(e.name, e.verdict) for e in diag.effects]
+    assert diag.final_chi2 > GROSS and diag.unexplained
+    assert reconstruct_settings(diag) == [] and "**The misfit is gross**" in _markdown(diag)
