@@ -27,7 +27,7 @@ model. Its photons carry shot noise: each sample's variance counts them (:attr:`
 variance was too low where the modulated count is low: 9.7 % above the noise near the fringe minimum at
 s = 0.1, a fringe-phase signature left unexplained. The store holds S coarse (:class:`ScatterField`: each
 frame's field on the blur's blocks, interpolated to the samples each stage asks for), not per sample: that
-was 2.2 GB of float32 at full clinical resolution.
+would take 2.2 GB of float32 at full clinical resolution.
 
 The primary needs the transmission t: a retrieval at neutral per-frame parameters over every lit sample takes
 the scatter for transmission; it is divided by 1 + the measured ratio, then updated with the previous t's
@@ -548,8 +548,8 @@ class Scatter(EffectBase[ScatterScore]):
             return Test(0.0, 1, 1.0, 0.0, ScatterScore(0.0, np.inf, width_mm), identifiable=False)
         # measured, not assumed from the geometry: in phase stepping every step sees the same primary and the
         # share of S's information left after profiling the images is ~1e-31 (5-step simulation), in a scan ~0.1.
-        # On the fit's columns, as the channel effects' tests: the score of every column was a fifth of the paper
-        # study's tests (a stepping recording shows its ~1e-31 share of information there as well)
+        # On the fit's columns, as the channel effects' tests: the score of every column would cost a fifth of the
+        # paper study's tests (a stepping recording shows its ~1e-31 share of information there as well)
         obs = state.fit_obs
         S = ctx.cached(TestField(width_mm, tuple(int(c) for c in obs.columns)), state.hypothesis)
         U, info, known, _ = score(obs, state.params, state.fit_rec.images, state.fit_rec.weights, S)

@@ -141,7 +141,7 @@ SCHEMA: dict[str, dict[str, Option]] = {
 }
 
 
-#: A flat panel (the issue's case): 2000 counts in the open beam, read noise sd 25 and a dark of 100
+#: A flat panel: 2000 counts in the open beam, read noise sd 25 and a dark of 100
 #: (detector units), every row read out. Add ``effects.detector_gain`` for counts that are not photons.
 FLAT_PANEL = {"simulate.flux": 2000.0, "effects.read_noise": 25.0, "effects.dark": 100.0,
               "effects.full_readout": True}
@@ -179,7 +179,7 @@ CONCEALED = {
                        {"simulate.tiles": 8, "simulate.flat_nonlinearity": 1.0}, []),
     "detector_lag": ("effects.detector_lag", 0.03, [0.01, 0.003, 0.001, 0.0003], {}, []),
     "pixel_noise": ("effects.pixel_noise", 1 / 3, [0.6, 0.8, 0.9, 0.95], {}, []),
-    # a flat panel at 2000 counts with a dark of 100 (the case); the file states the dark, not the noise
+    # a flat panel at 2000 counts with a dark of 100; the file states the dark, not the noise
     "electronic_noise": ("effects.read_noise", 25.0, [10.0, 5.0, 2.0, 1.0], FLAT_PANEL, []),
     "scatter": ("effects.scatter", 0.1, [0.05, 0.02, 0.01, 0.005], {}, []),
 }
