@@ -328,9 +328,9 @@ def test_a_scan_larger_than_the_held_samples_is_tested_on_a_band_and_fitted_over
 
 
 def test_a_gross_misfit_of_the_mean_is_not_absorbed_by_the_noise_model():
-    """Frames in reversed order: the mean model is off everywhere (reduced chi-square ~1e5). Any misfit is matched
-    by a variance large enough, so no noise-model effect may be named for it; the misfit is located and called
-    gross, and nothing is recommended."""
+    """Frames in reversed order: the mean model is off everywhere (reduced chi-square ~1e5, the standardized
+    residuals' kurtosis 37). Any misfit is matched by a variance large enough, so no noise-model effect may be
+    named for it; the misfit is located and called gross, and nothing is recommended."""
     from dfxcorr.analysis.report import GROSS, _markdown, reconstruct_settings
 
     scan, _ = S.simulate(sim_config(**{"simulate.seed": 7}))
