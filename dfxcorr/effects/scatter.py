@@ -72,7 +72,23 @@ from ..io import Reference
 from ..observations import Observations
 from ..preparation import Correctable, Prepared
 from ..retrieve import retrieve
-from .base import MEAN, Context, EffectBase, Estimate, Finding, Hypothesis, Option, State, Test, chi2_test
+from .base import (
+    MEAN,
+    Consistency,
+    ConsistencyAxis,
+    Context,
+    EffectBase,
+    Estimate,
+    Finding,
+    Hypothesis,
+    Option,
+    State,
+    Test,
+    chi2_test,
+    dispersion,
+    strongest,
+)
+from .channel import strata
 
 log = logging.getLogger(__name__)
 
@@ -555,10 +571,10 @@ class Scatter(EffectBase[ScatterScore]):
         U, info, known, _ = score(obs, state.params, state.fit_rec.images, state.fit_rec.weights, S)
         identifiable = info > MIN_INFORMATION_SHARE * known
         # quasi-likelihood: the dispersion of the fit, not the stated noise model, scales the score's variance
-        dispersion = max(state.reduced_chi2, 1.0)
-        stat = max(U, 0.0) ** 2 / (info * dispersion) if identifiable else 0.0
+        phi = dispersion(state)
+        stat = max(U, 0.0) ** 2 / (info * phi) if identifiable else 0.0
         payload = ScatterScore(U / info if identifiable else 0.0,
-                               float(np.sqrt(dispersion / info)) if identifiable else np.inf, width_mm,
+                               float(np.sqrt(phi / info)) if identifiable else np.inf, width_mm,
                                info / max(known, 1e-300))
         return chi2_test(stat, 1, payload, identifiable=bool(identifiable), explains=stat)
 
@@ -613,16 +629,51 @@ class Scatter(EffectBase[ScatterScore]):
         if setting is None:
             return None
         # the score of s beyond the fitted one along the fitted field, at this fit: its step and standard error
+        U, info, _, _ = score(state.fit_obs, state.params, state.fit_rec.images, state.fit_rec.weights,
+                              self._unit_field(ctx, state, setting))
+        if info <= 0:
+            return Estimate(np.asarray(setting.ratio), np.asarray(np.inf))  # no field on these columns
+        return Estimate(np.asarray(setting.ratio + U / info), np.asarray(np.sqrt(dispersion(state) / info)))
+
+    def consistency(self, ctx: Context, before: State, state: State) -> Consistency | None:
+        # scatter has one ratio across the recording: s refitted on the pixels of each stratum by detector row and
+        # by expected count (one step from the fitted s along the fitted field) must agree; what an effect in no
+        # catalogue adds (a ghost of an earlier frame, say) follows other rows and counts than the primary's blur
+        setting = dict(state.hypothesis.corrections).get(self.name)
+        if setting is None or setting.ratio <= 0:
+            return None
+        S = self._unit_field(ctx, state, setting)
+        obs, rec = state.fit_obs, state.fit_rec
+        found = {}
+        axes: tuple[ConsistencyAxis, ...] = ("row", "count")
+        for by in axes:
+            labels = strata(obs, rec.expected, by=by)
+            n = int(labels.max()) + 1
+            if n < 2:
+                continue
+            U, info = np.zeros(n), np.zeros(n)
+            for k in range(n):
+                U[k], info[k], _, _ = score(obs, state.params, rec.images, np.where(labels == k, rec.weights, 0.0), S)
+            ok = info > 0
+            if ok.sum() < 2:
+                continue
+            stat = (float(np.sum(U[ok] ** 2 / info[ok])) - float(U[ok].sum()) ** 2 / float(info[ok].sum()))
+            sizes = 1.0 + np.where(ok, U / np.where(ok, info, 1.0), 0.0) / setting.ratio
+            found[by] = chi2_test(max(stat, 0.0) / dispersion(state), int(ok.sum()) - 1,
+                                  tuple(float(s) for s in sizes))
+        if not found:
+            return None
+        axis, t = strongest(found)
+        return Consistency(t.statistic, t.dof, t.p_value, t.log_p, axis, t.payload)
+
+    def _unit_field(self, ctx: Context, state: State, setting: Setting) -> np.ndarray:
+        """The unit scatter field of ``setting`` on the fit's columns of ``state`` (its transmission behind the
+        primary at that setting, on the scan without this hypothesis's scatter)."""
         prep = ctx.corrected(state.hypothesis.without(self.name))
         t = transmission(prep.store, prep.reference, setting, pixel_mm(prep.scan))
         S = field(prep.store, prep.reference, t, kernel_pixels(setting.width_mm, pixel_mm(prep.scan))).take(
             columns=state.fit_obs.columns)
-        U, info, _, _ = score(state.fit_obs, state.params, state.fit_rec.images, state.fit_rec.weights,
-                              np.asarray(S, dtype=np.float64))
-        if info <= 0:
-            return Estimate(np.asarray(setting.ratio), np.asarray(np.inf))  # no field on these columns
-        dispersion = max(state.reduced_chi2, 1.0)
-        return Estimate(np.asarray(setting.ratio + U / info), np.asarray(np.sqrt(dispersion / info)))
+        return np.asarray(S, dtype=np.float64)
 
 
 EFFECT = Scatter()
