@@ -441,3 +441,49 @@ def test_simulate_at_extreme_settings_is_refused_before_allocating(tmp_path, set
     res = cli_capped("simulate", "-o", tmp_path / "s.h5", "--set", setting, timeout=60)
     assert res.exit_code == 2 and one_error_line(res.stderr, *words), res.stderr + res.traceback
     assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------------------------------
+# Counts, gains and fits outside what a detector and its noise allow
+# --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("stepping", [True, False], ids=["stepping recording", "scan with a stepping reference"])
+def test_negative_counts_in_a_signed_integer_reference_are_refused(tmp_path, scan_file, stepping):
+    rng = np.random.default_rng(7)
+    scan = io.read_scan(scan_file)
+    A, W = (scan.shape[1], scan.shape[2]) if stepping else (scan.active_rows, scan.shape[2])
+    phases = 2 * np.pi * np.arange(5) / 5
+    series = np.stack([rng.poisson(400 * (1 + 0.3 * np.cos(p)), (A, W)) for p in phases]).astype(np.int32)
+    series[2, 3, 4] = -40
+    ref = io.SteppingReference(data=series, phase_step=phases)
+    if stepping:
+        sample = Scan(data=rng.poisson(300, (5, A, W)).astype(np.uint16), position=np.zeros(5), reference=ref,
+                      phase_step=phases)
+    else:
+        sample = Scan(data=np.asarray(scan.data[:]), position=scan.position, reference=ref)
+    write_scan(tmp_path / "s.h5", sample)
+    for command in ("check", "reconstruct"):
+        refused(run(command, tmp_path / "s.h5", "-o", tmp_path / "r.h5"), "/entry/reference/stepping/data",
+                "negative")
+    assert not (tmp_path / "r.h5").exists()
+
+
+@pytest.mark.parametrize("gain", [1e-100, 1e-300, 1e9])
+@pytest.mark.parametrize("source", ["load.gain", "scan file"])
+def test_a_gain_no_detector_has_is_refused_alike_by_check_and_reconstruct(tmp_path, scan_file, gain, source):
+    path, sets = scan_file, ["--set", f"load.gain={gain}"]
+    if source == "scan file":
+        path, sets = tmp_path / "s.h5", []
+        write_scan(path, io.read_scan(scan_file))
+        with h5py.File(path, "r+") as f:
+            if "gain" in f[DET]:
+                del f[f"{DET}/gain"]
+            f[f"{DET}/gain"] = gain
+    lines = []
+    for command in ("check", "reconstruct"):
+        res = run(command, path, "-o", tmp_path / "r.h5", *sets)
+        refused(res, "gain", "must lie in [1e-06, 1e+06]")
+        lines.append(res.stderr)
+    assert lines[0] == lines[1]
+    assert not (tmp_path / "r.h5").exists()
