@@ -191,7 +191,8 @@ def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, ove
     t0 = time.perf_counter()
     result = pipeline.reconstruct(scan, cfg, command_line=_command_line())
     _write_outputs(result, out, tiff_dir=tiff_dir, preview=preview, overwrite=overwrite)
-    click.echo(f"{out}: reduced chi-square {result.reduced_chi2:.4f}, {time.perf_counter() - t0:.1f} s")
+    misfit = " (outside what noise allows: run dfxcorr diagnose)" if result.misfit else ""
+    click.echo(f"{out}: reduced chi-square {result.reduced_chi2:.4f}{misfit}, {time.perf_counter() - t0:.1f} s")
 
 
 @main.command("check")
@@ -514,8 +515,9 @@ if __name__ == "__main__":  # pragma: no cover
 def batch(scan_list, output_dir, config_files, sets, jobs, array_index):
     """Reconstruct every scan listed in SCAN_LIST (one path per line), one process per scan.
 
-    Finished results are skipped, so a stopped batch resumes where it was. A failed scan does not stop
-    the others; the summary at the end lists every scan with its status, time and reduced chi-square.
+    Finished results are skipped, so a stopped batch resumes where it was; a result of another configuration or of
+    a scan that changed since is re-run. A failed scan does not stop the others; the summary at the end lists
+    every scan with its status, time and reduced chi-square (marked misfit where noise cannot explain it).
     """
     from . import batch as B
 
@@ -531,9 +533,10 @@ def batch(scan_list, output_dir, config_files, sets, jobs, array_index):
 
     def report(outcome):
         done[0] += 1
-        extra = f", reduced chi-square {outcome.reduced_chi2:.4f}" if outcome.reduced_chi2 is not None else ""
+        extra = (f", reduced chi-square {outcome.reduced_chi2:.4f}{' (misfit)' if outcome.misfit else ''}"
+                 if outcome.reduced_chi2 is not None else "")
         line = f"[{done[0]}/{len(todo)}] {outcome.job.scan}: {outcome.status} ({outcome.seconds:.1f} s{extra})"
-        log.info("%s%s", line, f": {outcome.error}" if outcome.error else "")
+        log.info("%s%s", line, "".join(f": {t}" for t in (outcome.note, outcome.error) if t))
 
     outcomes = B.run_batch(todo, config_files=config_files, sets=sets, n_jobs=jobs, on_done=report)
     click.echo(B.summary(outcomes))

@@ -39,7 +39,7 @@ from .observations import Noise
 from .planning import resolve_effects
 from .progress import Progress
 from .reference import auto_visibility_threshold, resolve_reference
-from .result import Result, paper_params
+from .result import Result, chi2_limits, paper_params
 from .retrieve import image_values, per_dof, retrieve
 
 log = logging.getLogger(__name__)
@@ -405,9 +405,9 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
         sets, counts = [fitted.params], [n_par]
         if cfg["retrieve"]["uncorrected"] and method != "none":
             sets, counts = [*sets, {}], [*counts, 0]
-        (maps, chi2), *rest = blocked_retrieval(prep, blocks, sets, iterations=iterations, n_params=counts)
+        (maps, chi2, dof), *rest = blocked_retrieval(prep, blocks, sets, iterations=iterations, n_params=counts)
         uncorrected = rest[0][0] if rest else None
-        log.info("reduced chi-square of the final model: %.4f", chi2)
+        log.info("reduced chi-square of the final model: %.4f (%d degrees of freedom)", chi2, dof)
     # the paper's three parameters are always reported, at their neutral value where not estimated
     params = paper_params(fitted.params, J)
     uncertainty = {**{n: np.full_like(p, np.inf) for n, p in params.items()}, **fitted.uncertainty}
@@ -418,16 +418,23 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
                   "command_line": command_line, "input_file": str(path) if path else "",
                   "input_sha256": sha256(path) if path else "",
                   "external_files": "\n".join(f"{sha256(p)}  {p}" for p in prep.scan.external_files)}
-    return Result(transmission=maps["transmission"], dark_field=maps["dark_field"],
-                  differential_phase=maps["differential_phase"], params=params, estimated=estimated,
-                  uncertainty=uncertainty, fit_mask=fit_mask, motion_mask=moving.astype(np.uint8),
-                  cost=fitted.cost, cost_stage=fitted.stage, reduced_chi2=chi2, method=method,
-                  config=cfg, provenance=provenance, uncorrected=uncorrected, timings=timings)
+    result = Result(transmission=maps["transmission"], dark_field=maps["dark_field"],
+                    differential_phase=maps["differential_phase"], params=params, estimated=estimated,
+                    uncertainty=uncertainty, fit_mask=fit_mask, motion_mask=moving.astype(np.uint8),
+                    cost=fitted.cost, cost_stage=fitted.stage, reduced_chi2=chi2, method=method,
+                    config=cfg, provenance=provenance, uncorrected=uncorrected, timings=timings, dof=dof)
+    if result.misfit:
+        lo, hi = chi2_limits(dof)
+        log.warning("the reduced chi-square %.4g lies outside [%.3g, %.3g], what noise allows with %d degrees of "
+                    "freedom: the model or its noise model does not fit this scan (a frame out of order or twice, "
+                    "a wrong gain, a missing effect); run dfxcorr diagnose on it", chi2, lo, hi, dof)
+    return result
 
 
 def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: list[dict], *, iterations: int,
-                      n_params: list[int]) -> list[tuple[dict[str, np.ndarray], float]]:
-    """Images (H, W) of every pixel in its region of interest, block by block, and the reduced chi-square.
+                      n_params: list[int]) -> list[tuple[dict[str, np.ndarray], float, int]]:
+    """Images (H, W) of every pixel in its region of interest, block by block, the reduced chi-square and its degrees
+    of freedom.
 
     One pass over the blocks serves every parameter set of ``params`` (e.g. the fitted and the neutral
     ones), so each block's observations are built once. The chi-square and its degrees of freedom are
@@ -459,7 +466,8 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
     if left_out:
         log.info("region of interest: %d pixels see no fringe (reference visibility < %.3g) and are left out "
                  "of the images", left_out, prep.min_visibility)
-    return [(m, per_dof(c, int(n), int(px), k, 3)) for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
+    return [(m, per_dof(c, int(n), int(px), k, 3), max(int(n) - 3 * int(px) - k, 0))
+            for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
 
 
 def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarray, progress: bool | None = None,

@@ -487,3 +487,36 @@ def test_a_gain_no_detector_has_is_refused_alike_by_check_and_reconstruct(tmp_pa
         lines.append(res.stderr)
     assert lines[0] == lines[1]
     assert not (tmp_path / "r.h5").exists()
+
+
+def _misfit(path) -> bool:
+    from dfxcorr.export import read_result_h5
+
+    return read_result_h5(path)["misfit"]
+
+
+@pytest.mark.parametrize("fault", ["two positions swapped", "gain stated 1e4 times too high"])
+def test_reconstruct_warns_of_and_marks_a_fit_noise_cannot_explain(tmp_path, scan_file, fault):
+    from dataclasses import replace
+
+    path, sets = scan_file, []
+    if fault == "two positions swapped":
+        scan = io.read_scan(scan_file)
+        position = scan.position.copy()
+        position[[40, 45]] = position[[45, 40]]
+        path = tmp_path / "s.h5"
+        write_scan(path, replace(scan, data=np.asarray(scan.data[:]), position=position))
+    else:
+        sets = ["--set", "load.gain=1e4"]
+    res = run("reconstruct", path, "-o", tmp_path / "r.h5", *sets)
+    assert res.exit_code == 0, res.output
+    warning = [ln for ln in res.stderr.splitlines() if "WARNING" in ln and "reduced chi-square" in ln]
+    assert len(warning) == 1 and "dfxcorr diagnose" in warning[0], res.stderr
+    assert "outside what noise allows" in res.stdout
+    assert _misfit(tmp_path / "r.h5")
+
+
+def test_a_clean_scan_is_not_marked_a_misfit(tmp_path, scan_file):
+    res = run("reconstruct", scan_file, "-o", tmp_path / "r.h5")
+    assert res.exit_code == 0, res.output
+    assert "WARNING" not in res.stderr and not _misfit(tmp_path / "r.h5")
