@@ -157,6 +157,31 @@ def check_outputs(outputs, *, inputs=(), overwrite: bool = False, appended=()) -
             probed.add(folder)
 
 
+def check_folder(folder) -> None:
+    """Refuse, before any work, an output folder that cannot be replaced as a unit (:func:`dfxcorr.io.atomic_folder`).
+
+    Raises
+    ------
+    OutputError
+        ``folder`` is a file, is the working directory or holds it (the swap would leave the run, and the shell it
+        was typed in, in a removed folder), or its parent cannot take the new folder beside it (permissions, a
+        name too long for the temporary name).
+    """
+    _require_utf8(folder, "output")
+    path = Path(os.path.realpath(folder))
+    if os.path.lexists(path) and not path.is_dir():
+        raise OutputError(f"{_name(folder)} is not a folder")
+    cwd = Path.cwd().resolve()
+    if path == cwd or path in cwd.parents:
+        raise OutputError(f"{_name(folder)} is the working directory or holds it: its files are replaced as a whole, "
+                          f"by a new folder; give the output a folder of its own")
+    parent = _existing_folder(path.parent)
+    if len(os.fsencode(path.name)) + io.TEMP_NAME_OVERHEAD > _name_max(parent):
+        raise OutputError(f"{_name(folder)}: the name is too long for its temporary name (at most "
+                          f"{_name_max(parent) - io.TEMP_NAME_OVERHEAD} bytes)")
+    _probe(parent)
+
+
 # --------------------------------------------------------------------------------------------------
 # The configuration against a scan
 # --------------------------------------------------------------------------------------------------

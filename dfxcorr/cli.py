@@ -283,6 +283,7 @@ def diagnose(scan, out_dir, config_files, sets, base, overwrite):
     # position_errors.txt back, and a run must not replace the map it reads
     _guard([out / name for name in FIXED_FILES],
            inputs=[scan, *config_files, *C.input_files(cfg)], overwrite=overwrite)
+    check.check_folder(out)  # the report replaces its folder as a unit
     # plain retrieval (--base none) fits no configured effect
     header = read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True)
     check.plan(header, C.merge(cfg, {"fit": {"method": "none"}}) if base == "none" else cfg,

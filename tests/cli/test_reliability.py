@@ -520,3 +520,47 @@ def test_a_clean_scan_is_not_marked_a_misfit(tmp_path, scan_file):
     res = run("reconstruct", scan_file, "-o", tmp_path / "r.h5")
     assert res.exit_code == 0, res.output
     assert "WARNING" not in res.stderr and not _misfit(tmp_path / "r.h5")
+
+
+# --------------------------------------------------------------------------------------------------
+# A diagnosis folder: every file checked first, replaced as a unit
+# --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("role", ["scan", "config"])
+def test_diagnose_never_replaces_an_input_named_like_an_effect_picture(tmp_path, scan_file, role):
+    out = tmp_path / "diag"
+    out.mkdir()
+    picture = out / "effect-dose.png"
+    if role == "scan":
+        picture.write_bytes(scan_file.read_bytes())
+        args = [picture]
+    else:
+        picture.write_text("fit:\n  subsample: 4\n")
+        args = [scan_file, "-c", picture]
+    before = digest(picture)
+    refused(run("diagnose", *args, "-o", out, "--overwrite"), "effect-dose.png", "also an input")
+    assert digest(picture) == before
+
+
+def test_diagnose_refuses_the_working_directory_as_its_folder(tmp_path, scan_file, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    refused(run("diagnose", scan_file, "-o", "."), "working directory")
+    refused(run("diagnose", scan_file, "-o", tmp_path.parent), "working directory")
+
+
+def test_an_overwrite_diagnosis_leaves_no_file_of_the_previous_run(tmp_path, scan_file):
+    out = tmp_path / "diag"
+    out.mkdir()
+    tifffile.imwrite(out / "pixel_noise.tif", np.ones((7, 7), np.float32))  # another scan's map
+    (out / "effect-harmonic.png").write_bytes(b"old")
+    (out / "report.md").write_text("old")
+    (out / "notes.txt").write_text("kept")
+    res = run("diagnose", scan_file, "-o", out, "--overwrite", "--set", "diagnose.subsample=4")
+    assert res.exit_code == 0, res.output
+    import json
+    doc = json.loads((out / "diagnosis.json").read_text())
+    names = {p.name for p in out.iterdir()}
+    pictures = {f"effect-{e['name']}.png" for e in doc["effects"] if e["detected"]}
+    assert names == {"diagnosis.json", "report.md", "residuals.png", "signatures.png", "notes.txt", *pictures}
+    assert (out / "report.md").read_text().startswith("# dfxcorr diagnose") and not list(tmp_path.glob(".diag*"))
