@@ -296,6 +296,31 @@ def _visibility_reasons(scan: io.Scan) -> str | None:
     return visibility_unidentifiable(scan, reference)
 
 
+#: Unknowns of every pixel's images (t, v, phi): a pixel seen in no more frames is fitted exactly.
+IMAGE_UNKNOWNS = 3
+
+
+class NothingToTestError(DfxcorrError, ValueError):
+    """A diagnosis of a recording whose images leave no residual to test."""
+
+
+def require_residuals(frames_per_row: np.ndarray) -> None:
+    """Refuse a diagnosis where every pixel is seen in at most :data:`IMAGE_UNKNOWNS` frames.
+
+    ``frames_per_row``: frames in which each detector row the run uses is lit. Its images then fit every sample
+    exactly: no residual is left, so no effect, noise or signature can be tested.
+
+    Raises
+    ------
+    NothingToTestError
+    """
+    most = int(np.max(frames_per_row, initial=0))
+    if most <= IMAGE_UNKNOWNS:
+        raise NothingToTestError(f"every pixel is seen in at most {most} frames, which its {IMAGE_UNKNOWNS} image "
+                                 f"unknowns (t, v, phi) fit exactly: no residual is left to diagnose (a phase-"
+                                 f"stepping recording needs at least {IMAGE_UNKNOWNS + 1} steps)")
+
+
 def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool = False,
          pilot: bool = False) -> Plan:
     """Check a resolved configuration against a scan without fitting; what ``reconstruct`` would do.
@@ -323,6 +348,8 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
         detector, a mask dilation beyond the detector's size, a diagnosis subsampling beyond it.
     IdentifiabilityError
         A visibility effect set to true that this acquisition cannot determine.
+    NothingToTestError
+        With ``diagnose``: every pixel is seen in at most :data:`IMAGE_UNKNOWNS` frames.
     """
     from .effects import REGISTRY
     from .planning import VISIBILITY_EFFECTS, drop_visibility
@@ -340,6 +367,8 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     used = count >= cfg["align"]["min_frames"]
     if not used.any():  # what collect_lit_rows refuses, in its words
         raise no_lit_rows(cfg["align"]["min_frames"])
+    if diagnose:
+        require_residuals(count[used])
     # what the configuration asks of each effect (the files it names), checked against the scan as the run's
     # preparation does
     for effect in REGISTRY.values():

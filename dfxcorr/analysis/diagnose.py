@@ -23,6 +23,7 @@ import numpy as np
 
 from .. import config as C
 from ..align import pixel_mm, realign, subsample_columns
+from ..check import require_residuals
 from ..effects import REGISTRY
 from ..effects.base import EffectBase, Hypothesis, Preparation, Realign, State, Test
 from ..fit import fit_vibrations
@@ -198,6 +199,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     d = cfg["diagnose"]
     timings: dict = {}
     prep = scan if isinstance(scan, Prepared) else prepare(scan, cfg, timings=timings)
+    require_residuals(np.bincount(prep.store.row))
     session = Session(prep, cfg, timings, registry)
     J, H, W = prep.shape
     model = list(resolve_effects(cfg, prep.scan, prep.reference, session.fit_base)) \

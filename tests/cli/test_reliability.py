@@ -564,3 +564,13 @@ def test_an_overwrite_diagnosis_leaves_no_file_of_the_previous_run(tmp_path, sca
     pictures = {f"effect-{e['name']}.png" for e in doc["effects"] if e["detected"]}
     assert names == {"diagnosis.json", "report.md", "residuals.png", "signatures.png", "notes.txt", *pictures}
     assert (out / "report.md").read_text().startswith("# dfxcorr diagnose") and not list(tmp_path.glob(".diag*"))
+
+
+@pytest.mark.parametrize("base", ["none", "configured"])
+def test_diagnosis_of_a_recording_without_residual_dof_is_refused_before_computing(tmp_path, base):
+    scan = S.simulate(sim_config(**{"simulate.geometry": "stepping", "simulate.steps": 3,
+                                    "simulate.steps_per_period": 3}))[0]
+    write_scan(tmp_path / "s.h5", scan)
+    refused(run("diagnose", tmp_path / "s.h5", "-o", tmp_path / "diag", "--base", base), "at most 3 frames",
+            "no residual")
+    assert not (tmp_path / "diag").exists()
