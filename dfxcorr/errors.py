@@ -51,5 +51,5 @@ GAIN_RANGE = (1e-6, 1e6)
 def gain_problem(gain: float) -> str | None:
     """Why a stated gain (detector units per photon) is not physical, or None: the one rule for every source."""
     lo, hi = GAIN_RANGE
-    return None if lo <= gain <= hi else (f"must lie in [{lo:g}, {hi:g}] detector units per photon (photon counters "
-                                          f"record 1)")
+    return None if lo <= gain <= hi else (f"must be a finite number in [{lo:g}, {hi:g}] detector units per photon "
+                                          f"(photon counters record 1)")
