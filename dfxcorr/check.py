@@ -24,7 +24,7 @@ from .errors import DfxcorrError, OutputExistsError, require_regular_file
 from .faults import Faults, find_faults, saturation_level
 
 if TYPE_CHECKING:  # the pipeline (numba kernels) is imported only where a check runs the pilot
-    from .pipeline import ColumnPlan
+    from .pipeline import ColumnPlan, Prepared
 
 #: Name length limit where the file system does not tell (bytes; ext4, XFS, Lustre, GPFS).
 NAME_MAX = 255
@@ -260,14 +260,14 @@ def memory_estimate(shape, *, itemsize: int, lit_samples: int, fit_samples: int,
                + BASE_BYTES)
 
 
-def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, pilot: bool) -> ColumnPlan:
-    from .pipeline import ColumnPlan, coarse_step, column_step, fit_columns, fit_seconds, plan_columns, prepare
+def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, prep: Prepared | None) -> ColumnPlan:
+    from .pipeline import ColumnPlan, coarse_step, column_step, fit_columns, fit_seconds, plan_columns
 
     W = scan.shape[2]
     n = cfg["fit"]["subsample"]
     try:
-        if n == "auto" and pilot:
-            return plan_columns(prepare(scan, cfg), cfg, report=False)
+        if n == "auto" and prep is not None:
+            return plan_columns(prep, cfg, report=False)
         step = column_step(W, samples_per_column, most=cfg["fit"]["max_samples"]) if n == "auto" else n
         cols = fit_columns(W, cfg, step)
         coarse = coarse_step(cfg, cols.size, samples_per_column, step=step, width=W)
@@ -338,8 +338,12 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     diagnose : bool
         Also check the ``diagnose`` section.
     pilot : bool
-        For ``fit.subsample: auto``, prepare the scan (reading its frames) and run the pilot that chooses the
-        fit's columns (:func:`dfxcorr.pipeline.plan_columns`); otherwise the columns are the most auto may take.
+        Prepare the scan as the run does (reading its frames, leaving its detector faults out), decide which
+        configured effects its fit can determine with the run's own rule on the fit's observations, its motion
+        mask applied (:func:`dfxcorr.planning.resolve_effects` on :func:`dfxcorr.pipeline.fit_observations`),
+        and for ``fit.subsample: auto`` run the pilot that chooses those columns
+        (:func:`dfxcorr.pipeline.plan_columns`). Otherwise only the visibility effects are judged (from the
+        geometry) and the columns are the most auto may take.
 
     Raises
     ------
@@ -347,12 +351,13 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
         Naming the key: subsampling beyond the detector or its alias limit, a column offset outside the
         detector, a mask dilation beyond the detector's size, a diagnosis subsampling beyond it.
     IdentifiabilityError
-        A visibility effect set to true that this acquisition cannot determine.
+        An effect set to true that this acquisition cannot determine (with ``pilot``: judged as the run judges
+        it; otherwise the visibility effects only).
     NothingToTestError
         With ``diagnose``: every pixel is seen in at most :data:`IMAGE_UNKNOWNS` frames.
     """
     from .effects import REGISTRY
-    from .planning import VISIBILITY_EFFECTS, drop_visibility
+    from .planning import VISIBILITY_EFFECTS, drop_visibility, resolve_effects
 
     J, H, W = scan.shape
     method = cfg["fit"]["method"]
@@ -374,11 +379,27 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     for effect in REGISTRY.values():
         effect.configured(cfg, n_frames=J, detector=(H, W))
     lit = int(count[used].sum()) * W
-    fit_plan = None if method == "none" else _columns(scan, cfg, lit // W, pilot=pilot)
-    columns = np.zeros(0, int) if fit_plan is None else fit_plan.columns
+    # what the settings and the geometry alone refuse comes before the scan is prepared (reading its frames)
+    fit_plan = None if method == "none" else _columns(scan, cfg, lit // W, prep=None)
     effects = C.effects_of(cfg) if method != "none" else ()
     why = _visibility_reasons(scan) if set(VISIBILITY_EFFECTS) & set(effects) else None
     kept, dropped = drop_visibility(cfg, effects, why)
+    prep = None
+    if pilot and method != "none":
+        from .pipeline import prepare
+
+        prep = prepare(scan, cfg)
+        if cfg["fit"]["subsample"] == "auto":
+            fit_plan = _columns(scan, cfg, lit // W, prep=prep)
+    columns = np.zeros(0, int) if fit_plan is None else fit_plan.columns
+    if prep is not None and fit_plan is not None:  # the run's decision, on the run's data
+        from .pipeline import fit_motion_mask, fit_observations, row_blocks
+
+        moving = fit_motion_mask(prep, cfg, fit_plan, row_blocks(prep.store, cfg["retrieve"]["block_mb"]))
+        chosen = resolve_effects(cfg, prep.scan, prep.reference, fit_observations(prep, columns, moving))
+        dropped.update({name: "the Fisher information of this acquisition has directions of its parameters "
+                              "without information beyond its gauge" for name in kept if name not in chosen})
+        kept = list(chosen)
     effects = tuple(kept)
     return Plan(scan=name, shape=(J, H, W), dtype=str(scan.data.dtype), active_rows=scan.active_rows,
                 stepping=scan.is_stepping, rows_used=int(used.sum()), lit_samples=lit, method=method,

@@ -201,16 +201,16 @@ def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, ove
 def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overwrite):
     """Check that `dfxcorr reconstruct` with the same arguments would run, in seconds, computing nothing.
 
-    Validates SCAN, the configuration against it (subsampling, column offset, mask dilation, diagnosis
-    subsampling, visibility effects this acquisition cannot determine) and every output, and prints
-    what reconstruct would do and the memory it will need. Exit code 0: it would run; 2: it would refuse.
+    Validates SCAN, the configuration against it (subsampling, column offset, mask dilation, effects this
+    acquisition cannot determine, judged as reconstruct judges them) and every output, and prints what
+    reconstruct would do and the memory it will need. Exit code 0: it would run; 2: it would refuse.
     """
     from . import check
     from .io import read_scan
 
     _, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
     scan_read = read_scan(scan, allow_external=cfg["load"]["allow_external"])
-    click.echo(check.plan(scan_read, cfg, name=scan, outputs=outputs, diagnose=True, pilot=True).summary())
+    click.echo(check.plan(scan_read, cfg, name=scan, outputs=outputs, pilot=True).summary())
     faults = check.detector_faults(scan_read, cfg)
     faults.require_data()
     click.echo(faults.summary() if faults.any else "detector faults: none (no saturated sample, no empty or repeated "

@@ -388,14 +388,8 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
         plan = plan_columns(prep, cfg) if method != "none" else None
     columns = np.zeros(0, int) if plan is None else plan.columns
     with stage("mask", timings):
-        if cfg["mask"]["enabled"] and plan is not None:
-            m = cfg["mask"]
-            pilot = pilot_estimate(prep) if plan.pilot is None else plan.pilot
-            # the per-pixel statistics of the fit's columns only (the others never enter the fit), block by block
-            moving, _, thr = motion_mask((prep.observations(columns=columns, rows=rows, dtype=np.float32)
-                                          for rows in blocks),
-                                         pilot=pilot, threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
-            log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
+        if plan is not None:
+            moving = fit_motion_mask(prep, cfg, plan, blocks)
     with stage("fit", timings):
         fitted, fit_mask, effects = run_fit(prep, cfg, moving, columns=columns, progress=progress,
                                             coarse=1 if plan is None else plan.coarse)
@@ -470,6 +464,28 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
             for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
 
 
+def fit_motion_mask(prep: Prepared, cfg: dict, plan: ColumnPlan, blocks: list[tuple[int, int]]) -> np.ndarray:
+    """The pixels (H, W) of the fit's columns the motion mask leaves out of the vibration fit (``mask.*``)."""
+    H, W = prep.shape[1:]
+    if not cfg["mask"]["enabled"]:
+        return np.zeros((H, W), bool)
+    m = cfg["mask"]
+    pilot = pilot_estimate(prep) if plan.pilot is None else plan.pilot
+    # the per-pixel statistics of the fit's columns only (the others never enter the fit), block by block
+    moving, _, thr = motion_mask((prep.observations(columns=plan.columns, rows=rows, dtype=np.float32)
+                                  for rows in blocks),
+                                 pilot=pilot, threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
+    log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
+    return moving
+
+
+def fit_observations(prep: Prepared, columns: np.ndarray, moving: np.ndarray) -> M.Observations:
+    """The vibration fit's observations: ``columns`` in float32, the pixels ``moving`` (H, W) left out. What the
+    fit and the decision which effects it can determine (:func:`dfxcorr.planning.resolve_effects`) see."""
+    obs = prep.observations(columns=columns, dtype=np.float32)
+    return replace(obs, use=obs.use & ~obs.pixel_mask(moving))
+
+
 def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarray, progress: bool | None = None,
             coarse: int = 1) -> tuple[FitResult, np.ndarray, tuple[str, ...]]:
     """Estimate the per-frame parameters with the configured method.
@@ -496,8 +512,7 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
     if method not in ESTIMATORS:
         raise C.ConfigError(f"fit.method={method!r} is not available; available: {', '.join(ESTIMATORS)}, none")
     cols = columns
-    fit_obs = prep.observations(columns=cols, dtype=np.float32)
-    fit_obs = replace(fit_obs, use=fit_obs.use & ~fit_obs.pixel_mask(moving))
+    fit_obs = fit_observations(prep, cols, moving)
     effects = resolve_effects(cfg, prep.scan, prep.reference, fit_obs)
     used = fit_obs.segment_sum(fit_obs.use.astype(np.float64)) > 0
     fit_obs.place(fit_mask, used)
