@@ -149,7 +149,7 @@ def frame_grid_cost(obs: M.Observations, ch: M.Channels, coef: np.ndarray, weigh
 def rows_in_use(obs: M.Observations) -> np.ndarray:
     """Rows of each frame in ``obs`` that hold a sample the fit uses, (J,): none for a frame left out as a detector
     fault (:mod:`dfxcorr.faults`), whose parameters the data then do not determine at all."""
-    return obs.frame_sum(obs.use.any(axis=1).astype(np.float64))
+    return obs.frame_sum(np.any(obs.use, axis=1).astype(np.float64))
 
 
 def well_determined(obs: M.Observations, fraction: float) -> np.ndarray:
