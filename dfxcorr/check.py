@@ -23,8 +23,9 @@ from .align import lit_blocks, no_lit_rows
 from .errors import DfxcorrError, OutputExistsError, require_regular_file
 from .faults import Faults, find_faults, saturation_level
 
-if TYPE_CHECKING:  # the pipeline (numba kernels) is imported only where a check runs the pilot
-    from .pipeline import ColumnPlan, Prepared
+if TYPE_CHECKING:  # the planning (numba kernels) is imported only where a check runs the pilot
+    from .planning import ColumnPlan
+    from .preparation import Prepared
 
 #: Name length limit where the file system does not tell (bytes; ext4, XFS, Lustre, GPFS).
 NAME_MAX = 255
@@ -261,7 +262,7 @@ def memory_estimate(shape, *, itemsize: int, lit_samples: int, fit_samples: int,
 
 
 def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, prep: Prepared | None) -> ColumnPlan:
-    from .pipeline import ColumnPlan, coarse_step, column_step, fit_columns, fit_seconds, plan_columns
+    from .planning import ColumnPlan, coarse_step, column_step, fit_columns, fit_seconds, plan_columns
 
     W = scan.shape[2]
     n = cfg["fit"]["subsample"]
@@ -342,7 +343,7 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
         configured effects its fit can determine with the run's own rule on the fit's observations, its motion
         mask applied (:func:`dfxcorr.planning.resolve_effects` on :func:`dfxcorr.pipeline.fit_observations`),
         and for ``fit.subsample: auto`` run the pilot that chooses those columns
-        (:func:`dfxcorr.pipeline.plan_columns`). Otherwise only the visibility effects are judged (from the
+        (:func:`dfxcorr.planning.plan_columns`). Otherwise only the visibility effects are judged (from the
         geometry) and the columns are the most auto may take.
 
     Raises
@@ -386,14 +387,15 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     kept, dropped = drop_visibility(cfg, effects, why)
     prep = None
     if pilot and method != "none":
-        from .pipeline import prepare
+        from .preparation import prepare
 
-        prep = prepare(scan, cfg)
+        prep = prepare(scan, cfg, effects=REGISTRY.values())
         if cfg["fit"]["subsample"] == "auto":
             fit_plan = _columns(scan, cfg, lit // W, prep=prep)
     columns = np.zeros(0, int) if fit_plan is None else fit_plan.columns
     if prep is not None and fit_plan is not None:  # the run's decision, on the run's data
-        from .pipeline import fit_motion_mask, fit_observations, row_blocks
+        from .pipeline import fit_motion_mask, fit_observations
+        from .planning import row_blocks
 
         moving = fit_motion_mask(prep, cfg, fit_plan, row_blocks(prep.store, cfg["retrieve"]["block_mb"]))
         chosen = resolve_effects(cfg, prep.scan, prep.reference, fit_observations(prep, columns, moving))

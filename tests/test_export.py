@@ -362,3 +362,14 @@ def test_chi2_limits_hold_the_reduced_chi_square_of_noise():
         assert np.all((draws >= lo) & (draws <= hi))
     assert chi2_limits(10 ** 7) == (0.5, 2.0)  # the practical floor: noise alone leaves +-0.002
     assert chi2_limits(20)[1] == pytest.approx(3.44, abs=0.01)  # the skewed quantile, not 1 + 5 sqrt(2 / 20) = 3.24
+
+
+def test_pixel_size_round_trips(tmp_path):
+    r = make_result()
+    write_result_h5(tmp_path / "unknown.h5", r)
+    assert read_result_h5(tmp_path / "unknown.h5")["pixel_size"] is None
+    r.pixel_size = (1e-4, 7.5e-5)
+    write_result_h5(tmp_path / "known.h5", r)
+    assert read_result_h5(tmp_path / "known.h5")["pixel_size"] == (1e-4, 7.5e-5)
+    with h5py.File(tmp_path / "known.h5") as f:
+        assert f["entry/dfxcorr/results/x_pixel_size"].attrs["units"] == "m"
