@@ -174,6 +174,8 @@ def test_an_interrupted_folder_leaves_the_previous_run_and_no_temporary_folder(t
 def test_a_signal_during_the_swap_is_held_until_it_is_complete(tmp_path, monkeypatch, signum):
     import os
     import signal
+    import threading
+    import time
 
     from dfxcorr.io import atomic_folder, write
 
@@ -191,6 +193,8 @@ def test_a_signal_during_the_swap_is_held_until_it_is_complete(tmp_path, monkeyp
 
     out = tmp_path / "diag"
     _old_run(out)
+    # another thread (numba's, a pool's): the kernel may hand it the signal, Python still acts on it in this one
+    threading.Thread(target=time.sleep, args=(1,), daemon=True).start()
     monkeypatch.setattr(write.os, "rename", rename_then_signal)
     try:
         with pytest.raises(SystemExit), atomic_folder(out, names=RUN_FILES, overwrite=True) as tmp:
