@@ -36,6 +36,7 @@ from ..preparation import Prepared, prepare
 from ..progress import stage
 from ..retrieve import Retrieval, retrieve
 from . import loop
+from .loop import GROSS
 from .replication import Part, replicate
 from .report import Diagnosis, EffectReport, Verdict, change_picture, residuals
 from .signatures import Residuals, signatures
@@ -209,6 +210,11 @@ def _not_added(name: str, test: Test[Any], out: loop.Outcome, *, alpha: float, t
     """The verdict on an effect tested and not added: why not."""
     verdict: Verdict
     blind = out.blind.get(name)
+    held = out.held.get(name)
+    if held is not None:
+        verdict = "held: gross misfit" if held == "gross" else "explained by another"
+        return EffectReport(name, False, bool(test.identifiable), test.statistic, int(test.dof), test.p_value,
+                            verdict, alternatives=() if held == "gross" else (held,), excess=test.excess)
     if blind is not None:
         verdict = "explains, not identifiable" if blind.explains_misfit else "not identifiable"
     elif not test.identifiable:
@@ -223,7 +229,8 @@ def _not_added(name: str, test: Test[Any], out: loop.Outcome, *, alpha: float, t
         verdict = "not significant"
     return EffectReport(name, False, bool(test.identifiable), test.statistic, int(test.dof), test.p_value, verdict,
                         rejection=out.rejected.get(name), blind=blind,
-                        refused=out.inconsistent[name][1] if name in out.inconsistent else None, excess=test.excess)
+                        refused=out.inconsistent[name][1] if name in out.inconsistent else None, excess=test.excess,
+                        shared=test.shared)
 
 
 def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = None, *, base: str = "configured",
@@ -283,6 +290,8 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = No
             joint = {n: f"fitted together with {', '.join(m for m in s.names if m != n)}, with which it shares "
                         f"directions that neither half fixes: not compared" for s in out.steps if s.together
                      for n in s.names}
+            joint.update({s.name: f"shares {s.test.shared} direction(s) with the model's effects, which each half "
+                                  f"fixes where its fit's path ends: not compared" for s in out.steps if s.test.shared})
             replicated = replicate({n: registry[n] for s in out.steps for n in s.names}, session, final,
                                    lambda h, p, part: session.fit(h, p, f"replication: {part.label}", part=part),
                                    shape=prep.shape, rows=session.stepping, alpha=d["alpha"], skip=joint)
@@ -311,10 +320,12 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = No
     added = {n for s in out.steps for n in s.names}
     named_with = {n: s.name for s in out.steps for n, _ in s.alternatives}
     for n, t in sorted(out.tests.items(), key=lambda kv: -kv[1].statistic):
+        if n in added:
+            continue
         if n in named_with:
             effects.append(EffectReport(n, False, bool(t.identifiable), t.statistic, int(t.dof), t.p_value,
                                         "alternative", alternatives=(named_with[n],)))
-        elif n not in added:
+        else:
             effects.append(_not_added(n, t, out, alpha=d["alpha"], tested=len(out.tests)))
     unexplained = [Unexplained(s["axis"], s["statistic"], s["dof"], s["p_value"], s["where"], s["description"])
                    for s in final.signatures if s["significant"]]
@@ -338,8 +349,13 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = No
                  f"signature is reported unexplained there. A trial of a mean effect settles the noise model already "
                  f"added again on its own fit. A significant effect that the acquisition "
                  f"cannot identify gets a trial refit first: if it explains the misfit so, the diagnosis stops "
-                 f"there (naming a proxy would be the wrong physics). What stays significant is listed as "
-                 f"unexplained")
+                 f"there (naming a proxy would be the wrong physics). Candidates that share directions of their "
+                 f"parameters are decided on each one's share beyond the other (Holm's first threshold): the one "
+                 f"the data show, both fitted together, or one finding naming both. No trial may raise the reduced "
+                 f"chi-square, and the noise model is not judged while the mean model is grossly off (reduced "
+                 f"chi-square beyond {GROSS:g} with the residuals' mean significant). Every finding is refitted on "
+                 f"disjoint halves of the detector; one whose halves disagree (p < {d['alpha']}) is not "
+                 f"recommended. What stays significant is listed as unexplained")
     detected = [n for s in out.steps for n in s.names]
     return Diagnosis(scan=str(prep.path) if prep.path else prep.name, base_model=model,
                      initial_chi2=first.reduced_chi2, final_chi2=final.reduced_chi2, effects=effects,

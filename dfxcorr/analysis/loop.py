@@ -5,7 +5,10 @@ significant effect that the acquisition cannot identify is tried first: if a tri
 the misfit, nothing is named in its place and the diagnosis stops there. Otherwise the significant
 identifiable candidates (Holm's first threshold over the effects tested in the round) are tried in
 turn (:func:`ranked`): each gets a trial refit (:meth:`EffectBase.trial`), and is added only if it explains
-the misfit's signature (:func:`accepts`). The loop stops when no candidate qualifies.
+the misfit's signature (:func:`accepts`), does not raise the reduced chi-square and has one size across the
+recording. Candidates that share directions of their parameters are decided together (:func:`confounded`);
+the noise model is not judged while the mean model is grossly off (:func:`gross`). The loop stops when no
+candidate qualifies.
 
 Everything here is a decision on values: the fits are done by the ``fit`` the caller passes, so the
 rules can be tested with made-up effects and fits.
@@ -92,6 +95,9 @@ class Outcome:
     rounds : list of dict
     inconsistent : dict
         Candidates refused as proxies (:meth:`EffectBase.consistency`): their test and the consistency test.
+    held : dict
+        Significant candidates of the last round not tried, and why ('gross': the noise model while the mean model
+        is grossly off; otherwise the candidate whose share beyond them explains what they share).
     """
 
     state: State
@@ -101,6 +107,7 @@ class Outcome:
     blind: dict[str, Blind] = field(default_factory=dict)
     rounds: list[dict[str, Any]] = field(default_factory=list)
     inconsistent: dict[str, tuple[Test[Any], Consistency]] = field(default_factory=dict)
+    held: dict[str, str] = field(default_factory=dict)
 
 
 def significant(tests: Mapping[str, Test[Any]], alpha: float) -> list[str]:
@@ -216,9 +223,10 @@ def round_tests(effects: Effects, ctx: Context, state: State, done: list[str],
 
 @dataclass(frozen=True)
 class Trial:
-    """A trial refit and whether it went astray: a mean or alignment effect whose fit, at the noise model it was
-    tried under, raises the reduced chi-square (read on every column, the fit saw a few: an overfit or a fit gone
-    astray). An astray trial's noise model is not settled again: that would hide the rise."""
+    """A trial refit and whether it went astray: an effect whose policy checks it (every effect but the noise
+    model's) and whose fit, at the noise model it was tried under, raises the reduced chi-square (read on every
+    column, the fit saw a few: an overfit or a fit gone astray). An astray trial's noise model is not settled
+    again: that would hide the rise."""
 
     state: State
     astray: bool
@@ -244,7 +252,10 @@ def _trial(effect: EffectBase[Any], ctx: Context, state: State, test: Test[Any],
             break
         trial = fit(effect.trial(ctx, trial, again), {} if policy.fresh_start else trial.params,
                     f"{label} (refined {k + 1})")
-    if policy.astray_check and trial.reduced_chi2 > state.reduced_chi2:
+    # a correction of the data themselves (a fresh start) compares two data sets: its chi-square may rise by its
+    # noise (5 sigma of a reduced chi-square of these dof); a model's term on the same data may not rise at all
+    slack = 5 * np.sqrt(2 / max(state.chi2 / max(state.reduced_chi2, 1e-300), 1.0)) if policy.fresh_start else 0.0
+    if policy.astray_check and trial.reduced_chi2 > state.reduced_chi2 + slack:
         return Trial(trial, True)
     for name, noise in settle.items():
         moved = noise.test(ctx, trial, flagged)
@@ -376,10 +387,12 @@ def run(effects: Effects, ctx: Context, start: State, *, fit: Fit, alpha: float,
                 break
         step = None
         order = ranked(tests, effects, alpha, noise_first=noise_first)
+        out.held = {}
         if gross(state) and any(effects[n].policy.noise_model for n in order):
             log.info("round %d: the mean model is grossly off (reduced chi-square %.4g, the residuals' mean "
                      "significant): the noise model is not judged in this round", rnd, state.reduced_chi2)
-            order = [n for n in order if not effects[n].policy.noise_model]
+            out.held = {n: "gross" for n in order if effects[n].policy.noise_model}
+            order = [n for n in order if n not in out.held]
         threshold = float(np.log(alpha / max(len(tests), 1)))
         passed: set[str] = set()  # decided in a pair: tried in another's place, or one finding with it
         for i, first in enumerate(order):
@@ -389,6 +402,8 @@ def run(effects: Effects, ctx: Context, start: State, *, fit: Fit, alpha: float,
             name, alternatives, together, pairs = confounded(first, left, tests, effects, ctx, state,
                                                              threshold=threshold)
             passed.update({first, *alternatives, *together} - {name})
+            if first != name:
+                out.held[first] = name
             effect = effects[name]
             trial = _trial(effect, ctx, state, tests[name], flagged, fit=fit,
                            label=f"round {rnd}: trial {'+'.join((name, *together))}",

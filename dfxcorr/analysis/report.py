@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import config as C
 from .. import plots
-from ..catalogue import PAPER_MODEL, effect
+from ..catalogue import CATALOGUE, effect
 from ..effects import REGISTRY
 from ..effects.base import Consistency, EffectBase, Finding, Hypothesis, Params, State, Unexplained
 from ..effects.residuals import fit_counts
@@ -29,7 +29,7 @@ from .signatures import Residuals, locate
 
 #: What the diagnosis decided about an effect it tested.
 Verdict = Literal["added", "alternative", "not significant", "not material", "rejected", "raised chi-square", "proxy",
-                  "not identifiable", "explains, not identifiable"]
+                  "not identifiable", "explains, not identifiable", "held: gross misfit", "explained by another"]
 
 
 @dataclass(frozen=True)
@@ -54,10 +54,13 @@ class EffectReport:
         Where refused as a proxy: the consistency test that refused it.
     excess : int
         Information-free directions of its parameters beyond its gauge.
+    shared : int
+        Directions it shares with the model's effects (tested and fitted in the rest).
     replication : Replication or None
         Where added: its estimate on disjoint parts of the detector.
     alternatives : tuple of str
-        Effects that explain the same misfit and that this acquisition cannot tell from it.
+        Effects that explain the same misfit and that this acquisition cannot tell from it (for "explained by
+        another": the one whose share beyond it was significant).
     alternative_estimates : mapping
         Each alternative's estimate (one line).
     """
@@ -76,6 +79,7 @@ class EffectReport:
     blind: Blind | None = None
     refused: Consistency | None = None
     excess: int = 0
+    shared: int = 0
     replication: Replication | None = None
     alternatives: tuple[str, ...] = ()
     alternative_estimates: Mapping[str, str] = field(default_factory=dict)
@@ -109,6 +113,8 @@ class EffectReport:
         d.update(self.values)
         if self.excess:
             d["excess_null_directions"] = self.excess
+        if self.shared:
+            d["shared_directions"] = self.shared
         if self.rejection is not None:
             d["explained_share"] = self.rejection.share
             if self.rejection.astray:
@@ -145,6 +151,11 @@ class EffectReport:
         if self.verdict == "proxy" and self.refused is not None:
             along = f"detector {self.refused.along}" if self.refused.along else f"{self.refused.axis}s"
             return f"significant, but of another size in pixels of other {along}: a proxy, not added (unexplained)"
+        if self.verdict == "held: gross misfit":
+            return "significant, but not judged: the mean model is grossly off (the noise model would absorb it)"
+        if self.verdict == "explained by another":
+            return (f"significant, but nothing beyond {', '.join(self.alternatives)}, which explains what they "
+                    f"share: not tried")
         if self.verdict == "alternative":
             return (f"explains the misfit that {', '.join(self.alternatives)} explains: this acquisition cannot tell "
                     f"them apart (named together)")
@@ -372,17 +383,19 @@ def reconstruct_settings(diag: Diagnosis, *, out_dir: Path | None = None) -> lis
     folder = Path(out_dir or ".")
     options: dict[str, str] = {}
     for s in C.as_sets(diag.cfg, skip=("diagnose",)):
-        key, value = s.split("=", 1)
+        key, value = _pair(s)
         options[key] = value
     kept = {e.name for e in diag.effects if e.recommended}
     for name, finding in diag.findings().items():
         if name in kept:
             options.update(_pair(o.text(folder)) for o in finding.options)
-    # the configured model's effects that the final model does not hold, or holds only by a finding that did not
-    # replicate (the paper's three are on by default)
+    # the configured channel effects that the final model does not hold, or holds only by a finding that did not
+    # replicate (the paper's three are on by default; with --base none the configuration's others too)
     findings = diag.findings()
-    for name in dict.fromkeys((*PAPER_MODEL, *diag.base_model)):
+    for name in CATALOGUE:
         config = effect(name).config
-        if config is not None and (name not in diag.final_model or (name in findings and name not in kept)):
+        if config is None or C.get(diag.cfg, config) is False:
+            continue
+        if name not in diag.final_model or (name in findings and name not in kept):
             options[config] = "false"
     return [f"{k}={v}" for k, v in options.items()]

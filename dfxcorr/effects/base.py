@@ -66,6 +66,9 @@ class Test(Generic[P]):
         Whether the change it would make matters (a gain within the practical floor does not).
     flagged : ndarray of bool, shape (H, W), or None
         The pixels a localised effect flags (left out of the other effects' tests in its round).
+    shared : int
+        Directions of its parameters that it shares with the model's effects (each alone determines them, together
+        the data do not): it is tested and fitted in the rest, and its estimate there is the fit's gauge.
     """
 
     statistic: float
@@ -78,6 +81,7 @@ class Test(Generic[P]):
     explains: float = 0.0
     material: bool = True
     flagged: np.ndarray | None = None
+    shared: int = 0
 
 
 def chi2_test(statistic: float, dof: int, payload: P, **kw: Any) -> Test[P]:
@@ -192,6 +196,12 @@ class Pair:
     shared: int
 
 
+def dispersion(state: State) -> float:
+    """The fit's Pearson chi-square per degree of freedom, at least 1: what scales a standard error from the stated
+    noise model to the data's own spread (quasi-likelihood; below 1 the stated model is kept)."""
+    return max(state.reduced_chi2, 1.0)
+
+
 #: The policy of a term of the expected count.
 MEAN = Policy(astray_check=True, first_when_unidentifiable=True)
 
@@ -292,6 +302,10 @@ class Hypothesis:
     def but(self, **changes: Any) -> Hypothesis:
         """The same hypothesis with some fields changed."""
         return replace(self, **changes)
+
+    def without(self, name: str) -> Hypothesis:
+        """The same hypothesis without the correction of the counts by the effect ``name``."""
+        return replace(self, corrections=tuple(c for c in self.corrections if c[0] != name))
 
 
 class State(Protocol):

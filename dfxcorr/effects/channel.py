@@ -37,6 +37,7 @@ from .base import (
     State,
     Test,
     chi2_test,
+    dispersion,
     strongest,
 )
 
@@ -127,9 +128,12 @@ def score_tests(obs: Observations, params: Params, weights: np.ndarray, model: S
         # directions without information that the candidate has only beside the model's effects (each alone
         # determines them) do not make it unidentifiable: the rest of its parameters is tested, and a fit with it
         # leaves those directions where the model's effect put them (a gauge: the first added takes them)
-        shared = cond.verdict.excess and cond.dof > 0 and identify.conditional(inf, name, ()).verdict.identifiable
+        shared = bool(cond.verdict.excess and cond.dof > 0
+                      and identify.conditional(inf, name, ()).verdict.identifiable)
         out[name] = chi2_test(stat, cond.dof, Score(frames), explains=stat * dispersion,
-                              identifiable=cond.verdict.identifiable or bool(shared), excess=cond.verdict.excess)
+                              identifiable=cond.verdict.identifiable or shared,
+                              excess=0 if shared else cond.verdict.excess,
+                              shared=cond.verdict.excess if shared else 0)
     return Scores(out, inf, U, tuple(model), dispersion)
 
 
@@ -323,7 +327,8 @@ class ChannelEffect(EffectBase[Score]):
     def measure(self, ctx: Context, state: State) -> Estimate | None:
         if self.name not in state.params:
             return None
-        return Estimate(state.params[self.name], state.uncertainty[self.name])
+        # the fit's standard errors are the stated noise model's: scaled to the data's own spread
+        return Estimate(state.params[self.name], state.uncertainty[self.name] * np.sqrt(dispersion(state)))
 
     def describe(self, p: np.ndarray, good: np.ndarray) -> str:
         """One line: the size of fitted parameters ``p`` (per frame: their spread over the frames ``good``)."""

@@ -45,13 +45,11 @@ MIN_GAIN = 1e-6
 @dataclass(frozen=True)
 class NoiseEstimate:
     """A noise model's test payload: the gain and electronic variance fitted together, and the tested parameter's
-    estimate with the other at its current value (``profiled``: gain, electronic variance), with the standard
-    error of the tested parameter in that profile (``se``)."""
+    estimate with the other at its current value (``profiled``: gain, electronic variance)."""
 
     gain: float
     electronic: float
     profiled: tuple[float, float]
-    se: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -130,8 +128,7 @@ class NoiseFit:
         null = self.regression(**held)
         stat = max(self.deviance(*null) - self.deviance(g1, e1), 0.0)
         other = {"electronic": self.electronic} if "gain" in held else {"gain": self.gain}
-        profiled = self.regression(**other)
-        return chi2_test(stat, 1, NoiseEstimate(g1, e1, profiled, self.standard_error("gain" in held, profiled)))
+        return chi2_test(stat, 1, NoiseEstimate(g1, e1, self.regression(**other)))
 
     def standard_error(self, gain: bool, at: tuple[float, float]) -> float:
         """The standard error of the gain (``gain``) or of the electronic variance with the other held, at the

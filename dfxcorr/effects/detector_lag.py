@@ -197,9 +197,9 @@ class DetectorLag(EffectBase[Estimate]):
                        options=(Option("load.detector_lag", f"{a:.6g}"),))
 
     def measure(self, ctx: Context, state: State) -> Estimate | None:
-        # measured on the counts before this hypothesis's correction of them
-        before = state.hypothesis.but(corrections=tuple(c for c in state.hypothesis.corrections if c[0] != self.name))
-        return lag_test(ctx.corrected(before).store).payload
+        # measured in the rows the active area has just left, over the whole detector: a fit on part of it does
+        # not measure it again
+        return None
 
 
 EFFECT = DetectorLag()

@@ -502,9 +502,7 @@ class Scatter(EffectBase[ScatterScore]):
         if setting is None:
             return None
         # the score of s beyond the fitted one along the fitted field, at this fit: its step and standard error
-        without = state.hypothesis.but(corrections=tuple(c for c in state.hypothesis.corrections
-                                                         if c[0] != self.name))
-        prep = ctx.corrected(without)
+        prep = ctx.corrected(state.hypothesis.without(self.name))
         t = transmission(prep.store, prep.reference, setting, pixel_mm(prep.scan))
         S = field(prep.store, prep.reference, t, kernel_pixels(setting.width_mm, pixel_mm(prep.scan))).take(
             columns=state.fit_obs.columns)

@@ -19,7 +19,7 @@ from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.analysis.report import write_report
 from dfxcorr.catalogue import PAPER_MODEL, Effect
 from dfxcorr.effects import REGISTRY
-from dfxcorr.effects.base import MEAN, Consistency, EffectBase, Finding, Hypothesis, Policy, chi2_test
+from dfxcorr.effects.base import MEAN, Consistency, EffectBase, Finding, Hypothesis, Pair, Policy, chi2_test
 from dfxcorr.observations import Noise
 from dfxcorr.preparation import Correctable
 from dfxcorr.sim import simulate as S
@@ -416,3 +416,53 @@ def test_a_proxy_whose_signature_the_next_effect_explains_is_not_reported():
     out = _run([OfOneSize("proxy", 500, p=1e-6, spread=5.0, until="true"), Fake("true", 300)], world)
     assert [s.name for s in out.steps] == ["true"]
     assert out.inconsistent == {}
+
+
+def test_the_noise_model_is_held_while_the_mean_model_is_grossly_off():
+    """A misfit of the residuals' mean that no candidate explains (reduced chi-square 2.5): the noise model, whose
+    trial would match any misfit with a variance large enough, is not tried; the report says why."""
+    from dfxcorr.analysis.diagnose import _not_added
+
+    world = World({"missing": {("frame", "mean"): 1500.0}})
+    out = _run([Fake("noise", 5000, policy=Policy(noise_model=True))], world)
+    assert out.steps == [] and out.held == {"noise": "gross"} and len(world.fits) == 1
+    report = _not_added("noise", out.tests["noise"], out, alpha=0.01, tested=1)
+    assert report.verdict == "held: gross misfit" and "grossly off" in report.verdict_text()
+    # at a reduced chi-square within the gross level it is tried
+    mild = World({"missing": {("frame", "mean"): 500.0}})
+    assert _run([Fake("noise", 5000, policy=Policy(noise_model=True))], mild).held == {}
+
+
+class Joinable(Fake):
+    """A fake that a trial of another candidate can take up too."""
+
+    def joined(self, hypothesis):
+        return hypothesis.but(effects=(*hypothesis.effects, self.name))
+
+
+class Shares(Joinable):
+    """A fake whose pair test with another candidate says what it is told."""
+
+    def __init__(self, name, statistic, *, beyond, other, shared=2):
+        super().__init__(name, statistic)
+        self.pair = Pair((statistic, 4), {name: beyond[0], other: beyond[1]}, shared)
+
+    def beside(self, ctx, state, other):
+        return self.pair if other in self.pair.beyond else None
+
+
+@pytest.mark.parametrize(("beyond", "named", "alternatives"), [
+    (((50.0, 2), (0.5, 2)), ["a"], ()),     # only a's share beyond b: a
+    (((0.5, 2), (50.0, 2)), ["b"], ()),     # only b's: b, tried in a's place
+    (((0.5, 2), (0.4, 2)), ["a"], ("b",)),  # neither: one finding, 'a or b'
+    (((50.0, 2), (60.0, 2)), ["a", "b"], ()),  # both: fitted together
+])
+def test_confounded_candidates_are_decided_on_their_shares_beyond_each_other(beyond, named, alternatives):
+    world = World({"a": {("frame", "mean"): 200.0}, "b": {("frame", "mean"): 200.0}})
+    a = Shares("a", 400, beyond=beyond, other="b")
+    b = Joinable("b", 390)
+    out = _run([a, b], world, max_rounds=1)
+    (step,) = out.steps
+    assert list(step.names) == named and tuple(n for n, _ in step.alternatives) == alternatives
+    if named == ["b"]:
+        assert out.held == {"a": "b"}
