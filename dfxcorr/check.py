@@ -318,8 +318,9 @@ def require_residuals(frames_per_row: np.ndarray) -> None:
     most = int(np.max(frames_per_row, initial=0))
     if most <= IMAGE_UNKNOWNS:
         raise NothingToTestError(f"every pixel is seen in at most {most} frames, which its {IMAGE_UNKNOWNS} image "
-                                 f"unknowns (t, v, phi) fit exactly: no residual is left to diagnose (a phase-"
-                                 f"stepping recording needs at least {IMAGE_UNKNOWNS + 1} steps)")
+                                 f"unknowns (t, v, phi) fit exactly: no residual is left to diagnose (it needs "
+                                 f"pixels seen in at least {IMAGE_UNKNOWNS + 1} frames, e.g. {IMAGE_UNKNOWNS + 1} "
+                                 f"phase steps)")
 
 
 def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool = False,
