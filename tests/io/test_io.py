@@ -203,3 +203,26 @@ def test_a_signal_during_the_swap_is_held_until_it_is_complete(tmp_path, monkeyp
         signal.signal(sig, previous)
     assert _contents(out) == {"report.md": "new run", "notes.txt": "the user's"}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["diag"]
+
+
+def test_concurrent_runs_into_one_folder_leave_one_run_whole(tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from dfxcorr.io import atomic_folder
+
+    out = tmp_path / "diag"
+    _old_run(out)
+
+    def one(run):
+        for k in range(20):
+            with atomic_folder(out, names=RUN_FILES, overwrite=True) as tmp:
+                for name in RUN_FILES[:2]:
+                    (tmp / name).write_text(f"{run} {k}")
+
+    with ThreadPoolExecutor(3) as pool:
+        list(pool.map(one, ["run a", "run b", "run c"]))
+    # whatever run swapped in last, its files are all there and alone, the user's file kept through 60 swaps
+    files = _contents(out)
+    assert set(files) == {*RUN_FILES[:2], "notes.txt"} and files["report.md"] == files["diagnosis.json"]
+    assert files["notes.txt"] == "the user's"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["diag"]
