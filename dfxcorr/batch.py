@@ -3,7 +3,10 @@
 A list file holds one scan path per line. Each scan is reconstructed by its own ``dfxcorr
 reconstruct`` process into ``OUTDIR/<scan stem>.h5`` with its log beside it (``<stem>.log``). A
 result that already exists is complete (results are written atomically), so a batch that was stopped
-is resumed by running it again. One failed scan never stops the others.
+is resumed by running it again: a result is kept where its provenance names the same scan contents
+(SHA-256) and its configuration is the batch's, and re-run (replaced) where either changed. One
+failed scan never stops the others. A result whose reduced chi-square lies outside what noise allows
+is done, but flagged in the summary.
 
 On a cluster the same list is a job array: ``--array-index N`` (default ``SLURM_ARRAY_TASK_ID``)
 processes the scan on line N of the list (counted from 1 as ``sed -n Np`` does) and exits with its
@@ -22,7 +25,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
+import yaml
 
+from . import config as C
 from .errors import DfxcorrError, require_regular_file
 
 log = logging.getLogger(__name__)
@@ -55,13 +60,19 @@ class Job:
 
 @dataclass(frozen=True)
 class Outcome:
-    """What became of one job: status 'done', 'skipped' (result existed) or 'failed'."""
+    """What became of one job: status 'done', 'skipped' (result existed) or 'failed'.
+
+    ``misfit``: the result's reduced chi-square lies outside what noise allows; ``note``: why a result that existed
+    was re-run.
+    """
 
     job: Job
     status: str
     seconds: float = 0.0
     reduced_chi2: float | None = None
     error: str = ""
+    misfit: bool = False
+    note: str = ""
 
 
 def read_list(path: str | os.PathLike) -> list[tuple[int, str]]:
@@ -132,13 +143,33 @@ def is_complete(path: Path) -> bool:
     return (fmt.decode() if isinstance(fmt, bytes) else fmt) == "dfxcorr-result"
 
 
-def result_chi2(path: Path) -> float | None:
-    """Reduced chi-square stored in a results file, None if it cannot be read."""
+def result_chi2(path: Path) -> tuple[float | None, bool]:
+    """Reduced chi-square stored in a results file (None if it cannot be read), and whether it is marked a misfit."""
     try:
         with h5py.File(path, "r") as f:
-            return float(f["entry/dfxcorr/fit/reduced_chi2"][()])
+            fit = f["entry/dfxcorr/fit"]
+            return float(fit["reduced_chi2"][()]), bool(fit["misfit"][()]) if "misfit" in fit else False
     except (OSError, KeyError, ValueError, TypeError):
-        return None
+        return None, False
+
+
+def changed(job: Job, cfg: dict) -> str:
+    """Why the existing result of ``job`` is not the one this batch would write ('' where it is): its scan's
+    contents (the SHA-256 its provenance holds) or its resolved configuration differ."""
+    from .pipeline import sha256
+
+    try:
+        with h5py.File(job.result, "r") as f:
+            proc = f["entry/dfxcorr"]
+            digest = proc["input_sha256"].asstr()[()]
+            stored = yaml.safe_load(proc["configuration"].asstr()[()])
+    except (OSError, KeyError, ValueError, TypeError, yaml.YAMLError):
+        return "its provenance cannot be read"
+    if stored != cfg:
+        return "the configuration changed"
+    if digest != sha256(job.scan):
+        return "the scan changed"
+    return ""
 
 
 def threads_per_job(n_jobs: int, *, cores: int | None = None) -> int:
@@ -147,11 +178,12 @@ def threads_per_job(n_jobs: int, *, cores: int | None = None) -> int:
     return max(1, total // max(n_jobs, 1))
 
 
-def command(job: Job, *, config_files=(), sets=()) -> list[str]:
+def command(job: Job, *, config_files=(), sets=(), overwrite: bool = False) -> list[str]:
     """The ``dfxcorr reconstruct`` command line of one job (the same entry point as a user would type)."""
     exe = shutil.which("dfxcorr")
     base = [exe] if exe else [sys.executable, "-c", "from dfxcorr.cli import main; main()"]
     cmd = base + ["--log-file", str(job.log), "reconstruct", str(job.scan), "-o", str(job.result)]
+    cmd += ["--overwrite"] if overwrite else []
     for c in config_files:
         cmd += ["-c", str(c)]
     for s in sets:
@@ -160,27 +192,35 @@ def command(job: Job, *, config_files=(), sets=()) -> list[str]:
 
 
 def run_job(job: Job, *, config_files=(), sets=(), threads: int = 1) -> Outcome:
-    """Reconstruct one scan in its own process; a finished result is skipped.
+    """Reconstruct one scan in its own process; a finished result of the same scan and configuration is skipped,
+    one of another scan or configuration re-run (:func:`changed`).
 
     The child's standard error (one line on refusal, a traceback on a crash) is appended to the job's
     log, and its last line becomes the outcome's error.
     """
+    note = ""
     if is_complete(job.result):
-        return Outcome(job, "skipped", reduced_chi2=result_chi2(job.result))
+        note = changed(job, C.load(config_files, sets))
+        if not note:
+            chi2, misfit = result_chi2(job.result)
+            return Outcome(job, "skipped", reduced_chi2=chi2, misfit=misfit)
+        log.info("%s: re-run, %s since %s was written", job.scan, note, job.result)
+        note = f"re-run: {note}"
     env = dict(os.environ, NUMBA_NUM_THREADS=str(threads), OMP_NUM_THREADS=str(threads),
                SLURM_CPUS_PER_TASK=str(threads))
     t0 = time.perf_counter()
-    proc = subprocess.run(command(job, config_files=config_files, sets=sets), env=env, stdin=subprocess.DEVNULL,
-                          capture_output=True, text=True, errors="replace", check=False)
+    proc = subprocess.run(command(job, config_files=config_files, sets=sets, overwrite=bool(note)), env=env,
+                          stdin=subprocess.DEVNULL, capture_output=True, text=True, errors="replace", check=False)
     seconds = time.perf_counter() - t0
     if proc.returncode == 0:
-        return Outcome(job, "done", seconds, result_chi2(job.result))
+        chi2, misfit = result_chi2(job.result)
+        return Outcome(job, "done", seconds, chi2, misfit=misfit, note=note)
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     error = lines[-1] if lines else f"exit code {proc.returncode}"
     if job.log.parent.is_dir():
         with open(job.log, "a", encoding="utf-8") as fh:
             fh.write(proc.stderr)
-    return Outcome(job, "failed", seconds, error=f"{error} (exit code {proc.returncode})")
+    return Outcome(job, "failed", seconds, error=f"{error} (exit code {proc.returncode})", note=note)
 
 
 def run_batch(jobs: list[Job], *, config_files=(), sets=(), n_jobs: int = 1, on_done=None) -> list[Outcome]:
@@ -214,14 +254,18 @@ def run_batch(jobs: list[Job], *, config_files=(), sets=(), n_jobs: int = 1, on_
 
 
 def summary(outcomes: list[Outcome]) -> str:
-    """A plain-text table: scan, status, time (s), reduced chi-square, error."""
-    rows = [("scan", "status", "time_s", "reduced_chi2", "error")]
+    """A plain-text table: scan, status, time (s), reduced chi-square (marked 'misfit' where it lies outside what
+    noise allows), and the error or why an existing result was re-run."""
+    rows = [("scan", "status", "time_s", "reduced_chi2", "notes")]
     for o in outcomes:
-        rows.append((str(o.job.scan), o.status, f"{o.seconds:.1f}" if o.status != "skipped" else "-",
-                     f"{o.reduced_chi2:.4f}" if o.reduced_chi2 is not None else "-", o.error))
+        chi2 = "-" if o.reduced_chi2 is None else f"{o.reduced_chi2:.4f}" + (" misfit" if o.misfit else "")
+        rows.append((str(o.job.scan), o.status, f"{o.seconds:.1f}" if o.status != "skipped" else "-", chi2,
+                     "; ".join(t for t in (o.note, o.error) if t)))
     widths = [max(len(r[k]) for r in rows) for k in range(4)]
     lines = ["  ".join(r[k].ljust(widths[k]) for k in range(4)) + ("  " + r[4] if r[4] else "") for r in rows]
     counts = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed")}
+    misfits = sum(o.misfit for o in outcomes if o.status != "failed")
     lines.append(f"{len(outcomes)} scans: {counts['done']} done, {counts['skipped']} skipped, "
-                 f"{counts['failed']} failed")
+                 f"{counts['failed']} failed" + (f"; {misfits} marked misfit (reduced chi-square outside what "
+                                                 f"noise allows: run dfxcorr diagnose on it)" if misfits else ""))
     return "\n".join(line.rstrip() for line in lines)

@@ -25,6 +25,7 @@ from .faults import Faults, find_faults, saturation_level
 
 if TYPE_CHECKING:  # the planning (numba kernels) is imported only where a check runs the pilot
     from .planning import ColumnPlan
+    from .preparation import Prepared
 
 #: Name length limit where the file system does not tell (bytes; ext4, XFS, Lustre, GPFS).
 NAME_MAX = 255
@@ -157,6 +158,31 @@ def check_outputs(outputs, *, inputs=(), overwrite: bool = False, appended=()) -
             probed.add(folder)
 
 
+def check_folder(folder) -> None:
+    """Refuse, before any work, an output folder that cannot be replaced as a unit (:func:`dfxcorr.io.atomic_folder`).
+
+    Raises
+    ------
+    OutputError
+        ``folder`` is a file, is the working directory or holds it (the swap would leave the run, and the shell it
+        was typed in, in a removed folder), or its parent cannot take the new folder beside it (permissions, a
+        name too long for the temporary name).
+    """
+    _require_utf8(folder, "output")
+    path = Path(os.path.realpath(folder))
+    if os.path.lexists(path) and not path.is_dir():
+        raise OutputError(f"{_name(folder)} is not a folder")
+    cwd = Path.cwd().resolve()
+    if path == cwd or path in cwd.parents:
+        raise OutputError(f"{_name(folder)} is the working directory or holds it: its files are replaced as a whole, "
+                          f"by a new folder; give the output a folder of its own")
+    parent = _existing_folder(path.parent)
+    if len(os.fsencode(path.name)) + io.TEMP_NAME_OVERHEAD > _name_max(parent):
+        raise OutputError(f"{_name(folder)}: the name is too long for its temporary name (at most "
+                          f"{_name_max(parent) - io.TEMP_NAME_OVERHEAD} bytes)")
+    _probe(parent)
+
+
 # --------------------------------------------------------------------------------------------------
 # The configuration against a scan
 # --------------------------------------------------------------------------------------------------
@@ -235,16 +261,14 @@ def memory_estimate(shape, *, itemsize: int, lit_samples: int, fit_samples: int,
                + BASE_BYTES)
 
 
-def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, pilot: bool) -> ColumnPlan:
-    from .effects import REGISTRY
+def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, prep: Prepared | None) -> ColumnPlan:
     from .planning import ColumnPlan, coarse_step, column_step, fit_columns, fit_seconds, plan_columns
-    from .preparation import prepare
 
     W = scan.shape[2]
     n = cfg["fit"]["subsample"]
     try:
-        if n == "auto" and pilot:
-            return plan_columns(prepare(scan, cfg, effects=REGISTRY.values()), cfg, report=False)
+        if n == "auto" and prep is not None:
+            return plan_columns(prep, cfg, report=False)
         step = column_step(W, samples_per_column, most=cfg["fit"]["max_samples"]) if n == "auto" else n
         cols = fit_columns(W, cfg, step)
         coarse = coarse_step(cfg, cols.size, samples_per_column, step=step, width=W)
@@ -273,6 +297,32 @@ def _visibility_reasons(scan: io.Scan) -> str | None:
     return visibility_unidentifiable(scan, reference)
 
 
+#: Unknowns of every pixel's images (t, v, phi): a pixel seen in no more frames is fitted exactly.
+IMAGE_UNKNOWNS = 3
+
+
+class NothingToTestError(DfxcorrError, ValueError):
+    """A diagnosis of a recording whose images leave no residual to test."""
+
+
+def require_residuals(frames_per_row: np.ndarray) -> None:
+    """Refuse a diagnosis where every pixel is seen in at most :data:`IMAGE_UNKNOWNS` frames.
+
+    ``frames_per_row``: frames in which each detector row the run uses is lit. Its images then fit every sample
+    exactly: no residual is left, so no effect, noise or signature can be tested.
+
+    Raises
+    ------
+    NothingToTestError
+    """
+    most = int(np.max(frames_per_row, initial=0))
+    if most <= IMAGE_UNKNOWNS:
+        raise NothingToTestError(f"every pixel is seen in at most {most} frames, which its {IMAGE_UNKNOWNS} image "
+                                 f"unknowns (t, v, phi) fit exactly: no residual is left to diagnose (it needs "
+                                 f"pixels seen in at least {IMAGE_UNKNOWNS + 1} frames, e.g. {IMAGE_UNKNOWNS + 1} "
+                                 f"phase steps)")
+
+
 def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool = False,
          pilot: bool = False) -> Plan:
     """Check a resolved configuration against a scan without fitting; what ``reconstruct`` would do.
@@ -290,8 +340,12 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     diagnose : bool
         Also check the ``diagnose`` section.
     pilot : bool
-        For ``fit.subsample: auto``, prepare the scan (reading its frames) and run the pilot that chooses the
-        fit's columns (:func:`dfxcorr.planning.plan_columns`); otherwise the columns are the most auto may take.
+        Prepare the scan as the run does (reading its frames, leaving its detector faults out), decide which
+        configured effects its fit can determine with the run's own rule on the fit's observations, its motion
+        mask applied (:func:`dfxcorr.planning.resolve_effects` on :func:`dfxcorr.pipeline.fit_observations`),
+        and for ``fit.subsample: auto`` run the pilot that chooses those columns
+        (:func:`dfxcorr.planning.plan_columns`). Otherwise only the visibility effects are judged (from the
+        geometry) and the columns are the most auto may take.
 
     Raises
     ------
@@ -299,10 +353,13 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
         Naming the key: subsampling beyond the detector or its alias limit, a column offset outside the
         detector, a mask dilation beyond the detector's size, a diagnosis subsampling beyond it.
     IdentifiabilityError
-        A visibility effect set to true that this acquisition cannot determine.
+        An effect set to true that this acquisition cannot determine (with ``pilot``: judged as the run judges
+        it; otherwise the visibility effects only).
+    NothingToTestError
+        With ``diagnose``: every pixel is seen in at most :data:`IMAGE_UNKNOWNS` frames.
     """
     from .effects import REGISTRY
-    from .planning import VISIBILITY_EFFECTS, drop_visibility
+    from .planning import VISIBILITY_EFFECTS, drop_visibility, resolve_effects
 
     J, H, W = scan.shape
     method = cfg["fit"]["method"]
@@ -317,16 +374,35 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     used = count >= cfg["align"]["min_frames"]
     if not used.any():  # what collect_lit_rows refuses, in its words
         raise no_lit_rows(cfg["align"]["min_frames"])
+    if diagnose:
+        require_residuals(count[used])
     # what the configuration asks of each effect (the files it names), checked against the scan as the run's
     # preparation does
     for effect in REGISTRY.values():
         effect.configured(cfg, n_frames=J, detector=(H, W))
     lit = int(count[used].sum()) * W
-    fit_plan = None if method == "none" else _columns(scan, cfg, lit // W, pilot=pilot)
-    columns = np.zeros(0, int) if fit_plan is None else fit_plan.columns
+    # what the settings and the geometry alone refuse comes before the scan is prepared (reading its frames)
+    fit_plan = None if method == "none" else _columns(scan, cfg, lit // W, prep=None)
     effects = C.effects_of(cfg) if method != "none" else ()
     why = _visibility_reasons(scan) if set(VISIBILITY_EFFECTS) & set(effects) else None
     kept, dropped = drop_visibility(cfg, effects, why)
+    prep = None
+    if pilot and method != "none":
+        from .preparation import prepare
+
+        prep = prepare(scan, cfg, effects=REGISTRY.values())
+        if cfg["fit"]["subsample"] == "auto":
+            fit_plan = _columns(scan, cfg, lit // W, prep=prep)
+    columns = np.zeros(0, int) if fit_plan is None else fit_plan.columns
+    if prep is not None and fit_plan is not None:  # the run's decision, on the run's data
+        from .pipeline import fit_motion_mask, fit_observations
+        from .planning import row_blocks
+
+        moving = fit_motion_mask(prep, cfg, fit_plan, row_blocks(prep.store, cfg["retrieve"]["block_mb"]))
+        chosen = resolve_effects(cfg, prep.scan, prep.reference, fit_observations(prep, columns, moving))
+        dropped.update({name: "the Fisher information of this acquisition has directions of its parameters "
+                              "without information beyond its gauge" for name in kept if name not in chosen})
+        kept = list(chosen)
     effects = tuple(kept)
     return Plan(scan=name, shape=(J, H, W), dtype=str(scan.data.dtype), active_rows=scan.active_rows,
                 stepping=scan.is_stepping, rows_used=int(used.sum()), lit_samples=lit, method=method,

@@ -212,7 +212,8 @@ def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, ove
     t0 = time.perf_counter()
     result = pipeline.reconstruct(scan, cfg, command_line=_command_line())
     _write_outputs(result, out, tiff_dir=tiff_dir, preview=preview, dicom=dicom_export, overwrite=overwrite)
-    click.echo(f"{out}: reduced chi-square {result.reduced_chi2:.4f}, {time.perf_counter() - t0:.1f} s")
+    misfit = " (outside what noise allows: run dfxcorr diagnose)" if result.misfit else ""
+    click.echo(f"{out}: reduced chi-square {result.reduced_chi2:.4f}{misfit}, {time.perf_counter() - t0:.1f} s")
 
 
 @main.command("check")
@@ -221,9 +222,9 @@ def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, ove
 def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overwrite, **dicom):
     """Check that `dfxcorr reconstruct` with the same arguments would run, in seconds, computing nothing.
 
-    Validates SCAN, the configuration against it (subsampling, column offset, mask dilation, diagnosis
-    subsampling, visibility effects this acquisition cannot determine) and every output, and prints
-    what reconstruct would do and the memory it will need. Exit code 0: it would run; 2: it would refuse.
+    Validates SCAN, the configuration against it (subsampling, column offset, mask dilation, effects this
+    acquisition cannot determine, judged as reconstruct judges them) and every output, and prints what
+    reconstruct would do and the memory it will need. Exit code 0: it would run; 2: it would refuse.
     """
     from . import check
     from .io import read_scan
@@ -231,7 +232,7 @@ def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overw
     _, cfg, outputs, _ = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite,
                                               dicom)
     scan_read = read_scan(scan, allow_external=cfg["load"]["allow_external"])
-    click.echo(check.plan(scan_read, cfg, name=scan, outputs=outputs, diagnose=True, pilot=True).summary())
+    click.echo(check.plan(scan_read, cfg, name=scan, outputs=outputs, pilot=True).summary())
     faults = check.detector_faults(scan_read, cfg)
     faults.require_data()
     click.echo(faults.summary() if faults.any else "detector faults: none (no saturated sample, no empty or repeated "
@@ -332,6 +333,7 @@ def diagnose(scan, out_dir, config_files, sets, base, overwrite):
     # position_errors.txt back, and a run must not replace the map it reads
     _guard([out / name for name in FIXED_FILES],
            inputs=[scan, *config_files, *C.input_files(cfg)], overwrite=overwrite)
+    check.check_folder(out)  # the report replaces its folder as a unit
     # plain retrieval (--base none) fits no configured effect
     header = read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True)
     check.plan(header, C.merge(cfg, {"fit": {"method": "none"}}) if base == "none" else cfg,
@@ -564,8 +566,9 @@ if __name__ == "__main__":  # pragma: no cover
 def batch(scan_list, output_dir, config_files, sets, jobs, array_index):
     """Reconstruct every scan listed in SCAN_LIST (one path per line), one process per scan.
 
-    Finished results are skipped, so a stopped batch resumes where it was. A failed scan does not stop
-    the others; the summary at the end lists every scan with its status, time and reduced chi-square.
+    Finished results are skipped, so a stopped batch resumes where it was; a result of another configuration or of
+    a scan that changed since is re-run. A failed scan does not stop the others; the summary at the end lists
+    every scan with its status, time and reduced chi-square (marked misfit where noise cannot explain it).
     """
     from . import batch as B
 
@@ -581,9 +584,10 @@ def batch(scan_list, output_dir, config_files, sets, jobs, array_index):
 
     def report(outcome):
         done[0] += 1
-        extra = f", reduced chi-square {outcome.reduced_chi2:.4f}" if outcome.reduced_chi2 is not None else ""
+        extra = (f", reduced chi-square {outcome.reduced_chi2:.4f}{' (misfit)' if outcome.misfit else ''}"
+                 if outcome.reduced_chi2 is not None else "")
         line = f"[{done[0]}/{len(todo)}] {outcome.job.scan}: {outcome.status} ({outcome.seconds:.1f} s{extra})"
-        log.info("%s%s", line, f": {outcome.error}" if outcome.error else "")
+        log.info("%s%s", line, "".join(f": {t}" for t in (outcome.note, outcome.error) if t))
 
     outcomes = B.run_batch(todo, config_files=config_files, sets=sets, n_jobs=jobs, on_done=report)
     click.echo(B.summary(outcomes))

@@ -18,7 +18,7 @@ from typing import Any
 import yaml
 
 from .catalogue import config_keys
-from .errors import DfxcorrError, require_regular_file
+from .errors import DfxcorrError, gain_problem, require_regular_file
 
 
 class ConfigError(DfxcorrError, ValueError):
@@ -77,7 +77,8 @@ METHODS = ("ml", "alternating", "correlation", "none")
 SCHEMA: dict[str, dict[str, Option]] = {
     "load": {
         "gain": Option(None, "detector units per photon; null takes /entry/instrument/detector/gain of the file "
-                             "(dfxcorr diagnose estimates it as detector_gain)", _NUM, check=_positive, nullable=True),
+                             "(dfxcorr diagnose estimates it as detector_gain)", _NUM, check=gain_problem,
+                       nullable=True),
         "electronic": Option(0.0, "electronic noise variance per sample (counts^2), added to gain * mean in the "
                                   "noise weights (dfxcorr diagnose estimates it)", _NUM, check=_nonneg),
         "detector_lag": Option(0.0, "detector lag fraction a (frame j records S_j + a S_(j-1)): taken out of the "

@@ -40,3 +40,16 @@ def require_regular_file(path, what: str = "input") -> None:
         kind = "a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else "not a regular file"
         name = os.fsencode(path).decode("utf-8", "backslashreplace")
         raise InputFileError(f"{name}: the {what} is {kind}; give a regular file")
+
+
+#: Detector units per photon that any X-ray detector may record (photon counters 1, integrating flat panels
+#: 1e-2-1e2): a stated gain outside is a typing or unit error. Far outside, the fit's float32 noise weights
+#: overflow (at 1e-100 its least-squares solve does not converge).
+GAIN_RANGE = (1e-6, 1e6)
+
+
+def gain_problem(gain: float) -> str | None:
+    """Why a stated gain (detector units per photon) is not physical, or None: the one rule for every source."""
+    lo, hi = GAIN_RANGE
+    return None if lo <= gain <= hi else (f"must be a finite number in [{lo:g}, {hi:g}] detector units per photon "
+                                          f"(photon counters record 1)")

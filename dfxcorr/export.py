@@ -16,7 +16,7 @@ import yaml
 from .errors import DfxcorrError, OutputExistsError
 from .io import atomic_path, h5_output
 from .model import CATALOGUE
-from .result import Result, paper_params
+from .result import Result, chi2_limits, paper_params
 
 FORMAT = "dfxcorr-result"
 FORMAT_VERSION = 1
@@ -219,6 +219,11 @@ def write_result_h5(path, result: Result, *, overwrite: bool = False, compressio
         _dataset(fit, "cost", np.ravel(result.cost), dtype=np.float64)
         _dataset(fit, "stage", np.array([str(s) for s in result.cost_stage], dtype=object))
         _dataset(fit, "reduced_chi2", float(result.reduced_chi2), dtype=np.float64)
+        lo, hi = chi2_limits(result.dof)
+        _dataset(fit, "dof", int(result.dof), dtype=np.int64)
+        _dataset(fit, "misfit", np.uint8(result.misfit), dtype=np.uint8, low=lo, high=hi,
+                 description="1: reduced_chi2 lies outside [low, high], what noise allows with dof degrees of "
+                             "freedom; the model does not fit this scan (dfxcorr diagnose)")
         _string(fit, "method", result.method)
 
         tim = proc.create_group("timings")
@@ -251,7 +256,8 @@ def read_result_h5(path) -> dict:
     dict
         'transmission', 'dark_field', 'differential_phase' (float32 arrays), 'vibration' and
         'uncertainty' (dataset name -> array), 'estimated' (dataset name -> bool), 'mask',
-        'motion_mask', 'cost', 'stage', 'reduced_chi2' (float), 'method', 'configuration' (dict, the
+        'motion_mask', 'cost', 'stage', 'reduced_chi2' (float), 'misfit' (bool; None in files written before it
+        was recorded), 'method', 'configuration' (dict, the
         parsed YAML), 'provenance' (dict of str), 'timings' (dict of float), 'uncorrected' (dict or
         None), 'pixel_size' ((y, x) in m, or None) and 'format_version'.
 
@@ -281,6 +287,7 @@ def read_result_h5(path) -> dict:
         out["cost"] = fit["cost"][()]
         out["stage"] = list(fit["stage"].asstr()[()]) if "stage" in fit else []
         out["reduced_chi2"] = float(fit["reduced_chi2"][()])
+        out["misfit"] = bool(fit["misfit"][()]) if "misfit" in fit else None
         out["method"] = _read_string(fit["method"]) if "method" in fit else ""
         out["configuration"] = yaml.safe_load(_read_string(proc["configuration"]))
         out["provenance"] = {k: _read_string(proc[k]) if k in proc else "" for k in PROVENANCE_KEYS}

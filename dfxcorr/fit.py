@@ -31,6 +31,7 @@ from .frames import (
     empirical_prior,
     fix_gauge,
     rescue_frames,
+    rows_in_use,
     well_determined,
     wrap_phases,
 )
@@ -576,7 +577,7 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
     converged = True
     wide = catalogue_prior(names) if prior else None
     good = well_determined(obs, gauge_fraction)
-    weak = np.flatnonzero(~good & (np.bincount(obs.frame, minlength=J) > 0))
+    weak = np.flatnonzero(~good & (rows_in_use(obs) > 0))
     refine = bool(prior and weak.size and np.any(good))
     for i, (label, free, iters) in enumerate(stages):
         if not free:

@@ -146,10 +146,17 @@ def frame_grid_cost(obs: M.Observations, ch: M.Channels, coef: np.ndarray, weigh
                     for n, Sn in enumerate(S, start=1))
 
 
+def rows_in_use(obs: M.Observations) -> np.ndarray:
+    """Rows of each frame in ``obs`` that hold a sample the fit uses, (J,): none for a frame left out as a detector
+    fault (:mod:`dfxcorr.faults`), whose parameters the data then do not determine at all."""
+    return obs.frame_sum(np.any(obs.use, axis=1).astype(np.float64))
+
+
 def well_determined(obs: M.Observations, fraction: float) -> np.ndarray:
-    """Frames lighting at least ``fraction`` of the largest number of rows any frame lights in ``obs``, (J,)
-    (:func:`dfxcorr.align.gauge_frames`)."""
-    return gauge_frames(np.bincount(obs.frame, minlength=obs.n_frames), fraction)
+    """Frames lighting at least ``fraction`` of the largest number of rows any frame lights in ``obs`` with samples
+    in use (:func:`rows_in_use`), (J,) (:func:`dfxcorr.align.gauge_frames`). A frame left out is never one: its
+    neutral parameters would pull the gauge, the empirical prior and the reported spread towards them."""
+    return gauge_frames(rows_in_use(obs), fraction)
 
 
 def fix_gauge(params: dict, good: np.ndarray, *, visibility_gauge: str = "max",

@@ -136,7 +136,8 @@ def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4
     for _ in range(iterations):
         resid = sub.counts - solved["expected"]
         z2 = sub.segment_sum(weights * resid ** 2) / np.maximum(sub.segment_sum((weights > 0) * 1.0), 1)
-        outlier = z2 > 4.0 * np.median(z2[solved["valid"]])
+        # no pixel seen in more frames than its images' unknowns: nothing to compare with
+        outlier = z2 > (4.0 * np.median(z2[solved["valid"]]) if solved["valid"].any() else np.inf)
         w = np.where(outlier | ~solved["valid"], 0.0, 1.0)[sub.pixel] * weights
         held = K.retrieve(sub, ch, weights=w, keep_inverse=True)
         plain, corr = K.fisher(sub, ch, w, held["coef"], held["inverse"], table)
@@ -157,8 +158,10 @@ def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4
 
 
 def robust_threshold(score: np.ndarray, *, sigma: float) -> float:
-    """median + sigma * 1.4826 * MAD of the finite scores."""
+    """median + sigma * 1.4826 * MAD of the finite scores; infinite where none is finite (nothing is flagged)."""
     s = score[np.isfinite(score)]
+    if not s.size:
+        return float("inf")
     med = np.median(s)
     return float(med + sigma * 1.4826 * np.median(np.abs(s - med)))
 

@@ -31,10 +31,10 @@ from .faults import MIN_KEPT_SHARE
 from .fit import FitResult
 from .io import Scan
 from .mask import motion_mask
-from .planning import pilot_estimate, plan_columns, resolve_effects, row_blocks
+from .planning import ColumnPlan, pilot_estimate, plan_columns, resolve_effects, row_blocks
 from .preparation import Prepared, prepare
 from .progress import Progress, stage
-from .result import Result, paper_params
+from .result import Result, chi2_limits, paper_params
 from .retrieve import image_values, per_dof, retrieve
 
 log = logging.getLogger(__name__)
@@ -82,14 +82,8 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
         plan = plan_columns(prep, cfg) if method != "none" else None
     columns = np.zeros(0, int) if plan is None else plan.columns
     with stage("mask", timings):
-        if cfg["mask"]["enabled"] and plan is not None:
-            m = cfg["mask"]
-            pilot = pilot_estimate(prep) if plan.pilot is None else plan.pilot
-            # the per-pixel statistics of the fit's columns only (the others never enter the fit), block by block
-            moving, _, thr = motion_mask((prep.observations(columns=columns, rows=rows, dtype=np.float32)
-                                          for rows in blocks),
-                                         pilot=pilot, threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
-            log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
+        if plan is not None:
+            moving = fit_motion_mask(prep, cfg, plan, blocks)
     with stage("fit", timings):
         fitted, fit_mask, effects = run_fit(prep, cfg, moving, columns=columns, progress=progress,
                                             coarse=1 if plan is None else plan.coarse)
@@ -99,9 +93,9 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
         sets, counts = [fitted.params], [n_par]
         if cfg["retrieve"]["uncorrected"] and method != "none":
             sets, counts = [*sets, {}], [*counts, 0]
-        (maps, chi2), *rest = blocked_retrieval(prep, blocks, sets, iterations=iterations, n_params=counts)
+        (maps, chi2, dof), *rest = blocked_retrieval(prep, blocks, sets, iterations=iterations, n_params=counts)
         uncorrected = rest[0][0] if rest else None
-        log.info("reduced chi-square of the final model: %.4f", chi2)
+        log.info("reduced chi-square of the final model: %.4f (%d degrees of freedom)", chi2, dof)
     # the paper's three parameters are always reported, at their neutral value where not estimated
     params = paper_params(fitted.params, J)
     uncertainty = {**{n: np.full_like(p, np.inf) for n, p in params.items()}, **fitted.uncertainty}
@@ -112,17 +106,24 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
                   "command_line": command_line, "input_file": str(path) if path else "",
                   "input_sha256": sha256(path) if path else "",
                   "external_files": "\n".join(f"{sha256(p)}  {p}" for p in prep.scan.external_files)}
-    return Result(transmission=maps["transmission"], dark_field=maps["dark_field"],
-                  differential_phase=maps["differential_phase"], params=params, estimated=estimated,
-                  uncertainty=uncertainty, fit_mask=fit_mask, motion_mask=moving.astype(np.uint8),
-                  cost=fitted.cost, cost_stage=fitted.stage, reduced_chi2=chi2, method=method,
-                  config=cfg, provenance=provenance, uncorrected=uncorrected, timings=timings,
-                  pixel_size=prep.scan.pixel_size)
+    result = Result(transmission=maps["transmission"], dark_field=maps["dark_field"],
+                    differential_phase=maps["differential_phase"], params=params, estimated=estimated,
+                    uncertainty=uncertainty, fit_mask=fit_mask, motion_mask=moving.astype(np.uint8),
+                    cost=fitted.cost, cost_stage=fitted.stage, reduced_chi2=chi2, method=method,
+                    config=cfg, provenance=provenance, uncorrected=uncorrected, timings=timings,
+                    pixel_size=prep.scan.pixel_size, dof=dof)
+    if result.misfit:
+        lo, hi = chi2_limits(dof)
+        log.warning("the reduced chi-square %.4g lies outside [%.3g, %.3g], what noise allows with %d degrees of "
+                    "freedom: the model or its noise model does not fit this scan (a frame out of order or twice, "
+                    "a wrong gain, a missing effect); run dfxcorr diagnose on it", chi2, lo, hi, dof)
+    return result
 
 
 def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: list[dict], *, iterations: int,
-                      n_params: list[int]) -> list[tuple[dict[str, np.ndarray], float]]:
-    """Images (H, W) of every pixel in its region of interest, block by block, and the reduced chi-square.
+                      n_params: list[int]) -> list[tuple[dict[str, np.ndarray], float, int]]:
+    """Images (H, W) of every pixel in its region of interest, block by block, the reduced chi-square and its degrees
+    of freedom.
 
     One pass over the blocks serves every parameter set of ``params`` (e.g. the fitted and the neutral
     ones), so each block's observations are built once. The chi-square and its degrees of freedom are
@@ -154,7 +155,30 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
     if left_out:
         log.info("region of interest: %d pixels see no fringe (reference visibility < %.3g) and are left out "
                  "of the images", left_out, prep.min_visibility)
-    return [(m, per_dof(c, int(n), int(px), k, 3)) for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
+    return [(m, per_dof(c, int(n), int(px), k, 3), max(int(n) - 3 * int(px) - k, 0))
+            for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
+
+
+def fit_motion_mask(prep: Prepared, cfg: dict, plan: ColumnPlan, blocks: list[tuple[int, int]]) -> np.ndarray:
+    """The pixels (H, W) of the fit's columns the motion mask leaves out of the vibration fit (``mask.*``)."""
+    H, W = prep.shape[1:]
+    if not cfg["mask"]["enabled"]:
+        return np.zeros((H, W), bool)
+    m = cfg["mask"]
+    pilot = pilot_estimate(prep) if plan.pilot is None else plan.pilot
+    # the per-pixel statistics of the fit's columns only (the others never enter the fit), block by block
+    moving, _, thr = motion_mask((prep.observations(columns=plan.columns, rows=rows, dtype=np.float32)
+                                  for rows in blocks),
+                                 pilot=pilot, threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
+    log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
+    return moving
+
+
+def fit_observations(prep: Prepared, columns: np.ndarray, moving: np.ndarray) -> M.Observations:
+    """The vibration fit's observations: ``columns`` in float32, the pixels ``moving`` (H, W) left out. What the
+    fit and the decision which effects it can determine (:func:`dfxcorr.planning.resolve_effects`) see."""
+    obs = prep.observations(columns=columns, dtype=np.float32)
+    return replace(obs, use=obs.use & ~obs.pixel_mask(moving))
 
 
 def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarray, progress: bool | None = None,
@@ -183,8 +207,7 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
     if method not in ESTIMATORS:
         raise C.ConfigError(f"fit.method={method!r} is not available; available: {', '.join(ESTIMATORS)}, none")
     cols = columns
-    fit_obs = prep.observations(columns=cols, dtype=np.float32)
-    fit_obs = replace(fit_obs, use=fit_obs.use & ~fit_obs.pixel_mask(moving))
+    fit_obs = fit_observations(prep, cols, moving)
     effects = resolve_effects(cfg, prep.scan, prep.reference, fit_obs)
     used = fit_obs.segment_sum(fit_obs.use.astype(np.float64)) > 0
     fit_obs.place(fit_mask, used)

@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import chi2
 
 from . import model as M
 
@@ -19,6 +20,26 @@ def paper_params(params: dict, n_frames: int) -> dict:
         J.
     """
     return {**M.neutral_params(M.PAPER_MODEL, n_frames), **params}
+
+
+#: Tail probability on each side beyond which a reduced chi-square is not noise: that of five standard deviations.
+MISFIT_TAIL = 2.9e-7
+#: The least factor by which a flagged reduced chi-square lies above 1 or below it: with millions of degrees of
+#: freedom no model of real data holds to the noise's few thousandths, but twice or half the noise variance is a
+#: wrong model or noise model (two frames swapped, a gain stated too high).
+MISFIT_FACTOR = 2.0
+
+
+def chi2_limits(dof: int) -> tuple[float, float]:
+    """The reduced chi-square a right model with ``dof`` degrees of freedom may reach from noise alone: (low, high).
+
+    The chi-square distribution's quantiles at :data:`MISFIT_TAIL` on each side (about 1 -+ 5 sqrt(2 / dof) for
+    large dof), widened to at least [1 / :data:`MISFIT_FACTOR`, :data:`MISFIT_FACTOR`]; beyond either the model or
+    its noise model is wrong (``dfxcorr diagnose`` says which).
+    """
+    dof = max(int(dof), 1)
+    return (min(float(chi2.ppf(MISFIT_TAIL, dof)) / dof, 1 / MISFIT_FACTOR),
+            max(float(chi2.isf(MISFIT_TAIL, dof)) / dof, MISFIT_FACTOR))
 
 
 @dataclass
@@ -46,6 +67,8 @@ class Result:
         Fit stage of each cost entry.
     reduced_chi2 : float
         Pearson chi-square per degree of freedom of the final model over all illuminated pixels.
+    dof : int
+        Its degrees of freedom (0 where not known).
     method : str
         Estimator used ('ml', 'alternating', 'correlation', 'none').
     config : dict
@@ -81,9 +104,16 @@ class Result:
     timings: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
     pixel_size: tuple[float, float] | None = None
+    dof: int = 0
 
     IMAGES = ("transmission", "dark_field", "differential_phase")
 
     def image(self, name: str) -> np.ndarray:
         """One of :attr:`IMAGES` by name."""
         return getattr(self, name)
+
+    @property
+    def misfit(self) -> bool:
+        """True where the reduced chi-square lies outside what noise allows (:func:`chi2_limits`)."""
+        lo, hi = chi2_limits(self.dof)
+        return bool(self.dof > 0 and not lo <= self.reduced_chi2 <= hi)

@@ -351,6 +351,19 @@ def test_import_is_cheap():
     assert out.stdout.strip() == "False"
 
 
+def test_chi2_limits_hold_the_reduced_chi_square_of_noise():
+    from dfxcorr.result import chi2_limits
+
+    rng = np.random.default_rng(3)
+    for dof in (5, 50, 5000, 500000):
+        lo, hi = chi2_limits(dof)
+        assert 0 <= lo <= 0.5 and hi >= 2
+        draws = rng.chisquare(dof, 20000) / dof  # what a right model gives: none outside (tail 3e-7 a side)
+        assert np.all((draws >= lo) & (draws <= hi))
+    assert chi2_limits(10 ** 7) == (0.5, 2.0)  # the practical floor: noise alone leaves +-0.002
+    assert chi2_limits(20)[1] == pytest.approx(3.44, abs=0.01)  # the skewed quantile, not 1 + 5 sqrt(2 / 20) = 3.24
+
+
 def test_pixel_size_round_trips(tmp_path):
     r = make_result()
     write_result_h5(tmp_path / "unknown.h5", r)

@@ -225,3 +225,24 @@ def test_loose_intermediate_stages_end_at_the_same_estimates(small_scan, monkeyp
         z = (loose.params[name] - tight.params[name]) / tight.uncertainty[name]
         assert np.abs(z[np.isfinite(z)]).max() < 0.01, name
     assert loose.evaluations < tight.evaluations
+
+
+def test_frames_left_out_as_faults_do_not_pull_the_kept_ones(small_scan):
+    scan, truth = small_scan()
+    data = np.asarray(scan.data).copy()
+    data[1::2] = 0  # every other frame read out empty: detector faults, left out
+    scan = replace(scan, data=data)
+    result = pipeline.reconstruct(scan, C.load([], ["fit.subsample=3"]))
+    kept = np.zeros(scan.shape[0], bool)
+    kept[::2] = True
+    good = frames_lighting(scan.position, scan.active_rows, scan.shape[1]) & kept
+    for name, key, scale in (("phase_offset", "vib_phase_offset", False), ("tilt", "vib_tilt", False),
+                             ("visibility_loss", "vib_visibility", True)):
+        est = gauge_median(result.params[name][:, 0], good, scale=scale)
+        tru = gauge_median(truth[key], good, scale=scale)
+        z = (est - tru)[good] / result.uncertainty[name][good, 0]
+        # the kept frames as a scan without the empty ones: honest finite uncertainties, errors of a few of them
+        # around a common mode (the gauge's one draw); those of the empty frames say they carry nothing
+        assert np.all(np.isfinite(z)) and np.all(np.isinf(result.uncertainty[name][~kept])), name
+        assert np.std(z) < 1.5 and np.abs(z - np.mean(z)).max() < 5.0, name
+    assert result.reduced_chi2 == pytest.approx(1.0, abs=0.03)

@@ -24,6 +24,7 @@ import numpy as np
 
 from .. import config as C
 from ..align import realign, subsample_columns
+from ..check import require_residuals
 from ..effects import REGISTRY
 from ..effects.base import Consistency, EffectBase, Hypothesis, Params, Realign, State, Test, Unexplained
 from ..fit import fit_vibrations
@@ -257,6 +258,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = No
     d = cfg["diagnose"]
     timings: dict[str, Any] = {}
     prep = scan if isinstance(scan, Prepared) else prepare(scan, cfg, effects=registry.values(), timings=timings)
+    require_residuals(np.bincount(prep.store.row))
     session = Session(prep, cfg, timings, registry)
     J, H, W = prep.shape
     model = list(resolve_effects(cfg, prep.scan, prep.reference, session.fit_base)) \

@@ -21,7 +21,7 @@ from ..catalogue import CATALOGUE, effect
 from ..effects import REGISTRY
 from ..effects.base import Consistency, EffectBase, Finding, Hypothesis, Params, State, Unexplained
 from ..effects.residuals import fit_counts
-from ..io import atomic_path
+from ..io import atomic_folder
 from ..retrieve import image_maps
 from .loop import GROSS, Blind, Rejection
 from .replication import Replication
@@ -230,8 +230,14 @@ class Diagnosis:
                 "recommended": reconstruct_settings(self)}
 
 
-#: Every file of a fixed name the report may write: its own, and those the effects write when added.
+def _effect_picture(name: str) -> str:
+    return f"effect-{name}.png"
+
+
+#: Every file the report may write, each name known before the diagnosis runs: its own, one picture per registered
+#: effect (``effect-<name>.png``, where the effect is added), and the files the effects write when added.
 FIXED_FILES = ("diagnosis.json", "report.md", "residuals.png", "signatures.png",
+               *(_effect_picture(name) for name in REGISTRY),
                *(f for e in REGISTRY.values() for f in e.files))
 
 
@@ -259,35 +265,34 @@ def change_picture(effect: EffectBase[Any], before: State, after: State, finding
 def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
     """Write ``diagnosis.json``, ``report.md``, ``residuals.png``, ``signatures.png``, one
     ``effect-<name>.png`` per detected effect and the files of the effects added (their findings' files: a motion
-    mask, position errors, a pixel noise map)."""
+    mask, position errors, a pixel noise map).
+
+    The folder is written as a unit (:func:`dfxcorr.io.atomic_folder`): every file into a new folder beside it,
+    which then takes its place; the files of :data:`FIXED_FILES` a previous run left there go with it, other files
+    stay. A reader finds this run's files or the previous run's, never a mix, also after an interrupt.
+    """
+    from ..check import check_folder
     from ..export import check_output
 
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {k: out_dir / k for k in ("diagnosis.json", "report.md", "residuals.png", "signatures.png")}
-    paths.update({c["name"]: out_dir / _effect_picture(c["name"]) for c in diag.changes})
-    files = {out_dir / file: writer for finding in diag.findings().values() for file, writer in finding.files.items()}
-    for p in [*paths.values(), *files]:
-        check_output(p, overwrite=overwrite)
-    with atomic_path(paths["diagnosis.json"], overwrite=overwrite) as tmp:
-        tmp.write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
-    plots.plot_diagnosis(diag, paths["residuals.png"], overwrite=overwrite)
-    plots.plot_signatures(diag.signatures, paths["signatures.png"], n_frames=diag.shape[0], n_rows=diag.shape[1],
-                          overwrite=overwrite)
-    for change in diag.changes:
-        plots.plot_effect(change, paths[change["name"]], overwrite=overwrite)
-    written = list(paths.values())
-    for path, writer in files.items():
-        with atomic_path(path, overwrite=overwrite) as tmp:
-            writer(tmp)
-        written.append(path)
-    with atomic_path(paths["report.md"], overwrite=overwrite) as tmp:
-        tmp.write_text(_markdown(diag, out_dir))
-    return written
-
-
-def _effect_picture(name: str) -> str:
-    return f"effect-{name}.png"
+    check_folder(out_dir)
+    names = {k: k for k in ("diagnosis.json", "report.md", "residuals.png", "signatures.png")}
+    names.update({c["name"]: _effect_picture(c["name"]) for c in diag.changes})
+    files = {file: writer for finding in diag.findings().values() for file, writer in finding.files.items()}
+    for name in [*names.values(), *files]:
+        check_output(out_dir / name, overwrite=overwrite)
+    with atomic_folder(out_dir, names={*FIXED_FILES, *names.values(), *files}, overwrite=overwrite) as tmp:
+        paths = {k: tmp / name for k, name in names.items()}
+        paths["diagnosis.json"].write_text(json.dumps(diag.to_json(), indent=2, default=float) + "\n")
+        plots.plot_diagnosis(diag, paths["residuals.png"])
+        plots.plot_signatures(diag.signatures, paths["signatures.png"], n_frames=diag.shape[0],
+                              n_rows=diag.shape[1])
+        for change in diag.changes:
+            plots.plot_effect(change, paths[change["name"]])
+        for file, writer in files.items():
+            writer(tmp / file)
+        paths["report.md"].write_text(_markdown(diag, out_dir))
+    return [out_dir / name for name in [*names.values(), *files]]
 
 
 def _markdown(diag: Diagnosis, out_dir: Path | None = None) -> str:

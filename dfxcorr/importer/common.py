@@ -8,7 +8,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..errors import OutputExistsError
+from ..errors import OutputExistsError, gain_problem
 from .formats import Series, StackImportError, _resolve_files, frame_dtype
 
 _IMPORT_GROUP = "entry/dfxcorr_import"
@@ -107,8 +107,9 @@ def _gain(gain) -> float:
         value = float(gain)
     except (TypeError, ValueError):
         value = float("nan")
-    if not (np.isfinite(value) and value > 0):
-        raise StackImportError(f"gain must be a positive number, got {gain!r}")
+    problem = gain_problem(value)
+    if problem:
+        raise StackImportError(f"gain {problem}, got {gain!r}")
     return value
 
 

@@ -18,8 +18,8 @@ from .types import (
     lit_rows,
 )
 from .validate import Layout, validate_file
-from .write import CHUNK_ROWS, TEMP_NAME_OVERHEAD, atomic_path, h5_output, write_scan
+from .write import CHUNK_ROWS, TEMP_NAME_OVERHEAD, atomic_folder, atomic_path, h5_output, write_scan
 
 __all__ = ["CHUNK_ROWS", "FORMAT", "FORMAT_VERSION", "TEMP_NAME_OVERHEAD", "FrameSource", "H5Frames", "Layout",
-           "Reference", "Scan", "ScanFormatError", "SteppingReference", "atomic_path", "frame_rows", "h5_output",
-           "lit_rows", "read_reference", "read_scan", "validate_file", "write_scan"]
+           "Reference", "Scan", "ScanFormatError", "SteppingReference", "atomic_folder", "atomic_path", "frame_rows",
+           "h5_output", "lit_rows", "read_reference", "read_scan", "validate_file", "write_scan"]

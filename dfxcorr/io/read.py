@@ -8,7 +8,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from ..errors import require_regular_file
+from ..errors import gain_problem, require_regular_file
 from .types import DET as _DET
 from .types import FrameSource, H5Frames, Reference, Scan, ScanFormatError, SteppingReference, lit_rows
 from .validate import validate_file
@@ -106,8 +106,9 @@ def read_scan(path: str | os.PathLike, *, allow_external: bool = False, header_o
             _check_finite(f"{_DET}/dark", dark)
         gain = _optional(f, f"{_DET}/gain")
         gain = 1.0 if gain is None else float(np.asarray(gain).reshape(-1)[0])
-        if not (np.isfinite(gain) and gain > 0):
-            raise ScanFormatError(f"/{_DET}/gain must be a positive number, is {gain}")
+        problem = gain_problem(gain)
+        if problem:
+            raise ScanFormatError(f"/{_DET}/gain {problem}, is {gain:g}")
         px = [_optional(f, f"{_DET}/{k}") for k in ("y_pixel_size", "x_pixel_size")]
         pixel_size: tuple[float, float] | None = None
         if all(p is not None for p in px):
@@ -165,11 +166,12 @@ MAX_COUNT = 2.0 ** 32 - 1
 
 
 def _check_counts(name: str, data: FrameSource, rows: np.ndarray | None = None) -> None:
-    """NaN, negative or impossibly large counts in float frames (array or HDF5 dataset), one frame at a time.
+    """NaN, negative or impossibly large counts in float or signed integer frames (array or HDF5 dataset), one frame
+    at a time (``spec/scan-format.md``: counts are never negative, also where a signed type could hold them).
 
     ``rows`` (J, 2): only these rows of each frame are read (:func:`lit_rows`); default all.
     """
-    if data.dtype.kind != "f":
+    if data.dtype.kind == "u":
         return
     for j in range(data.shape[0]):  # frame by frame keeps memory bounded
         r0, r1 = rows[j] if rows is not None else (0, data.shape[1])
@@ -179,7 +181,8 @@ def _check_counts(name: str, data: FrameSource, rows: np.ndarray | None = None) 
         if not np.all(np.isfinite(frame)):
             raise ScanFormatError(f"/{name} frame {j} holds NaN or infinite counts")
         if np.any(frame < 0):
-            raise ScanFormatError(f"/{name} frame {j} holds negative counts")
+            raise ScanFormatError(f"/{name} frame {j} holds negative counts (down to {frame.min():.6g}); counts are "
+                                  f"photons or detector units")
         if np.any(frame > MAX_COUNT):
             raise ScanFormatError(f"/{name} frame {j} holds counts above {MAX_COUNT:.0f} (up to {frame.max():.3g}), "
                                   f"more than any detector records")

@@ -1,10 +1,14 @@
 """Writing files atomically (a temporary name of their own, renamed when complete) and writing scan files."""
 from __future__ import annotations
 
+import fcntl
 import os
 import re
 import secrets
+import shutil
+import signal
 import sys
+import threading
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -68,6 +72,87 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """Hold back SIGINT, SIGTERM and SIGHUP until the steps inside are complete, then deliver them.
+
+    Their handlers are swapped for a recorder (a thread mask would not do: the process-directed signal goes to
+    any thread that does not block it, and Python runs its handler in the main thread all the same). Outside
+    the main thread nothing is needed: Python's handlers interrupt the main thread only.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    held = [s for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP) if signal.getsignal(s) is not None]
+    before = {s: signal.signal(s, lambda signum, frame: caught.append(signum)) for s in held}
+    try:
+        yield
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
+        for signum in caught:
+            signal.raise_signal(signum)
+
+
+@contextmanager
+def atomic_folder(path: str | os.PathLike, *, names: Iterable[str], overwrite: bool = False) -> Iterator[Path]:
+    """Yield a new empty folder beside the folder ``path``; it becomes ``path`` as a unit on success, and is removed
+    on failure or interrupt.
+
+    ``names`` are every file name the writer may put in it. In an existing ``path`` the entries of those names are
+    the previous run's: they are replaced as a whole, also those this run does not write again. Any other entry
+    (a scan or configuration kept there) is carried into the new folder. The swap (the old folder renamed aside,
+    the new one renamed in, the other entries moved over, the old one removed) runs with the interrupts held back
+    and the parent folder locked against a concurrent swap, so a reader finds one run's files or the previous
+    run's, never a mix. Without ``overwrite`` an entry of those names that appeared meanwhile is refused
+    (:class:`OutputExistsError`). A symbolic link to the folder is followed: its target is replaced.
+    """
+    path = Path(os.path.realpath(path))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:  # a name of its own, created with the permissions a new folder gets (mkdtemp's are private)
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.part")
+        try:
+            os.mkdir(tmp)
+            break
+        except FileExistsError:
+            continue
+    try:
+        yield tmp
+        with _signals_held():
+            _swap_in(tmp, path, names=set(names), overwrite=overwrite)
+    except BaseException:
+        with _signals_held():
+            shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _swap_in(new: Path, path: Path, *, names: set[str], overwrite: bool) -> None:
+    """Put the folder ``new`` in the place of the folder ``path`` (:func:`atomic_folder`)."""
+    lock = os.open(path.parent, os.O_RDONLY)
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not os.path.lexists(path):
+            os.rename(new, path)
+            return
+        if not path.is_dir():
+            raise WriteError(f"{path} is not a folder; nothing was replaced")
+        entries = os.listdir(path)
+        ours = [e for e in entries if e in names]
+        if ours and not overwrite:
+            raise OutputExistsError(path / ours[0])
+        os.chmod(new, path.stat().st_mode)
+        aside = new.with_suffix(".old")
+        os.rename(path, aside)
+        os.rename(new, path)
+        for e in entries:
+            if e not in names:
+                os.rename(aside / e, path / e)
+        shutil.rmtree(aside)
+    finally:
+        os.close(lock)  # releases the lock
 
 
 @contextmanager

@@ -1,9 +1,15 @@
 """dfxcorr batch: one process per scan, failures isolated, resumable, and one task of a SLURM array."""
+from dataclasses import replace
+
 import h5py
 import pytest
 from click.testing import CliRunner
 
+from dfxcorr import io
 from dfxcorr.cli import main
+from dfxcorr.sim import simulate as S
+
+from conftest import sim_config
 
 TINY = ["--set", "simulate.pixel_mm=10", "--set", "simulate.step_mm=10"]
 FIT = ["--set", "fit.subsample=4"]  # 51 columns
@@ -71,3 +77,55 @@ def test_scans_whose_results_would_collide_are_refused_before_any_run(scans, tmp
     res = run("batch", listing, "-o", tmp_path / "out", env={"SLURM_ARRAY_TASK_ID": None})
     assert res.exit_code == 2 and "lines 1 and 2" in res.output
     assert not (tmp_path / "out" / "a.h5").exists()
+
+
+def _tiny_scan(path, *, seed=1, swap=None):
+    """A scan of TINY's geometry; ``swap`` = (j, k) exchanges two frames' positions (a wrong motor log)."""
+    scan = S.simulate(sim_config(**{"simulate.pixel_mm": 10.0, "simulate.step_mm": 10.0, "simulate.seed": seed}))[0]
+    if swap is not None:
+        position = scan.position.copy()
+        position[list(swap)] = position[list(swap[::-1])]
+        scan = replace(scan, position=position)
+    io.write_scan(path, scan, overwrite=True)
+
+
+def rows(res):
+    return {line.split()[0]: line for line in res.stdout.splitlines()[1:-1]}
+
+
+@pytest.mark.slow
+def test_a_resumed_batch_reruns_results_whose_scan_or_configuration_changed(tmp_path):
+    _tiny_scan(tmp_path / "a.h5")
+    listing = tmp_path / "scans.txt"
+    listing.write_text(f"{tmp_path / 'a.h5'}\n")
+    out = tmp_path / "out"
+    env = {"SLURM_ARRAY_TASK_ID": None}
+    assert run("batch", listing, "-o", out, *FIT, env=env).exit_code == 0
+    first = (out / "a.h5").read_bytes()
+    same = run("batch", listing, "-o", out, *FIT, env=env)
+    assert same.stdout.splitlines()[-1] == "1 scans: 0 done, 1 skipped, 0 failed"
+    assert (out / "a.h5").read_bytes() == first
+    other = run("batch", listing, "-o", out, "--set", "fit.subsample=5", env=env)
+    assert other.exit_code == 0, other.output
+    assert "re-run: the configuration changed" in rows(other)[str(tmp_path / "a.h5")]
+    assert other.stdout.splitlines()[-1] == "1 scans: 1 done, 0 skipped, 0 failed"
+    with h5py.File(out / "a.h5", "r") as f:
+        assert "fit:\n  method: ml\n  subsample: 5" in f["entry/dfxcorr/configuration"].asstr()[()]
+    _tiny_scan(tmp_path / "a.h5", seed=2)
+    changed = run("batch", listing, "-o", out, "--set", "fit.subsample=5", env=env)
+    assert "re-run: the scan changed" in rows(changed)[str(tmp_path / "a.h5")]
+
+
+@pytest.mark.slow
+def test_batch_marks_a_result_whose_fit_noise_cannot_explain(tmp_path):
+    _tiny_scan(tmp_path / "good.h5")
+    _tiny_scan(tmp_path / "swapped.h5", swap=(20, 23))
+    listing = tmp_path / "scans.txt"
+    listing.write_text(f"{tmp_path / 'good.h5'}\n{tmp_path / 'swapped.h5'}\n")
+    res = run("batch", listing, "-o", tmp_path / "out", *FIT, env={"SLURM_ARRAY_TASK_ID": None})
+    assert res.exit_code == 0, res.output
+    table = rows(res)
+    scan, status, _, chi2, mark = table[str(tmp_path / "swapped.h5")].split()[:5]
+    assert status == "done" and float(chi2) > 2 and mark == "misfit"
+    assert "misfit" not in table[str(tmp_path / "good.h5")]
+    assert res.stdout.splitlines()[-1].startswith("2 scans: 2 done, 0 skipped, 0 failed; 1 marked misfit")

@@ -288,3 +288,49 @@ def test_a_few_absurd_configuration_numbers_end_cleanly(template, sets):
 @absurd_sets
 def test_absurd_configuration_numbers_end_cleanly(template, sets):
     absurd_numbers_end_cleanly(template, sets)
+
+
+#: Configurations a careless script passes beside a mutated scan: effects the scan may not determine, a
+#: diagnosis subsampling beyond it.
+TWISTS = [[], ["vibration.background=true"], ["vibration.dose=true"], ["vibration.curvature=true"],
+          ["diagnose.subsample=1000"], ["align.min_frames=4"]]
+
+
+def judged_alike(template, mutations, seed, twist):
+    rng = np.random.default_rng(seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        path = tmp / "scan.h5"
+        shutil.copy(template, path)
+        with h5py.File(path, "r+") as f:
+            for op, name, k in mutations:
+                try:
+                    mutate(f, op, name, k, rng)
+                except (ValueError, KeyError, TypeError, OSError, RuntimeError):
+                    pass
+        out = tmp / "out" / "result.h5"
+        out.parent.mkdir()
+        args = [*FAST, *(a for s in twist for a in ("--set", s))]
+        checked = cli_capped("check", path, "-o", out, *args)
+        assert checked.traceback == "", checked.traceback
+        done = cli_capped("reconstruct", path, "-o", out, *args)
+        assert_clean(done, out)
+        assert checked.exit_code == done.exit_code, (checked.stderr, done.stderr)
+
+
+alike_cases = given(mutations=st.lists(st.tuples(st.sampled_from(["fault", "values", "unlit", "delete"]),
+                                                 st.sampled_from(DATASETS), st.integers(0, 99)), max_size=2),
+                    seed=st.integers(0, 2 ** 16), twist=st.sampled_from(TWISTS))
+
+
+@settings(max_examples=10, **SETTINGS)
+@alike_cases
+def test_check_and_reconstruct_judge_a_few_mutated_scans_alike(template, mutations, seed, twist):
+    judged_alike(template, mutations, seed, twist)
+
+
+@pytest.mark.slow
+@settings(max_examples=60, **SETTINGS)
+@alike_cases
+def test_check_and_reconstruct_judge_mutated_scans_alike(template, mutations, seed, twist):
+    judged_alike(template, mutations, seed, twist)

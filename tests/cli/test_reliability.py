@@ -452,3 +452,183 @@ def test_simulate_at_extreme_settings_is_refused_before_allocating(tmp_path, set
     res = cli_capped("simulate", "-o", tmp_path / "s.h5", "--set", setting, timeout=60)
     assert res.exit_code == 2 and one_error_line(res.stderr, *words), res.stderr + res.traceback
     assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------------------------------
+# Counts, gains and fits outside what a detector and its noise allow
+# --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("stepping", [True, False], ids=["stepping recording", "scan with a stepping reference"])
+def test_negative_counts_in_a_signed_integer_reference_are_refused(tmp_path, scan_file, stepping):
+    rng = np.random.default_rng(7)
+    scan = io.read_scan(scan_file)
+    A, W = (scan.shape[1], scan.shape[2]) if stepping else (scan.active_rows, scan.shape[2])
+    phases = 2 * np.pi * np.arange(5) / 5
+    series = np.stack([rng.poisson(400 * (1 + 0.3 * np.cos(p)), (A, W)) for p in phases]).astype(np.int32)
+    series[2, 3, 4] = -40
+    ref = io.SteppingReference(data=series, phase_step=phases)
+    if stepping:
+        sample = Scan(data=rng.poisson(300, (5, A, W)).astype(np.uint16), position=np.zeros(5), reference=ref,
+                      phase_step=phases)
+    else:
+        sample = Scan(data=np.asarray(scan.data[:]), position=scan.position, reference=ref)
+    write_scan(tmp_path / "s.h5", sample)
+    for command in ("check", "reconstruct"):
+        refused(run(command, tmp_path / "s.h5", "-o", tmp_path / "r.h5"), "/entry/reference/stepping/data",
+                "negative")
+    assert not (tmp_path / "r.h5").exists()
+
+
+@pytest.mark.parametrize("gain", [1e-100, 1e-300, 1e9])
+@pytest.mark.parametrize("source", ["load.gain", "scan file"])
+def test_a_gain_no_detector_has_is_refused_alike_by_check_and_reconstruct(tmp_path, scan_file, gain, source):
+    path, sets = scan_file, ["--set", f"load.gain={gain}"]
+    if source == "scan file":
+        path, sets = tmp_path / "s.h5", []
+        write_scan(path, io.read_scan(scan_file))
+        with h5py.File(path, "r+") as f:
+            if "gain" in f[DET]:
+                del f[f"{DET}/gain"]
+            f[f"{DET}/gain"] = gain
+    lines = []
+    for command in ("check", "reconstruct"):
+        res = run(command, path, "-o", tmp_path / "r.h5", *sets)
+        refused(res, "gain", "[1e-06, 1e+06]")
+        lines.append(res.stderr)
+    assert lines[0] == lines[1]
+    assert not (tmp_path / "r.h5").exists()
+
+
+def _misfit(path) -> bool:
+    from dfxcorr.export import read_result_h5
+
+    return read_result_h5(path)["misfit"]
+
+
+@pytest.mark.parametrize("fault", ["two positions swapped", "gain stated 1e4 times too high"])
+def test_reconstruct_warns_of_and_marks_a_fit_noise_cannot_explain(tmp_path, scan_file, fault):
+    from dataclasses import replace
+
+    path, sets = scan_file, []
+    if fault == "two positions swapped":
+        scan = io.read_scan(scan_file)
+        position = scan.position.copy()
+        position[[40, 45]] = position[[45, 40]]
+        path = tmp_path / "s.h5"
+        write_scan(path, replace(scan, data=np.asarray(scan.data[:]), position=position))
+    else:
+        sets = ["--set", "load.gain=1e4"]
+    res = run("reconstruct", path, "-o", tmp_path / "r.h5", *sets)
+    assert res.exit_code == 0, res.output
+    warning = [ln for ln in res.stderr.splitlines() if "WARNING" in ln and "reduced chi-square" in ln]
+    assert len(warning) == 1 and "dfxcorr diagnose" in warning[0], res.stderr
+    assert "outside what noise allows" in res.stdout
+    assert _misfit(tmp_path / "r.h5")
+
+
+def test_a_clean_scan_is_not_marked_a_misfit(tmp_path, scan_file):
+    res = run("reconstruct", scan_file, "-o", tmp_path / "r.h5")
+    assert res.exit_code == 0, res.output
+    assert "WARNING" not in res.stderr and not _misfit(tmp_path / "r.h5")
+
+
+# --------------------------------------------------------------------------------------------------
+# A diagnosis folder: every file checked first, replaced as a unit
+# --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("role", ["scan", "config"])
+def test_diagnose_never_replaces_an_input_named_like_an_effect_picture(tmp_path, scan_file, role):
+    out = tmp_path / "diag"
+    out.mkdir()
+    picture = out / "effect-dose.png"
+    if role == "scan":
+        picture.write_bytes(scan_file.read_bytes())
+        args = [picture]
+    else:
+        picture.write_text("fit:\n  subsample: 4\n")
+        args = [scan_file, "-c", picture]
+    before = digest(picture)
+    refused(run("diagnose", *args, "-o", out, "--overwrite"), "effect-dose.png", "also an input")
+    assert digest(picture) == before
+
+
+def test_diagnose_refuses_the_working_directory_as_its_folder(tmp_path, scan_file, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    refused(run("diagnose", scan_file, "-o", "."), "working directory")
+    refused(run("diagnose", scan_file, "-o", tmp_path.parent), "working directory")
+
+
+def test_an_overwrite_diagnosis_leaves_no_file_of_the_previous_run(tmp_path, scan_file):
+    out = tmp_path / "diag"
+    out.mkdir()
+    tifffile.imwrite(out / "pixel_noise.tif", np.ones((7, 7), np.float32))  # another scan's map
+    (out / "effect-harmonic.png").write_bytes(b"old")
+    (out / "report.md").write_text("old")
+    (out / "notes.txt").write_text("kept")
+    res = run("diagnose", scan_file, "-o", out, "--overwrite", "--set", "diagnose.subsample=4")
+    assert res.exit_code == 0, res.output
+    import json
+    doc = json.loads((out / "diagnosis.json").read_text())
+    names = {p.name for p in out.iterdir()}
+    pictures = {f"effect-{e['name']}.png" for e in doc["effects"] if e["detected"]}
+    assert names == {"diagnosis.json", "report.md", "residuals.png", "signatures.png", "notes.txt", *pictures}
+    assert (out / "report.md").read_text().startswith("# dfxcorr diagnose") and not list(tmp_path.glob(".diag*"))
+
+
+@pytest.mark.parametrize("base", ["none", "configured"])
+def test_diagnosis_of_a_recording_without_residual_dof_is_refused_before_computing(tmp_path, base):
+    scan = S.simulate(sim_config(**{"simulate.geometry": "stepping", "simulate.steps": 3,
+                                    "simulate.steps_per_period": 3}))[0]
+    write_scan(tmp_path / "s.h5", scan)
+    refused(run("diagnose", tmp_path / "s.h5", "-o", tmp_path / "diag", "--base", base), "at most 3 frames",
+            "no residual")
+    assert not (tmp_path / "diag").exists()
+
+
+# --------------------------------------------------------------------------------------------------
+# check and reconstruct judge a run alike
+# --------------------------------------------------------------------------------------------------
+
+
+def _identifiability_cases():
+    def scan(**overrides):
+        return S.simulate(sim_config(**overrides))[0]
+
+    def frames(keep):
+        from dataclasses import replace
+
+        s = scan()
+        return replace(s, data=s.data[keep], position=s.position[keep],
+                       exposure_time=None if s.exposure_time is None else s.exposure_time[keep])
+
+    def empty_but(keep):
+        s = scan()
+        data = np.zeros_like(s.data)
+        data[keep] = s.data[keep]
+        s.data = data
+        return s
+
+    stepping = {"simulate.geometry": "stepping", "simulate.steps": 3, "simulate.steps_per_period": 3}
+    return {"3 frames": (lambda: frames([40, 45, 50]), []),
+            "3-step stepping": (lambda: scan(**stepping), []),
+            "background=true": (scan, ["vibration.background=true"]),
+            "all but 3 frames empty": (lambda: empty_but([30, 50, 70]), []),
+            "diagnose.subsample=1000": (scan, ["diagnose.subsample=1000"])}
+
+
+@pytest.mark.parametrize("case", list(_identifiability_cases()))
+def test_check_and_reconstruct_judge_a_run_alike(tmp_path, case):
+    make, sets = _identifiability_cases()[case]
+    write_scan(tmp_path / "s.h5", make())
+    args = [a for s in sets for a in ("--set", s)]
+    checked = run("check", tmp_path / "s.h5", "-o", tmp_path / "r.h5", *args)
+    done = run("reconstruct", tmp_path / "s.h5", "-o", tmp_path / "r.h5", *args)
+    assert checked.exit_code == done.exit_code, (checked.output, done.output)
+    if done.exit_code == 2:
+        refused(checked, "not identifiable")
+        assert [ln for ln in checked.stderr.splitlines() if ln.startswith("error:")] == \
+               [ln for ln in done.stderr.splitlines() if ln.startswith("error:")]
+    else:
+        assert done.exit_code == 0 and "ok: reconstruct would run" in checked.stdout, done.output

@@ -108,3 +108,121 @@ def test_shared_scans_load_as_they_are():
     for name in ("thorax-2.5mm.h5", "blank-2.5mm.h5"):
         scan = read_scan(shared_path("sim", name))
         assert scan.shape == (209, 180, 204) and scan.active_rows == 30 and not scan.is_stepping
+
+
+# --------------------------------------------------------------------------------------------------
+# A folder written as a unit
+# --------------------------------------------------------------------------------------------------
+
+RUN_FILES = ("report.md", "diagnosis.json", "pixel_noise.tif")
+
+
+def _old_run(folder):
+    folder.mkdir()
+    for name in RUN_FILES:
+        (folder / name).write_text("old run")
+    (folder / "notes.txt").write_text("the user's")
+
+
+def _contents(folder):
+    return {p.name: p.read_text() for p in folder.iterdir()}
+
+
+def test_a_folder_is_replaced_as_a_unit_and_other_files_stay(tmp_path):
+    from dfxcorr.io import atomic_folder
+
+    out = tmp_path / "diag"
+    _old_run(out)
+    out.chmod(0o750)
+    with atomic_folder(out, names=RUN_FILES, overwrite=True) as tmp:
+        (tmp / "report.md").write_text("new run")
+        (tmp / "diagnosis.json").write_text("new run")
+        assert _contents(out)["report.md"] == "old run"  # nothing of the new run shows before it is complete
+    # the previous run's map is gone with it: this run did not write one
+    assert _contents(out) == {"report.md": "new run", "diagnosis.json": "new run", "notes.txt": "the user's"}
+    assert out.stat().st_mode & 0o777 == 0o750
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["diag"]
+
+
+def test_a_folder_without_overwrite_refuses_a_run_that_appeared_meanwhile(tmp_path):
+    from dfxcorr.errors import OutputExistsError
+    from dfxcorr.io import atomic_folder
+
+    out = tmp_path / "diag"
+    with pytest.raises(OutputExistsError), atomic_folder(out, names=RUN_FILES) as tmp:
+        (tmp / "report.md").write_text("new run")
+        _old_run(out)
+    assert _contents(out)["report.md"] == "old run"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["diag"]
+
+
+@pytest.mark.parametrize("stop", [KeyboardInterrupt, SystemExit, MemoryError])
+def test_an_interrupted_folder_leaves_the_previous_run_and_no_temporary_folder(tmp_path, stop):
+    from dfxcorr.io import atomic_folder
+
+    out = tmp_path / "diag"
+    _old_run(out)
+    before = _contents(out)
+    with pytest.raises(stop), atomic_folder(out, names=RUN_FILES, overwrite=True) as tmp:
+        (tmp / "report.md").write_text("new run")
+        raise stop()
+    assert _contents(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["diag"]
+
+
+@pytest.mark.parametrize("signum", ["SIGINT", "SIGTERM", "SIGHUP"])
+def test_a_signal_during_the_swap_is_held_until_it_is_complete(tmp_path, monkeypatch, signum):
+    import os
+    import signal
+    import threading
+    import time
+
+    from dfxcorr.io import atomic_folder, write
+
+    sig = getattr(signal, signum)
+
+    def stop(signum, frame):
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(sig, stop)
+    rename = os.rename
+
+    def rename_then_signal(a, b):  # the signal arrives between the swap's renames
+        rename(a, b)
+        os.kill(os.getpid(), sig)
+
+    out = tmp_path / "diag"
+    _old_run(out)
+    # another thread (numba's, a pool's): the kernel may hand it the signal, Python still acts on it in this one
+    threading.Thread(target=time.sleep, args=(1,), daemon=True).start()
+    monkeypatch.setattr(write.os, "rename", rename_then_signal)
+    try:
+        with pytest.raises(SystemExit), atomic_folder(out, names=RUN_FILES, overwrite=True) as tmp:
+            (tmp / "report.md").write_text("new run")
+    finally:
+        signal.signal(sig, previous)
+    assert _contents(out) == {"report.md": "new run", "notes.txt": "the user's"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["diag"]
+
+
+def test_concurrent_runs_into_one_folder_leave_one_run_whole(tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from dfxcorr.io import atomic_folder
+
+    out = tmp_path / "diag"
+    _old_run(out)
+
+    def one(run):
+        for k in range(20):
+            with atomic_folder(out, names=RUN_FILES, overwrite=True) as tmp:
+                for name in RUN_FILES[:2]:
+                    (tmp / name).write_text(f"{run} {k}")
+
+    with ThreadPoolExecutor(3) as pool:
+        list(pool.map(one, ["run a", "run b", "run c"]))
+    # whatever run swapped in last, its files are all there and alone, the user's file kept through 60 swaps
+    files = _contents(out)
+    assert set(files) == {*RUN_FILES[:2], "notes.txt"} and files["report.md"] == files["diagnosis.json"]
+    assert files["notes.txt"] == "the user's"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["diag"]
