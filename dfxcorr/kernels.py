@@ -2,7 +2,9 @@
 
 The forward model of :mod:`dfxcorr.model` is evaluated here from its *channel values* on the (frame, column) grid:
 the phase Φ (J, C), the visibility factor V (J, C), the dose D (J,), the background coefficients of (1, x, y) (3,)
-and the harmonic (hc, hs) (2,). Every catalogue effect enters through one of these channels
+and the harmonic (hc, hs) (2,). The samples' flat field is their transmission and the fringe's quadratures
+(``obs.tf``, ``obs.fc``, ``obs.fs``), turned by the phase channel with the cos and sin of Φ tabulated per (frame, column): no
+sample needs a trigonometric call. Every catalogue effect enters through one of these channels
 (:func:`dfxcorr.model.channels` maps effect parameters to them, :func:`dfxcorr.model.channel_adjoint` maps channel
 gradients back), so a new effect that enters through an existing channel needs no change here. The numpy expressions
 of :mod:`dfxcorr.model` are the definition; the tests hold these kernels to them.
@@ -128,24 +130,21 @@ def _bounds(obs) -> np.ndarray:
 
 
 @njit(cache=True, inline="always")
-def _cos_sin32(theta):
-    """cos and sin of an angle (rad) in single precision after reducing it to [-pi, pi] in double.
-
-    The float32 functions are several times cheaper per sample than the float64 ones, which dominated the retrieval
-    (synthetic clinical fit columns: 27.6 -> 16.8 ns wall per sample); the error is below 2e-7 absolute (1.6e-7 on
-    the paper study, bench_kernels.py), a fringe error under 2e-7 of its amplitude (a sample's photon noise is above
-    1e-3 of it). Not where the retrieval keeps the inverse normal matrices for the Fisher information.
-    """
-    r = np.float32(theta - 2.0 * np.pi * np.floor(theta / (2.0 * np.pi) + 0.5))
-    return np.float64(np.cos(r)), np.float64(np.sin(r))
+def _turned(fc, fs, cp, sp):
+    """The sample's fringe turned by the phase channel: tf vf (cos θ, sin θ) from fc, fs and cos Φ, sin Φ."""
+    return fc * cp - fs * sp, fs * cp + fc * sp
 
 
 @njit(cache=True, inline="always")
-def _design(ct, st, amp, bv, hc, hs):
-    """cos 2θ, sin 2θ, the design columns A, Bc, Bs and the harmonic's columns Hc, Hs of one sample."""
-    c2 = ct * ct - st * st
-    s2 = 2.0 * st * ct
-    return c2, s2, amp, bv * ct, -bv * st, bv * (hc * c2 - hs * s2), bv * (hc * s2 + hs * c2)
+def _design(Fc, Fs, amp, dv, hc, hs, harm):
+    """tf vf (cos 2θ, sin 2θ) (model.double_angle; zeros unless ``harm``), the design columns A, Bc, Bs and the
+    harmonic's columns Hc, Hs of one sample with turned fringe (Fc, Fs), amp = D tf and dv = D V."""
+    c2, s2 = 0.0, 0.0
+    if harm:
+        m = np.sqrt(Fc * Fc + Fs * Fs)
+        if m > 0.0:
+            c2, s2 = (Fc * Fc - Fs * Fs) / m, 2.0 * Fc * Fs / m
+    return c2, s2, amp, dv * Fc, -dv * Fs, dv * (hc * c2 - hs * s2), dv * (hc * s2 + hs * c2)
 
 
 @njit(cache=True, inline="always")
@@ -166,15 +165,16 @@ def _image_columns(bc, bs, hcc, hcs, u, w):
 
 
 @njit(cache=True, inline="always")
-def _derivatives(tt, cs, ss, ct, st, c2, s2, e, f, tf, vf, amp, bc, bs, vis, hc, hs):
-    """dIbar/d(channel) of one sample at images (t, c, s), harmonic factors (e, f): phase, visibility, dose, hc, hs."""
-    q = cs * ct - ss * st
+def _derivatives(tt, cs, ss, Fc, Fs, c2, s2, e, f, tf, dose, vis, hc, hs):
+    """dIbar/d(channel) of one sample at images (t, c, s), harmonic factors (e, f), turned fringe (Fc, Fs) and its
+    double angle (c2, s2): phase, visibility, dose, hc, hs (model.sample_derivatives)."""
+    q = cs * Fc - ss * Fs
     g = c2 * e - s2 * f
     k = s2 * e + c2 * f
     p2 = hc * g - hs * k
-    bv = amp * vf * vis
-    f_phase = cs * bs - ss * bc - 2.0 * bv * (hc * k + hs * g)
-    return f_phase, amp * vf * (q + p2), tf * (tt + vf * vis * (q + p2)), bv * g, -bv * k
+    dv = dose * vis
+    f_phase = -dv * (cs * Fs + ss * Fc + 2.0 * (hc * k + hs * g))
+    return f_phase, dose * (q + p2), tf * tt + vis * (q + p2), dv * g, -dv * k
 
 
 @njit(cache=True, inline="always")
@@ -238,16 +238,14 @@ def _solve(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used, out, inv):
 
 
 @njit(cache=True, inline="always")
-def _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis, dose, k, c, j, hc, hs):
-    """Fringe phase by angle addition (no trigonometric call per sample), then :func:`_design`.
+def _angle_design(fc, fs, cos_p, sin_p, tf, vis, dose, k, c, j, hc, hs, harm):
+    """:func:`_turned` then :func:`_design` of sample (k, c) in frame j.
 
-    Returns (cos θ, sin θ, D tf, cos 2θ, sin 2θ, A, Bc, Bs, Hc, Hs) of sample (k, c) in frame j.
+    Returns (Fc, Fs, tf vf (cos 2θ, sin 2θ), A, Bc, Bs, Hc, Hs).
     """
-    ct = cphi[k, c] * cos_p[j, c] - sphi[k, c] * sin_p[j, c]
-    st = sphi[k, c] * cos_p[j, c] + cphi[k, c] * sin_p[j, c]
-    amp = dose[j] * tf[k, c]
-    c2, s2, a, bc, bs, hcc, hcs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
-    return ct, st, amp, c2, s2, a, bc, bs, hcc, hcs
+    Fc, Fs = _turned(fc[k, c], fs[k, c], cos_p[j, c], sin_p[j, c])
+    c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dose[j] * tf[k, c], dose[j] * vis[j, c], hc, hs, harm)
+    return Fc, Fs, c2, s2, a, bc, bs, hcc, hcs
 
 
 @njit(cache=True, inline="always")
@@ -266,7 +264,7 @@ def _accumulate(N, rhs, used, i, wk, a, x1, x2, target):
 
 
 @njit(cache=True, parallel=True)
-def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose,
+def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose,
                   bg, harm, hold, square, need, tile):
     C = counts.shape[1]
     J = vis.shape[0]
@@ -280,6 +278,8 @@ def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chun
     g_harm = np.empty((n, 2, C))
     hc, hs = harm[0], harm[1]
     steps = 1 + (HARMONIC_STEPS if (hc != 0.0 or hs != 0.0) else 0)
+    # the double angle where the harmonic is in the model or its derivatives are asked for
+    double = steps > 1 or need[4]
     m00, m01, m10, m11 = hold[0, 0], hold[0, 1], hold[1, 0], hold[1, 1]
     for t in prange(n):
         cost[t, :] = 0.0
@@ -308,8 +308,8 @@ def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chun
                         off = bg[0] + bg[2] * y[k]
                         for i in range(T):
                             c = c0 + i
-                            _, _, _, _, _, a, bc, bs, hcc, hcs = _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis,
-                                                                               dose, k, c, j, hc, hs)
+                            _, _, _, _, a, bc, bs, hcc, hcs = _angle_design(fc, fs, cos_p, sin_p, tf, vis, dose, k, c,
+                                                                            j, hc, hs, steps > 1)
                             if step > 0:
                                 # Gauss-Newton step of the harmonic: the columns at the current images
                                 bc, bs = _image_columns(bc, bs, hcc, hcs, dirn[0, i], dirn[1, i])
@@ -328,12 +328,12 @@ def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chun
                     off = bg[0] + bg[2] * y[k]
                     for i in range(T):
                         c = c0 + i
-                        ct, st, amp, c2, s2, a, bc, bs, hcc, hcs = _angle_design(cphi, sphi, cos_p, sin_p, tf, vf,
-                                                                                 vis, dose, k, c, j, hc, hs)
+                        Fc, Fs, c2, s2, a, bc, bs, hcc, hcs = _angle_design(fc, fs, cos_p, sin_p, tf, vis, dose, k, c,
+                                                                            j, hc, hs, double)
                         tt, cs, ss = coef[0, i], coef[1, i], coef[2, i]
                         e, f = dirn[2, i], dirn[3, i]
-                        f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs, ss, ct, st, c2, s2, e, f, tf[k, c], vf[k, c],
-                                                                amp, bc, bs, vis[j, c], hc, hs)
+                        f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs, ss, Fc, Fs, c2, s2, e, f, tf[k, c], dose[j],
+                                                                vis[j, c], hc, hs)
                         wk = w[k, c]
                         res = counts[k, c] - dark[k, c] - off - bg[1] * x[c] - (tt * a + cs * bc + ss * bs) \
                             - (hcc * e - hcs * f)
@@ -356,13 +356,14 @@ def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chun
     return cost, g_phase, g_vis, g_dose, g_bg, g_harm
 
 
-def fringe(obs, *, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
-    """cos and sin of the flat-field phase of every sample (fixed during the fit), each (K, C)."""
-    return np.cos(obs.phif, dtype=dtype), np.sin(obs.phif, dtype=dtype)
+def weights_dtype(obs) -> np.dtype:
+    """The dtype in which the fit's cost reads the weights: single precision unless the samples are in double (the
+    rounding, 6e-8 relative, is far below any noise; one compiled specialisation per dtype, and 4 bytes per sample
+    less)."""
+    return np.result_type(obs.counts.dtype, np.float32)
 
 
-def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: np.ndarray, *,
-                 phase: float | None = None, square: bool = False,
+def reduced_cost(obs, ch, weights: np.ndarray, *, phase: float | None = None, square: bool = False,
                  channels=tuple(CHANNEL_IDS)) -> tuple[float, tuple[np.ndarray, ...]]:
     """Reduced cost sum w (I - Ibar)^2 at the closed-form images and its channel gradients.
 
@@ -372,8 +373,6 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
     ch : Channels
         Channel values (:func:`dfxcorr.model.channels`).
     weights : ndarray, shape (K, C)
-    cos_phif, sin_phif : ndarray, shape (K, C)
-        :func:`fringe` of the observations.
     phase : float, optional
         Hold the phase image at this constant (the circular-mean stage): 2 unknowns per pixel.
     square : bool
@@ -392,9 +391,8 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
     hold = np.eye(2) if phase is None else np.array([[np.cos(phase), np.sin(phase)], [0.0, 0.0]])
     need = np.isin(list(CHANNEL_IDS), list(channels))
     bounds = _bounds(obs)
-    # the weights and fringe in float64 whatever the caller's dtype: fewer compiled specialisations
-    weights, cos_phif, sin_phif = (_c(a, np.float64) for a in (weights, cos_phif, sin_phif))
-    out = _reduced_cost(_c(obs.counts), _c(obs.tf), _c(obs.vf), cos_phif, sin_phif, _c(obs.dark), weights, obs.frame,
+    weights = _c(weights, weights_dtype(obs))
+    out = _reduced_cost(_c(obs.counts), _c(obs.tf), _c(obs.fc), _c(obs.fs), _c(obs.dark), weights, obs.frame,
                         obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase),
                         np.sin(ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, hold, square,
                         need, FIT_TILE)
@@ -418,8 +416,8 @@ def _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn):
 
 
 @njit(cache=True, parallel=True)
-def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds, chunks, phase, vis, dose, bg, harm,
-              gain, electronic, iterations, from_data, keep_inverse, keep_expected, next_weights, tile):
+def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose, bg,
+              harm, gain, electronic, iterations, from_data, keep_inverse, keep_expected, next_weights, tile):
     K, C = counts.shape
     R = bounds.size - 1
     n = chunks.size - 1
@@ -445,7 +443,7 @@ def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds
         for r in range(chunks[t], chunks[t + 1]):
             lo, hi = bounds[r], bounds[r + 1]
             nb = hi - lo
-            # the tile's design, offsets and weights, computed once (one sin/cos per sample)
+            # the tile's design, offsets and weights, computed once
             A = np.empty((nb, tile))
             Bc = np.empty((nb, tile))
             Bs = np.empty((nb, tile))
@@ -461,12 +459,9 @@ def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds
                     j = frame[k]
                     for i in range(T):
                         c = c0 + i
-                        th = phif[k, c] + phase[j, c]
-                        # the inverse normal matrices feed the profiled Fisher information, which subtracts large
-                        # near-equal sums: they must invert exactly the float64 design of _fisher
-                        ct, st = (np.cos(th), np.sin(th)) if keep_inverse else _cos_sin32(th)
-                        amp = dose[j] * tf[k, c]
-                        _, _, a, bc, bs, hcc, hcs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
+                        Fc, Fs = _turned(fc[k, c], fs[k, c], cos_p[j, c], sin_p[j, c])
+                        _, _, a, bc, bs, hcc, hcs = _design(Fc, Fs, dose[j] * tf[k, c], dose[j] * vis[j, c], hc, hs,
+                                                            steps > 1)
                         A[b, i], Bc[b, i], Bs[b, i] = a, bc, bs
                         if steps > 1:
                             Hc[b, i], Hs[b, i] = hcc, hcs
@@ -565,9 +560,10 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
     dark = _c(obs.dark)
     quiet = dark if obs.offset is None else _c(obs.quiet)
     coef, valid, inverse, ibar, w, chi2, n_sel = _retrieve(
-        _c(obs.counts), _c(obs.tf), _c(obs.vf), _c(obs.phif), dark, quiet, _c(obs.use), start,
-        obs.frame, obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), _c(ch.phase, np.float64),
-        _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, _c(g, np.float64), float(obs.electronic),
+        _c(obs.counts), _c(obs.tf), _c(obs.fc), _c(obs.fs), dark, quiet, _c(obs.use), start,
+        obs.frame, obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase),
+        np.sin(ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, _c(g, np.float64),
+        float(obs.electronic),
         int(iterations), weights is None, keep_inverse, keep_expected or next_weights, next_weights, TILE)
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
@@ -579,7 +575,7 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
 
 
 @njit(cache=True, parallel=True)
-def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm, coef, inverse, channel, power,
+def _fisher(tf, fc, fs, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose, harm, coef, inverse, channel, power,
             n_per_frame, n_frames, profiled):
     C = tf.shape[1]
     Q = channel.size
@@ -589,6 +585,10 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
     plain = np.empty((n, P, P))
     corr = np.empty((n, P, P))
     hc, hs = harm[0], harm[1]
+    # the double angle where the harmonic is in the model or among the components
+    double = hc != 0.0 or hs != 0.0
+    for q in range(Q):
+        double = double or channel[q] == 4
     # the column factor of each component: x^power (phase, visibility), the basis (background), else 1
     xq = np.ones((Q, C))
     for q in range(Q):
@@ -629,12 +629,10 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
                         continue
                     tt, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
                     du, dw, e, f = dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c]
-                    th = phif[k, c] + phase[j, c]
-                    ct, st = np.cos(th), np.sin(th)
-                    amp = dose[j] * tf[k, c]
-                    c2, s2, a, bc, bs, hcc, hcs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
+                    Fc, Fs, c2, s2, a, bc, bs, hcc, hcs = _angle_design(fc, fs, cos_p, sin_p, tf, vis, dose, k, c, j,
+                                                                        hc, hs, double)
                     basis[0], basis[1], basis[2], basis[3], basis[4] = _derivatives(
-                        tt, cs, ss, ct, st, c2, s2, e, f, tf[k, c], vf[k, c], amp, bc, bs, vis[j, c], hc, hs)
+                        tt, cs, ss, Fc, Fs, c2, s2, e, f, tf[k, c], dose[j], vis[j, c], hc, hs)
                     # the images' columns of the profiled correction: their derivatives at the images
                     xc, xs = _image_columns(bc, bs, hcc, hcs, du, dw)
                     for q in range(Q):
@@ -722,8 +720,8 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray |
     inv = np.zeros((0, 0, 3, 3)) if inverse is None else inverse
     # one chunk per thread: the accumulators are (P, P) each
     weights = _c(weights, np.float64)  # one compiled specialisation whatever the caller's dtype
-    plain, corr = _fisher(_c(obs.tf), _c(obs.vf), _c(obs.phif), weights, obs.frame, obs.y, obs.x, bounds,
-                   row_chunks(bounds[:-1], obs.frame.size, per_thread=1), _c(ch.phase, np.float64),
+    plain, corr = _fisher(_c(obs.tf), _c(obs.fc), _c(obs.fs), weights, obs.frame, obs.y, obs.x, bounds,
+                   row_chunks(bounds[:-1], obs.frame.size, per_thread=1), np.cos(ch.phase), np.sin(ch.phase),
                    _c(ch.vis, np.float64), ch.dose, ch.harmonic,
                    coef, inv, np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64),
                    int(n_per_frame), int(obs.n_frames), bool(profiled and inverse is not None))

@@ -27,7 +27,7 @@ import numpy as np
 from . import __version__
 from . import config as C
 from . import model as M
-from .align import LitStore, collect_lit_rows, pixel_mm, subsample_columns, tilt_alias_period
+from .align import FringeMaps, LitStore, collect_lit_rows, fringe_maps, pixel_mm, subsample_columns, tilt_alias_period
 from .effects import REGISTRY
 from .effects.base import Preparation
 from .estimators import ESTIMATORS
@@ -100,10 +100,9 @@ class Prepared:
         return self.scan.shape
 
     @functools.cached_property
-    def _unwrapped_reference(self) -> Reference:
-        """The reference with its phase unwrapped along the scan, once (it was 2.9 of the 15 s that a
-        full-resolution clinical scan's retrieval took, unwrapped again for every block)."""
-        return replace(self.reference, phase=np.unwrap(self.reference.phase, axis=0))
+    def _fringe_maps(self) -> FringeMaps:
+        """The reference's maps as the alignment reads them, made once for every block aligned."""
+        return fringe_maps(self.reference)
 
     def observations(self, *, columns: np.ndarray | None = None, rows: tuple[int, int] | None = None,
                      dtype=np.float64) -> M.Observations:
@@ -113,11 +112,11 @@ class Prepared:
         no images, but in the fit they still monitor dose and background. ``use`` is False for the detector
         faults only (saturated samples, bad frames: :mod:`dfxcorr.faults`).
         """
-        obs = self.store.observations(self._unwrapped_reference, columns=columns, rows=rows, gain=self.noise.gain,
+        obs = self.store.observations(self.reference, columns=columns, rows=rows, gain=self.noise.gain,
                                       electronic=self.noise.electronic, noise=self.noise.factors, dtype=dtype,
-                                      phase_unwrapped=True)
+                                      maps=self._fringe_maps)
         roi = obs.vf >= self.min_visibility
-        return replace(obs, vf=np.where(roi, obs.vf, 0).astype(obs.vf.dtype, copy=False), roi=roi)
+        return replace(obs.fringe_within(roi), roi=roi)
 
 
 def prepare(scan: Scan | str | Path, cfg: dict, *, timings: dict | None = None) -> Prepared:
