@@ -3,8 +3,8 @@
 The forward model of :mod:`dfxcorr.model` is evaluated here from its *channel values* on the (frame, column) grid:
 the phase Φ (J, C), the visibility factor V (J, C), the dose D (J,), the background coefficients of (1, x, y) (3,)
 and the harmonic (hc, hs) (2,). The samples' flat field is their transmission and the fringe's quadratures
-(``obs.tf``, ``obs.fc``, ``obs.fs``), turned by the phase channel with the cos and sin of Φ tabulated per (frame, column): no
-sample needs a trigonometric call. Every catalogue effect enters through one of these channels
+(``obs.tf``, ``obs.fc``, ``obs.fs``), turned by the phase channel with the cos and sin of Φ tabulated per
+(frame, column): no sample needs a trigonometric call. Every catalogue effect enters through one of these channels
 (:func:`dfxcorr.model.channels` maps effect parameters to them, :func:`dfxcorr.model.channel_adjoint` maps channel
 gradients back), so a new effect that enters through an existing channel needs no change here. The numpy expressions
 of :mod:`dfxcorr.model` are the definition; the tests hold these kernels to them.
