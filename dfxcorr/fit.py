@@ -664,9 +664,10 @@ def spread_columns(obs: M.Observations, weights: np.ndarray, *, most: int) -> tu
 
 
 def initial_weights(obs: M.Observations, params: dict) -> np.ndarray:
-    """Inverse shot-noise variances from the model at ``params`` after one data-weighted solve (eq. 6)."""
+    """Inverse shot-noise variances from the model at ``params`` after one data-weighted solve (eq. 6), in the
+    samples' dtype (the kernel weights the first solve from the data itself: no weights of the samples' size)."""
     K.set_threads()
-    return _model_weights(obs, params, M.noise_weights(obs, np.maximum(obs.counts, 1.0)))
+    return K.retrieve(obs, _channels(obs, params), keep_expected=False, next_weights=True)["weights"]
 
 
 def _channels(obs: M.Observations, params: dict) -> M.Channels:
@@ -676,12 +677,12 @@ def _channels(obs: M.Observations, params: dict) -> M.Channels:
 
 def _model_weights(obs: M.Observations, params: dict, weights: np.ndarray) -> np.ndarray:
     """Inverse noise variances of the model solved with ``weights`` (the weights of a second solve)."""
-    return K.retrieve(obs, _channels(obs, params), weights=weights, next_weights=True)["weights"]
+    return K.retrieve(obs, _channels(obs, params), weights=weights, keep_expected=False, next_weights=True)["weights"]
 
 
 def _solve(obs: M.Observations, params: dict, weights: np.ndarray, *, keep_inverse: bool = False) -> M.Images:
     """Closed-form images for fixed parameters and weights."""
-    out = K.retrieve(obs, _channels(obs, params), weights=weights, keep_inverse=keep_inverse)
+    out = K.retrieve(obs, _channels(obs, params), weights=weights, keep_inverse=keep_inverse, keep_expected=False)
     return M.Images(out["coef"], out["valid"], out["inverse"])
 
 

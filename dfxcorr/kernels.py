@@ -263,6 +263,35 @@ def _accumulate(N, rhs, used, i, wk, a, x1, x2, target):
     used[i] += 1.0 if wk > 0 else 0.0
 
 
+@njit(cache=True, inline="always")
+def _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, ww, a, x1, x2, target):
+    """Add one sample of weight ww, design (a, x1, x2) and target to column i of a tile's normal equations."""
+    wa, w1, w2 = ww * a, ww * x1, ww * x2
+    n00[i] += wa * a
+    n01[i] += wa * x1
+    n02[i] += wa * x2
+    n11[i] += w1 * x1
+    n12[i] += w1 * x2
+    n22[i] += w2 * x2
+    r0[i] += wa * target
+    r1[i] += w1 * target
+    r2[i] += w2 * target
+    used[i] += 1.0 if ww > 0 else 0.0
+
+
+@njit(cache=True, inline="always")
+def _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb, f_p, f_v, f_d, x, y):
+    """Add one sample to column i of the phase, visibility, dose and background sums: gradient sum (-2 w r) F with
+    g = -2 w r, or Gauss-Newton diagonal sum (w F) F with g = w (``square``). Every sum is taken, times 0 (np_, ...)
+    where not asked for: a store under a condition would keep the loop from being vectorised."""
+    gp[i] += np_ * g * (f_p * f_p if square else f_p)
+    gv[i] += nv * g * (f_v * f_v if square else f_v)
+    gd[i] += nd * g * (f_d * f_d if square else f_d)
+    gb0[i] += nb * g
+    gb1[i] += nb * g * (x * x if square else x)
+    gb2[i] += nb * g * (y * y if square else y)
+
+
 @njit(cache=True, parallel=True)
 def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose,
                   bg, harm, hold, square, need, tile):
@@ -281,6 +310,9 @@ def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_
     # the double angle where the harmonic is in the model or its derivatives are asked for
     double = steps > 1 or need[4]
     m00, m01, m10, m11 = hold[0, 0], hold[0, 1], hold[1, 0], hold[1, 1]
+    b0, b1, b2 = bg[0], bg[1], bg[2]
+    np_, nv, nd = 1.0 if need[0] else 0.0, 1.0 if need[1] else 0.0, 1.0 if need[2] else 0.0
+    nb, nh = 1.0 if need[3] else 0.0, 1.0 if need[4] else 0.0
     for t in prange(n):
         cost[t, :] = 0.0
         g_phase[t, :, :] = 0.0
@@ -288,71 +320,97 @@ def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_
         g_dose[t, :, :] = 0.0
         g_bg[t, :, :] = 0.0
         g_harm[t, :, :] = 0.0
-        N = np.empty((6, tile))
-        rhs = np.empty((3, tile))
-        used = np.empty(tile)
-        coef = np.empty((3, tile))
-        dirn = np.empty((4, tile))  # u, w, e, f of each column's images (_direction)
+        # one 1-d array per accumulator, each sample row's operands as 1-d slices: the column loops below are
+        # elementwise over contiguous memory, which the compiler vectorises (a 2-d accumulator indexed [q, i] and
+        # the samples indexed [k, c] were about eight times slower per sample)
+        n00, n01, n02 = np.empty(tile), np.empty(tile), np.empty(tile)
+        n11, n12, n22 = np.empty(tile), np.empty(tile), np.empty(tile)
+        r0, r1, r2, used = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile)
+        ct, cc, cs = np.empty(tile), np.empty(tile), np.empty(tile)
+        du, dw, de, df = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile)
         u = np.empty(3)
         inv = np.empty((3, 3))
         for r in range(chunks[t], chunks[t + 1]):
             lo, hi = bounds[r], bounds[r + 1]
             for c0 in range(0, C, tile):
                 T = min(tile, C - c0)
+                c1 = c0 + T
+                xs = x[c0:c1]
                 for step in range(steps):
-                    N[:, :T] = 0.0
-                    rhs[:, :T] = 0.0
-                    used[:T] = 0.0
+                    n00[:T], n01[:T], n02[:T], n11[:T], n12[:T], n22[:T] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+                    r0[:T], r1[:T], r2[:T], used[:T] = 0.0, 0.0, 0.0, 0.0
                     for k in range(lo, hi):
                         j = frame[k]
-                        off = bg[0] + bg[2] * y[k]
-                        for i in range(T):
-                            c = c0 + i
-                            _, _, _, _, a, bc, bs, hcc, hcs = _angle_design(fc, fs, cos_p, sin_p, tf, vis, dose, k, c,
-                                                                            j, hc, hs, steps > 1)
-                            if step > 0:
+                        dj = dose[j]
+                        off = b0 + b2 * y[k]
+                        cnt, tfk, fck, fsk = counts[k, c0:c1], tf[k, c0:c1], fc[k, c0:c1], fs[k, c0:c1]
+                        dk, wk = dark[k, c0:c1], w[k, c0:c1]
+                        cp, sp, vv = cos_p[j, c0:c1], sin_p[j, c0:c1], vis[j, c0:c1]
+                        # the first solve (the only one without the harmonic) in a loop of its own: a branch on the
+                        # step inside it kept the loop from being vectorised (3.5x slower per sample)
+                        if step == 0:
+                            for i in range(T):
+                                Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
+                                dv = dj * vv[i]
+                                _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), dj * tfk[i],
+                                     dv * (m00 * Fc - m01 * Fs), dv * (m10 * Fc - m11 * Fs),
+                                     cnt[i] - dk[i] - off - b1 * xs[i])
+                        else:
+                            for i in range(T):
+                                Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
+                                _, _, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
                                 # Gauss-Newton step of the harmonic: the columns at the current images
-                                bc, bs = _image_columns(bc, bs, hcc, hcs, dirn[0, i], dirn[1, i])
-                            _accumulate(N, rhs, used, i, w[k, c], a, m00 * bc + m01 * bs, m10 * bc + m11 * bs,
-                                        counts[k, c] - dark[k, c] - off - bg[1] * x[c])
+                                bc, bs = _image_columns(bc, bs, hcc, hcs, du[i], dw[i])
+                                _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), a,
+                                     m00 * bc + m01 * bs, m10 * bc + m11 * bs, cnt[i] - dk[i] - off - b1 * xs[i])
                     for i in range(T):
-                        _solve(N[0, i], N[1, i], N[2, i], N[3, i], N[4, i], N[5, i], rhs[0, i], rhs[1, i],
-                               rhs[2, i], used[i], u, inv)
+                        _solve(n00[i], n01[i], n02[i], n11[i], n12[i], n22[i], r0[i], r1[i], r2[i], used[i], u, inv)
                         # back from the solved columns (x1, x2) to (t, c, s)
-                        coef[0, i] = u[0]
-                        coef[1, i] = m00 * u[1] + m10 * u[2]
-                        coef[2, i] = m01 * u[1] + m11 * u[2]
-                        dirn[0, i], dirn[1, i], dirn[2, i], dirn[3, i] = _direction(coef[1, i], coef[2, i])
+                        ct[i] = u[0]
+                        cc[i] = m00 * u[1] + m10 * u[2]
+                        cs[i] = m01 * u[1] + m11 * u[2]
+                        du[i], dw[i], de[i], df[i] = _direction(cc[i], cs[i])
+                costs = cost[t, c0:c1]
+                gb0, gb1, gb2 = g_bg[t, 0, c0:c1], g_bg[t, 1, c0:c1], g_bg[t, 2, c0:c1]
+                gh0, gh1 = g_harm[t, 0, c0:c1], g_harm[t, 1, c0:c1]
                 for k in range(lo, hi):
                     j = frame[k]
-                    off = bg[0] + bg[2] * y[k]
+                    dj = dose[j]
+                    yk = y[k]
+                    off = b0 + b2 * yk
+                    cnt, tfk, fck, fsk = counts[k, c0:c1], tf[k, c0:c1], fc[k, c0:c1], fs[k, c0:c1]
+                    dk, wk = dark[k, c0:c1], w[k, c0:c1]
+                    cp, sp, vv = cos_p[j, c0:c1], sin_p[j, c0:c1], vis[j, c0:c1]
+                    gp, gv, gd = g_phase[t, j, c0:c1], g_vis[t, j, c0:c1], g_dose[t, j, c0:c1]
+                    if not double:
+                        # without the harmonic, in a loop of its own (the general one below is several times slower
+                        # per sample): _design and _derivatives at hc = hs = 0
+                        for i in range(T):
+                            Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
+                            dv = dj * vv[i]
+                            tt, cs_, ss = ct[i], cc[i], cs[i]
+                            q = cs_ * Fc - ss * Fs
+                            ww = np.float64(wk[i])
+                            res = cnt[i] - dk[i] - off - b1 * xs[i] - (tt * dj * tfk[i] + dv * q)
+                            costs[i] += ww * res * res
+                            g = ww if square else -2.0 * ww * res
+                            _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb,
+                                      -dv * (cs_ * Fs + ss * Fc), dj * q, tfk[i] * tt + vv[i] * q, xs[i], yk)
+                        continue
                     for i in range(T):
-                        c = c0 + i
-                        Fc, Fs, c2, s2, a, bc, bs, hcc, hcs = _angle_design(fc, fs, cos_p, sin_p, tf, vis, dose, k, c,
-                                                                            j, hc, hs, double)
-                        tt, cs, ss = coef[0, i], coef[1, i], coef[2, i]
-                        e, f = dirn[2, i], dirn[3, i]
-                        f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs, ss, Fc, Fs, c2, s2, e, f, tf[k, c], dose[j],
-                                                                vis[j, c], hc, hs)
-                        wk = w[k, c]
-                        res = counts[k, c] - dark[k, c] - off - bg[1] * x[c] - (tt * a + cs * bc + ss * bs) \
-                            - (hcc * e - hcs * f)
-                        cost[t, c] += wk * res * res
-                        # gradient: sum (-2 w r) F; Gauss-Newton diagonal: sum (w F) F
-                        g = -2.0 * wk * res
-                        if need[0]:
-                            g_phase[t, j, c] += (wk * f_p if square else g) * f_p
-                        if need[1]:
-                            g_vis[t, j, c] += (wk * f_v if square else g) * f_v
-                        if need[2]:
-                            g_dose[t, j, c] += (wk * f_d if square else g) * f_d
-                        if need[3]:
-                            g_bg[t, 0, c] += wk if square else g
-                            g_bg[t, 1, c] += (wk * x[c] if square else g) * x[c]
-                            g_bg[t, 2, c] += (wk * y[k] if square else g) * y[k]
-                        if need[4]:
-                            g_harm[t, 0, c] += (wk * f_c if square else g) * f_c
-                            g_harm[t, 1, c] += (wk * f_s if square else g) * f_s
+                        Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
+                        c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
+                        tt, cs_, ss = ct[i], cc[i], cs[i]
+                        e, f = de[i], df[i]
+                        f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs_, ss, Fc, Fs, c2, s2, e, f, tfk[i], dj, vv[i],
+                                                                hc, hs)
+                        ww = np.float64(wk[i])
+                        res = cnt[i] - dk[i] - off - b1 * xs[i] - (tt * a + cs_ * bc + ss * bs) - (hcc * e - hcs * f)
+                        costs[i] += ww * res * res
+                        g = ww if square else -2.0 * ww * res
+                        _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb, f_p, f_v, f_d, xs[i], yk)
+                        gh0[i] += nh * g * (f_c * f_c if square else f_c)
+                        gh1[i] += nh * g * (f_s * f_s if square else f_s)
     return cost, g_phase, g_vis, g_dose, g_bg, g_harm
 
 
@@ -417,7 +475,8 @@ def _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn):
 
 @njit(cache=True, parallel=True)
 def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose, bg,
-              harm, gain, electronic, iterations, from_data, keep_inverse, keep_expected, next_weights, tile):
+              harm, gain, electronic, iterations, from_data, keep_inverse, keep_expected, keep_weights, next_weights,
+              tile):
     K, C = counts.shape
     R = bounds.size - 1
     n = chunks.size - 1
@@ -425,8 +484,9 @@ def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, 
     coef = np.empty((R, C, 3))
     valid = np.empty((R, C), dtype=np.bool_)
     inverse = np.empty((R if keep_inverse else 0, C, 3, 3))
-    ibar = np.empty((K if keep_expected else 0, C))
-    w_out = np.empty((K if keep_expected else 0, C))
+    # per-sample outputs in the samples' dtype: float32 samples need no float64 copies of their size
+    ibar = np.empty((K if keep_expected else 0, C), tf.dtype)
+    w_out = np.empty((K if keep_weights else 0, C), tf.dtype)
     chi2 = np.empty(n)
     n_sel = np.empty(n)
     hc, hs = harm[0], harm[1]
@@ -508,6 +568,7 @@ def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, 
                         m = _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn)
                         if keep_expected:
                             ibar[k, c] = m
+                        if keep_weights:
                             # the weights of this solve, or those of its model (what a further solve would use)
                             w_out[k, c] = (1.0 / _variance(gain[r, c], m, quiet[k, c], electronic) if use[k, c]
                                            else 0.0) if next_weights else w[b, i]
@@ -540,22 +601,24 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         Return the expected counts and the weights (a retrieval for the images alone writes nothing per sample).
     next_weights : bool
         Return as 'weights' the inverse noise variances of the last solve's model (the weights of a further solve,
-        as ``iterations + 1`` would use them, without that solve) instead of those of the last solve.
+        as ``iterations + 1`` would use them, without that solve) instead of those of the last solve, whatever
+        ``keep_expected`` says.
 
     Returns
     -------
     dict
-        'coef' (R, C, 3), 'valid' (R, C), 'inverse' (R, C, 3, 3) or None, 'expected' (K, C) counts,
-        'weights' (K, C) of the last solve or with ``next_weights`` of its model (both (0, C) without
-        ``keep_expected`` or ``next_weights``), 'chi2' (Pearson chi-square
-        over the used samples of valid pixels), 'samples' (their number).
+        'coef' (R, C, 3), 'valid' (R, C), 'inverse' (R, C, 3, 3) or None, 'expected' (K, C) counts ((0, C)
+        without ``keep_expected``), 'weights' (K, C) of the last solve or with ``next_weights`` of its model
+        ((0, C) without ``keep_expected`` or ``next_weights``), both in the samples' dtype (``obs.tf``'s),
+        'chi2' (Pearson chi-square over the used samples of valid pixels), 'samples' (their number).
     """
     if iterations < 1:
         raise ValueError("iterations must be at least 1")
     g = obs.pixel_gain(gain)
     bounds = _bounds(obs)
-    # weights in float64 whatever the caller's dtype: one compiled specialisation fewer (about 6 s of a first run)
-    start = np.zeros((0, 0)) if weights is None else _c(weights, np.float64)
+    # weights in the samples' dtype whatever the caller's: one compiled specialisation per dtype (about 6 s of a
+    # first run each)
+    start = np.zeros((0, 0), obs.tf.dtype) if weights is None else _c(weights, obs.tf.dtype)
     # without known photons in it the dark is its own quiet part: one array (not a second copy of a strided one)
     dark = _c(obs.dark)
     quiet = dark if obs.offset is None else _c(obs.quiet)
@@ -564,7 +627,8 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         obs.frame, obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase),
         np.sin(ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, _c(g, np.float64),
         float(obs.electronic),
-        int(iterations), weights is None, keep_inverse, keep_expected or next_weights, next_weights, TILE)
+        int(iterations), weights is None, keep_inverse, keep_expected, keep_expected or next_weights, next_weights,
+        TILE)
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
 
