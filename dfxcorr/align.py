@@ -23,9 +23,10 @@ from numpy.typing import DTypeLike
 
 from . import kernels as K
 from .errors import DfxcorrError
-from .faults import Faults, ranges, saturated
+from .faults import Faults, saturated
 from .io import Reference, Scan, frame_rows, lit_rows
 from .observations import Observations, lateral_coordinate
+from .stats import ranges
 
 log = logging.getLogger(__name__)
 
@@ -92,9 +93,9 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
 
     With f = u - 0.5 and k0 = floor(f) clipped to [0, A - 2], the value is
     (1 - (f - k0)) maps[k0] + (f - k0) maps[k0 + 1]. Compiled: one pass per sample row, in parallel, written straight
-    in ``dtype`` (the numpy expression made four temporaries of the output's size: 3.5 s of a full-resolution clinical
-    scan's retrieval); the columns are read from the whole maps (a copy of ``maps[:, columns]`` is not C-ordered and
-    was copied again: 3 s of that retrieval).
+    in ``dtype`` (the numpy expression makes four temporaries of the output's size: 3.5 s of a full-resolution
+    clinical scan's retrieval); the columns are read from the whole maps (a copy of ``maps[:, columns]`` is not
+    C-ordered and would be copied again: 3 s of that retrieval).
 
     Parameters
     ----------

@@ -2,7 +2,7 @@
 
 An entry says everything the rest of the program needs to know about a term of the model: which
 channel of the model it enters (:mod:`dfxcorr.model`), its parameter components, neutral value,
-gauge, prior width and bound, and the metadata that other tables used to repeat: the configuration
+gauge, prior width and bound, and the metadata that other tables would otherwise repeat: the configuration
 key that switches it on, the key of its truth in simulated files, the exact gauge directions it
 brings (:mod:`dfxcorr.identify`) and its unit. Those tables are derived here (:func:`config_keys`,
 :func:`truth_keys`).

@@ -23,8 +23,8 @@ from .align import lit_blocks, no_lit_rows
 from .errors import DfxcorrError, OutputExistsError, require_regular_file
 from .faults import Faults, find_faults, saturation_level
 
-if TYPE_CHECKING:  # the pipeline (numba kernels) is imported only where a check runs the pilot
-    from .pipeline import ColumnPlan
+if TYPE_CHECKING:  # the planning (numba kernels) is imported only where a check runs the pilot
+    from .planning import ColumnPlan
 
 #: Name length limit where the file system does not tell (bytes; ext4, XFS, Lustre, GPFS).
 NAME_MAX = 255
@@ -236,13 +236,15 @@ def memory_estimate(shape, *, itemsize: int, lit_samples: int, fit_samples: int,
 
 
 def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, pilot: bool) -> ColumnPlan:
-    from .pipeline import ColumnPlan, coarse_step, column_step, fit_columns, fit_seconds, plan_columns, prepare
+    from .effects import REGISTRY
+    from .planning import ColumnPlan, coarse_step, column_step, fit_columns, fit_seconds, plan_columns
+    from .preparation import prepare
 
     W = scan.shape[2]
     n = cfg["fit"]["subsample"]
     try:
         if n == "auto" and pilot:
-            return plan_columns(prepare(scan, cfg), cfg, report=False)
+            return plan_columns(prepare(scan, cfg, effects=REGISTRY.values()), cfg, report=False)
         step = column_step(W, samples_per_column, most=cfg["fit"]["max_samples"]) if n == "auto" else n
         cols = fit_columns(W, cfg, step)
         coarse = coarse_step(cfg, cols.size, samples_per_column, step=step, width=W)
@@ -289,7 +291,7 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
         Also check the ``diagnose`` section.
     pilot : bool
         For ``fit.subsample: auto``, prepare the scan (reading its frames) and run the pilot that chooses the
-        fit's columns (:func:`dfxcorr.pipeline.plan_columns`); otherwise the columns are the most auto may take.
+        fit's columns (:func:`dfxcorr.planning.plan_columns`); otherwise the columns are the most auto may take.
 
     Raises
     ------

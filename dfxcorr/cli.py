@@ -149,6 +149,11 @@ def reconstruct_options(func):
     func = click.option("--preview", is_flag=True,
                         help="Also write <output stem>_preview.png (uncorrected and corrected images) and "
                              "<output stem>_fit.png.")(func)
+    func = click.option("--dicom-sidecar", type=click.Path(dir_okay=False),
+                        help="DICOM: patient and study attributes (YAML or JSON of DICOM keywords); none "
+                             "are invented.")(func)
+    func = click.option("--dicom", "dicom_dir", type=click.Path(file_okay=False),
+                        help="Also write the images as DICOM here: one study, three series (needs pydicom).")(func)
     func = click.option("--tiff", "tiff_dir", type=click.Path(file_okay=False),
                         help="Also write float32 TIFFs here.")(func)
     func = click.option("--method", type=click.Choice(C.METHODS),
@@ -159,20 +164,35 @@ def reconstruct_options(func):
     return click.argument("scan", type=click.Path(dir_okay=False))(func)
 
 
-def _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite):
-    """Check a reconstruction's outputs and configuration before any work; the output, configuration, outputs."""
+def _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite, dicom):
+    """Check a reconstruction's outputs and configuration before any work.
+
+    ``dicom`` holds the options dicom_dir and dicom_sidecar. Returns the output, the
+    configuration, the outputs and the DICOM export's keywords (None without --dicom).
+    """
+    from . import dicom as D
+
     out = Path(output) if output else Path(f"{Path(scan).stem}_result.h5")
-    outputs = _reconstruct_outputs(out, tiff_dir=tiff_dir, preview=preview)
+    dicom_dir, sidecar = dicom["dicom_dir"], dicom["dicom_sidecar"]
+    if sidecar and not dicom_dir:
+        raise D.DicomError("--dicom-sidecar needs --dicom DIR")
+    if dicom_dir:
+        D.require_pydicom()
+    outputs = _reconstruct_outputs(out, tiff_dir=tiff_dir, preview=preview, dicom_dir=dicom_dir)
     cfg = C.load(config_files, list(sets) + ([f"fit.method={method}"] if method else [])
                  + (["retrieve.uncorrected=true"] if preview else []))
-    _guard(outputs, inputs=[scan, *config_files, *C.input_files(cfg)], overwrite=overwrite)
-    return out, cfg, outputs
+    _guard(outputs, inputs=[scan, *config_files, *C.input_files(cfg), *([sidecar] if sidecar else [])],
+           overwrite=overwrite)
+    export = {"out_dir": dicom_dir, "sidecar": D.read_sidecar(sidecar) if sidecar else None} if dicom_dir else None
+    return out, cfg, outputs, export
 
 
-def _reconstruct_outputs(out: Path, *, tiff_dir=None, preview=False) -> list[Path]:
+def _reconstruct_outputs(out: Path, *, tiff_dir=None, preview=False, dicom_dir=None) -> list[Path]:
+    from .dicom import dicom_paths
     from .export import tiff_paths
 
     outputs = [out] + (tiff_paths(tiff_dir, out.stem) if tiff_dir else [])
+    outputs += dicom_paths(dicom_dir, out.stem) if dicom_dir else []
     return outputs + ([out.with_name(f"{out.stem}_preview.png"), out.with_name(f"{out.stem}_fit.png")]
                       if preview else [])
 
@@ -180,24 +200,25 @@ def _reconstruct_outputs(out: Path, *, tiff_dir=None, preview=False) -> list[Pat
 @main.command()
 @reconstruct_options
 @friendly
-def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite):
+def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite, **dicom):
     """Reconstruct vibration-corrected images from SCAN (dfxcorr scan format)."""
     from . import check, pipeline
     from .io import read_scan
 
-    out, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
+    out, cfg, outputs, dicom_export = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir,
+                                                           preview, overwrite, dicom)
     header = read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True)
     check.plan(header, cfg, name=scan, outputs=outputs)
     t0 = time.perf_counter()
     result = pipeline.reconstruct(scan, cfg, command_line=_command_line())
-    _write_outputs(result, out, tiff_dir=tiff_dir, preview=preview, overwrite=overwrite)
+    _write_outputs(result, out, tiff_dir=tiff_dir, preview=preview, dicom=dicom_export, overwrite=overwrite)
     click.echo(f"{out}: reduced chi-square {result.reduced_chi2:.4f}, {time.perf_counter() - t0:.1f} s")
 
 
 @main.command("check")
 @reconstruct_options
 @friendly
-def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overwrite):
+def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overwrite, **dicom):
     """Check that `dfxcorr reconstruct` with the same arguments would run, in seconds, computing nothing.
 
     Validates SCAN, the configuration against it (subsampling, column offset, mask dilation, diagnosis
@@ -207,7 +228,8 @@ def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overw
     from . import check
     from .io import read_scan
 
-    _, cfg, outputs = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite)
+    _, cfg, outputs, _ = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, overwrite,
+                                              dicom)
     scan_read = read_scan(scan, allow_external=cfg["load"]["allow_external"])
     click.echo(check.plan(scan_read, cfg, name=scan, outputs=outputs, diagnose=True, pilot=True).summary())
     faults = check.detector_faults(scan_read, cfg)
@@ -217,14 +239,18 @@ def check_cmd(scan, output, config_files, sets, method, tiff_dir, preview, overw
     click.echo("ok: reconstruct would run")
 
 
-def _write_outputs(result, out: Path, *, tiff_dir=None, preview=False, overwrite=False) -> list[Path]:
-    """Write the files :func:`_reconstruct_outputs` lists."""
+def _write_outputs(result, out: Path, *, tiff_dir=None, preview=False, dicom=None, overwrite=False) -> list[Path]:
+    """Write the files :func:`_reconstruct_outputs` lists (``dicom``: keywords of the DICOM export, or None)."""
     from . import export, plots
 
     export.write_result_h5(out, result, overwrite=overwrite, compression=_compression(result.config))
     written = [out]
     if tiff_dir:
         written += export.write_tiffs(tiff_dir, result, stem=out.stem, overwrite=overwrite)
+    if dicom:
+        from .dicom import write_dicom
+
+        written += write_dicom(result, stem=out.stem, result_file=out.name, overwrite=overwrite, **dicom)
     if preview:
         written.append(plots.write_preview(out.with_name(f"{out.stem}_preview.png"), result, overwrite=overwrite))
         written.append(plots.write_fit_plot(out.with_name(f"{out.stem}_fit.png"), result, overwrite=overwrite))
@@ -236,6 +262,30 @@ def _write_outputs(result, out: Path, *, tiff_dir=None, preview=False, overwrite
 def _compression(cfg: dict):
     c = cfg["export"]["compression"]
     return None if c == "none" else c
+
+
+@main.command("dicom")
+@click.argument("result_file", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", "output_dir", required=True, type=click.Path(file_okay=False),
+              help="Folder for <result stem>_transmission.dcm, _dark_field.dcm and _differential_phase.dcm.")
+@click.option("--sidecar", type=click.Path(dir_okay=False),
+              help="Patient and study attributes (YAML or JSON of DICOM keywords); none are invented.")
+@click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
+@friendly
+def dicom_cmd(result_file, output_dir, sidecar, overwrite):
+    """Write the images of RESULT_FILE as DICOM for a PACS: one study, three series (needs pydicom).
+
+    Physical values are recoverable from the stored pixels (Rescale Slope and Intercept); NaN pixels
+    hold the PixelPaddingValue 0. The same result and sidecar give the same UIDs every time.
+    """
+    from . import dicom as D
+
+    D.require_pydicom()
+    paths = D.dicom_paths(output_dir, Path(result_file).stem)
+    _guard(paths, inputs=[result_file, *([sidecar] if sidecar else [])], overwrite=overwrite)
+    attributes = D.read_sidecar(sidecar) if sidecar else None
+    written = D.write_dicom(result_file, output_dir, sidecar=attributes, overwrite=overwrite)
+    click.echo(f"wrote {', '.join(str(p) for p in written)}")
 
 
 @main.command()

@@ -171,8 +171,7 @@ SCHEMA: dict[str, dict[str, Option]] = {
                          check=lambda v: None if v == "auto" or (not isinstance(v, str) and 0 < v <= 10 ** 6)
                          else "must be auto or an integer in [1, 1e6]"),
         "max_samples": Option(7_000_000, "subsample auto: most lit samples (rows x frames x columns) the fit "
-                                         "may hold (memory: a full-resolution clinical scan peaked at 1.43 GB "
-                                         "with 2.7e6, 1.60 GB with 7.7e6)", int, check=_within(1, 1e12)),
+                                         "may hold (bounds the fit's memory)", int, check=_within(1, 1e12)),
         "column_offset": Option(None, "first column of the subsampled grid; null: subsample // 2", int,
                                 check=_nonneg, nullable=True),
         "maxiter": Option(300, "iterations (Gauss-Newton trial steps or L-BFGS iterations) per stage", int,
@@ -213,16 +212,13 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "subsample": Option(4, "the diagnosis fits and tests on every n-th column (finer than fit.subsample: the "
                                "parameter noise of a coarse fit would read as misfit)", int, check=_within(1, 1e6)),
         "max_samples": Option(5e5, "the diagnosis fits and tests on every n-th column, n at least diagnose.subsample "
-                                   "and large enough that they hold at most this many samples (a large scan's every "
-                                   "4th column was most of the diagnosis's time; a 5-step 512 x 1536 flat panel named "
-                                   "the same effects on every 8th, 38 -> 22 s)", _NUM, check=_within(1e3, 1e12)),
+                                   "and large enough that they hold at most this many samples (bounds the "
+                                   "diagnosis's time on a large scan)", _NUM, check=_within(1e3, 1e12)),
         "max_held_samples": Option(1.5e7, "the per-pixel tests (sample motion, pixel noise, reference offset, the "
                                           "residual maps) hold at most this many samples: on a larger scan (a "
                                           "clinical one) they see a band of contiguous columns in the middle of the "
                                           "detector, and the fit and the residual signatures still see columns "
-                                          "spread over all of it (a full-resolution clinical scan's every column, in "
-                                          "float32, is 5 GB; at 2e7 a binned one's diagnosis peaked at 2.08x its "
-                                          "reconstruction's memory, 1205 against 580 MB, at 1.5e7 1074 MB)", _NUM,
+                                          "spread over all of it (bounds the diagnosis's memory)", _NUM,
                                    check=_within(1e4, 1e12)),
         "max_rounds": Option(8, "at most this many effects are added", int, check=_within(1, 100)),
         "motion_p": Option(1e-6, "per-pixel p-value below which a pixel's frames disagree", _NUM, check=_fraction),
@@ -238,9 +234,12 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "proxy_spread": Option(1.0, "a candidate whose size, estimated on pixels in strata of count or of detector "
                                     "row or column, spans more than this many times the shared fit's (and "
                                     "significantly) is refused as a proxy for an effect in no catalogue: a real "
-                                    "effect has one size (a true harmonic spanned 0.37, a non-linearity's harmonic "
-                                    "and a ghost's dose 5.4-5.7)",
+                                    "effect has one size",
                                _NUM, check=_nonneg),
+        "replicate": Option(True, "refit the final model on disjoint halves of the detector (by columns; by rows too "
+                                  "in phase stepping) and report whether each finding's estimates agree within their "
+                                  "errors there; a finding that does not replicate is left out of the recommended "
+                                  "reconstruction", bool),
         "min_gain_change": Option(0.01, "detector_gain is reported only when the gain also moves by more than this "
                                         "fraction (a practical floor: with millions of samples smaller changes are "
                                         "significant but immaterial)", _NUM, check=_nonneg),
@@ -323,9 +322,20 @@ _StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float",
                                     list("-+0123456789"))
 
 
-def parse_yaml(text: str) -> Any:
-    """Parse configuration YAML with :class:`_StrictLoader` (no aliases, no duplicate keys)."""
-    loader = _StrictLoader(text)
+class _TextLoader(_StrictLoader):
+    """:class:`_StrictLoader` reading every scalar as text: identifiers stay as written (YAML 1.1 would read
+    00123 as the octal 83 and 14:30:00 as seconds)."""
+
+
+_TextLoader.yaml_implicit_resolvers = {}
+
+
+def parse_yaml(text: str, *, as_text: bool = False) -> Any:
+    """Parse configuration YAML with :class:`_StrictLoader` (no aliases, no duplicate keys).
+
+    ``as_text`` reads every scalar as a string (no numbers, booleans, dates or nulls).
+    """
+    loader = (_TextLoader if as_text else _StrictLoader)(text)
     try:
         return loader.get_single_data()
     finally:
@@ -447,6 +457,21 @@ def effects_of(cfg: dict) -> tuple[str, ...]:
 def dump(cfg: dict) -> str:
     """YAML of a resolved configuration."""
     return yaml.safe_dump(cfg, sort_keys=False)
+
+
+def as_sets(cfg: dict, *, skip: tuple[str, ...] = (), schema: dict = SCHEMA) -> list[str]:
+    """The ``section.key=value`` options (values as YAML) that turn the defaults into ``cfg``, sections in
+    ``skip`` left out: what reproduces a resolved configuration on a command line."""
+    base = defaults(schema)
+    out = []
+    for section, opts in cfg.items():
+        if section in skip:
+            continue
+        for key, value in opts.items():
+            if value != base[section][key]:
+                text = yaml.safe_dump(value, default_flow_style=True, width=1 << 30).strip()
+                out.append(f"{section}.{key}={text.removesuffix('...').strip()}")
+    return out
 
 
 def commented_defaults(schema: dict = SCHEMA, *, title: str = "dfxcorr reconstruct SCAN -c this.yaml") -> str:

@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 import yaml
 
-from .errors import OutputExistsError
+from .errors import DfxcorrError, OutputExistsError
 from .io import atomic_path, h5_output
 from .model import CATALOGUE
 from .result import Result, paper_params
@@ -27,6 +27,10 @@ PROVENANCE_KEYS = ("program", "version", "date", "command_line", "input_file", "
 SPEC_EFFECTS = {"phase_offset": "phase_offset", "tilt": "tilt", "visibility": "visibility_loss"}
 
 _STR = h5py.string_dtype("utf-8")
+
+
+class ResultFormatError(DfxcorrError, ValueError):
+    """A file given as a result that is not a dfxcorr results file."""
 
 
 def check_output(path, *, overwrite: bool) -> None:
@@ -194,6 +198,9 @@ def write_result_h5(path, result: Result, *, overwrite: bool = False, compressio
         for name in Result.IMAGES:
             _dataset(res, name, result.image(name), dtype=np.float32, compression=compression,
                      units="rad" if name == "differential_phase" else None)
+        if result.pixel_size is not None:
+            for axis, size in zip("yx", result.pixel_size, strict=True):
+                _dataset(res, f"{axis}_pixel_size", float(size), dtype=np.float64, units="m")
 
         vib = proc.create_group("vibration")
         unc = vib.create_group("uncertainty")
@@ -246,11 +253,11 @@ def read_result_h5(path) -> dict:
         'uncertainty' (dataset name -> array), 'estimated' (dataset name -> bool), 'mask',
         'motion_mask', 'cost', 'stage', 'reduced_chi2' (float), 'method', 'configuration' (dict, the
         parsed YAML), 'provenance' (dict of str), 'timings' (dict of float), 'uncorrected' (dict or
-        None) and 'format_version'.
+        None), 'pixel_size' ((y, x) in m, or None) and 'format_version'.
 
     Raises
     ------
-    ValueError
+    ResultFormatError
         If the file is not a dfxcorr results file.
     """
     with h5py.File(path, "r") as f:
@@ -258,9 +265,12 @@ def read_result_h5(path) -> dict:
         if isinstance(fmt, bytes):
             fmt = fmt.decode()
         if fmt != FORMAT:
-            raise ValueError(f"{path} is not a {FORMAT} file (format attribute {fmt!r})")
+            raise ResultFormatError(f"{path} is not a {FORMAT} file (format attribute {fmt!r})")
         proc = f["entry/dfxcorr"]
-        out = {name: proc["results"][name][()] for name in Result.IMAGES}
+        res = proc["results"]
+        out = {name: res[name][()] for name in Result.IMAGES}
+        out["pixel_size"] = (tuple(float(res[f"{axis}_pixel_size"][()]) for axis in "yx")
+                             if "y_pixel_size" in res and "x_pixel_size" in res else None)
         vib = proc["vibration"]
         out["vibration"] = {k: ds[()] for k, ds in vib.items() if isinstance(ds, h5py.Dataset)}
         out["estimated"] = {k: bool(vib[k].attrs.get("estimated", 1)) for k in out["vibration"]}

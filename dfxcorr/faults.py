@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import DfxcorrError
+from .stats import ranges
 
 
 class FaultError(DfxcorrError, ValueError):
@@ -179,13 +180,3 @@ def _repeats(rows: np.ndarray, counts: np.ndarray, prev_rows: np.ndarray, prev_c
     a, b = counts[here], prev_counts[there]
     same = (a < level) & (b < level) if level is not None else np.ones(a.shape, bool)
     return int(same.sum()) >= MIN_REPEAT_SAMPLES and np.array_equal(a[same], b[same])
-
-
-def ranges(idx: np.ndarray) -> str:
-    """Sorted indices as ranges, '3-7, 9'."""
-    if idx.size == 0:
-        return ""
-    breaks = np.flatnonzero(np.diff(idx) > 1)
-    starts = np.r_[idx[0], idx[breaks + 1]]
-    ends = np.r_[idx[breaks], idx[-1]]
-    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends, strict=True))

@@ -131,19 +131,21 @@ class Conditional:
     verdict: Identifiability
 
 
-def conditional(inf: Information, name: str, base) -> Conditional:
-    """The information of ``name``'s parameters once those of ``base`` are estimated too.
+def conditional(inf: Information, name: str | tuple[str, ...], base) -> Conditional:
+    """The information of the parameters of ``name`` (an effect, or several together) once those of ``base`` are
+    estimated too.
 
     For a positive semi-definite matrix the null space of [base, candidate] is that of the base plus
     that of the candidate's Schur complement, so what the candidate adds beyond its gauge and carries
     no information shows as a rank deficit of the Schur complement.
     """
-    sel, bmask = inf.mask([name]), inf.mask(base)
+    names = (name,) if isinstance(name, str) else tuple(name)
+    sel, bmask = inf.mask(names), inf.mask(base)
     projector = inf.matrix[np.ix_(sel, bmask)] @ inf.base_inverse(base)
     schur = inf.matrix[np.ix_(sel, sel)] - projector @ inf.matrix[np.ix_(bmask, sel)]
     inverse, dof = pinv_rank(schur, inf.plain[sel])
-    excess = int(sel.sum()) - dof - M.effect(name).gauge_dims
-    return Conditional(sel, bmask, projector, inverse, dof, Identifiability(name, excess <= 0 and dof > 0,
+    excess = int(sel.sum()) - dof - sum(M.effect(n).gauge_dims for n in names)
+    return Conditional(sel, bmask, projector, inverse, dof, Identifiability("+".join(names), excess <= 0 and dof > 0,
                                                                           max(excess, 0)))
 
 

@@ -1,4 +1,5 @@
-"""Planning a run: which configured effects a reconstruction fits, and why some cannot be.
+"""Planning a run: which configured effects a reconstruction fits (and why some cannot be), which columns its
+vibration fit takes, in which blocks of rows it retrieves, and what that is predicted to cost and give.
 
 An effect the acquisition cannot determine (its Fisher information has directions without information
 beyond its gauge, :mod:`dfxcorr.identify`; visibility effects in phase stepping, paper Sec. II-F) is
@@ -9,16 +10,20 @@ the same rules, without fitting.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 
 from . import config as C
 from . import model as M
+from .align import LitStore, subsample_columns, tilt_alias_period
 from .catalogue import CATALOGUE
 from .errors import DfxcorrError
-from .fit import initial_weights
+from .fit import initial_weights, pilot_uncertainty
 from .identify import select
 from .io import Scan
+from .mask import pilot_vibrations
+from .preparation import Prepared
 
 log = logging.getLogger("dfxcorr")
 
@@ -127,3 +132,178 @@ def resolve_effects(cfg: dict, scan: Scan, reference, fit_obs: M.Observations) -
                                          f"(they trade off exactly against the images"
                                          f"{' or ' + ', '.join(chosen) if chosen else ''})")
     return tuple(chosen)
+
+
+#: Bytes per (pixel, frame) sample at the peak of a block's retrieval or motion statistics in float64: 153
+#: measured with tracemalloc on the numpy model (observations, design, weights, expected counts, temporaries).
+BYTES_PER_SAMPLE = 160
+
+
+def row_blocks(store: LitStore, budget_mb: float) -> list[tuple[int, int]]:
+    """Detector-row ranges [r0, r1) whose samples fit the memory budget, covering every held row
+    (:meth:`LitStore.row_runs`)."""
+    return store.row_runs(budget_mb * 1e6 / BYTES_PER_SAMPLE)
+
+
+#: Evenly spread columns of the pilot that predicts the fit's uncertainty (``fit.subsample: auto``): its profiled
+#: Fisher information costs a fraction of a second even at full resolution.
+PILOT_COLUMNS = 16
+#: Wall seconds of the vibration fit per sample it holds, all stages and the uncertainty included (the predicted
+#: time): 1.7 us on the paper study at every column, 2.2 on a binned and 3.2 on a full-resolution clinical scan
+#: (the Hessians' share grows with the rows), on the 2-core machine under load 1.5-2.5.
+FIT_SECONDS_PER_SAMPLE = 2.5e-6
+#: Samples of the motion mask's pilot vibration estimate (its columns need not be the fit's).
+MASK_PILOT_SAMPLES = 2_000_000
+#: Samples of the coarse first pass of a fit of more columns (``fit.coarse: auto``; at least
+#: :data:`COARSE_MIN_COLUMNS` columns): its estimate is far inside the basin of the minimum on all columns.
+COARSE_SAMPLES = 1_000_000
+COARSE_MIN_COLUMNS = 16
+#: Wall seconds per sample of the fit's last stages on all its columns after a coarse pass (the predicted time
+#: adds :data:`FIT_SECONDS_PER_SAMPLE` per sample of the coarse pass): 0.53 us on the paper study at every column
+#: with both cores free (fit 5.7 s, its coarse pass on every 7th column about 2 s).
+POLISH_SECONDS_PER_SAMPLE = 0.5e-6
+#: Wall seconds of a reconstruction's other stages (alignment, motion mask, retrieval of every pixel) per lit sample
+#: of the scan: what ``fit.time_floor`` leaves to the fit (0.076 us on the binned and 0.077 on the full-resolution
+#: clinical scan, 0.11 on the paper study; docs/benchmark.json, load 3.4-4.1).
+REST_SECONDS_PER_SAMPLE = 0.08e-6
+
+
+@dataclass(frozen=True)
+class ColumnPlan:
+    """The columns of the vibration fit and what they are predicted to give.
+
+    Attributes
+    ----------
+    columns : ndarray of int
+    why : str
+        How they were chosen.
+    uncertainty : float
+        Predicted median one-sigma uncertainty of the phase effects (phi0, phi1; rad) over the well-determined
+        frames, from the pilot's Fisher information at the neutral model (NaN without a pilot).
+    seconds : float
+        Predicted wall time of the fit (:func:`fit_seconds`).
+    pilot : dict or None
+        The pilot vibration estimate the prediction used (:func:`pilot_estimate`), for the motion mask.
+    coarse : int
+        The fit's stages run on every ``coarse``-th of the columns first (``fit.coarse``).
+    """
+
+    columns: np.ndarray
+    why: str
+    uncertainty: float = float("nan")
+    seconds: float = float("nan")
+    pilot: dict | None = None
+    coarse: int = 1
+
+    def summary(self) -> str:
+        """One line: the columns, the predicted uncertainty and time, and why."""
+        cols = self.columns
+        every = f"every {cols[1] - cols[0]}-th column from column {cols[0]}" if cols.size > 1 else f"column {cols}"
+        unc = "" if np.isnan(self.uncertainty) else f", predicted phi0/phi1 uncertainty {self.uncertainty:.2g} rad"
+        first = f", its stages first on every {self.coarse}-th of them" if self.coarse > 1 else ""
+        return f"{cols.size} columns ({every}){unc}, predicted fit time {self.seconds:.1f} s{first} ({self.why})"
+
+
+def coarse_step(cfg: dict, n_columns: int, samples_per_column: int, *, step: int, width: int) -> int:
+    """``fit.coarse``, or for ``auto`` the spacing that leaves about :data:`COARSE_SAMPLES` samples (at least
+    :data:`COARSE_MIN_COLUMNS` columns) to the first pass; never beyond the alias limit W / 4 of the detector's
+    columns (``step`` apart in the fit)."""
+    c = cfg["fit"]["coarse"]
+    if c == "auto":
+        c = min(int(round(n_columns * samples_per_column / COARSE_SAMPLES)), n_columns // COARSE_MIN_COLUMNS)
+    return max(1, min(int(c), max(width // 4, 1) // max(step, 1)))
+
+
+def fit_seconds(n_columns: int, samples_per_column: int, coarse: int) -> float:
+    """Predicted wall time (s) of a fit of ``n_columns`` columns whose stages run on every ``coarse``-th first."""
+    if coarse <= 1:
+        return FIT_SECONDS_PER_SAMPLE * n_columns * samples_per_column
+    return (FIT_SECONDS_PER_SAMPLE * -(-n_columns // coarse) + POLISH_SECONDS_PER_SAMPLE * n_columns) \
+        * samples_per_column
+
+
+def within_seconds(cfg: dict, width: int, samples_per_column: int, seconds: float) -> int:
+    """The smallest column spacing whose fit is predicted (:func:`fit_seconds`) to take at most ``seconds``."""
+    for n in range(1, max(width // 4, 1) + 1):
+        cols = subsample_columns(width, n, offset=cfg["fit"]["column_offset"]).size
+        coarse = coarse_step(cfg, cols, samples_per_column, step=n, width=width)
+        if fit_seconds(cols, samples_per_column, coarse) <= seconds:
+            return n
+    return max(width // 4, 1)
+
+
+def column_step(width: int, samples_per_column: int, *, most: float) -> int:
+    """The smallest column spacing n whose columns hold at most ``most`` lit samples, at most W / 4."""
+    return min(max(int(np.ceil(samples_per_column * width / most)), 1), max(width // 4, 1))
+
+
+def fit_columns(width: int, cfg: dict, n: int) -> np.ndarray:
+    """Every ``n``-th column from ``fit.column_offset``, with the aliasing limit of paper Sec. II-D.1 checked."""
+    cols = subsample_columns(width, n, offset=cfg["fit"]["column_offset"])
+    if cols.size < 4:
+        raise C.ConfigError(f"fit.subsample={n} leaves {cols.size} of {width} columns; use at most {width // 4}")
+    period = tilt_alias_period(width, n)
+    if period < 4 * np.pi:
+        raise C.ConfigError(f"fit.subsample={n}: tilts that differ by {period:.2f} rad are indistinguishable on "
+                            f"every {n}-th of {width} columns (paper Sec. II-D.1); use at most {width // 4}")
+    return cols
+
+
+def pilot_estimate(prep: Prepared) -> dict:
+    """A quick estimate of the paper's vibrations (:func:`dfxcorr.mask.pilot_vibrations`) on evenly spread columns
+    holding at most :data:`MASK_PILOT_SAMPLES` samples: what the motion mask compares with and the column plan
+    predicts at. In float32, as every observation of a reconstruction (:func:`blocked_retrieval`)."""
+    W = prep.shape[2]
+    cols = subsample_columns(W, column_step(W, prep.store.samples_per_column(), most=MASK_PILOT_SAMPLES))
+    return pilot_vibrations(prep.observations(columns=cols, dtype=np.float32))
+
+
+def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report: bool = True) -> ColumnPlan:
+    """Columns entering the vibration fit: ``fit.subsample``, or for ``auto`` those a target precision needs.
+
+    ``auto`` predicts the uncertainty from a pilot: the profiled Fisher information of :data:`PILOT_COLUMNS`
+    evenly spread columns at the vibrations ``pilot`` (default :func:`pilot_estimate`) by
+    :func:`dfxcorr.fit.pilot_uncertainty`; columns add information independently, so n columns give
+    sigma_pilot sqrt(pilot columns / n). It takes the fewest evenly spaced columns predicted to reach
+    ``fit.target_uncertainty``, or more where the whole run is predicted to take at most ``fit.time_floor``
+    seconds with them (the fit's :func:`fit_seconds` and the other stages' :data:`REST_SECONDS_PER_SAMPLE` per
+    sample of the scan: a small scan's run is short, and its fit takes every column, the paper study's too), or
+    with ``fit.time_budget`` the most predicted to fit in that time (:func:`fit_seconds`); never more than
+    ``fit.max_samples`` samples (memory) nor a spacing beyond the alias limit W / 4. Logged when ``report``.
+    """
+    f = cfg["fit"]
+    W = prep.shape[2]
+    per_column = prep.store.samples_per_column()
+    n, why = f["subsample"], "fit.subsample"
+    sigma, size = float("nan"), 0
+    if n == "auto":
+        spread = subsample_columns(W, max(W // PILOT_COLUMNS, 1))
+        size = spread.size
+        pilot = pilot_estimate(prep) if pilot is None else pilot
+        sigma = pilot_uncertainty(prep.observations(columns=spread, dtype=np.float32), params=pilot,
+                                  gauge_fraction=f["gauge_fraction"])
+        cap = column_step(W, per_column, most=f["max_samples"])
+        if f["time_budget"] is not None:
+            n = max(within_seconds(cfg, W, per_column, f["time_budget"]), cap)
+            why = f"the most columns within fit.time_budget={f['time_budget']:g} s"
+        else:
+            need = size * (sigma / f["target_uncertainty"]) ** 2
+            n = min(max(int(W / max(need, 1.0)), 1), max(W // 4, 1))
+            why = f"fit.target_uncertainty={f['target_uncertainty']:g} rad"
+            rest = REST_SECONDS_PER_SAMPLE * per_column * W
+            floor = W if f["time_floor"] is None else within_seconds(cfg, W, per_column, f["time_floor"] - rest)
+            if floor < n:
+                n, why = floor, (f"the most columns within fit.time_floor={f['time_floor']:g} s for the whole run, "
+                                 f"its other stages predicted {rest:.1f} s")
+            n = max(n, cap)
+        why += f"; pilot of {size} columns {sigma:.2g} rad"
+        if n == cap and cap > 1:
+            why += f"; held at fit.max_samples={f['max_samples']:g}"
+    cols = fit_columns(W, cfg, n)
+    coarse = coarse_step(cfg, cols.size, per_column, step=n, width=W)
+    out = ColumnPlan(columns=cols, why=why,
+                     uncertainty=sigma * np.sqrt(size / cols.size) if size else float("nan"),
+                     seconds=fit_seconds(cols.size, per_column, coarse), pilot=pilot, coarse=coarse)
+    if report:
+        log.info("vibration fit columns: %s", out.summary())
+    return out

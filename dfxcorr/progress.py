@@ -1,13 +1,25 @@
-"""Progress of long stages: a tqdm bar on a terminal, plain log lines in a batch log."""
+"""Progress of long work: each stage logged and timed, a tqdm bar on a terminal, plain log lines in a batch log."""
 from __future__ import annotations
 
 import logging
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from tqdm import tqdm
 
 log = logging.getLogger(__name__)
+
+
+@contextmanager
+def stage(name: str, timings: dict) -> Iterator[None]:
+    """Log the start and duration of a stage and record its seconds in ``timings[name]``."""
+    log.info("%s ...", name)
+    t0 = time.perf_counter()
+    yield
+    timings[name] = time.perf_counter() - t0
+    log.info("%s: %.2f s", name, timings[name])
 
 
 class Progress:

@@ -59,6 +59,8 @@ class Result:
         Stage name -> seconds.
     extra : dict
         Further named arrays worth keeping (written under /entry/dfxcorr/extra).
+    pixel_size : tuple of float or None
+        (y, x) pixel pitch of the images in m (the detector's), None where the scan does not record it.
     """
 
     transmission: np.ndarray
@@ -78,6 +80,7 @@ class Result:
     uncorrected: dict | None = None
     timings: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
+    pixel_size: tuple[float, float] | None = None
 
     IMAGES = ("transmission", "dark_field", "differential_phase")
 

@@ -1,8 +1,7 @@
 #!/usr/bin/env python3
-"""This checkout against a tagged earlier version, on the paper's simulation study, in one run.
+"""This checkout against a reference version, on the paper's simulation study, in one run.
 
-The reference (default :data:`BASELINE`: main before the clinical-scale work, the plain numpy/scipy
-implementation of the paper; the tag ``baseline-0.1`` that stood for it is not in this repository) is exported
+The reference (default :data:`BASELINE`: the plain numpy/scipy implementation of the paper) is exported
 with ``git archive`` and installed into its own virtual environment under ``--work``; this checkout
 runs from the environment that runs the script. The paper's study (209 frames of 450 x 510,
 ``configs/paper-simulation.yaml``) is simulated once, then both versions reconstruct it in
@@ -27,10 +26,8 @@ from dfxcorr.analysis.compare import machine
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = {"defaults": [], "fit.subsample=20": ["--set", "fit.subsample=20"]}
-#: Main before the clinical-scale merge (76575f2): 8a55ae6 "scripts/bench_baseline.py: this checkout against a
-#: tagged version" on main's first-parent line, the last main commit without numba (its reconstruction is that of
-#: 3e531e1, the parent of the scale branch's 810d9ea "Streaming: ..."; 8a55ae6 adds only dfxcorr batch and this
-#: script).
+#: The plain numpy/scipy implementation of the paper: the last commit without compiled kernels, frames held in
+#: memory.
 BASELINE = "8a55ae67a752f7ac14bc59aa8c1bb0bdcdbba0d9"
 
 

@@ -14,7 +14,7 @@ full resolution (configs/clinical.yaml: 195 frames of 2880 x 2880 uint16, 3.2 GB
 (configs/clinical-binned.yaml: 1440 x 1440), then runs ``dfxcorr reconstruct`` on each file in a
 subprocess under ``/usr/bin/time -v`` for wall time and peak resident memory, and the phi0 / phi1 /
 v^s RMSE against the truth (median gauge over frames lighting half the active area), with the fit's
-iterations and cost evaluations from its log. Targets (issue 20): full resolution under 30 s and 1.6 GB,
+iterations and cost evaluations from its log. Targets: full resolution under 30 s and 1.6 GB,
 binned under 10 s, both within 0.004 rad.
 
 Target ``demo`` runs ``dfxcorr demo`` in a subprocess with an empty numba cache (compilation included),
@@ -75,7 +75,7 @@ CASES = {"default": [], "every column": ["fit.subsample=1"], "every 20th column"
          "no preconditioning": ["fit.subsample=4", "fit.optimizer=lbfgs", "fit.precondition=false"]}
 #: The fit's log line with its iterations and cost evaluations (dfxcorr.pipeline.run_fit).
 FIT_LINE = re.compile(r"vibration fit: (\d+) iterations, (\d+) evaluations of the cost over (\d+) samples")
-#: The log line of the chosen columns (dfxcorr.pipeline.plan_columns).
+#: The log line of the chosen columns (dfxcorr.planning.plan_columns).
 PLAN_LINE = re.compile(r"vibration fit columns: (.*)")
 CLINICAL = {"binned": ROOT / "configs" / "clinical-binned.yaml", "full": ROOT / "configs" / "clinical.yaml"}
 #: The speed anchor: the paper's method written plainly in numpy/scipy (not part of the project).
@@ -257,7 +257,7 @@ def main():
 
 
 def targets(folder: Path) -> None:
-    """Print each target with its measured figure, the machine and whether it is met (saved JSON)."""
+    """Print each performance target with its measured figure, the machine and whether it is met (saved JSON)."""
     def load(name):
         path = folder / name
         return json.loads(path.read_text()) if path.exists() else {}

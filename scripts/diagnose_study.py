@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -28,8 +29,13 @@ from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr.analysis.compare import machine
 from dfxcorr.analysis.diagnose import diagnose
-from dfxcorr.pipeline import prepare, reconstruct
+from dfxcorr.effects import REGISTRY
+from dfxcorr.pipeline import reconstruct
+from dfxcorr.preparation import prepare
 from dfxcorr.sim import simulate as S
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from docs_pages import fmt_estimate, fmt_images  # noqa: E402  (a sibling script, not a package)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -81,7 +87,7 @@ def image_errors(images: dict, truth: dict) -> dict:
 def estimate_error(name: str, diag, truth: dict) -> dict:
     """The named effect's estimate against the truth (RMS over well-lit frames for per-frame effects)."""
     report = next(e for e in diag.effects if e.name == name)
-    extra = report.extra
+    extra = report.values
     if name == "detector_gain":
         return {"estimate": extra["gain"], "truth": float(truth["gain"])}
     if name == "sample_motion":
@@ -134,7 +140,7 @@ def run(effect: str | None, amplitude: float | None, *, pixel_mm: float, seed: i
     scan, truth = S.simulate(simulation(pixel_mm, seed, settings))
     cfg = C.load([], conceal)
     t0 = time.perf_counter()
-    reconstruct(prepare(scan, cfg), cfg, progress=False)
+    reconstruct(prepare(scan, cfg, effects=REGISTRY.values()), cfg, progress=False)
     t_rec = time.perf_counter() - t0
     t0 = time.perf_counter()
     diag = diagnose(scan, cfg)
@@ -142,7 +148,7 @@ def run(effect: str | None, amplitude: float | None, *, pixel_mm: float, seed: i
     found = [e.name for e in diag.effects if e.detected]
     out = {"effect": effect, "amplitude": amplitude, "seed": seed, "settings": settings, "found": found,
            "first": found[0] if found else None, "initial_chi2": diag.initial_chi2, "final_chi2": diag.final_chi2,
-           "unexplained": [u["axis"] for u in diag.unexplained], "seconds": round(t_diag, 1),
+           "unexplained": [u.axis for u in diag.unexplained], "seconds": round(t_diag, 1),
            "cost_vs_reconstruct": round(t_diag / t_rec, 2)}
     if effect is not None and found and found[0] == effect:
         change = diag.changes[0]
@@ -163,31 +169,6 @@ def run_pair(names: tuple[str, ...], level: int, *, pixel_mm: float, seed: int) 
     r = run(None, None, pixel_mm=pixel_mm, seed=seed, settings=settings, sets=tuple(sets))
     r.update(effect=" + ".join(names), amplitude=amps, ok=sorted(r["found"]) == sorted(names))
     return r
-
-
-def _fmt_estimate(r: dict) -> str:
-    e = r.get("estimate")
-    if not e:
-        return "-"
-    if "rmse" in e:
-        return f"RMSE {e['rmse']:.3g} (truth std {e['truth_std']:.3g})"
-    if "a2" in e:
-        return f"a2 {e['a2']:.4f} ({e['a2_truth']:.4f}), beta {e['beta']:.2f} ({e['beta_truth']:.2f})"
-    if "misclassified" in e:
-        return f"f {e['factor']:.3g} ({e['truth']:.3g}), {100 * e['misclassified']:.1f} % of pixels misclassified"
-    if "pixels" in e:
-        return f"{e['pixels']} pixels ({e['true_pixels']} moving, {100 * e['in_region']:.0f} % of them)"
-    est, tru = e["estimate"], e["truth"]
-    if isinstance(est, list):
-        return ", ".join(f"{a:.3g} ({b:.3g})" for a, b in zip(est, tru, strict=True))
-    return f"{est:.4g} ({tru:.4g})"
-
-
-def _fmt_images(r: dict) -> str:
-    if "images_before" not in r:
-        return "-"
-    b, a = r["images_before"], r["images_after"]
-    return f"{b['phase_rmse']:.3f} -> {a['phase_rmse']:.3f} / {b['dark_field_rmse']:.3f} -> {a['dark_field_rmse']:.3f}"
 
 
 def main():
@@ -260,7 +241,7 @@ def main():
     for r in results["concealed"]:
         lines.append(f"| {r['effect']} | {r['amplitude']:g} | {'yes' if r['first'] == r['effect'] else 'no'} | "
                      f"{', '.join(r['found']) or '-'} | {r['initial_chi2']:.4f} -> {r['final_chi2']:.4f} | "
-                     f"{_fmt_estimate(r)} | {_fmt_images(r)} | {r['cost_vs_reconstruct']:g} |")
+                     f"{fmt_estimate(r)} | {fmt_images(r)} | {r['cost_vs_reconstruct']:g} |")
     lines += ["", "| effect | smallest amplitude still named first |", "|---|---|"]
     lines += [f"| {k} | {'not found' if v is None else f'{v:g}'} |" for k, v in results["limits"].items()]
     lines += ["", "| clean scan | seed | found | unexplained | reduced chi2 | cost |", "|---|---|---|---|---|---|"]

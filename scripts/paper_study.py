@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The paper's simulation study (Sec. III-A) end to end, with the numbers the README quotes.
+"""The paper's simulation study (Sec. III-A) end to end: the numbers of docs/paper-study.json.
 
 Simulates ``configs/paper-simulation.yaml`` (full size 209 x 450 x 510 by default), reconstructs it
 with the default configuration, and measures against the truth:

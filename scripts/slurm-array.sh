@@ -7,7 +7,7 @@
 # same array resumes it. A failed task exits non-zero and its reason is the last line of results/<stem>.log.
 #
 # Memory: a full-resolution clinical scan (195 x 2880 x 2880 uint16) peaks at the resident size measured by
-# scripts/benchmark.py (README, "Speed"); --mem leaves a margin above it. Binned 1440 x 1440 needs a quarter.
+# scripts/benchmark.py (docs/measurements.md); --mem leaves a margin above it. Binned 1440 x 1440 needs a quarter.
 #SBATCH --job-name=dfxcorr
 #SBATCH --cpus-per-task=2
 #SBATCH --mem=3G

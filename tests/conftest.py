@@ -18,7 +18,9 @@ from click.testing import CliRunner
 
 from dfxcorr import config as C
 from dfxcorr import model as M
+from dfxcorr import preparation
 from dfxcorr.align import build_observations
+from dfxcorr.effects import REGISTRY
 from dfxcorr.io import Reference, Scan
 from dfxcorr.sim import simulate as S
 
@@ -43,6 +45,11 @@ def real_ipp_scan(tmp_path) -> Path:
     import_stepping(tmp_path / "ipp.h5", sample=str(folder / "data_stepping_*.npy"),
                     reference=str(folder / "flat_stepping_*.npy"), steps_per_period=11)
     return tmp_path / "ipp.h5"
+
+
+def prepare(scan, cfg: dict, **kw) -> preparation.Prepared:
+    """:func:`dfxcorr.preparation.prepare` with every registered effect's configured correction, as reconstruct does."""
+    return preparation.prepare(scan, cfg, effects=REGISTRY.values(), **kw)
 
 
 def sim_config(**overrides) -> dict:

@@ -349,3 +349,14 @@ def test_import_is_cheap():
     code = "import sys, dfxcorr.export; print('matplotlib' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_pixel_size_round_trips(tmp_path):
+    r = make_result()
+    write_result_h5(tmp_path / "unknown.h5", r)
+    assert read_result_h5(tmp_path / "unknown.h5")["pixel_size"] is None
+    r.pixel_size = (1e-4, 7.5e-5)
+    write_result_h5(tmp_path / "known.h5", r)
+    assert read_result_h5(tmp_path / "known.h5")["pixel_size"] == (1e-4, 7.5e-5)
+    with h5py.File(tmp_path / "known.h5") as f:
+        assert f["entry/dfxcorr/results/x_pixel_size"].attrs["units"] == "m"

@@ -1,4 +1,4 @@
-"""Detector faults as data (issue 21): saturated samples, empty and repeated frames are left out of the fit and the
+"""Detector faults as data: saturated samples, empty and repeated frames are left out of the fit and the
 images with a warning, the result stays within noise of the fault-free twin, ``check`` reports them and
 ``diagnose`` names no catalogue effect for them."""
 from __future__ import annotations
@@ -19,7 +19,7 @@ from dfxcorr.sim import simulate as S
 
 from conftest import sim_config
 
-#: Lit samples above this quantile are clipped: 8 %, as in the clinical scan of the issue.
+#: Lit samples above this quantile are clipped: 8 %, as where a clinical scan's direct beam saturates the panel.
 SATURATED_SHARE = 0.08
 DROPPED = 50
 

@@ -12,6 +12,8 @@ from dfxcorr import pipeline
 from dfxcorr.analysis.evaluate import frames_lighting, gauge_median
 from dfxcorr.planning import IdentifiabilityError
 
+from conftest import prepare
+
 
 def standardized_errors(result, truth, scan, frames=None):
     """Errors in units of the reported uncertainty over ``frames`` (default: the well-lit ones), median gauge."""
@@ -132,7 +134,7 @@ def test_optimizers_and_preconditioners_reach_the_same_minimum(small_scan, monke
     (this scan's many edge frames make it a hard case: 47 against 85), and whitened L-BFGS fewer iterations than
     the diagonal preconditioner."""
     scan, _ = small_scan()
-    obs = pipeline.prepare(scan, C.load([], [])).observations(columns=np.arange(1, scan.shape[2], 2))
+    obs = prepare(scan, C.load([], [])).observations(columns=np.arange(1, scan.shape[2], 2))
 
     def fit(optimizer, preconditioner="profiled", gtol=1e-3):
         return F.fit_vibrations(obs, optimizer=optimizer, preconditioner=preconditioner, gtol=gtol)
@@ -154,7 +156,7 @@ def test_a_bound_the_whitened_fit_crosses_is_kept(small_scan, monkeypatch, caplo
     """Whitened variables have no box bounds: a stage ending below a lower bound is finished under the
     diagonal scaling, which keeps it."""
     scan, _ = small_scan()
-    obs = pipeline.prepare(scan, C.load([], [])).observations(columns=np.arange(0, scan.shape[2], 2))
+    obs = prepare(scan, C.load([], [])).observations(columns=np.arange(0, scan.shape[2], 2))
     free = F.fit_vibrations(obs, prior=False, reweight=0)
     floor = 0.97
     assert np.mean(free.params["visibility_loss"] < floor) > 0.2  # the unbounded optimum is below it
@@ -197,7 +199,7 @@ def test_a_coarse_first_pass_reaches_the_same_minimum(small_scan):
     at the minimum of the fit of all columns from the start (0.01 sigma; the weights given, so that both
     minimise the same cost)."""
     scan, _ = small_scan()
-    obs = pipeline.prepare(scan, C.load([], [])).observations(columns=np.arange(1, scan.shape[2], 2))
+    obs = prepare(scan, C.load([], [])).observations(columns=np.arange(1, scan.shape[2], 2))
     weights = F.initial_weights(obs, {})
     direct = F.fit_vibrations(obs, weights=weights, reweight=0)
     coarse = F.fit_vibrations(obs, weights=weights, reweight=0, coarse=4)
@@ -213,7 +215,7 @@ def test_loose_intermediate_stages_end_at_the_same_estimates(small_scan, monkeyp
     default reweighting and prior the estimates are those of a fit whose every stage converges to gtol (0.01
     sigma), in fewer cost evaluations."""
     scan, _ = small_scan()
-    obs = pipeline.prepare(scan, C.load([], [])).observations(columns=np.arange(1, scan.shape[2], 2))
+    obs = prepare(scan, C.load([], [])).observations(columns=np.arange(1, scan.shape[2], 2))
     loose = F.fit_vibrations(obs)
     monkeypatch.setattr(F, "STAGE_GTOL", 1e-3)
     tight = F.fit_vibrations(obs)

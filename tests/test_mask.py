@@ -2,10 +2,12 @@
 import numpy as np
 
 from dfxcorr import config as C
-from dfxcorr import pipeline
+from dfxcorr import pipeline, planning
 from dfxcorr.align import build_observations
 from dfxcorr.mask import motion_mask, pilot_vibrations
 from dfxcorr.reference import resolve_reference
+
+from conftest import prepare
 
 
 def test_moving_region_is_flagged_and_little_else(small_scan):
@@ -66,13 +68,13 @@ def test_chi2_tail_matches_scipy_stats():
 
 def test_row_blocks_give_the_mask_of_one_pass(small_scan):
     scan, _ = small_scan(**{"effects.sample_motion": 0.3})
-    prep = pipeline.prepare(scan, C.defaults())
+    prep = prepare(scan, C.defaults())
     columns = np.arange(1, scan.shape[2], 3)
     pilot = pilot_vibrations(prep.observations(columns=columns))
     whole = motion_mask([prep.observations(columns=columns)], pilot=pilot)
-    blocks = motion_mask((prep.observations(columns=columns, rows=r) for r in pipeline.row_blocks(prep.store, 0.05)),
+    blocks = motion_mask((prep.observations(columns=columns, rows=r) for r in planning.row_blocks(prep.store, 0.05)),
                          pilot=pilot)
-    assert len(pipeline.row_blocks(prep.store, 0.05)) > 3
+    assert len(planning.row_blocks(prep.store, 0.05)) > 3
     np.testing.assert_array_equal(whole[0], blocks[0])
     np.testing.assert_allclose(whole[1], blocks[1], rtol=1e-12, equal_nan=True)
     assert whole[2] == blocks[2]

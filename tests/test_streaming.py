@@ -10,7 +10,7 @@ import h5py
 import numpy as np
 import pytest
 
-from dfxcorr import align, pipeline
+from dfxcorr import align, pipeline, planning
 from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr.analysis import diagnose as D
@@ -19,7 +19,7 @@ from dfxcorr.io import H5Frames, Reference, Scan, read_scan, write_scan
 from dfxcorr.retrieve import retrieve
 from dfxcorr.sim import simulate as S
 
-from conftest import ROOT, sim_config
+from conftest import ROOT, prepare, sim_config
 
 
 def _open_files() -> int:
@@ -96,7 +96,7 @@ def test_row_blocks_give_the_images_of_one_pass(prepared_scan):
     assert tiny.reduced_chi2 == pytest.approx(huge.reduced_chi2, rel=1e-10)
     # and both equal one retrieval holding every sample (in float32, as the pipeline's), with reduced_chi2's own
     # degrees of freedom
-    prep = pipeline.prepare(scan, C.defaults())
+    prep = prepare(scan, C.defaults())
     obs = prep.observations(dtype=np.float32)
     fitted = {k: v for k, v in tiny.params.items() if tiny.estimated[k]}
     whole = retrieve(replace(obs, use=obs.roi), fitted)
@@ -108,7 +108,7 @@ def test_row_blocks_give_the_images_of_one_pass(prepared_scan):
 def test_observations_are_c_ordered_whatever_the_store(prepared_scan):
     """The kernels walk one sample row at a time: a Fortran-ordered store must not reach them as such."""
     scan, _ = prepared_scan
-    prep = pipeline.prepare(scan, C.defaults())
+    prep = prepare(scan, C.defaults())
     prep.store.counts = np.asfortranarray(prep.store.counts)
     for columns in (None, np.arange(0, scan.shape[2], 3)):
         obs = prep.observations(columns=columns, dtype=np.float32)
@@ -117,13 +117,13 @@ def test_observations_are_c_ordered_whatever_the_store(prepared_scan):
 
 def test_row_blocks_follow_the_memory_budget(prepared_scan):
     scan, _ = prepared_scan
-    store = pipeline.prepare(scan, C.defaults()).store
+    store = prepare(scan, C.defaults()).store
     for mb in (1e-6, 0.05, 0.3, 1e5):
-        blocks = pipeline.row_blocks(store, mb)
+        blocks = planning.row_blocks(store, mb)
         assert blocks[0][0] == store.row.min() and blocks[-1][1] == store.row.max() + 1
         assert all(a[1] == b[0] for a, b in itertools.pairwise(blocks))
         per_row = np.bincount(store.row)
-        cap = mb * 1e6 / (pipeline.BYTES_PER_SAMPLE * scan.shape[2])
+        cap = mb * 1e6 / (planning.BYTES_PER_SAMPLE * scan.shape[2])
         # a block exceeds the budget only when it is a single row
         assert all(r1 - r0 == 1 or per_row[r0:r1].sum() <= cap for r0, r1 in blocks)
 
@@ -131,7 +131,7 @@ def test_row_blocks_follow_the_memory_budget(prepared_scan):
 @pytest.mark.slow
 def test_float32_fit_agrees_with_float64_within_its_uncertainty(prepared_scan):
     scan, _ = prepared_scan
-    prep = pipeline.prepare(scan, C.defaults())
+    prep = prepare(scan, C.defaults())
     cols = np.arange(1, scan.shape[2], 3)
     fits = {dt: fit_vibrations(prep.observations(columns=cols, dtype=dt), effects=M.PAPER_MODEL)
             for dt in (np.float32, np.float64)}
@@ -166,7 +166,7 @@ def test_diagnose_and_reconstruct_see_the_same_data(monkeypatch):
     np.testing.assert_array_equal(a.roi, b.roi)
     assert a.gain == b.gain and a.electronic == b.electronic
     # the options took effect: another reference (nominal steps) and a region of interest cut by v^f
-    default = pipeline.prepare(scan, C.defaults())
+    default = prepare(scan, C.defaults())
     assert not np.allclose(default.reference.phase, seen[0].reference.phase)
     assert 0 < a.roi.mean() < 1 and np.all(a.vf[~a.roi] == 0)
 
@@ -178,7 +178,7 @@ def test_diagnose_and_reconstruct_see_the_same_data(monkeypatch):
     (400, 10_000, 10, 100),  # a tiny budget stops at the alias limit W / 4
 ])
 def test_column_step_is_the_smallest_within_the_samples(width, samples_per_column, budget, expected):
-    n = pipeline.column_step(width, samples_per_column, most=budget)
+    n = planning.column_step(width, samples_per_column, most=budget)
     assert n == expected
     assert expected == width // 4 or samples_per_column * width / expected <= budget
     assert expected == 1 or samples_per_column * width / (expected - 1) > budget
@@ -190,9 +190,9 @@ def test_subsample_auto_reaches_the_target_uncertainty_it_predicts(small_scan, c
     predicts to fit in it, a time floor at least those (this small scan's every column); the log names the
     columns, the predicted uncertainty and time."""
     scan, _ = small_scan()
-    prep = pipeline.prepare(scan, C.defaults())
+    prep = prepare(scan, C.defaults())
     with caplog.at_level("INFO", logger="dfxcorr"):
-        plans = {t: pipeline.plan_columns(prep, C.load([], [f"fit.target_uncertainty={t}", "fit.time_floor=null"]))
+        plans = {t: planning.plan_columns(prep, C.load([], [f"fit.target_uncertainty={t}", "fit.time_floor=null"]))
                  for t in (0.007, 0.012)}
     assert "predicted phi0/phi1 uncertainty" in caplog.text and "predicted fit time" in caplog.text
     assert plans[0.012].columns.size < plans[0.007].columns.size < scan.shape[2]
@@ -203,15 +203,15 @@ def test_subsample_auto_reaches_the_target_uncertainty_it_predicts(small_scan, c
     good = fitted.well_determined
     reported = max(float(np.median(fitted.uncertainty[n][good])) for n in ("phase_offset", "tilt"))
     assert 0.75 * plan.uncertainty < reported < 1.1 * plan.uncertainty
-    budget = pipeline.plan_columns(prep, C.load([], [f"fit.time_budget={plan.seconds / 2}"]))
+    budget = planning.plan_columns(prep, C.load([], [f"fit.time_budget={plan.seconds / 2}"]))
     assert budget.seconds <= plan.seconds / 2 and budget.columns.size >= plan.columns.size // 2 - 1
     assert budget.uncertainty == pytest.approx(plan.uncertainty * np.sqrt(plan.columns.size / budget.columns.size))
     # the floor is the whole run's: the fit's predicted seconds and the other stages' for every sample of the scan
-    rest = pipeline.REST_SECONDS_PER_SAMPLE * prep.store.samples_per_column() * scan.shape[2]
-    floor = pipeline.plan_columns(prep, C.load([], ["fit.target_uncertainty=0.012",
+    rest = planning.REST_SECONDS_PER_SAMPLE * prep.store.samples_per_column() * scan.shape[2]
+    floor = planning.plan_columns(prep, C.load([], ["fit.target_uncertainty=0.012",
                                                     f"fit.time_floor={plan.seconds + rest}"]))
     assert floor.columns.size >= plan.columns.size and floor.seconds <= plan.seconds
-    every = pipeline.plan_columns(prep, C.load([], ["fit.target_uncertainty=0.012"]))
+    every = planning.plan_columns(prep, C.load([], ["fit.target_uncertainty=0.012"]))
     assert every.columns.size == scan.shape[2] and every.seconds + rest <= C.defaults()["fit"]["time_floor"]
 
 

@@ -16,14 +16,18 @@ import os
 import platform
 import time
 import zipfile
+from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from .. import config as C
 from .. import export, pipeline, plots
+from ..effects import REGISTRY
 from ..errors import DfxcorrError
 from ..io import Scan, atomic_path
+from ..preparation import Prepared, prepare
 from ..result import Result, paper_params
 from .evaluate import frames_lighting, image_rmse, vibration_rmse
 
@@ -71,12 +75,12 @@ def machine() -> str:
 # --------------------------------------------------------------------------------------------------
 
 
-#: Configuration sections that :func:`dfxcorr.pipeline.prepare` reads.
+#: Configuration sections that :func:`dfxcorr.preparation.prepare` reads.
 PREPARATION_SECTIONS = ("load", "reference", "align")
 
 
-def run_methods(scan: Scan | str | Path | pipeline.Prepared, cfg: dict, *, methods=METHODS,
-                method_sets: dict | None = None,
+def run_methods(scan: Scan | str | Path | Prepared, cfg: dict[str, Any], *, methods: Sequence[str] = METHODS,
+                method_sets: dict[str, Any] | None = None,
                 command_line: str = "") -> tuple[dict[str, Result], dict[str, float]]:
     """Reconstruct one scan with each estimator.
 
@@ -101,7 +105,7 @@ def run_methods(scan: Scan | str | Path | pipeline.Prepared, cfg: dict, *, metho
         Method -> wall-clock seconds of the reconstruction (s).
     """
     results, runtimes = {}, {}
-    prepared: dict[str, tuple[pipeline.Prepared, float]] = {}
+    prepared: dict[str, tuple[Prepared, float]] = {}
     for method in methods:
         cfg_m = C.merge(cfg, {"fit": {"method": method}})
         for item in (method_sets or {}).get(method, []):
@@ -111,7 +115,7 @@ def run_methods(scan: Scan | str | Path | pipeline.Prepared, cfg: dict, *, metho
         key = json.dumps({k: cfg_m[k] for k in PREPARATION_SECTIONS}, sort_keys=True)
         if key not in prepared:
             t0 = time.perf_counter()
-            prep = scan if isinstance(scan, pipeline.Prepared) else pipeline.prepare(scan, cfg_m)
+            prep = scan if isinstance(scan, Prepared) else prepare(scan, cfg_m, effects=REGISTRY.values())
             prepared[key] = prep, time.perf_counter() - t0
         prep, prep_seconds = prepared[key]
         t0 = time.perf_counter()
@@ -122,7 +126,7 @@ def run_methods(scan: Scan | str | Path | pipeline.Prepared, cfg: dict, *, metho
     return results, runtimes
 
 
-def load_truth(path: str | Path, shape: tuple) -> dict:
+def load_truth(path: str | Path, shape: tuple[Any, ...]) -> dict[str, Any]:
     """Read a truth file (``dfxcorr simulate``; ``image_*`` (H, W), ``vib_*`` (J,)) and check it fits the scan.
 
     Parameters
@@ -175,7 +179,7 @@ def load_truth(path: str | Path, shape: tuple) -> dict:
 
 
 def comparison_table(results: dict[str, Result], runtimes: dict[str, float], *, scan: Scan,
-                     truth: dict | None = None) -> list[dict]:
+                     truth: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """One row per method: reduced chi-square, runtime and, with a truth, RMSE of parameters and images.
 
     Parameters
@@ -215,7 +219,7 @@ _HEAD = {"method": "method", "reduced_chi2": "reduced χ²", "runtime_s": "runti
          "rmse_transmission": "RMSE t", "rmse_dark_field": "RMSE v", "rmse_differential_phase": "RMSE φ (rad)"}
 
 
-def table_markdown(rows: list[dict]) -> str:
+def table_markdown(rows: list[dict[str, Any]]) -> str:
     """A markdown table of :func:`comparison_table` rows (columns in the order of the first row)."""
     keys = list(rows[0])
     out = ["| " + " | ".join(_HEAD.get(k, k) for k in keys) + " |", "|" + "---|" * len(keys)]
@@ -236,7 +240,7 @@ def table_markdown(rows: list[dict]) -> str:
 # --------------------------------------------------------------------------------------------------
 
 
-def comparison_paths(out_dir: Path, methods) -> dict[str, Path]:
+def comparison_paths(out_dir: Path, methods: Iterable[str]) -> dict[str, Path]:
     """Every file :func:`write_comparison` writes, by role."""
     out = {m: out_dir / f"{m}.h5" for m in methods}
     out.update(images=out_dir / "images.png", convergence=out_dir / "convergence.png",
@@ -245,7 +249,7 @@ def comparison_paths(out_dir: Path, methods) -> dict[str, Path]:
 
 
 def write_comparison(out_dir: str | Path, scan: Scan, results: dict[str, Result], runtimes: dict[str, float], *,
-                     truth: dict | None = None, source: str = "", result_files: bool = True,
+                     truth: dict[str, Any] | None = None, source: str = "", result_files: bool = True,
                      overwrite: bool = False) -> dict[str, Path]:
     """Write per-method results, the images and convergence pictures, and the table (markdown + JSON).
 
@@ -370,8 +374,9 @@ def fringe_frequency(phase: np.ndarray) -> float:
     return float(np.median(np.abs(grad)) / (2 * np.pi))
 
 
-def nps_study(scans, cfg: dict, *, methods=NPS_METHODS, method_sets: dict | None = None, bins: int | None = None,
-              command_line: str = "") -> dict:
+def nps_study(scans: Sequence[Scan | str | Path], cfg: dict[str, Any], *, methods: Sequence[str] = NPS_METHODS,
+              method_sets: dict[str, Any] | None = None, bins: int | None = None,
+              command_line: str = "") -> dict[str, Any]:
     """Noise power spectra of the dark-field images of blank scans, per method.
 
     Parameters
@@ -396,13 +401,13 @@ def nps_study(scans, cfg: dict, *, methods=NPS_METHODS, method_sets: dict | None
         'scans' (names); 'runtime_s' method -> total seconds.
     """
     cfg = C.merge(cfg, {"retrieve": {"uncorrected": False}})
-    spectra: dict[str, list] = {m: [] for m in methods}
+    spectra: dict[str, list[Any]] = {m: [] for m in methods}
     runtime = {m: 0.0 for m in methods}
-    fringes: list = []
+    fringes: list[Any] = []
     names: list[str] = []
     freq = None
     for item in scans:
-        prep = pipeline.prepare(item, cfg)
+        prep = prepare(item, cfg, effects=REGISTRY.values())
         names.append(str(item) if not isinstance(item, Scan) else f"scan {len(names)}")
         fringes.append(fringe_frequency(prep.reference.phase))
         # rings a quarter of the fringe frequency wide, within the command line's bounds (no fringe: 32)
@@ -427,7 +432,8 @@ def nps_paths(out_dir: Path) -> dict[str, Path]:
     return {"png": out_dir / "nps.png", "csv": out_dir / "nps.csv", "json": out_dir / "nps.json"}
 
 
-def write_nps(out_dir: str | Path, study: dict, *, title: str = "", overwrite: bool = False) -> dict[str, Path]:
+def write_nps(out_dir: str | Path, study: dict[str, Any], *, title: str = "", overwrite: bool = False
+              ) -> dict[str, Path]:
     """Picture (mean ± std per method, fringe frequency and first harmonic marked), CSV and JSON of a study.
 
     Returns
@@ -453,7 +459,7 @@ def write_nps(out_dir: str | Path, study: dict, *, title: str = "", overwrite: b
     return paths
 
 
-def fringe_power(study: dict) -> dict[str, dict[str, float]]:
+def fringe_power(study: dict[str, Any]) -> dict[str, dict[str, float]]:
     """Power left at the fringe frequency and its first harmonic, per method.
 
     Parameters

@@ -15,51 +15,68 @@ the prepared scan, so a rejected trial leaves nothing to undo.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Hashable, Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any, TypeVar
 
 import numpy as np
 
 from .. import config as C
-from ..align import pixel_mm, realign, subsample_columns
+from ..align import realign, subsample_columns
 from ..effects import REGISTRY
-from ..effects.base import EffectBase, Hypothesis, Preparation, Realign, State, Test
+from ..effects.base import Consistency, EffectBase, Hypothesis, Params, Realign, State, Test, Unexplained
 from ..fit import fit_vibrations
 from ..frames import well_determined
 from ..io import Scan
 from ..observations import Observations
-from ..pipeline import Prepared, column_step, prepare, stage
-from ..planning import resolve_effects, visibility_unidentifiable
+from ..planning import column_step, resolve_effects, visibility_unidentifiable
+from ..preparation import Prepared, prepare
+from ..progress import stage
 from ..retrieve import Retrieval, retrieve
 from . import loop
-from .report import Diagnosis, EffectReport, change_picture, residuals
+from .loop import GROSS
+from .replication import Part, replicate
+from .report import Diagnosis, EffectReport, Verdict, change_picture, residuals
 from .signatures import Residuals, signatures
 
 log = logging.getLogger(__name__)
 
+T = TypeVar("T")
+
 
 @dataclass(frozen=True, eq=False)
 class Fitted:
-    """A hypothesis fitted: its parameters, chi-square, retrieval and residual signatures, and the samples
-    it was fitted on (the held columns, :func:`held_band`, and the fit's columns)."""
+    """A hypothesis fitted: its parameters and their standard errors, chi-square, retrieval and residual
+    signatures, and the samples it was fitted on (the held columns, :func:`held_band`, and the fit's columns);
+    values that tests compute from it are kept with it (:meth:`cached`)."""
 
     hypothesis: Hypothesis
-    params: dict
+    params: Params
+    uncertainty: Params
     chi2: float
     reduced_chi2: float
     rec: Retrieval
-    signatures: list
+    signatures: list[dict[str, Any]]
     obs: Observations
     fit_obs: Observations
     fit_rec: Retrieval
+    _cache: dict[Hashable, Any] = field(default_factory=dict, repr=False)
+
+    def cached(self, make: Callable[..., T], *args: np.ndarray) -> T:
+        """``make(self, *args)``, computed once for this state and these arguments (arrays, compared by value)."""
+        key = (make, *((a.shape, a.tobytes()) for a in args))
+        if key not in self._cache:
+            self._cache[key] = make(self, *args)
+        return self._cache[key]
 
 
 class Session:
     """One diagnosis of one prepared scan: what its effects may ask (:class:`~dfxcorr.effects.base.Context`) and
     the fits of the hypotheses the loop tries."""
 
-    def __init__(self, prep: Prepared, cfg: dict, timings: dict, registry: Mapping[str, EffectBase]):
+    def __init__(self, prep: Prepared, cfg: dict[str, Any], timings: dict[str, Any],
+                 registry: Mapping[str, EffectBase[Any]]):
         d = cfg["diagnose"]
         self.prep, self.cfg, self.timings, self.registry = prep, cfg, timings, registry
         # the per-pixel tests need every pixel: the diagnosis holds the scan's samples (the reconstruction streams
@@ -79,22 +96,25 @@ class Session:
         self.good_frames = well_determined(self.fit_base, cfg["fit"]["gauge_fraction"])
         self.stepping = prep.scan.is_stepping
         self.visibility_why = visibility_unidentifiable(prep.scan, prep.reference)
-        self.memo: dict = {}
-        self._prepared: dict[tuple, Prepared] = {}
-        self._aligned: dict[tuple, tuple[Observations, Observations]] = {}
+        self._prepared: dict[Hashable, Prepared] = {}
+        self._aligned: dict[Hashable, tuple[Observations, Observations]] = {}
+        self._values: dict[Hashable, Any] = {}
 
-    def prepared(self, hypothesis: Hypothesis) -> Prepared:
+    def corrected(self, hypothesis: Hypothesis) -> Prepared:
         key = hypothesis.corrections
         if key not in self._prepared:
-            made = Preparation(self.prep.store, np.zeros(self.prep.shape[0]), self.prep.noise,
-                               reference=self.prep.reference, pixel_mm=pixel_mm(self.prep.scan))
-            for name, setting in key:
-                made = self.registry[name].prepare(made, setting)
-            self._prepared[key] = replace(self.prep, store=made.store)
+            self._prepared[key] = self.prep.corrected((self.registry[name], setting) for name, setting in key)
         return self._prepared[key]
 
+    def cached(self, make: Callable[[Prepared], T], hypothesis: Hypothesis, key: Hashable = None) -> T:
+        """``make`` of the hypothesis's corrected scan, once per corrected scan (and ``key``)."""
+        at = (make, hypothesis.corrections, key)
+        if at not in self._values:
+            self._values[at] = make(self.corrected(hypothesis))
+        return self._values[at]
+
     def realigner(self, hypothesis: Hypothesis) -> Realign:
-        prep = self.prepared(hypothesis)
+        prep = self.corrected(hypothesis)
         return lambda like, shift: realign(prep.store, prep.reference, like, shift)
 
     def observe(self, hypothesis: Hypothesis) -> tuple[Observations, Observations]:
@@ -119,11 +139,13 @@ class Session:
         obs = replace(base, use=base.use & base.in_roi & ~base.pixel_mask(hypothesis.motion))
         return obs, replace(fit_obs, use=fit_obs.use & ~fit_obs.pixel_mask(hypothesis.motion))
 
-    def fit(self, hypothesis: Hypothesis, start: dict, label: str) -> Fitted:
-        """Fit a hypothesis (from ``start``, or afresh where empty): its chi-square and residual signatures."""
-        obs, fit_obs = self.observe(hypothesis)
+    def fit(self, hypothesis: Hypothesis, start: Params, label: str, *, part: Part | None = None) -> Fitted:
+        """Fit a hypothesis (from ``start``, or afresh where empty): its chi-square and residual signatures; on the
+        samples of one ``part`` of the detector only, where given (:mod:`dfxcorr.analysis.replication`)."""
+        obs, fit_obs = (_within(o, part) for o in self.observe(hypothesis))
         model, f = list(hypothesis.effects), self.cfg["fit"]
-        params = {}
+        params: Params = {}
+        unc: Params = {}
         with stage(f"{label}: fit {'+'.join(model) or 'images only'}", self.timings):
             if model:
                 # after the first round the fit starts next to its optimum: no staging against local minima
@@ -135,13 +157,24 @@ class Session:
                                         visibility_quantile=f["visibility_quantile"],
                                         gauge_fraction=f["gauge_fraction"])
                 params = {k: v for k, v in fitted.params.items() if k in model}
+                unc = {k: v for k, v in fitted.uncertainty.items() if k in model}
             n_par = sum(np.size(p) for p in params.values())
             # images and chi-square of every column, no per-sample arrays: the states stay small (the tests that
             # need every column's expected counts make them a run of columns at a time)
             rec = retrieve(obs, params, n_frame_params=n_par, keep_expected=False)
             fit_rec = retrieve(fit_obs, params, keep_inverse=True)
             sigs = signatures(fit_obs, params, n_params=n_par, alpha=self.cfg["diagnose"]["alpha"], rec=fit_rec)
-        return Fitted(hypothesis, params, rec.chi2_sum, rec.reduced_chi2, rec, sigs, obs, fit_obs, fit_rec)
+        return Fitted(hypothesis, params, unc, rec.chi2_sum, rec.reduced_chi2, rec, sigs, obs, fit_obs, fit_rec)
+
+
+def _within(obs: Observations, part: Part | None) -> Observations:
+    """The samples of ``obs`` in one part of the detector (all where None)."""
+    if part is None:
+        return obs
+    if part.axis == "columns":
+        return obs.subset(np.flatnonzero((obs.columns >= part.lo) & (obs.columns < part.hi)))
+    inside = (obs.rows >= part.lo) & (obs.rows < part.hi)
+    return replace(obs, use=obs.use & inside[obs.pixel][:, None])
 
 
 def held_band(width: int, samples_per_column: int, *, most: float) -> np.ndarray:
@@ -160,27 +193,52 @@ _SUSPECTS = {"count": ("expected count, dimmest", "a detector non-linearity or a
                        "nor all of them")}
 
 
-def _proxy(name: str, test: Test, odd: Test) -> dict:
+def _proxy(name: str, test: Test[Any], odd: Consistency) -> Unexplained:
     """The ``unexplained`` entry of a candidate refused as a proxy: its signature, located where its size changes."""
-    axis = odd.payload["axis"]
-    strata, suspect = _SUSPECTS[axis]
-    strata = strata.format(along=odd.payload.get("along", ""))
-    return {"axis": axis, "statistic": odd.statistic, "dof": odd.dof, "p_value": odd.p_value,
-            "where": f"pixels in {len(odd.payload['strata'])} strata by {strata} first: size against the shared fit "
-                     + ", ".join(f"{v:.2g}" for v in odd.payload["strata"]),
-            "description": f"the signature of {name} (S = {test.statistic:.4g}, dof {test.dof}), but of a size that "
-                           f"changes {'across the detector' if axis == 'pixel' else f'with the {axis}'}: no "
-                           f"catalogue effect ({suspect}?)"}
+    strata, suspect = _SUSPECTS[odd.axis]
+    strata = strata.format(along=odd.along or "")
+    return Unexplained(odd.axis, odd.statistic, odd.dof, odd.p_value,
+                       f"pixels in {len(odd.strata)} strata by {strata} first: size against the shared fit "
+                       + ", ".join(f"{v:.2g}" for v in odd.strata),
+                       f"the signature of {name} (S = {test.statistic:.4g}, dof {test.dof}), but of a size that "
+                       f"changes {'across the detector' if odd.axis == 'pixel' else f'with the {odd.axis}'}: no "
+                       f"catalogue effect ({suspect}?)")
 
 
-def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, base: str = "configured",
-             registry: Mapping[str, EffectBase] = REGISTRY) -> Diagnosis:
+def _not_added(name: str, test: Test[Any], out: loop.Outcome, *, alpha: float, tested: int) -> EffectReport:
+    """The verdict on an effect tested and not added: why not."""
+    verdict: Verdict
+    blind = out.blind.get(name)
+    held = out.held.get(name)
+    if held is not None:
+        verdict = "held: gross misfit" if held == "gross" else "explained by another"
+        return EffectReport(name, False, bool(test.identifiable), test.statistic, int(test.dof), test.p_value,
+                            verdict, alternatives=() if held == "gross" else (held,), excess=test.excess)
+    if blind is not None:
+        verdict = "explains, not identifiable" if blind.explains_misfit else "not identifiable"
+    elif not test.identifiable:
+        verdict = "not identifiable"
+    elif name in out.inconsistent:
+        verdict = "proxy"
+    elif name in out.rejected:
+        verdict = "raised chi-square" if out.rejected[name].astray else "rejected"
+    elif test.log_p < np.log(alpha / tested) and not test.material:
+        verdict = "not material"
+    else:
+        verdict = "not significant"
+    return EffectReport(name, False, bool(test.identifiable), test.statistic, int(test.dof), test.p_value, verdict,
+                        rejection=out.rejected.get(name), blind=blind,
+                        refused=out.inconsistent[name][1] if name in out.inconsistent else None, excess=test.excess)
+
+
+def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = None, *, base: str = "configured",
+             registry: Mapping[str, EffectBase[Any]] = REGISTRY) -> Diagnosis:
     """Locate model-data mismatch, name the missing effects, add them and refit until nothing is left.
 
     Parameters
     ----------
     scan : Scan, path or Prepared
-        Prepared by :func:`dfxcorr.pipeline.prepare` (reference options, region of interest), as for
+        Prepared by :func:`dfxcorr.preparation.prepare` (reference options, region of interest), as for
         a reconstruction.
     cfg : dict, optional
         Resolved configuration; its vibration section is the base model, its diagnose section the
@@ -196,8 +254,8 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
     """
     cfg = C.defaults() if cfg is None else cfg
     d = cfg["diagnose"]
-    timings: dict = {}
-    prep = scan if isinstance(scan, Prepared) else prepare(scan, cfg, timings=timings)
+    timings: dict[str, Any] = {}
+    prep = scan if isinstance(scan, Prepared) else prepare(scan, cfg, effects=registry.values(), timings=timings)
     session = Session(prep, cfg, timings, registry)
     J, H, W = prep.shape
     model = list(resolve_effects(cfg, prep.scan, prep.reference, session.fit_base)) \
@@ -221,30 +279,53 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                    proxy_spread=d["proxy_spread"], max_rounds=d["max_rounds"], timings=timings,
                    noise_first=d["order"] == "noise-first")
     final = out.state
+    replicated = {}
+    if d["replicate"] and out.steps:
+        with stage("replication on halves of the detector", timings):
+            # effects fitted together share directions that each half's fit leaves where its path ends: their
+            # per-frame estimates differ there by more than the errors of the directions the data fix
+            joint = {n: f"fitted together with {', '.join(m for m in s.names if m != n)}, with which it shares "
+                        f"directions that neither half fixes: not compared" for s in out.steps if s.together
+                     for n in s.names}
+            joint.update({s.name: f"shares {s.test.shared} direction(s) with the model's effects, which each half "
+                                  f"fixes where its fit's path ends: not compared" for s in out.steps if s.test.shared})
+            replicated = replicate({n: registry[n] for s in out.steps for n in s.names}, session, final,
+                                   lambda h, p, part: session.fit(h, p, f"replication: {part.label}", part=part),
+                                   shape=prep.shape, rows=session.stepping, alpha=d["alpha"], skip=joint)
+        for name, r in replicated.items():
+            log.info("%s on halves of the detector: %s", name, r.why)
     effects, changes = [], []
     for step in out.steps:
         e, t = registry[step.name], step.test
-        # the noise model is settled again in later trials: its report is what the final model holds
-        extra = e.accepted(session, step.before, final if e.role == "noise" else step.after, t)
-        effects.append(EffectReport(step.name, True, True, t.statistic, int(t.dof), t.p_value,
+        # the noise model is settled again in later trials: its finding is what the final model holds
+        finding = e.accepted(session, step.before, final if e.policy.noise_model else step.after, t)
+        beside = [(n, registry[n].accepted(session, step.before, step.after, out.tests[n])) for n in step.together]
+        # one finding of several that this acquisition cannot tell apart: each alternative's estimate from its trial
+        others = {n: registry[n].accepted(session, step.before, state, out.tests[n]).estimate
+                  for n, state in step.alternatives}
+        effects.append(EffectReport(step.name, True, True, t.statistic, int(t.dof), t.p_value, "added",
                                     delta_chi2=step.before.chi2 - step.after.chi2,
-                                    reduced_chi2_after=step.after.reduced_chi2, where=e.where(t, step.after.fit_obs),
-                                    estimate=e.estimate(extra, step.after.params, session.good_frames), extra=extra))
-        changes.append(change_picture(e, step.before, step.after, extra, located=located_once))
-    added = {s.name for s in out.steps}
+                                    reduced_chi2_after=step.after.reduced_chi2, finding=finding,
+                                    replication=replicated.get(step.name), alternatives=tuple(others),
+                                    alternative_estimates=others))
+        # added in the same trial: each significant beyond the other (their delta chi-square is the pair's)
+        effects += [EffectReport(n, True, True, out.tests[n].statistic, int(out.tests[n].dof), out.tests[n].p_value,
+                                 "added", delta_chi2=step.before.chi2 - step.after.chi2,
+                                 reduced_chi2_after=step.after.reduced_chi2, finding=f, replication=replicated.get(n))
+                    for n, f in beside]
+        changes.append(change_picture(e, step.before, step.after, finding, located=located_once))
+    added = {n for s in out.steps for n in s.names}
+    named_with = {n: s.name for s in out.steps for n, _ in s.alternatives}
     for n, t in sorted(out.tests.items(), key=lambda kv: -kv[1].statistic):
         if n in added:
             continue
-        extra = {"excess_null_directions": t.excess} if t.excess else {}
-        if n in out.rejected:
-            extra["explained_share"] = out.rejected[n]
-        if n in out.inconsistent:
-            extra["refused_as_proxy"] = out.inconsistent[n][1].payload["axis"]
-        extra.update(out.blind.get(n, {}))
-        effects.append(EffectReport(n, False, bool(t.identifiable), t.statistic, int(t.dof), t.p_value, extra=extra))
-    unexplained = [{"axis": s["axis"], "statistic": s["statistic"], "dof": s["dof"], "p_value": s["p_value"],
-                    "where": s["where"], "description": s["description"]} for s in final.signatures
-                   if s["significant"]]
+        if n in named_with:
+            effects.append(EffectReport(n, False, bool(t.identifiable), t.statistic, int(t.dof), t.p_value,
+                                        "alternative", alternatives=(named_with[n],)))
+        else:
+            effects.append(_not_added(n, t, out, alpha=d["alpha"], tested=len(out.tests)))
+    unexplained = [Unexplained(s["axis"], s["statistic"], s["dof"], s["p_value"], s["where"], s["description"])
+                   for s in final.signatures if s["significant"]]
     # what a catalogue effect's test saw but the effect itself did not explain: its size changes across the recording
     unexplained += [_proxy(n, t, odd) for n, (t, odd) in out.inconsistent.items() if n not in added]
     # localised misfits that masking did not explain
@@ -265,9 +346,14 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                  f"signature is reported unexplained there. A trial of a mean effect settles the noise model already "
                  f"added again on its own fit. A significant effect that the acquisition "
                  f"cannot identify gets a trial refit first: if it explains the misfit so, the diagnosis stops "
-                 f"there (naming a proxy would be the wrong physics). What stays significant is listed as "
-                 f"unexplained")
-    detected = [s.name for s in out.steps]
+                 f"there (naming a proxy would be the wrong physics). Candidates that share directions of their "
+                 f"parameters are decided on each one's share beyond the other (Holm's first threshold): the one "
+                 f"the data show, both fitted together, or one finding naming both. No trial may raise the reduced "
+                 f"chi-square, and the noise model is not judged while the mean model is grossly off (reduced "
+                 f"chi-square beyond {GROSS:g} with the residuals' mean significant). Every finding is refitted on "
+                 f"disjoint halves of the detector; one whose halves disagree (p < {d['alpha']}) is not "
+                 f"recommended. What stays significant is listed as unexplained")
+    detected = [n for s in out.steps for n in s.names]
     return Diagnosis(scan=str(prep.path) if prep.path else prep.name, base_model=model,
                      initial_chi2=first.reduced_chi2, final_chi2=final.reduced_chi2, effects=effects,
                      final_model=model + [n for n in detected if n in final.hypothesis.effects]
@@ -275,7 +361,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, bas
                      before=before,
                      after=located_once(final),
                      params=final.params, criterion=criterion, rounds=out.rounds,
-                     unexplained=sorted(unexplained, key=lambda u: u["p_value"]), signatures=final.signatures,
+                     unexplained=sorted(unexplained, key=lambda u: u.p_value), signatures=final.signatures,
                      shape=prep.shape, final=final.hypothesis, start=start, cfg=cfg, registry=registry,
                      changes=changes, timings=timings,
                      tested_columns=(int(session.held_columns[0]), int(session.held_columns[-1]) + 1))

@@ -1,6 +1,8 @@
 """Comparison with ground truth: vibration-parameter and image errors in the gauge of paper eq. 22."""
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from ..align import gauge_frames, lit_blocks
@@ -23,7 +25,7 @@ def frames_lighting(position: np.ndarray, active_rows: int, height: int, fractio
     return gauge_frames(np.bincount(frame, minlength=np.size(position)), fraction)
 
 
-def vibration_rmse(params: dict, truth: dict, good: np.ndarray) -> dict[str, float]:
+def vibration_rmse(params: dict[str, Any], truth: dict[str, Any], good: np.ndarray) -> dict[str, float]:
     """RMSE of each per-frame effect against the truth over ``good`` frames, both in the median gauge."""
     out = {}
     for name, key in TRUTH_KEYS.items():
@@ -36,7 +38,7 @@ def vibration_rmse(params: dict, truth: dict, good: np.ndarray) -> dict[str, flo
     return out
 
 
-def image_rmse(images: dict, truth: dict) -> dict[str, float]:
+def image_rmse(images: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:
     """RMSE of t, v and phi (phase wrapped to (-pi, pi]) against the truth over finite pixels."""
     out = {}
     for name in ("transmission", "dark_field", "differential_phase"):

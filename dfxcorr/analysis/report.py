@@ -1,27 +1,67 @@
 """The diagnosis's report: ``diagnosis.json`` (``spec/diagnosis.md``), ``report.md``, pictures and the files of
-the effects added, and the ``reconstruct`` command that uses the final model."""
+the effects added, and the ``reconstruct`` command that uses the final model.
+
+Every verdict is a typed value (:class:`EffectReport`: an effect's :class:`~dfxcorr.effects.base.Finding` where it
+was added, else why not), rendered here by its kind, so that no kind of verdict can break the report.
+"""
 from __future__ import annotations
 
 import json
+import shlex
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
+from .. import config as C
 from .. import plots
-from ..catalogue import PAPER_MODEL, effect
+from ..catalogue import CATALOGUE, effect
 from ..effects import REGISTRY
-from ..effects.base import EffectBase, Hypothesis, fit_counts
+from ..effects.base import Consistency, EffectBase, Finding, Hypothesis, Params, State, Unexplained
+from ..effects.residuals import fit_counts
 from ..io import atomic_path
 from ..retrieve import image_maps
+from .loop import GROSS, Blind, Rejection
+from .replication import Replication
 from .signatures import Residuals, locate
 
+#: What the diagnosis decided about an effect it tested.
+Verdict = Literal["added", "alternative", "not significant", "not material", "rejected", "raised chi-square", "proxy",
+                  "not identifiable", "explains, not identifiable", "held: gross misfit", "explained by another"]
 
-@dataclass
+
+@dataclass(frozen=True)
 class EffectReport:
-    """One catalogue effect's verdict (the keys of ``spec/diagnosis.md``)."""
+    """One catalogue effect's verdict (the keys of ``spec/diagnosis.md``).
+
+    Attributes
+    ----------
+    name, detected, identifiable, statistic, dof, p_value
+        As in ``diagnosis.json``.
+    verdict : str
+        What was decided (:data:`Verdict`).
+    delta_chi2, reduced_chi2_after : float or None
+        Where added: the chi-square it removed and the reduced chi-square after.
+    finding : Finding or None
+        Where added: what it reports.
+    rejection : Rejection or None
+        Where a trial refit was tried and not justified.
+    blind : Blind or None
+        Where not identifiable and tried first.
+    refused : Consistency or None
+        Where refused as a proxy: the consistency test that refused it.
+    excess : int
+        Information-free directions of its parameters beyond its gauge.
+    replication : Replication or None
+        Where added: its estimate on disjoint parts of the detector.
+    alternatives : tuple of str
+        Effects that explain the same misfit and that this acquisition cannot tell from it (for "explained by
+        another": the one whose share beyond it was significant).
+    alternative_estimates : mapping
+        Each alternative's estimate (one line).
+    """
 
     name: str
     detected: bool
@@ -29,17 +69,97 @@ class EffectReport:
     statistic: float
     dof: int
     p_value: float
+    verdict: Verdict
     delta_chi2: float | None = None
     reduced_chi2_after: float | None = None
-    where: str | None = None
-    estimate: str | None = None
-    extra: dict = field(default_factory=dict)
+    finding: Finding | None = None
+    rejection: Rejection | None = None
+    blind: Blind | None = None
+    refused: Consistency | None = None
+    excess: int = 0
+    replication: Replication | None = None
+    alternatives: tuple[str, ...] = ()
+    alternative_estimates: Mapping[str, str] = field(default_factory=dict)
 
-    def to_json(self) -> dict:
-        d = {k: v for k, v in asdict(self).items() if k != "extra" and v is not None}
-        # keys with a leading underscore are for the effect's own files, not the report
-        d.update({k: v for k, v in self.extra.items() if not k.startswith("_")})
+    @property
+    def values(self) -> Mapping[str, Any]:
+        """The effect's own keys of its entry (empty where not added)."""
+        return {} if self.finding is None else self.finding.values
+
+    @property
+    def where(self) -> str | None:
+        return None if self.finding is None else self.finding.where
+
+    @property
+    def estimate(self) -> str | None:
+        return None if self.finding is None else self.finding.estimate
+
+    @property
+    def recommended(self) -> bool:
+        """Whether its options go into the recommended ``reconstruct`` command: added, and not refuted by its
+        replication on parts of the detector."""
+        return self.detected and (self.replication is None or self.replication.replicated is not False)
+
+    def to_json(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"name": self.name, "detected": self.detected, "identifiable": self.identifiable,
+                             "statistic": self.statistic, "dof": self.dof, "p_value": self.p_value,
+                             "verdict": self.verdict}
+        for key in ("delta_chi2", "reduced_chi2_after", "where", "estimate"):
+            if (v := getattr(self, key)) is not None:
+                d[key] = v
+        d.update(self.values)
+        if self.excess:
+            d["excess_null_directions"] = self.excess
+        if self.rejection is not None:
+            d["explained_share"] = self.rejection.share
+            if self.rejection.astray:
+                d["reduced_chi2_with"] = self.rejection.reduced_chi2_with
+        if self.refused is not None:
+            d["refused_as_proxy"] = self.refused.axis
+        if self.blind is not None:
+            d.update({"explains_misfit": self.blind.explains_misfit, "explained_share": self.blind.explained_share,
+                      "reduced_chi2_with": self.blind.reduced_chi2_with})
+            if self.blind.stopped:
+                d["stopped"] = True
+        if self.replication is not None:
+            d["replication"] = self.replication.to_json()
+        if self.alternatives:
+            d["alternatives"] = list(self.alternatives)
+            d["alternative_estimates"] = dict(self.alternative_estimates)
         return d
+
+    def verdict_text(self) -> str:
+        """One cell of report.md: where it sits, or why it was not added."""
+        if self.verdict == "explains, not identifiable" and self.blind is not None:
+            return (f"explains the misfit (a trial refit with it reaches reduced chi-square "
+                    f"{self.blind.reduced_chi2_with:.4f}), but this acquisition cannot identify it: "
+                    + ("nothing else is named in its place" if self.blind.stopped else
+                       "an identifiable effect explained as much"))
+        if self.verdict == "raised chi-square" and self.rejection is not None:
+            return (f"significant, but a trial refit with it raises the reduced chi-square to "
+                    f"{self.rejection.reduced_chi2_with:.4f}: not added")
+        if self.verdict == "rejected" and self.rejection is not None:
+            share = self.rejection.share
+            return ("significant, but a trial refit removes "
+                    + ("none of" if share is None else f"only {100 * share:.0f} % of")
+                    + " the signatures' excess: not added")
+        if self.verdict == "proxy" and self.refused is not None:
+            along = f"detector {self.refused.along}" if self.refused.along else f"{self.refused.axis}s"
+            return f"significant, but of another size in pixels of other {along}: a proxy, not added (unexplained)"
+        if self.verdict == "held: gross misfit":
+            return "significant, but not judged: the mean model is grossly off (the noise model would absorb it)"
+        if self.verdict == "explained by another":
+            return (f"significant, but nothing beyond {', '.join(self.alternatives)}, which explains what they "
+                    f"share: not tried")
+        if self.verdict == "alternative":
+            return (f"explains the misfit that {', '.join(self.alternatives)} explains: this acquisition cannot tell "
+                    f"them apart (named together)")
+        if self.alternatives:
+            return (f"{self.where or ''}; or {', '.join(self.alternatives)}: this acquisition cannot tell them "
+                    f"apart")
+        if self.replication is not None and self.replication.replicated is False:
+            return f"{self.where or ''}; does not replicate: {self.replication.why}"
+        return self.where or ""
 
 
 @dataclass
@@ -52,42 +172,34 @@ class Diagnosis:
     """
 
     scan: str
-    base_model: list
+    base_model: list[str]
     initial_chi2: float
     final_chi2: float
-    effects: list
-    final_model: list
+    effects: list[EffectReport]
+    final_model: list[str]
     before: Residuals
     after: Residuals
-    params: dict
+    params: Params
     criterion: str
-    rounds: list
-    unexplained: list
-    signatures: list
-    shape: tuple
+    rounds: list[dict[str, Any]]
+    unexplained: list[Unexplained]
+    signatures: list[dict[str, Any]]
+    shape: tuple[int, int, int]
     final: Hypothesis
     start: Hypothesis
-    cfg: dict
-    registry: Mapping[str, EffectBase]
-    changes: list = field(default_factory=list)
+    cfg: dict[str, Any]
+    registry: Mapping[str, EffectBase[Any]]
+    changes: list[dict[str, Any]] = field(default_factory=list)
     #: Seconds of each stage (load, align, every fit and its tests), as logged.
-    timings: dict = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
     #: The detector columns [first, stop) the per-pixel tests and residual maps saw (``diagnose.max_held_samples``).
-    tested_columns: tuple = (0, 0)
+    tested_columns: tuple[int, int] = (0, 0)
 
     @property
     def band(self) -> str:
         """'' where every column was tested pixel by pixel, else which were."""
         first, stop = self.tested_columns
         return "" if stop - first >= self.shape[2] else f"columns {first}-{stop - 1} of {self.shape[2]}"
-
-    @property
-    def gain(self) -> float:
-        return self.final.noise.gain
-
-    @property
-    def electronic(self) -> float:
-        return self.final.noise.electronic
 
     @property
     def motion_mask(self) -> np.ndarray:
@@ -99,18 +211,18 @@ class Diagnosis:
         factors = self.final.noise.factors
         return None if factors is self.start.noise.factors else factors
 
-    def extras(self) -> dict[str, dict | None]:
-        """Every registered effect -> the report keys of its entry where it was added, else None."""
-        found = {e.name: e.extra for e in self.effects if e.detected}
-        return {name: found.get(name) for name in self.registry}
+    def findings(self) -> dict[str, Finding]:
+        """Every effect added -> its finding, in the order added."""
+        return {e.name: e.finding for e in self.effects if e.finding is not None}
 
-    def to_json(self) -> dict:
-        """The ``diagnosis.json`` document of ``spec/diagnosis.md`` (version 2 keys)."""
-        return {"format": "dfxcorr-diagnosis", "format_version": 2, "scan": self.scan, "base_model": self.base_model,
+    def to_json(self) -> dict[str, Any]:
+        """The ``diagnosis.json`` document of ``spec/diagnosis.md``."""
+        return {"format": "dfxcorr-diagnosis", "format_version": 4, "scan": self.scan, "base_model": self.base_model,
                 "reduced_chi2": {"initial": self.initial_chi2, "final": self.final_chi2},
                 "effects": [e.to_json() for e in self.effects], "final_model": self.final_model,
-                "unexplained": self.unexplained, "criterion": self.criterion, "rounds": self.rounds,
-                "tested_columns": list(self.tested_columns)}
+                "unexplained": [u.to_json() for u in self.unexplained], "criterion": self.criterion,
+                "rounds": self.rounds, "tested_columns": list(self.tested_columns),
+                "recommended": reconstruct_settings(self)}
 
 
 #: Every file of a fixed name the report may write: its own, and those the effects write when added.
@@ -118,39 +230,38 @@ FIXED_FILES = ("diagnosis.json", "report.md", "residuals.png", "signatures.png",
                *(f for e in REGISTRY.values() for f in e.files))
 
 
-def residuals(state) -> Residuals:
+def residuals(state: State) -> Residuals:
     """Where the fit ``state`` and its observations disagree (:func:`dfxcorr.analysis.signatures.locate`)."""
     return locate(state.obs, state.params, state.rec.images, counts=fit_counts(state))
 
 
-def change_picture(effect: EffectBase, before, after, extra: dict, *,
-                   located: Callable[[Any], Residuals] = residuals) -> dict:
+def change_picture(effect: EffectBase[Any], before: State, after: State, finding: Finding, *,
+                   located: Callable[[State], Residuals] = residuals) -> dict[str, Any]:
     """What adding ``effect`` changed, for its picture: images and residual maps of the fits ``before`` and
     ``after`` (each on its own observations: the change may alter the data or their noise model) (H, W), and
     its per-frame estimate (J, n) where it has one. ``located``: the residuals of a fit (the caller may keep
     them: one step's fit after is the next one's before). The maps are float32: they are drawn, and six per step
-    in float64 were the largest item of a diagnosis's peak memory."""
+    in float64 would be the largest item of a diagnosis's peak memory."""
     out: dict[str, Any] = {"name": effect.name, "reduced_chi2": (before.reduced_chi2, after.reduced_chi2)}
     for key, state in (("before", before), ("after", after)):
         out[key] = {k: v.astype(np.float32) for k, v in image_maps(state.obs, state.rec.images).items()}
         out[key]["residual"] = located(state).pixel
-    out["per_frame"] = effect.per_frame(extra, after.params)
+    out["per_frame"] = finding.per_frame
     out["components"] = effect.entry.components
     return out
 
 
 def write_report(diag: Diagnosis, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
     """Write ``diagnosis.json``, ``report.md``, ``residuals.png``, ``signatures.png``, one
-    ``effect-<name>.png`` per detected effect and the files of the effects added (their
-    :meth:`~dfxcorr.effects.base.EffectBase.artefacts`: a motion mask, position errors, a pixel noise map)."""
+    ``effect-<name>.png`` per detected effect and the files of the effects added (their findings' files: a motion
+    mask, position errors, a pixel noise map)."""
     from ..export import check_output
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {k: out_dir / k for k in ("diagnosis.json", "report.md", "residuals.png", "signatures.png")}
     paths.update({c["name"]: out_dir / _effect_picture(c["name"]) for c in diag.changes})
-    files = {out_dir / file: writer for name, extra in diag.extras().items()
-             for file, writer in diag.registry[name].artefacts(diag.final, extra, diag.cfg).items()}
+    files = {out_dir / file: writer for finding in diag.findings().values() for file, writer in finding.files.items()}
     for p in [*paths.values(), *files]:
         check_output(p, overwrite=overwrite)
     with atomic_path(paths["diagnosis.json"], overwrite=overwrite) as tmp:
@@ -185,15 +296,16 @@ def _markdown(diag: Diagnosis, out_dir: Path | None = None) -> str:
                  f"the residual signatures see columns spread over the detector)" if diag.band else "")
               + ". Below: the same by frame, lateral position, fringe phase and expected count."), "",
              ("| effect | detected | identifiable | statistic | dof | p-value | delta chi2 | reduced chi2 after "
-              "| where | estimate |"), "|---|---|---|---|---|---|---|---|---|---|"]
+              "| replicated | where | estimate |"), "|---|---|---|---|---|---|---|---|---|---|---|"]
 
-    def fmt(v, f):
+    def fmt(v: float | None, f: str) -> str:
         return "" if v is None else format(v, f)
 
     for e in diag.effects:
         lines.append(f"| {e.name} | {'yes' if e.detected else 'no'} | {'yes' if e.identifiable else 'no'} | "
                      f"{e.statistic:.4g} | {e.dof} | {e.p_value:.3g} | {fmt(e.delta_chi2, '.4g')} | "
-                     f"{fmt(e.reduced_chi2_after, '.4f')} | {_verdict_where(e)} | {e.estimate or ''} |")
+                     f"{fmt(e.reduced_chi2_after, '.4f')} | {_replicated(e)} | {e.verdict_text()} | "
+                     f"{e.estimate or ''} |")
     lines += ["", f"Criterion: {diag.criterion}.", "",
               ("delta chi2 is the change of the Pearson chi-square sum when the effect was added; for detector_gain "
                "it is negative when the noise is below Poisson (the reduced chi-square then rises towards 1)."), "",
@@ -210,8 +322,8 @@ def _markdown(diag: Diagnosis, out_dir: Path | None = None) -> str:
                    "catalogue effect explains (significant after Holm's correction over the signatures tested; the "
                    "model is not complete here, whatever the reduced chi-square says):"), "",
                   "| axis | statistic | dof | p-value | where | description |", "|---|---|---|---|---|---|"]
-        lines += [f"| {u['axis']} | {u['statistic']:.4g} | {u['dof']} | {u['p_value']:.3g} | {u['where']} | "
-                  f"{u['description']} |" for u in diag.unexplained]
+        lines += [f"| {u.axis} | {u.statistic:.4g} | {u.dof} | {u.p_value:.3g} | {u.where} | {u.description} |"
+                  for u in diag.unexplained]
     else:
         lines += ["None: no residual signature of the final fit is significant."]
     lines += ["", "![residual signatures of the final fit](signatures.png)", "",
@@ -230,37 +342,50 @@ def _markdown(diag: Diagnosis, out_dir: Path | None = None) -> str:
         lines += [f"The pixels taken as moving are in motion_mask.tif ({int(diag.motion_mask.sum())} pixels).", ""]
     sets = reconstruct_settings(diag, out_dir=out_dir)
     lines += ["To reconstruct with the final model:", "",
-              f"    dfxcorr reconstruct {diag.scan} -o result.h5" + "".join(f" --set {s}" for s in sets), ""]
+              f"    dfxcorr reconstruct {shlex.quote(diag.scan)} -o result.h5"
+              + "".join(f" --set {shlex.quote(s)}" for s in sets), ""]
     return "\n".join(lines)
 
 
-#: A final reduced chi-square beyond this, with signatures left unexplained, is reported as a gross misfit.
-GROSS = 2.0
 
 
-def _verdict_where(e: EffectReport) -> str:
-    if e.extra.get("explains_misfit"):
-        return (f"explains the misfit (a trial refit with it reaches reduced chi-square "
-                f"{e.extra['reduced_chi2_with']:.4f}), but this acquisition cannot identify it: "
-                + ("nothing else is named in its place" if e.extra.get("stopped") else
-                   "an identifiable effect explained as much"))
-    if "explained_share" in e.extra:
-        return (f"significant, but a trial refit removes only {100 * e.extra['explained_share']:.0f} % of the "
-                f"signatures' excess: not added")
-    return e.where or ""
+def _replicated(e: EffectReport) -> str:
+    """The report's 'replicated' cell: yes / no (p-value of the parts' difference), '' where not compared."""
+    r = e.replication
+    if r is None or r.replicated is None:
+        return ""
+    return f"{'yes' if r.replicated else 'no'} (p {r.p_value:.2g})"
+
+
+def _pair(option: str) -> tuple[str, str]:
+    key, value = option.split("=", 1)
+    return key, value
 
 
 def reconstruct_settings(diag: Diagnosis, *, out_dir: Path | None = None) -> list[str]:
     """The ``--set`` options that make ``reconstruct`` use the diagnosis's final model.
 
-    ``out_dir``: where :func:`write_report` put the effects' files (default: the current directory).
+    The configuration the diagnosis ran with (every option that differs from the defaults, its ``-c`` files'
+    and ``--set`` options alike), then each recommended finding's options over it (a finding that does not
+    replicate is left out), and the paper's effects the final model lacks switched off. ``out_dir``: where
+    :func:`write_report` put the findings' files (default: the current directory).
     """
-    out_dir = Path(out_dir or ".")
-    extras = diag.extras()
-    # the channel effects in the order they were added, the paper's left out, then the others in registry order
-    added = [n for n in diag.final_model if n in extras and diag.registry[n].role == "mean"]
-    sets = [s for n in added for s in diag.registry[n].settings(diag.cfg, diag.final, extras[n], out_dir)]
-    sets += [f"{effect(n).config}=false" for n in PAPER_MODEL if n not in diag.final_model]
-    sets += [s for n, e in diag.registry.items() if e.role != "mean"
-             for s in e.settings(diag.cfg, diag.final, extras[n], out_dir)]
-    return sets
+    folder = Path(out_dir or ".")
+    options: dict[str, str] = {}
+    for s in C.as_sets(diag.cfg, skip=("diagnose",)):
+        key, value = _pair(s)
+        options[key] = value
+    kept = {e.name for e in diag.effects if e.recommended}
+    for name, finding in diag.findings().items():
+        if name in kept:
+            options.update(_pair(o.text(folder)) for o in finding.options)
+    # the configured channel effects that the final model does not hold, or holds only by a finding that did not
+    # replicate (the paper's three are on by default; with --base none the configuration's others too)
+    findings = diag.findings()
+    for name in CATALOGUE:
+        config = effect(name).config
+        if config is None or C.get(diag.cfg, config) is False:
+            continue
+        if name not in diag.final_model or (name in findings and name not in kept):
+            options[config] = "false"
+    return [f"{k}={v}" for k, v in options.items()]

@@ -9,13 +9,14 @@ as ``unexplained`` where nothing does.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import stats
 
 from .. import model as M
-from ..effects.base import holm, ranges
 from ..retrieve import Retrieval, retrieve
+from ..stats import holm, ranges
 
 
 @dataclass
@@ -45,7 +46,7 @@ class Residuals:
     count_value: np.ndarray
 
 
-def locate(obs: M.Observations, params: dict, images: M.Images, *, counts: np.ndarray,
+def locate(obs: M.Observations, params: dict[str, Any], images: M.Images, *, counts: np.ndarray,
            chunk: float = 5e5) -> Residuals:
     """Mean squared standardized residual per pixel, frame, lateral position, fringe phase and count.
 
@@ -98,8 +99,8 @@ def _binned(value: np.ndarray, z2: np.ndarray, edges: np.ndarray) -> np.ndarray:
 SIGNATURE_AXES = ("frame", "row", "column", "frame_row", "phase", "count", "pixel")
 
 
-def signatures(obs: M.Observations, params: dict, *, n_params: int, alpha: float,
-               min_photons: float = 25.0, rec: Retrieval | None = None) -> list[dict]:
+def signatures(obs: M.Observations, params: dict[str, Any], *, n_params: int, alpha: float,
+               min_photons: float = 25.0, rec: Retrieval | None = None) -> list[dict[str, Any]]:
     """Residual signatures of a fit, each tested against noise.
 
     On the fit's own samples (its columns: there the share of the residual that the per-frame
@@ -283,7 +284,7 @@ def _without_frame_terms(S: np.ndarray, V: np.ndarray, g: np.ndarray, frame: np.
     return out, lost
 
 
-def _describe(sig: dict, obs: M.Observations) -> tuple[str, str]:
+def _describe(sig: dict[str, Any], obs: M.Observations) -> tuple[str, str]:
     """Where a signature sits (the bins that carry it) and a one-line description."""
     std, rel, value, axis = sig["bins"], sig["relative"], sig["bin_value"], sig["axis"]
     finite = np.isfinite(std)
@@ -299,11 +300,11 @@ def _describe(sig: dict, obs: M.Observations) -> tuple[str, str]:
                                          f"{'above' if rel[0] > 0 else 'below'} the stated noise model everywhere")
     up, down = idx[std[idx] > 0], idx[std[idx] < 0]
     if axis == "frame":
-        where = f"frames {ranges(value[idx])}"
+        where = f"frames {ranges(value[idx], limit=4)}"
     elif axis == "row":
-        where = f"detector rows {ranges(value[idx])}"
+        where = f"detector rows {ranges(value[idx], limit=4)}"
     elif axis == "column":
-        where = f"columns {ranges(value[idx])}"
+        where = f"columns {ranges(value[idx], limit=4)}"
     elif axis == "frame_row":
         frames, rows = obs.frame[value[idx]], obs.row[value[idx]]
         where = (f"{idx.size} (frame, row) blocks in frames {frames.min()}-{frames.max()}, "

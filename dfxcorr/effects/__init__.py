@@ -7,6 +7,8 @@ noise model, the alignment or the counts. Adding an effect is adding a module an
 """
 from __future__ import annotations
 
+from typing import Any
+
 from . import (
                channel,
                detector_gain,
@@ -20,8 +22,7 @@ from . import (
 )
 from .base import EffectBase
 
-#: Effect name -> its implementation, in the order they are tested.
-REGISTRY: dict[str, EffectBase] = {e.name: e for e in (
+_ALL: tuple[EffectBase[Any], ...] = (
     *channel.EFFECTS,
     sample_motion.EFFECT,
     detector_gain.EFFECT,
@@ -31,4 +32,6 @@ REGISTRY: dict[str, EffectBase] = {e.name: e for e in (
     detector_lag.EFFECT,
     pixel_noise.EFFECT,
     scatter.EFFECT,
-)}
+)
+#: Effect name -> its implementation, in the order they are tested.
+REGISTRY: dict[str, EffectBase[Any]] = {e.name: e for e in _ALL}

@@ -10,9 +10,9 @@ information (:mod:`dfxcorr.identify`).
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import replace
-from pathlib import Path
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -21,11 +21,72 @@ from .. import model as M
 from ..catalogue import CATALOGUE, Effect
 from ..observations import Observations
 from ..retrieve import retrieve
-from .base import Context, EffectBase, Hypothesis, State, Test, chi2_test, frames_where, strongest
+from ..stats import frames_where
+from .base import (
+    MEAN,
+    Consistency,
+    ConsistencyAxis,
+    Context,
+    EffectBase,
+    Estimate,
+    Finding,
+    Hypothesis,
+    Option,
+    Pair,
+    Params,
+    State,
+    Test,
+    chi2_test,
+    dispersion,
+    strongest,
+)
 
 
-def score_tests(obs: Observations, params: dict, weights: np.ndarray, model, candidates, *,
-                dispersion: float) -> dict[str, Test]:
+@dataclass(frozen=True)
+class Score:
+    """A channel effect's score test: the share of its statistic in each frame, shape (J,)."""
+
+    frames: np.ndarray
+
+
+@dataclass(frozen=True)
+class Scores:
+    """Efficient-score tests of channel effects at one fit, and what tests several of them together.
+
+    Attributes
+    ----------
+    tests : dict
+        name -> its test given the model.
+    information : Information
+        The profiled Fisher information of the model and the candidates.
+    score : ndarray
+        The score in the information's order.
+    model : tuple of str
+    dispersion : float
+    """
+
+    tests: dict[str, Test[Score]]
+    information: identify.Information
+    score: np.ndarray
+    model: tuple[str, ...]
+    dispersion: float
+
+    def together(self, names: tuple[str, ...]) -> tuple[float, int]:
+        """The efficient-score statistic of several candidates together, given the model, and its dof."""
+        cond = identify.conditional(self.information, names, self.model)
+        u = self.score[cond.sel] - cond.projector @ self.score[cond.base]
+        return float(u @ cond.inverse @ u) / self.dispersion, cond.dof
+
+    def pair(self, a: str, b: str) -> Pair:
+        """Two candidates together: each one's share of their joint statistic beyond the other's test alone."""
+        joint, dof = self.together((a, b))
+        ta, tb = self.tests[a], self.tests[b]
+        return Pair((joint, dof), {a: (max(joint - tb.statistic, 0.0), dof - tb.dof),
+                                   b: (max(joint - ta.statistic, 0.0), dof - ta.dof)}, ta.dof + tb.dof - dof)
+
+
+def score_tests(obs: Observations, params: Params, weights: np.ndarray, model: Sequence[str],
+                candidates: Sequence[str], *, dispersion: float) -> Scores:
     """Efficient-score tests of mean effects at the current fit.
 
     Parameters
@@ -43,9 +104,9 @@ def score_tests(obs: Observations, params: dict, weights: np.ndarray, model, can
 
     Returns
     -------
-    dict
-        name -> Test; ``explains`` approximates the chi-square that adding the effect removes, the payload's
-        'frames' the per-frame share of the statistic (per-frame effects).
+    Scores
+        Its tests: name -> Test; ``explains`` approximates the chi-square that adding the effect removes, the
+        payload the per-frame share of the statistic (per-frame effects).
     """
     names = list(model) + [c for c in candidates if c not in model]
     full = {**M.neutral_params(names, obs.n_frames), **params}
@@ -64,12 +125,19 @@ def score_tests(obs: Observations, params: dict, weights: np.ndarray, model, can
         contrib = eff_score * (inv @ eff_score) / dispersion
         fr = inf.frame[sel]
         frames = np.bincount(fr[fr >= 0], weights=contrib[fr >= 0], minlength=obs.n_frames)
-        out[name] = chi2_test(stat, cond.dof, explains=stat * dispersion, identifiable=cond.verdict.identifiable,
-                              excess=cond.verdict.excess, payload={"frames": frames})
-    return out
+        # directions without information that the candidate has only beside the model's effects (each alone
+        # determines them) do not make it unidentifiable: the rest of its parameters is tested, and a fit with it
+        # leaves those directions where the model's effect put them (a gauge: the first added takes them)
+        shared = bool(cond.verdict.excess and cond.dof > 0
+                      and identify.conditional(inf, name, ()).verdict.identifiable)
+        out[name] = chi2_test(stat, cond.dof, Score(frames), explains=stat * dispersion,
+                              identifiable=cond.verdict.identifiable or shared,
+                              excess=0 if shared else cond.verdict.excess,
+                              shared=cond.verdict.excess if shared else 0)
+    return Scores(out, inf, U, tuple(model), dispersion)
 
 
-def _score(inf: identify.Information, grad: dict) -> np.ndarray:
+def _score(inf: identify.Information, grad: Params) -> np.ndarray:
     """The score (half the negative gradient of the cost) in the order of the information's entries."""
     return -0.5 * np.array([grad[n][(j, m) if j >= 0 else m]
                             for n, j, m in zip(inf.owner, inf.frame, inf.component, strict=True)])
@@ -108,8 +176,8 @@ def strata(obs: Observations, expected: np.ndarray, *, by: str, n: int = 6) -> n
     return out[obs.pixel]
 
 
-def heterogeneity(obs: Observations, params: dict, weights: np.ndarray, model, name: str, *,
-                  labels: Mapping[str, np.ndarray]) -> Test:
+def heterogeneity(obs: Observations, params: Params, weights: np.ndarray, model: Sequence[str], name: str, *,
+                  labels: Mapping[ConsistencyAxis, np.ndarray]) -> Consistency:
     """Whether an effect in the model has one size in every stratum of pixels, along each of some axes.
 
     A score test at the fit with the effect (``params``, theta), of the alternative that its parameters
@@ -140,10 +208,9 @@ def heterogeneity(obs: Observations, params: dict, weights: np.ndarray, model, n
 
     Returns
     -------
-    Test
-        Its payload holds 'axis', the axis that decided; 'strata': the size of the effect in each of its strata
-        under the contrast that decided, relative to the shared fit's (1; one step from it), in the strata's
-        order; 'alternative': 'trend' or 'any' (or 'none': fewer than two strata, nothing tested).
+    Consistency
+        The axis that decided, and the size of the effect in each of its strata under the contrast that decided,
+        relative to the shared fit's (1; one step from it), in the strata's order.
     """
     dsg = M.design(obs, params)
     images = M.solve_images(obs, dsg, weights, keep_inverse=True)
@@ -151,18 +218,21 @@ def heterogeneity(obs: Observations, params: dict, weights: np.ndarray, model, n
     found = {axis: _heterogeneity(obs, dsg, images, resid, params, weights, model, name, labels=lab)
              for axis, lab in labels.items()}
     axis, t = strongest(found)
-    return replace(t, payload={**t.payload, "axis": axis})
+    return Consistency(t.statistic, t.dof, t.p_value, t.log_p, axis, t.payload)
 
 
-def _heterogeneity(obs: Observations, dsg: M.Design, images: M.Images, resid: np.ndarray, params: dict,
-                   weights: np.ndarray, model, name: str, *, labels: np.ndarray) -> Test:
-    """:func:`heterogeneity` along one axis, at the fit's design, images and residuals (K, C)."""
+def _heterogeneity(obs: Observations, dsg: M.Design, images: M.Images, resid: np.ndarray, params: Params,
+                   weights: np.ndarray, model: Sequence[str], name: str, *, labels: np.ndarray
+                   ) -> Test[tuple[float, ...]]:
+    """:func:`heterogeneity` along one axis, at the fit's design, images and residuals (K, C); the payload is the
+    strata's sizes."""
     n = int(labels.max()) + 1
     if n < 2:
-        return chi2_test(0.0, 0, payload={"strata": [], "alternative": "none"})
+        return chi2_test(0.0, 0, ())
     names = list(model)
     e = M.effect(name)
-    total, U_eta = 0.0, 0.0
+    total: Any = 0.0
+    U_eta: Any = 0.0
     u, own, cross = np.zeros(n), np.zeros(n), []
     for k in range(n):
         inside = obs.use & (labels == k)
@@ -198,56 +268,70 @@ def _heterogeneity(obs: Observations, dsg: M.Design, images: M.Images, resid: np
         # information-weighted mean is the shared fit's (a stratum as the contrasts' baseline must not matter)
         g = Z @ (inv @ eff_score)
         sizes = 1.0 + g - own @ g / max(own.sum(), 1e-300)
-        found[key] = chi2_test(float(eff_score @ inv @ eff_score), dof, payload={"sizes": sizes})
-    key, t = strongest(found)
-    return replace(t, payload={"strata": t.payload["sizes"].tolist(), "alternative": key})
+        found[key] = chi2_test(float(eff_score @ inv @ eff_score), dof, tuple(float(s) for s in sizes))
+    return strongest(found)[1]
 
 
-def _round_scores(ctx: Context, state: State) -> dict[str, Test]:
-    """The score tests of every channel effect the fit ``state`` lacks: one Fisher information serves them all
-    (kept in the diagnosis's memo for the state last asked about)."""
-    held = ctx.memo.get("scores")
-    if held is None or held[0] is not state:
-        model = state.hypothesis.effects
-        obs = state.fit_obs
-        weights = M.noise_weights(obs, retrieve(obs, state.params).expected)
-        held = state, score_tests(obs, state.params, weights, model, [n for n in CATALOGUE if n not in model],
-                                  dispersion=max(state.reduced_chi2, 1e-6))
-        ctx.memo["scores"] = held
-    return held[1]
+def round_scores(state: State) -> Scores:
+    """The score tests of every channel effect the fit ``state`` lacks: one Fisher information serves them all."""
+    model = state.hypothesis.effects
+    obs = state.fit_obs
+    weights = M.noise_weights(obs, retrieve(obs, state.params).expected)
+    return score_tests(obs, state.params, weights, model, [n for n in CATALOGUE if n not in model],
+                       dispersion=max(state.reduced_chi2, 1e-6))
 
 
-class ChannelEffect(EffectBase):
+class ChannelEffect(EffectBase[Score]):
     """A term of the expected count: tested by its efficient score, added to the model by a refit with it."""
+
+    policy = MEAN
 
     def __init__(self, entry: Effect):
         self.entry = entry
 
-    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[Score] | None:
         if self.name in state.hypothesis.effects:
             return None
-        t = _round_scores(ctx, state)[self.name]
+        t = state.cached(round_scores).tests[self.name]
         return replace(t, identifiable=False) if self.entry.channel == "visibility" and ctx.visibility_why else t
 
-    def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
-        return state.hypothesis.but(effects=(*state.hypothesis.effects, self.name))
+    def trial(self, ctx: Context, state: State, test: Test[Score]) -> Hypothesis:
+        return self.joined(state.hypothesis)
 
-    def consistency(self, ctx: Context, before: State, state: State) -> Test | None:
+    def joined(self, hypothesis: Hypothesis) -> Hypothesis:
+        return hypothesis.but(effects=(*hypothesis.effects, self.name))
+
+    def beside(self, ctx: Context, state: State, other: str) -> Pair | None:
+        scores = state.cached(round_scores)
+        if self.name not in scores.tests or other not in scores.tests:
+            return None
+        return scores.pair(self.name, other)
+
+    def consistency(self, ctx: Context, before: State, state: State) -> Consistency | None:
         # by count (a non-linearity, an additive artefact) and by detector row (an artefact on some rows of a
         # frame, as a ghost of an earlier frame): the stronger of the two, Bonferroni over both
         obs, expected = state.fit_obs, state.fit_rec.expected
+        axes: tuple[ConsistencyAxis, ...] = ("count", "row")
         return heterogeneity(obs, state.params, M.noise_weights(obs, expected), state.hypothesis.effects, self.name,
-                             labels={by: strata(obs, expected, by=by) for by in ("count", "row")})
+                             labels={by: strata(obs, expected, by=by) for by in axes})
 
-    def where(self, test: Test, obs: Observations) -> str:
-        if not self.entry.per_frame:
-            return "the whole detector (global parameters)"
-        return frames_where(test.payload["frames"], obs.n_frames)
+    def accepted(self, ctx: Context, before: State, after: State, test: Test[Score]) -> Finding:
+        e = self.entry
+        where = (frames_where(test.payload.frames, after.fit_obs.n_frames) if e.per_frame
+                 else "the whole detector (global parameters)")
+        p = after.params.get(self.name)
+        return Finding(where, "" if p is None else self.describe(p, ctx.good_frames),
+                       options=(Option(e.config, "true"),) if e.config else (),
+                       per_frame=p if e.per_frame else None)
 
-    def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
-        p = params.get(self.name)
-        if p is None:
-            return ""
+    def measure(self, ctx: Context, state: State) -> Estimate | None:
+        if self.name not in state.params:
+            return None
+        # the fit's standard errors are the stated noise model's: scaled to the data's own spread
+        return Estimate(state.params[self.name], state.uncertainty[self.name] * np.sqrt(dispersion(state)))
+
+    def describe(self, p: np.ndarray, good: np.ndarray) -> str:
+        """One line: the size of fitted parameters ``p`` (per frame: their spread over the frames ``good``)."""
         e = self.entry
         if e.per_frame:
             sd = np.std(p[good], axis=0)
@@ -258,12 +342,6 @@ class ChannelEffect(EffectBase):
         if e.components == ("cos", "sin"):
             return f"a2 = {np.hypot(*p):.4g}, beta = {np.arctan2(p[1], p[0]):.3f} rad"
         return ", ".join(f"{c}: {v:.4g}" for c, v in zip(e.components, p, strict=True)) + f" {e.unit}"
-
-    def per_frame(self, extra: dict, params: dict) -> np.ndarray | None:
-        return params.get(self.name) if self.entry.per_frame else None
-
-    def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
-        return [f"{self.entry.config}=true"] if extra is not None and self.entry.config else []
 
 
 #: One per entry of the model's catalogue, in its order.

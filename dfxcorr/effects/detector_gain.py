@@ -6,14 +6,13 @@ likelihood-ratio test, 1 dof), so that a gain error is not named electronic nois
 The electronic variance's test also reads the readout of rows that no frame lights near then, where the file
 holds it (:func:`unlit_readout`: a direct measurement of sigma_e^2). The gain's does not: with sigma_e^2
 pinned by them, the lit residuals' small bias at low counts (2.6 % below the stated noise on a clean flat
-panel at ~40 photons and read noise 25, where a nonlinear fit takes more than its linear leverage) was all
-put on the gain (g = 0.42 named, truth 1). This module tests the gain; :mod:`dfxcorr.effects.electronic_noise`
+panel at ~40 photons and read noise 25, where a nonlinear fit takes more than its linear leverage) would all
+be put on the gain (g = 0.42 where the truth is 1). This module tests the gain; :mod:`dfxcorr.effects.electronic_noise`
 the electronic variance.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
@@ -23,10 +22,34 @@ from ..catalogue import Effect
 from ..io import Scan, frame_rows, lit_rows
 from ..noise import MIN_SIGNAL
 from ..observations import Observations
-from .base import Context, EffectBase, Hypothesis, State, Test, chi2_test, line_consistency, pixel_chi2
+from ..preparation import Prepared
+from .base import (
+    Consistency,
+    Context,
+    EffectBase,
+    Estimate,
+    Finding,
+    Hypothesis,
+    Option,
+    Policy,
+    State,
+    Test,
+    chi2_test,
+)
+from .residuals import line_consistency, pixel_chi2
 
 #: The least gain the regression returns (detector units per photon): a variance needs a photon term.
 MIN_GAIN = 1e-6
+
+
+@dataclass(frozen=True)
+class NoiseEstimate:
+    """A noise model's test payload: the gain and electronic variance fitted together, and the tested parameter's
+    estimate with the other at its current value (``profiled``: gain, electronic variance)."""
+
+    gain: float
+    electronic: float
+    profiled: tuple[float, float]
 
 
 @dataclass(frozen=True)
@@ -63,7 +86,7 @@ class NoiseFit:
         """The same with unlit readout (:func:`unlit_readout`, (N,)) added: samples whose photon signal is known to
         be nil, E[r^2] = sigma_e^2 exactly (the model's floor of :data:`dfxcorr.noise.MIN_SIGNAL`, there for
         expected counts that a fit puts at or below the dark, does not apply: taken at one count, a read noise of 1
-        was indistinguishable from none). Their regression weight is that of the current electronic variance, or of
+        would be indistinguishable from none). Their regression weight is that of the current electronic variance, or of
         one count where it is nil."""
         if not readout.size:
             return self
@@ -98,15 +121,23 @@ class NoiseFit:
         v = np.maximum(gain * self.mean + electronic, 1e-300)
         return float(np.sum(np.log(v) + self.r2 / v))
 
-    def partial_test(self, held: dict) -> Test:
+    def partial_test(self, held: dict[str, float]) -> Test[NoiseEstimate]:
         """Likelihood ratio of the joint noise model against the current one with only ``held`` (the parameter
-        tested, at its current value) fixed and the other refitted; 1 dof. Payload: the joint 'gain' and
-        'electronic', and 'profiled': the tested parameter's estimate with the other at its current value."""
+        tested, at its current value) fixed and the other refitted; 1 dof."""
         g1, e1 = self.joint
         null = self.regression(**held)
         stat = max(self.deviance(*null) - self.deviance(g1, e1), 0.0)
         other = {"electronic": self.electronic} if "gain" in held else {"gain": self.gain}
-        return chi2_test(stat, 1, payload={"gain": g1, "electronic": e1, "profiled": self.regression(**other)})
+        return chi2_test(stat, 1, NoiseEstimate(g1, e1, self.regression(**other)))
+
+    def standard_error(self, gain: bool, at: tuple[float, float]) -> float:
+        """The standard error of the gain (``gain``) or of the electronic variance with the other held, at the
+        noise model ``at``: the inverse of the Fisher information of the squared residuals' regression (each a
+        Gaussian variance, information 1 / (2 v^2) per sample)."""
+        v = np.maximum(at[0] * self.mean + at[1], 1e-12)
+        x = self.mean if gain else np.ones_like(self.mean)
+        info = float(np.sum(x ** 2 / (2 * v ** 2)))
+        return 1.0 / np.sqrt(info) if info > 0 else np.inf
 
 
 #: Frames, and rows on each side of the lit band, whose unlit readout :func:`unlit_readout` reads: a sample of the
@@ -184,49 +215,52 @@ def noise_model(obs: Observations, ibar: np.ndarray, h: np.ndarray, *, exclude: 
     return replace(fit, joint=fit.regression())
 
 
+def state_noise(state: State, flagged: np.ndarray) -> NoiseFit:
+    """The noise model fitted to the fit ``state``'s residuals on its own columns, the pixels ``flagged`` (H, W)
+    (and their rim) left out."""
+    obs, params, rec = state.fit_obs, state.params, state.fit_rec
+    dsg = M.design(obs, params)
+    w = np.where(obs.use & rec.images.valid[obs.pixel], rec.weights, 0.0)
+    h = M.leverage(obs, dsg, rec.images, rec.weights) + M.frame_leverage(obs, dsg, rec.images, w, params)[0]
+    return noise_model(obs, rec.expected, h, exclude=obs.pixel_mask(ndimage.binary_dilation(flagged)))
+
+
+def scan_readout(prep: Prepared) -> np.ndarray:
+    """The unlit readout of a prepared scan's file (:func:`unlit_readout`)."""
+    return unlit_readout(prep.scan)
+
+
 def noise_fit(ctx: Context, state: State, flagged: np.ndarray, *, readout: bool = False) -> NoiseFit:
-    """The noise model of the fit ``state`` on its own columns (kept in the diagnosis's memo for the state last
-    asked about); with ``readout``, the unlit readout of the scan's file joins it (:meth:`NoiseFit.and_readout`).
+    """The noise model of the fit ``state`` on its own columns (:func:`state_noise`, once per state); with
+    ``readout``, the unlit readout of the scan's file joins it (:meth:`NoiseFit.and_readout`).
 
     On the fit's columns the share of each sample's noise that the per-frame parameters took is known (their
     leverage); on the others their estimation noise adds variance that would read as a gain (measured: a flat
     panel with its read noise stated, fitted on every 4th column, gave g = 1.056 from every column, nothing on
     every column fitted).
     """
-    held = ctx.memo.get("noise")
-    if held is None or held[0] is not state:
-        obs, params, rec = state.fit_obs, state.params, state.fit_rec
-        dsg = M.design(obs, params)
-        w = np.where(obs.use & rec.images.valid[obs.pixel], rec.weights, 0.0)
-        h = M.leverage(obs, dsg, rec.images, rec.weights) + M.frame_leverage(obs, dsg, rec.images, w, params)[0]
-        held = state, noise_model(obs, rec.expected, h, exclude=obs.pixel_mask(ndimage.binary_dilation(flagged)))
-        ctx.memo["noise"] = held
-    if not readout:
-        return held[1]
-    if "readout" not in ctx.memo:
-        ctx.memo["readout"] = unlit_readout(ctx.prepared(state.hypothesis).scan)
-    return held[1].and_readout(ctx.memo["readout"])
+    fit = state.cached(state_noise, flagged)
+    return fit.and_readout(ctx.cached(scan_readout, state.hypothesis)) if readout else fit
 
 
-class DetectorGain(EffectBase):
+class DetectorGain(EffectBase[NoiseEstimate]):
     entry = Effect("detector_gain", None, False, (), 1.0, "none",
                    "noise is not Poisson in the file's units: variance = g * mean (+ electronic noise)")
-    role = "noise"
-    tier = 2
+    policy = Policy(noise_model=True)
 
-    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[NoiseEstimate] | None:
         t = noise_fit(ctx, state, flagged).partial_test({"gain": state.obs.gain})
         return replace(t, explains=t.statistic,
-                       material=abs(t.payload["gain"] / state.obs.gain - 1) > ctx.cfg["diagnose"]["min_gain_change"])
+                       material=abs(t.payload.gain / state.obs.gain - 1) > ctx.cfg["diagnose"]["min_gain_change"])
 
-    def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
+    def trial(self, ctx: Context, state: State, test: Test[NoiseEstimate]) -> Hypothesis:
         # with electronic noise in the model (stated or found) both are refitted together: an electronic variance
         # estimated under the wrong gain is off by what the gain's error left at low counts
-        g, e = (test.payload["gain"], test.payload["electronic"]) if state.obs.electronic > 0 else \
-            test.payload["profiled"]
+        g, e = ((test.payload.gain, test.payload.electronic) if state.obs.electronic > 0
+                else test.payload.profiled)
         return state.hypothesis.but(noise=replace(state.hypothesis.noise, gain=g, electronic=e))
 
-    def consistency(self, ctx: Context, before: State, state: State) -> Test | None:
+    def consistency(self, ctx: Context, before: State, state: State) -> Consistency | None:
         # a gain scales the variance of every pixel alike: its change must be one factor along the detector's rows
         # and columns (:func:`line_consistency` with all pixels one class). The variance excess of a moving patch
         # (sample motion below its per-pixel detection limit) raised the gain by 3.1 % where it was 1, the strata by
@@ -238,17 +272,17 @@ class DetectorGain(EffectBase):
         f = before_total / max(float(X.sum()), 1e-300)
         return line_consistency(np.where(dof > 0, f, 1.0), X, dof)
 
-    def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
-        return {"gain": after.hypothesis.noise.gain}
+    def accepted(self, ctx: Context, before: State, after: State, test: Test[NoiseEstimate]) -> Finding:
+        g = after.hypothesis.noise.gain
+        return Finding("all pixels (noise, not the mean)", f"g = {g:.3f}", {"gain": g},
+                       options=(Option("load.gain", f"{g:.4g}"),))
 
-    def where(self, test: Test, obs: Observations) -> str:
-        return "all pixels (noise, not the mean)"
-
-    def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
-        return f"g = {extra['gain']:.3f}"
-
-    def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
-        return [f"load.gain={final.noise.gain:.4g}"] if extra is not None else []
+    def measure(self, ctx: Context, state: State) -> Estimate | None:
+        # the gain these residuals ask for, the electronic variance held at the model's
+        e = state.hypothesis.noise.electronic
+        fit = noise_fit(ctx, state, state.hypothesis.motion)
+        g, _ = fit.regression(electronic=e)
+        return Estimate(np.asarray(g), np.asarray(fit.standard_error(True, (g, e))))
 
 
 EFFECT = DetectorGain()

@@ -12,15 +12,14 @@ area has just left (read in the same hyperslab as the lit rows, :class:`dfxcorr.
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..align import LitStore
 from ..catalogue import Effect
-from ..observations import Observations
-from .base import Context, EffectBase, Hypothesis, Preparation, State, Test, chi2_test
+from ..preparation import Correctable
+from .base import Context, EffectBase, Estimate, Finding, Hypothesis, Option, Policy, State, Test, chi2_test
 
 
 def previous_block(row: np.ndarray, frame: np.ndarray) -> np.ndarray:
@@ -156,54 +155,51 @@ def _lag_free_at(store: LitStore, fraction: float, blocks: np.ndarray) -> np.nda
     return out
 
 
-def lag_test(store: LitStore) -> Test:
+def lag_test(store: LitStore) -> Test[Estimate]:
     """Detector lag measured in the pixels the active area has just left.
 
     Without lag they hold the dark signal only; with lag a they hold a S_(j-1), the previous frame's
     lag-free signal (:func:`measured_lag`). The statistic is (a / se)^2, chi-square with 1 dof. Not
     identifiable without such pixels (phase stepping: every pixel is lit in every frame). Measured on the
     small test scan with a = 3 %: a estimated to 1e-5; the reduced chi-square of the paper's model drops from
-    about 1.09 to that of the same scan without lag. Payload: 'value' (a), 'se'.
+    about 1.09 to that of the same scan without lag. Payload: a and its standard error.
     """
     a, se = measured_lag(store)
     if not np.isfinite(a) or store.lag:
-        return Test(0.0, 1, 1.0, 0.0, identifiable=bool(np.isfinite(a)), payload={"value": 0.0, "se": se})
+        return Test(0.0, 1, 1.0, 0.0, Estimate(np.asarray(0.0), np.asarray(se)), identifiable=bool(np.isfinite(a)))
     stat = (a / se) ** 2 if se > 0 else (np.inf if a else 0.0)
-    return chi2_test(float(stat), 1, explains=float(stat), payload={"value": a, "se": se})
+    return chi2_test(float(stat), 1, Estimate(np.asarray(a), np.asarray(se)), explains=float(stat))
 
 
-class DetectorLag(EffectBase):
+class DetectorLag(EffectBase[Estimate]):
     entry = Effect("detector_lag", None, False, ("a",), 0.0, "none",
                    "the detector carries a fraction a of the previous frame's signal into the next: "
                    "I_j = S_j + a S_(j-1)")
-    role = "counts"
     # measured directly outside the active area: the mean effects would only soak up its traces
-    tier = 0
-    fresh_start = True
+    policy = Policy(order=0, fresh_start=True, astray_check=True)
 
-    def configured(self, cfg: dict, *, n_frames: int, detector: tuple[int, int]) -> Any:
+    def configured(self, cfg: dict[str, Any], *, n_frames: int, detector: tuple[int, int]) -> Any:
         return cfg["load"]["detector_lag"] or None
 
-    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
-        return replace(prep, store=without_lag(prep.store, setting))
+    def apply(self, data: Correctable, setting: Any) -> Correctable:
+        return replace(data, store=without_lag(data.store, setting))
 
-    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
-        return lag_test(ctx.prepared(state.hypothesis).store)
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[Estimate] | None:
+        return lag_test(ctx.corrected(state.hypothesis).store)
 
-    def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
-        return state.hypothesis.but(corrections=(*state.hypothesis.corrections, (self.name, test.payload["value"])))
+    def trial(self, ctx: Context, state: State, test: Test[Estimate]) -> Hypothesis:
+        return state.hypothesis.but(corrections=(*state.hypothesis.corrections, (self.name, float(test.payload.value))))
 
-    def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
-        return {"value": test.payload["value"], "se": test.payload["se"]}
+    def accepted(self, ctx: Context, before: State, after: State, test: Test[Estimate]) -> Finding:
+        a, se = float(test.payload.value), float(test.payload.se)
+        return Finding("all frames; signal in the rows the active area has just left",
+                       f"a = {100 * a:.4g} % (se {100 * se:.2g} %)", {"value": a, "se": se},
+                       options=(Option("load.detector_lag", f"{a:.6g}"),))
 
-    def where(self, test: Test, obs: Observations) -> str:
-        return "all frames; signal in the rows the active area has just left"
-
-    def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
-        return f"a = {100 * extra['value']:.4g} % (se {100 * extra['se']:.2g} %)"
-
-    def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
-        return [f"load.detector_lag={extra['value']:.6g}"] if extra is not None else []
+    def measure(self, ctx: Context, state: State) -> Estimate | None:
+        # measured in the rows the active area has just left, over the whole detector: a fit on part of it does
+        # not measure it again
+        return None
 
 
 EFFECT = DetectorLag()

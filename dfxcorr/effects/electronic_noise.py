@@ -8,52 +8,53 @@ in detector units; ``load.electronic`` holds sigma_e^2.
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
 from ..catalogue import Effect
-from ..observations import Observations
-from .base import Context, EffectBase, Hypothesis, State, Test
-from .detector_gain import noise_fit
+from .base import Context, EffectBase, Estimate, Finding, Hypothesis, Option, Policy, State, Test
+from .detector_gain import NoiseEstimate, noise_fit
 
 
-class ElectronicNoise(EffectBase):
+class ElectronicNoise(EffectBase[NoiseEstimate]):
     entry = Effect("electronic_noise", None, False, ("sigma_e",), 0.0, "none",
                    "additive readout noise of the detector: variance = g * (Ibar - dark) + sigma_e^2")
-    role = "noise"
-    # a variance floor that the photon term cannot take up: modelled before the gain is judged against it
-    tier = 1
-    # it changes the samples' relative weights, most where the counts are low, where a fit under the wrong noise
+    # a variance floor that the photon term cannot take up: modelled before the gain is judged against it.
+    # It changes the samples' relative weights, most where the counts are low, where a fit under the wrong noise
     # model is worst: its trial fits afresh (measured on a flat panel, sigma_e 25 at 2000 counts: from the
-    # current parameters the refit stalled at reduced chi-square 4.4 with column and block signatures appearing,
-    # afresh it reached 0.86 with them gone)
-    fresh_start = True
-    # and its estimate from that fit's residuals is biased: one refit at the estimate of the trial's own fit
-    refinements = 1
+    # current parameters the refit stalls at reduced chi-square 4.4 with column and block signatures appearing,
+    # afresh it reaches 0.86 with them gone); and its estimate from that fit's residuals is biased: one refit at
+    # the estimate of the trial's own fit
+    policy = Policy(order=1, noise_model=True, fresh_start=True, refinements=1)
 
-    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[NoiseEstimate] | None:
         fit = noise_fit(ctx, state, flagged, readout=True)
         t = fit.partial_test({"electronic": state.obs.electronic})
-        change = abs(t.payload["electronic"] - state.obs.electronic)
+        change = abs(t.payload.electronic - state.obs.electronic)
         # material where it moves the variance of a typical sample by more than the practical floor
         typical = float(np.median(fit.gain * fit.lit)) if fit.lit.size else 1.0
         return replace(t, explains=t.statistic, material=change > ctx.cfg["diagnose"]["min_gain_change"] * typical)
 
-    def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
-        return state.hypothesis.but(noise=replace(state.hypothesis.noise, electronic=test.payload["profiled"][1]))
+    def trial(self, ctx: Context, state: State, test: Test[NoiseEstimate]) -> Hypothesis:
+        return state.hypothesis.but(noise=replace(state.hypothesis.noise, electronic=test.payload.profiled[1]))
 
-    def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
-        return {"value": float(np.sqrt(after.hypothesis.noise.electronic))}
+    def accepted(self, ctx: Context, before: State, after: State, test: Test[NoiseEstimate]) -> Finding:
+        variance = after.hypothesis.noise.electronic
+        sigma = float(np.sqrt(variance))
+        return Finding("all pixels, most where the expected counts are low (noise, not the mean)",
+                       f"sigma_e = {sigma:.3g} counts", {"value": sigma},
+                       options=(Option("load.electronic", f"{variance:.4g}"),))
 
-    def where(self, test: Test, obs: Observations) -> str:
-        return "all pixels, most where the expected counts are low (noise, not the mean)"
-
-    def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
-        return f"sigma_e = {extra['value']:.3g} counts"
-
-    def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
-        return [f"load.electronic={final.noise.electronic:.4g}"] if extra is not None else []
+    def measure(self, ctx: Context, state: State) -> Estimate | None:
+        # the electronic variance these residuals ask for, the gain held at the model's (not the file's unlit
+        # readout: every part of the detector would share it)
+        g = state.hypothesis.noise.gain
+        fit = noise_fit(ctx, state, state.hypothesis.motion)
+        _, variance = fit.regression(gain=g)
+        sigma = float(np.sqrt(variance))
+        se_variance = fit.standard_error(False, (g, variance))
+        # sigma_e from its variance (delta method), as the finding reports it
+        return Estimate(np.asarray(sigma), np.asarray(se_variance / max(2 * sigma, 1e-300)))
 
 
 EFFECT = ElectronicNoise()

@@ -6,7 +6,7 @@ scales each pixel's noise variance in the fit's and the retrieval's weights.
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -17,22 +17,19 @@ from .. import model as M
 from ..catalogue import Effect
 from ..errors import DfxcorrError
 from ..observations import Observations
-from .base import (
-    Context,
-    EffectBase,
-    Hypothesis,
-    Preparation,
-    State,
-    Test,
-    Writer,
-    chi2_test,
-    fit_counts,
-    holm,
-    line_consistency,
-    pixel_chi2,
-    ranges,
-    squared_residuals,
-)
+from ..preparation import Correctable
+from ..stats import holm, ranges
+from .base import Consistency, Context, EffectBase, Finding, Hypothesis, Option, Params, Policy, State, Test, chi2_test
+from .residuals import fit_counts, line_consistency, pixel_chi2, squared_residuals
+
+
+@dataclass(frozen=True)
+class Classes:
+    """A pixel-noise test's payload: the factor map (H, W), relative to the current factors, and its classes
+    (each a dict of 'columns', 'rows', 'pixels', 'factor', 'dof')."""
+
+    map: np.ndarray
+    classes: tuple[dict[str, Any], ...]
 
 
 def read_pixel_noise(path: str | Path | None, shape: tuple[int, int]) -> np.ndarray | None:
@@ -63,8 +60,8 @@ class PixelNoiseError(DfxcorrError, ValueError):
 
 
 
-def pixel_noise_test(obs: Observations, params: dict, images: M.Images, *, alpha: float, counts: np.ndarray,
-                     exclude: np.ndarray | None = None, fitted: np.ndarray | None = None) -> Test:
+def pixel_noise_test(obs: Observations, params: Params, images: M.Images, *, alpha: float, counts: np.ndarray,
+                     exclude: np.ndarray | None = None, fitted: np.ndarray | None = None) -> Test[Classes]:
     """Pixel classes whose noise variance differs from the rest: found by detector column and row, factor per class.
 
     Per pixel, the Pearson chi-square X_i of its samples under the current noise model, each sample's z^2
@@ -122,7 +119,7 @@ def pixel_noise_test(obs: Observations, params: dict, images: M.Images, *, alpha
     img = {k: obs.to_image(v, fill=0.0) for k, v in (("dof", dof), ("V", V))}
     H, W = obs.shape[1:]
     fmap = np.ones((H, W))
-    none = Test(0.0, 0, 1.0, 0.0, payload={"map": fmap, "classes": []})
+    none = Test(0.0, 0, 1.0, 0.0, Classes(fmap, ()))
     if img["dof"].sum() <= 0:
         return none
     groups = [np.zeros(W, int), np.zeros(H, int)]
@@ -181,10 +178,10 @@ def pixel_noise_test(obs: Observations, params: dict, images: M.Images, *, alpha
                         "pixels": int(m.sum()), "factor": float(f), "dof": float(d)})
     if not classes:
         return none
-    return chi2_test(stat, len(classes), explains=stat, payload={"map": fmap, "classes": classes})
+    return chi2_test(stat, len(classes), Classes(fmap, tuple(classes)), explains=stat)
 
 
-def _dispersion(img: dict, regular: np.ndarray) -> float:
+def _dispersion(img: dict[str, Any], regular: np.ndarray) -> float:
     """Reduced chi-square of the regular pixels; 1 (the stated noise model) when every line is anomalous."""
     dof = img["dof"][regular].sum()
     return float(img["X"][regular].sum() / dof) if dof > 0 else 1.0
@@ -227,29 +224,28 @@ def class_chi2(obs: Observations, ibar: np.ndarray, valid: np.ndarray, classes: 
 
 
 
-class PixelNoise(EffectBase):
+class PixelNoise(EffectBase[Classes]):
     entry = Effect("pixel_noise", None, False, (), 1.0, "none",
                    "the noise variance differs from pixel to pixel: variance_i = f_i * g * mean (+ electronic)")
-    role = "noise"
-    files = ("pixel_noise.tif",)
     # a variance pattern before a global gain: its factors are relative to the regular pixels, so a gain fitted
     # first would be pulled by the anomalous ones
-    tier = 0
+    policy = Policy(order=0, noise_model=True, pixelwise=True)
+    files = ("pixel_noise.tif",)
 
-    def configured(self, cfg: dict, *, n_frames: int, detector: tuple[int, int]) -> Any:
+    def configured(self, cfg: dict[str, Any], *, n_frames: int, detector: tuple[int, int]) -> Any:
         return read_pixel_noise(cfg["load"]["pixel_noise"], detector)
 
-    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
-        return replace(prep, noise=replace(prep.noise, factors=setting))
+    def apply(self, data: Correctable, setting: Any) -> Correctable:
+        return replace(data, noise=replace(data.noise, factors=setting))
 
-    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[Classes] | None:
         from scipy import ndimage
 
         return pixel_noise_test(state.obs, state.params, state.rec.images, alpha=ctx.cfg["diagnose"]["alpha"],
                                 counts=fit_counts(state), fitted=ctx.fitted,
                                 exclude=ndimage.binary_dilation(flagged))
 
-    def consistency(self, ctx: Context, before: State, state: State) -> Test | None:
+    def consistency(self, ctx: Context, before: State, state: State) -> Consistency | None:
         # the classes' factors in the trial's model: each class must have one factor along its lines
         # (:func:`line_consistency`: its strata's factors against the class's own departure from 1)
         factors = state.hypothesis.noise.factors
@@ -258,35 +254,27 @@ class PixelNoise(EffectBase):
         X, dof, _ = pixel_chi2(state.obs, state.params, state.rec.images)
         return line_consistency(factors, X, dof)
 
-    def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
+    def trial(self, ctx: Context, state: State, test: Test[Classes]) -> Hypothesis:
         noise = state.hypothesis.noise
         # the test's factors are relative to the current ones
-        factors = test.payload["map"] * (1.0 if noise.factors is None else noise.factors)
+        factors = test.payload.map * (1.0 if noise.factors is None else noise.factors)
         return state.hypothesis.but(noise=replace(noise, factors=factors))
 
-    def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
-        return {"classes": test.payload["classes"]}
+    def accepted(self, ctx: Context, before: State, after: State, test: Test[Classes]) -> Finding:
+        classes = test.payload.classes
+        factors = after.hypothesis.noise.factors
+        files = {}
+        if factors is not None:
+            def write(path: Path) -> None:
+                import tifffile
 
-    def where(self, test: Test, obs: Observations) -> str:
-        return "; ".join(f"rows {c['rows']} x columns {c['columns']}" for c in test.payload["classes"][:3])
+                tifffile.imwrite(path, factors.astype(np.float32))
 
-    def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
-        return ", ".join(f"f = {c['factor']:.3g} ({c['pixels']} pixels)" for c in extra["classes"])
-
-    def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
-        return [f"load.pixel_noise={out_dir / 'pixel_noise.tif'}"] if extra is not None else []
-
-    def artefacts(self, final: Hypothesis, extra: dict | None, cfg: dict) -> dict[str, Writer]:
-        if extra is None or final.noise.factors is None:
-            return {}
-        factors = final.noise.factors
-
-        def write(path: Path) -> None:
-            import tifffile
-
-            tifffile.imwrite(path, factors.astype(np.float32))
-
-        return {self.files[0]: write}
+            files = {self.files[0]: write}
+        return Finding("; ".join(f"rows {c['rows']} x columns {c['columns']}" for c in classes[:3]),
+                       ", ".join(f"f = {c['factor']:.3g} ({c['pixels']} pixels)" for c in classes),
+                       {"classes": list(classes)}, options=(Option("load.pixel_noise", self.files[0], file=True),),
+                       files=files)
 
 
 EFFECT = PixelNoise()

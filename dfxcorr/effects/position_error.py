@@ -6,7 +6,7 @@ the one model.
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -16,11 +16,37 @@ from .. import model as M
 from ..align import read_position_errors
 from ..catalogue import Effect
 from ..observations import Observations
+from ..preparation import Correctable
 from ..retrieve import retrieve
-from .base import Context, EffectBase, Hypothesis, Preparation, Realign, State, Test, Writer, chi2_test, frames_where
+from ..stats import frames_where
+from .base import (
+    Context,
+    EffectBase,
+    Estimate,
+    Finding,
+    Hypothesis,
+    Option,
+    Params,
+    Policy,
+    Realign,
+    State,
+    Test,
+    chi2_test,
+)
 
 
-def _shift_derivative(realigned: Realign, obs: Observations, params: dict, images: M.Images, shift: np.ndarray,
+@dataclass(frozen=True)
+class Steps:
+    """A position test's payload: the share of its statistic in each frame, the Gauss-Newton step of the position
+    errors and its standard errors (J,) (rows), and the accompanying step of the model's per-frame parameters."""
+
+    frames: np.ndarray
+    step: np.ndarray
+    se: np.ndarray
+    param_step: Params
+
+
+def _shift_derivative(realigned: Realign, obs: Observations, params: Params, images: M.Images, shift: np.ndarray,
                       step: float) -> np.ndarray:
     """dIbar/d delta_j at every sample (K, C): images and parameters fixed, central difference of the alignment."""
     out = []
@@ -30,8 +56,9 @@ def _shift_derivative(realigned: Realign, obs: Observations, params: dict, image
     return (out[0] - out[1]) / (2 * step)
 
 
-def position_test(realigned: Realign, obs: Observations, params: dict, shift: np.ndarray, *,
-                  dispersion: float = 1.0, step: float = 0.25, min_precision: float = 1.0, prior: float = 1.0) -> Test:
+def position_test(realigned: Realign, obs: Observations, params: dict[str, Any], shift: np.ndarray, *,
+                  dispersion: float = 1.0, step: float = 0.25, min_precision: float = 1.0, prior: float = 1.0
+                  ) -> Test[Steps]:
     """Per-frame score test for position errors, and one Gauss-Newton step of their estimate.
 
     Frame j's score U_j = sum w r dIbar/d delta_j and information I_j = sum w (dIbar/d delta_j)^2, each
@@ -65,8 +92,7 @@ def position_test(realigned: Realign, obs: Observations, params: dict, shift: np
     Returns
     -------
     Test
-        Payload 'frames' (per-frame share of the statistic), 'step' (J,) Gauss-Newton step of delta,
-        'param_step' (dict: the accompanying step of the model's per-frame parameters).
+        Payload :class:`Steps`.
     """
     rec = retrieve(obs, params)
     images, w = rec.images, rec.weights
@@ -104,15 +130,16 @@ def position_test(realigned: Realign, obs: Observations, params: dict, shift: np
     stat = max(float(per.sum()) - common, 0.0)
     dof = max(int(use.sum()) - 1, 0)
     precision = float(np.sqrt(dispersion / np.median(i_d[use]))) if use.any() else np.inf
-    param_step: dict = {}
+    param_step: Params = {}
     for k, (n, m) in enumerate(names, start=1):
         param_step.setdefault(n, np.zeros_like(params[n]))[:, m] = sol[:, k]
-    return chi2_test(stat, dof, identifiable=bool(dof and precision < min_precision), explains=stat * dispersion,
-                     payload={"frames": per, "step": np.where(use, sol[:, 0], 0.0), "param_step": param_step})
+    se = np.where(use, np.sqrt(dispersion / np.where(use, i_d, 1.0)), np.inf)
+    return chi2_test(stat, dof, Steps(per, np.where(use, sol[:, 0], 0.0), se, param_step),
+                     identifiable=bool(dof and precision < min_precision), explains=stat * dispersion)
 
 
-def estimate_position_errors(realigned: Realign, obs: Observations, params: dict, shift: np.ndarray, *,
-                             iterations: int = 10, tol: float = 0.01) -> tuple[np.ndarray, dict]:
+def estimate_position_errors(realigned: Realign, obs: Observations, params: dict[str, Any], shift: np.ndarray, *,
+                             iterations: int = 10, tol: float = 0.01) -> tuple[np.ndarray, dict[str, Any]]:
     """Gauss-Newton on the per-frame position errors delta_j (rows), images profiled by re-solving them.
 
     Each iteration realigns the fit's samples with the current delta, re-solves the images and takes
@@ -132,67 +159,60 @@ def estimate_position_errors(realigned: Realign, obs: Observations, params: dict
     params = {k: v.copy() for k, v in params.items()}
     for _ in range(iterations):
         t = position_test(realigned, realigned(obs, shift + delta), params, shift + delta)
-        delta = delta + t.payload["step"]
-        for n, dp in t.payload["param_step"].items():
+        delta = delta + t.payload.step
+        for n, dp in t.payload.param_step.items():
             params[n] = params[n] + dp
-        if np.max(np.abs(t.payload["step"])) < tol:
+        if np.max(np.abs(t.payload.step)) < tol:
             break
     return delta, params
-class PositionError(EffectBase):
+class PositionError(EffectBase[Steps]):
     entry = Effect("position_error", None, True, ("delta",), 0.0, "shift",
                    "the recorded position of frame j is off by delta_j rows: its flat field is read at u - delta_j",
                    unit="rows")
-    role = "alignment"
+    policy = Policy(astray_check=True)
     files = ("position_errors.txt",)
 
-    def configured(self, cfg: dict, *, n_frames: int, detector: tuple[int, int]) -> Any:
+    def configured(self, cfg: dict[str, Any], *, n_frames: int, detector: tuple[int, int]) -> Any:
         path = cfg["align"]["position_errors"]
         return None if path is None else read_position_errors(path, n_frames)
 
-    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
-        return replace(prep, shift=prep.shift + setting)
+    def apply(self, data: Correctable, setting: Any) -> Correctable:
+        return replace(data, shift=data.shift + setting)
 
-    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[Steps] | None:
         if ctx.stepping:
             return None
         return position_test(ctx.realigner(state.hypothesis), state.fit_obs, state.params, state.hypothesis.shift,
                              dispersion=max(state.reduced_chi2, 1e-6))
 
-    def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
+    def trial(self, ctx: Context, state: State, test: Test[Steps]) -> Hypothesis:
         delta, _ = estimate_position_errors(ctx.realigner(state.hypothesis), state.fit_obs, state.params,
                                             state.hypothesis.shift)
         return state.hypothesis.but(shift=state.hypothesis.shift + delta)
 
-    def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
+    def accepted(self, ctx: Context, before: State, after: State, test: Test[Steps]) -> Finding:
         delta = after.hypothesis.shift - before.hypothesis.shift
         # reported in the gauge of phase_offset (median zero over the well-determined frames); the file keeps
         # the shift itself, so that reconstruct reads the flat field where this fit did
-        return {"values": (delta - np.median(delta[ctx.good_frames])).tolist(), "_delta": delta}
-
-    def where(self, test: Test, obs: Observations) -> str:
-        return frames_where(test.payload["frames"], obs.n_frames)
-
-    def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
-        return f"std {np.std(np.asarray(extra['values'])[good]):.3g} rows"
-
-    def per_frame(self, extra: dict, params: dict) -> np.ndarray | None:
-        return np.asarray(extra["values"], dtype=np.float64).reshape(len(extra["values"]), -1)
-
-    def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
-        return [f"align.position_errors={out_dir / 'position_errors.txt'}"] if extra is not None else []
-
-    def artefacts(self, final: Hypothesis, extra: dict | None, cfg: dict) -> dict[str, Writer]:
-        if extra is None:
-            return {}
-        configured = cfg["align"]["position_errors"]
-        delta = extra["_delta"]
-        values = delta + (0.0 if configured is None else read_position_errors(configured, delta.size))
+        values = delta - np.median(delta[ctx.good_frames])
+        configured = ctx.cfg["align"]["position_errors"]
+        written = delta + (0.0 if configured is None else read_position_errors(configured, delta.size))
 
         def write(path: Path) -> None:
-            np.savetxt(path, values, fmt="%.6f", header="position error delta_j of each frame (rows): dfxcorr "
-                                                        "reconstruct --set align.position_errors=<this file>")
+            np.savetxt(path, written, fmt="%.6f", header="position error delta_j of each frame (rows): dfxcorr "
+                                                         "reconstruct --set align.position_errors=<this file>")
 
-        return {self.files[0]: write}
+        return Finding(frames_where(test.payload.frames, after.fit_obs.n_frames),
+                       f"std {np.std(values[ctx.good_frames]):.3g} rows", {"values": values.tolist()},
+                       options=(Option("align.position_errors", self.files[0], file=True),),
+                       files={self.files[0]: write}, per_frame=values[:, None])
+
+    def measure(self, ctx: Context, state: State) -> Estimate | None:
+        # each frame's position at this fit (its shift off the prepared alignment) and the standard error its
+        # test gives there
+        t = position_test(ctx.realigner(state.hypothesis), state.fit_obs, state.params, state.hypothesis.shift,
+                          dispersion=max(state.reduced_chi2, 1e-6))
+        return Estimate(state.hypothesis.shift + t.payload.step, t.payload.se)
 
 
 EFFECT = PositionError()

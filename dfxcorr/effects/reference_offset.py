@@ -15,8 +15,7 @@ against noise.
 """
 from __future__ import annotations
 
-from dataclasses import replace
-from pathlib import Path
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -24,8 +23,17 @@ import numpy as np
 from .. import model as M
 from ..catalogue import Effect
 from ..observations import Observations
+from ..preparation import Correctable
 from ..retrieve import per_dof, retrieve
-from .base import Context, EffectBase, Hypothesis, Preparation, Realign, State, Test, chi2_test
+from .base import Context, EffectBase, Estimate, Finding, Hypothesis, Option, Policy, Realign, State, Test, chi2_test
+
+
+@dataclass(frozen=True)
+class Offset:
+    """An offset test's estimate beyond the current alignment and its standard error (rows)."""
+
+    value: float
+    sigma: float
 
 
 def _third_difference(a: np.ndarray) -> np.ndarray:
@@ -44,10 +52,10 @@ def phase_variance(images: M.Images, dispersion: float = 1.0) -> np.ndarray:
     return np.where(images.valid, var * dispersion, np.nan)
 
 
-def _realigned_images(realigned: Realign, obs: Observations, params: dict, shift: np.ndarray | float, *,
+def _realigned_images(realigned: Realign, obs: Observations, params: dict[str, Any], shift: np.ndarray | float, *,
                       keep_inverse: bool = False) -> tuple[M.Images, float]:
     """The images of the samples of ``obs`` with the flat field read ``shift`` rows off the prepared alignment, and
-    their reduced chi-square, solved a run of columns at a time (a clinical scan's realigned samples at once were
+    their reduced chi-square, solved a run of columns at a time (a clinical scan's realigned samples at once would be
     most of its diagnosis's peak memory)."""
     parts = [retrieve(realigned(obs.subset(c), shift), params, keep_inverse=keep_inverse, keep_expected=False)
              for c in obs.column_chunks()]
@@ -59,8 +67,8 @@ def _realigned_images(realigned: Realign, obs: Observations, params: dict, shift
     return images, chi2
 
 
-def offset_test(realigned: Realign, obs: Observations, params: dict, shift: np.ndarray | float = 0.0, *,
-                step: float = 0.5, clip: float = 5.0, min_precision: float = 0.1) -> Test:
+def offset_test(realigned: Realign, obs: Observations, params: dict[str, Any], shift: np.ndarray | float = 0.0, *,
+                step: float = 0.5, clip: float = 5.0, min_precision: float = 0.1) -> Test[Any]:
     """Test for, and estimate, a reference offset from the steps of the differential-phase image.
 
     With the flat field read at u - delta for every frame, the retrieved phase image is
@@ -98,10 +106,10 @@ def offset_test(realigned: Realign, obs: Observations, params: dict, shift: np.n
     Returns
     -------
     Test
-        Statistic z^2 with 1 dof; payload 'value' (delta beyond ``shift``, rows), 'sigma' (its standard error).
+        Statistic z^2 with 1 dof; payload the offset beyond ``shift`` (rows) and its standard error.
     """
     # the compiled retrieval keeps the inverse normal matrices the phase variance needs (the numpy model's solve of
-    # every column was 2.5 s of the paper study's 10 s of tests)
+    # every column would take a quarter of the paper study's tests)
     images, chi2 = _realigned_images(realigned, obs, params, shift, keep_inverse=True)
     phi, var = images.phi, phase_variance(images, max(chi2, 1.0))
     plus, minus = (_realigned_images(realigned, obs, params, shift + d)[0] for d in (step, -step))
@@ -127,7 +135,7 @@ def offset_test(realigned: Realign, obs: Observations, params: dict, shift: np.n
     w = np.where(keep, 1.0 / f_var, 0.0)
     info = float(np.sum(w * f_s ** 2))
     if info <= 0:
-        return Test(0.0, 1, 1.0, 0.0, identifiable=False, excess=1, payload={"value": 0.0, "sigma": np.inf})
+        return Test(0.0, 1, 1.0, 0.0, Offset(0.0, np.inf), identifiable=False, excess=1)
     # the estimator's coefficients on the phase image: the adjoint of the stencil applied to -w D3(s) / info
     a = -w * f_s / info
     coef = np.zeros_like(phi)
@@ -137,51 +145,50 @@ def offset_test(realigned: Realign, obs: Observations, params: dict, shift: np.n
     dispersion = max(float(np.sum(w * (f_phi + f_s * delta) ** 2) / max(int(keep.sum()) - 1, 1)), 1.0)
     sigma = np.sqrt(sigma2 * dispersion)
     stat = delta ** 2 / sigma ** 2
-    return chi2_test(stat, 1, identifiable=bool(np.sqrt(sigma2) < min_precision), explains=stat,
-                     payload={"value": delta, "sigma": float(sigma)})
+    return chi2_test(stat, 1, Offset(delta, float(sigma)), identifiable=bool(np.sqrt(sigma2) < min_precision),
+                     explains=stat)
 
 
-class ReferenceOffset(EffectBase):
+class ReferenceOffset(EffectBase[Offset]):
     entry = Effect("reference_offset", None, False, ("delta",), 0.0, "none",
                    "the interferometer sat delta rows off during the scan: the flat field is read at u - delta",
                    unit="rows")
-    role = "alignment"
     # its statistic comes from the image, not the likelihood (which barely sees it); its step signature at the
     # tile boundaries is specific, while mean-effect proxies would soak up what it does to the fit
-    tier = 1
+    policy = Policy(order=1, astray_check=True)
 
-    def configured(self, cfg: dict, *, n_frames: int, detector: tuple[int, int]) -> Any:
+    def configured(self, cfg: dict[str, Any], *, n_frames: int, detector: tuple[int, int]) -> Any:
         return cfg["align"]["reference_offset"] or None
 
-    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
-        return replace(prep, shift=prep.shift + setting)
+    def apply(self, data: Correctable, setting: Any) -> Correctable:
+        return replace(data, shift=data.shift + setting)
 
-    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[Offset] | None:
         # a phase-stepping recording has no scan positions to be off
         if ctx.stepping:
             return None
         return offset_test(ctx.realigner(state.hypothesis), state.obs, state.params, state.hypothesis.shift)
 
-    def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
+    def trial(self, ctx: Context, state: State, test: Test[Offset]) -> Hypothesis:
         realigned = ctx.realigner(state.hypothesis)
-        found = state.hypothesis.shift + test.payload["value"]
+        found = state.hypothesis.shift + test.payload.value
         # one refinement at the corrected alignment: the step's sensitivity is a linearisation
-        found = found + offset_test(realigned, state.obs, state.params, found).payload["value"]
+        found = found + offset_test(realigned, state.obs, state.params, found).payload.value
         return state.hypothesis.but(shift=found)
 
-    def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
-        return {"value": float(np.mean(after.hypothesis.shift - before.hypothesis.shift))}
-
-    def where(self, test: Test, obs: Observations) -> str:
-        return "steps of the differential phase at the flat field's tile boundaries, all rows"
-
-    def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
-        return f"delta = {extra['value']:.3f} rows"
-
-    def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
+    def accepted(self, ctx: Context, before: State, after: State, test: Test[Offset]) -> Finding:
+        value = float(np.mean(after.hypothesis.shift - before.hypothesis.shift))
         # the configured offset stays in the recommended command
-        offset = cfg["align"]["reference_offset"] + (0.0 if extra is None else extra["value"])
-        return [f"align.reference_offset={offset:.4g}"] if offset else []
+        offset = ctx.cfg["align"]["reference_offset"] + value
+        return Finding("steps of the differential phase at the flat field's tile boundaries, all rows",
+                       f"delta = {value:.3f} rows", {"value": value},
+                       options=(Option("align.reference_offset", f"{offset:.4g}"),))
+
+    def measure(self, ctx: Context, state: State) -> Estimate | None:
+        # the offset this fit's alignment holds beyond the configured one, with the standard error its test gives
+        t = offset_test(ctx.realigner(state.hypothesis), state.obs, state.params, state.hypothesis.shift)
+        return Estimate(np.asarray(float(np.mean(state.hypothesis.shift)) + t.payload.value),
+                        np.asarray(t.payload.sigma))
 
 
 EFFECT = ReferenceOffset()

@@ -13,14 +13,14 @@ from scipy import ndimage, stats
 from ..catalogue import Effect
 from ..mask import motion_score
 from ..observations import Observations
-from .base import Context, EffectBase, Hypothesis, State, Test, Writer
+from .base import Context, EffectBase, Finding, Hypothesis, Option, Params, Policy, State, Test, Unexplained
 
 #: The largest share of the scored pixels that a moving part of the sample may cover: a misfit spread wider is
 #: not sample motion (a blanket mask hides a misfit of the whole detector), and is reported where it is.
 MAX_SHARE = 0.1
 
 
-def motion_test(obs: Observations, params: dict, *, p_pixel: float = 1e-6, min_pixels: int = 5) -> Test:
+def motion_test(obs: Observations, params: Params, *, p_pixel: float = 1e-6, min_pixels: int = 5) -> Test[None]:
     """Pixels whose frames disagree beyond noise and remaining vibration misfit, in clusters.
 
     The per-pixel score is :func:`dfxcorr.mask.motion_score` at the current model (a reduced
@@ -31,14 +31,14 @@ def motion_test(obs: Observations, params: dict, *, p_pixel: float = 1e-6, min_p
     -------
     Test
         Statistic: chi-square in excess of its dof over the flagged pixels; dof: flagged pixels; log_p:
-        binomial (that many pixels below ``p_pixel`` by chance); payload 'mask' (H, W) bool. Not material where
+        binomial (that many pixels below ``p_pixel`` by chance); ``flagged`` (H, W) bool. Not material where
         the flagged pixels are more than :data:`MAX_SHARE` of those scored.
     """
     score = motion_score(obs, params)
     dof = np.maximum(obs.segment_sum(obs.use, dtype=np.int64) - 3, 1)
     ok = np.isfinite(score)
     # the chi-square tail beyond p_pixel as a critical value per degree of freedom (a few distinct ones): the
-    # log-tail of every pixel was 0.3 s a round on a 512 x 1536 detector
+    # log-tail of every pixel would take 0.3 s a round on a 512 x 1536 detector
     dofs, at = np.unique(dof, return_inverse=True)
     critical = stats.chi2.isf(p_pixel, dofs)[at.reshape(dof.shape)]
     flag = obs.to_image(ok & (np.nan_to_num(score) * dof > critical), fill=False).astype(bool)
@@ -51,8 +51,8 @@ def motion_test(obs: Observations, params: dict, *, p_pixel: float = 1e-6, min_p
     excess = obs.to_image(np.nan_to_num(score - 1) * dof, fill=0.0)
     log_p = float(stats.binom.logsf(k - 1, int(ok.sum()), p_pixel)) if k >= min_pixels else 0.0
     stat = float(excess[flag].sum())
-    return Test(stat, k, float(np.exp(log_p)), log_p, explains=stat, material=k <= MAX_SHARE * ok.sum(),
-                payload={"mask": flag})
+    return Test(stat, k, float(np.exp(log_p)), log_p, None, explains=stat, material=k <= MAX_SHARE * ok.sum(),
+                flagged=flag)
 
 
 def where_pixels(mask: np.ndarray) -> str:
@@ -62,53 +62,47 @@ def where_pixels(mask: np.ndarray) -> str:
             if rows.size else "nowhere")
 
 
-class SampleMotion(EffectBase):
+def _flagged(test: Test[None]) -> np.ndarray:
+    if test.flagged is None:
+        raise ValueError("a motion test flags pixels")
+    return test.flagged
+
+
+class SampleMotion(EffectBase[None]):
     entry = Effect("sample_motion", None, False, (), 0.0, "none",
                    "part of the sample moved during the scan: pixels whose frames disagree")
-    role = "pixels"
+    policy = Policy(localised=True, pixelwise=True, astray_check=True)
     files = ("motion_mask.tif",)
 
-    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[None] | None:
         if state.hypothesis.motion.any():
             return None
         d = ctx.cfg["diagnose"]
         return motion_test(state.obs, state.params, p_pixel=d["motion_p"], min_pixels=d["min_pixels"])
 
-    def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
+    def trial(self, ctx: Context, state: State, test: Test[None]) -> Hypothesis:
         # the rim of a moving region is partly affected too
-        return state.hypothesis.but(motion=ndimage.binary_dilation(test.payload["mask"], iterations=1))
+        return state.hypothesis.but(motion=ndimage.binary_dilation(_flagged(test), iterations=1))
 
-    def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
-        return {"pixels": int(after.hypothesis.motion.sum())}
-
-    def where(self, test: Test, obs: Observations) -> str:
-        return where_pixels(test.payload["mask"])
-
-    def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
-        return f"{extra['pixels']} pixels"
-
-    def unexplained(self, test: Test) -> dict:
-        """The ``unexplained`` entry of pixels that disagree although masking them did not explain the misfit."""
-        why = "masking them does not explain the misfit" if test.material else \
-            f"more than {100 * MAX_SHARE:.0f} % of the pixels: no moving part of a sample"
-        return {"axis": "pixel", "statistic": test.statistic, "dof": test.dof, "p_value": test.p_value,
-                "where": where_pixels(test.payload["mask"]),
-                "description": f"{int(test.payload['mask'].sum())} pixels whose frames disagree beyond noise, in "
-                               f"clusters; {why}"}
-
-    def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
-        return ["mask.enabled=true"] if extra is not None else []
-
-    def artefacts(self, final: Hypothesis, extra: dict | None, cfg: dict) -> dict[str, Writer]:
-        if extra is None:
-            return {}
+    def accepted(self, ctx: Context, before: State, after: State, test: Test[None]) -> Finding:
+        motion = after.hypothesis.motion
+        pixels = int(motion.sum())
 
         def write(path: Path) -> None:
             import tifffile
 
-            tifffile.imwrite(path, final.motion.astype(np.uint8))
+            tifffile.imwrite(path, motion.astype(np.uint8))
 
-        return {self.files[0]: write}
+        return Finding(where_pixels(_flagged(test)), f"{pixels} pixels", {"pixels": pixels},
+                       options=(Option("mask.enabled", "true"),), files={self.files[0]: write})
+
+    def unexplained(self, test: Test[None]) -> Unexplained:
+        """The ``unexplained`` entry of pixels that disagree although masking them did not explain the misfit."""
+        why = ("masking them does not explain the misfit" if test.material else
+               f"more than {100 * MAX_SHARE:.0f} % of the pixels: no moving part of a sample")
+        mask = _flagged(test)
+        return Unexplained("pixel", test.statistic, test.dof, test.p_value, where_pixels(mask),
+                           f"{int(mask.sum())} pixels whose frames disagree beyond noise, in clusters; {why}")
 
 
 EFFECT = SampleMotion()

@@ -45,7 +45,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -57,8 +56,9 @@ from ..catalogue import Effect
 from ..errors import DfxcorrError
 from ..io import Reference
 from ..observations import Observations
+from ..preparation import Correctable, Prepared
 from ..retrieve import retrieve
-from .base import Context, EffectBase, Hypothesis, Preparation, State, Test, chi2_test
+from .base import MEAN, Context, EffectBase, Estimate, Finding, Hypothesis, Option, State, Test, chi2_test
 
 #: Fixed-point updates of the transmission behind the primary (see the module's text).
 UPDATES = 3
@@ -313,7 +313,7 @@ def scattered(store: LitStore, reference: Reference, setting: Setting, pixel_mm:
         setting.ratio))
 
 
-def profiler(prep: Any, state: State) -> Callable[[np.ndarray, float], tuple[float, float]]:
+def profiler(prep: Prepared, state: State) -> Callable[[np.ndarray, float], tuple[float, float]]:
     """(t, width_mm) -> s at that kernel width and transmission behind the primary, at the fit's per-frame parameters.
 
     For a given field S the model is linear in s and the images are profiled per pixel: one Gauss-Newton step
@@ -351,7 +351,7 @@ def profiler(prep: Any, state: State) -> Callable[[np.ndarray, float], tuple[flo
     return fitted
 
 
-def score(obs: Observations, params: dict, images: M.Images, weights: np.ndarray, field_: np.ndarray
+def score(obs: Observations, params: dict[str, Any], images: M.Images, weights: np.ndarray, field_: np.ndarray
           ) -> tuple[float, float, float, float]:
     """Efficient score of s along ``field_`` at images fitted with ``weights``, the images profiled out.
 
@@ -394,62 +394,83 @@ def score(obs: Observations, params: dict, images: M.Images, weights: np.ndarray
             float(np.sum(w * resid * resid)))
 
 
-class Scatter(EffectBase):
+@dataclass(frozen=True)
+class ScatterScore:
+    """A scatter test's payload: s estimated from the score (one step from 0) and its standard error, the kernel
+    width it was tested at (mm), and the share of s's information left after profiling the images."""
+
+    value: float
+    se: float
+    width_mm: float
+    information_share: float = 0.0
+
+
+@dataclass(frozen=True)
+class TestField:
+    """The unit scatter field on some columns of a prepared scan at one kernel width (what the test scores s along;
+    a value, so that the diagnosis makes it once per corrected scan)."""
+
+    width_mm: float
+    columns: tuple[int, ...]
+
+    def __call__(self, prep: Prepared) -> np.ndarray:
+        # the fit's columns only, the primary a frame at a time: a clinical scan's field of every sample was most
+        # of its diagnosis's peak memory
+        width = kernel_pixels(self.width_mm, pixel_mm(prep.scan))
+        t = retrieved(prep.store, prep.reference, step=block(width))
+        made = field(prep.store, prep.reference, t, width).take(columns=np.asarray(self.columns))
+        return np.asarray(made, dtype=np.float64)
+
+
+class Scatter(EffectBase[ScatterScore]):
     entry = Effect("scatter", None, False, ("s",), 0.0, "none",
                    "Compton scatter: unmodulated counts s times the frame's primary blurred by a wide kernel")
-    role = "mean"
+    policy = MEAN
 
-    def configured(self, cfg: dict, *, n_frames: int, detector: tuple[int, int]) -> Any:
+    def configured(self, cfg: dict[str, Any], *, n_frames: int, detector: tuple[int, int]) -> Any:
         load = cfg["load"]
         return Setting(float(load["scatter"]), float(load["scatter_width_mm"])) if load["scatter"] else None
 
-    def prepare(self, prep: Preparation, setting: Any) -> Preparation:
-        if prep.reference is None:
+    def apply(self, data: Correctable, setting: Any) -> Correctable:
+        if data.reference is None:
             raise ValueError("the scatter correction needs the flat field")
-        store = prep.store.shifted(prep.shift) if np.any(prep.shift) else prep.store
+        store = data.store.shifted(data.shift) if np.any(data.shift) else data.store
         # the shift is read again by the preparation: the store keeps its own u
-        return replace(prep, store=replace(prep.store, offset=scattered(store, prep.reference, setting,
-                                                                          prep.pixel_mm).offset))
+        return replace(data, store=replace(data.store, offset=scattered(store, data.reference, setting,
+                                                                          data.pixel_mm).offset))
 
-    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test | None:
-        prep = ctx.prepared(state.hypothesis)
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[ScatterScore] | None:
+        prep = ctx.corrected(state.hypothesis)
         if prep.store.offset is not None:
             return None  # in the model already (configured, or a correction of this hypothesis)
         width_mm = float(ctx.cfg["load"]["scatter_width_mm"])
         if pixel_mm(prep.scan) is None:
             # a kernel width in mm means nothing without the pixel pitch (an imported recording may not state it)
-            return Test(0.0, 1, 1.0, 0.0, identifiable=False, payload={"value": 0.0, "se": np.inf,
-                                                                          "width_mm": width_mm})
+            return Test(0.0, 1, 1.0, 0.0, ScatterScore(0.0, np.inf, width_mm), identifiable=False)
         # measured, not assumed from the geometry: in phase stepping every step sees the same primary and the
-        # share of S's information left after profiling the images is ~1e-31 (5-step simulation), in a scan ~0.1
-        key = ("scatter field", state.hypothesis.corrections)
-        if key not in ctx.memo:
-            # the fit's columns only, the primary a frame at a time: a clinical scan's field of every sample was
-            # most of its diagnosis's peak memory
-            width = kernel_pixels(width_mm, pixel_mm(prep.scan))
-            ctx.memo[key] = field(prep.store, prep.reference, retrieved(prep.store, prep.reference, step=block(width)),
-                                  width).take(columns=state.fit_obs.columns)
-        # on the fit's columns, as the channel effects' tests: the score of every column was a fifth of the paper
+        # share of S's information left after profiling the images is ~1e-31 (5-step simulation), in a scan ~0.1.
+        # On the fit's columns, as the channel effects' tests: the score of every column was a fifth of the paper
         # study's tests (a stepping recording shows its ~1e-31 share of information there as well)
         obs = state.fit_obs
-        U, info, known, _ = score(obs, state.params, state.fit_rec.images, state.fit_rec.weights,
-                                  ctx.memo[key].astype(np.float64))
+        S = ctx.cached(TestField(width_mm, tuple(int(c) for c in obs.columns)), state.hypothesis)
+        U, info, known, _ = score(obs, state.params, state.fit_rec.images, state.fit_rec.weights, S)
         identifiable = info > MIN_INFORMATION_SHARE * known
         # quasi-likelihood: the dispersion of the fit, not the stated noise model, scales the score's variance
         dispersion = max(state.reduced_chi2, 1.0)
         stat = max(U, 0.0) ** 2 / (info * dispersion) if identifiable else 0.0
-        payload = {"value": U / info if identifiable else 0.0, "se": float(np.sqrt(dispersion / info))
-                   if identifiable else np.inf, "width_mm": width_mm, "information_share": info / max(known, 1e-300)}
-        return chi2_test(stat, 1, identifiable=bool(identifiable), explains=stat, payload=payload)
+        payload = ScatterScore(U / info if identifiable else 0.0,
+                               float(np.sqrt(dispersion / info)) if identifiable else np.inf, width_mm,
+                               info / max(known, 1e-300))
+        return chi2_test(stat, 1, payload, identifiable=bool(identifiable), explains=stat)
 
-    def trial(self, ctx: Context, state: State, test: Test) -> Hypothesis:
+    def trial(self, ctx: Context, state: State, test: Test[ScatterScore]) -> Hypothesis:
         hyp = state.hypothesis
-        prep = ctx.prepared(hyp)
-        start = max(test.payload["value"], 0.0)
+        prep = ctx.corrected(hyp)
+        start = max(test.payload.value, 0.0)
         # the kernel's width is profiled too (a wrong one misplaces the scatter: true 100 mm fitted with 50 mm gave
         # s = 0.117 for 0.1 and a dark field 12 % low); the search's t at the test's estimate, the final one at the
         # best setting (the module's text)
-        configured = float(test.payload["width_mm"])
+        configured = float(test.payload.width_mm)
         t = transmission(prep.store, prep.reference, Setting(start, configured), pixel_mm(prep.scan))
         profile = profiler(prep, state)
         fitted = {w: profile(t, w) for w in configured * WIDTHS}
@@ -467,20 +488,28 @@ class Scatter(EffectBase):
         s, _ = profile(t, width_mm)
         return hyp.but(corrections=(*hyp.corrections, (self.name, Setting(s, width_mm))))
 
-    def accepted(self, ctx: Context, before: State, after: State, test: Test) -> dict:
+    def accepted(self, ctx: Context, before: State, after: State, test: Test[ScatterScore]) -> Finding:
         setting = dict(after.hypothesis.corrections)[self.name]
-        return {"value": setting.ratio, "se": test.payload["se"], "width_mm": setting.width_mm}
+        se = test.payload.se
+        return Finding("all frames; unmodulated counts that follow the sample (largest share behind its dense parts)",
+                       f"s = {100 * setting.ratio:.3g} % of the primary (se {100 * se:.2g} %), kernel std "
+                       f"{setting.width_mm:g} mm", {"value": setting.ratio, "se": se, "width_mm": setting.width_mm},
+                       options=(Option("load.scatter", f"{setting.ratio:.6g}"),
+                                Option("load.scatter_width_mm", f"{setting.width_mm:g}")))
 
-    def where(self, test: Test, obs: Observations) -> str:
-        return "all frames; unmodulated counts that follow the sample (largest share behind its dense parts)"
-
-    def estimate(self, extra: dict, params: dict, good: np.ndarray) -> str:
-        return (f"s = {100 * extra['value']:.3g} % of the primary (se {100 * extra['se']:.2g} %), kernel std "
-                f"{extra['width_mm']:g} mm")
-
-    def settings(self, cfg: dict, final: Hypothesis, extra: dict | None, out_dir: Path) -> list[str]:
-        return [f"load.scatter={extra['value']:.6g}", f"load.scatter_width_mm={extra['width_mm']:g}"] \
-            if extra is not None else []
+    def measure(self, ctx: Context, state: State) -> Estimate | None:
+        setting = dict(state.hypothesis.corrections).get(self.name)
+        if setting is None:
+            return None
+        # the score of s beyond the fitted one along the fitted field, at this fit: its step and standard error
+        prep = ctx.corrected(state.hypothesis.without(self.name))
+        t = transmission(prep.store, prep.reference, setting, pixel_mm(prep.scan))
+        S = field(prep.store, prep.reference, t, kernel_pixels(setting.width_mm, pixel_mm(prep.scan))).take(
+            columns=state.fit_obs.columns)
+        U, info, _, _ = score(state.fit_obs, state.params, state.fit_rec.images, state.fit_rec.weights,
+                              np.asarray(S, dtype=np.float64))
+        dispersion = max(state.reduced_chi2, 1.0)
+        return Estimate(np.asarray(setting.ratio + U / info), np.asarray(np.sqrt(dispersion / info)))
 
 
 EFFECT = Scatter()

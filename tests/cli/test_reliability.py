@@ -1,4 +1,4 @@
-"""Issue 21, reliability round two: inputs named by the configuration never replaced, no traceback and no hang on
+"""Reliability: inputs named by the configuration never replaced, no traceback and no hang on
 hostile inputs (FIFOs, huge declarations, absurd numbers, a signal inside a compiled kernel), and ``check`` refusing
 whatever ``reconstruct`` refuses before computing."""
 from __future__ import annotations
@@ -200,7 +200,7 @@ def test_unlit_float_frames_are_not_read(tmp_path):
     t0 = time.perf_counter()
     for command in ("check", "reconstruct"):
         refused(run(command, path, "-o", tmp_path / "r.h5"), "no detector row is lit")
-    assert time.perf_counter() - t0 < 5  # 33 s each before: every declared frame was read
+    assert time.perf_counter() - t0 < 5  # reading every declared frame would take tens of seconds
 
 
 def test_sigterm_inside_a_compiled_kernel_ends_cleanly(tmp_path):
@@ -399,7 +399,7 @@ def test_disk_full_ends_in_one_line_and_keeps_the_old_result(scan_file, tmp_path
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     res = subprocess.run([sys.executable, "-c", script, "reconstruct", str(scan_file), "-o", str(out), "--overwrite"],
                          capture_output=True, text=True, env=env, timeout=120, check=False, cwd=tmp_path)
-    assert res.returncode == 2, res.stderr  # was a segmentation fault after HDF5's tracebacks
+    assert res.returncode == 2, res.stderr  # not a segmentation fault after HDF5's tracebacks
     assert one_error_line(res.stderr, "r.h5", "cannot write", "File too large") and "h5py" not in res.stderr
     assert digest(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["r.h5"]
 

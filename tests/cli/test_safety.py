@@ -1,4 +1,4 @@
-"""Unattended safety (issue 10, output side): no output is ever an input, concurrent and interrupted runs
+"""Unattended safety (output side): no output is ever an input, concurrent and interrupted runs
 leave nothing behind, every refusal comes before any work as one line on stderr with exit code 2, and
 configurations cannot expand. ``dfxcorr check`` tells in seconds whether ``reconstruct`` would run."""
 import hashlib

@@ -19,10 +19,11 @@ from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.analysis.report import write_report
 from dfxcorr.catalogue import PAPER_MODEL, Effect
 from dfxcorr.effects import REGISTRY
-from dfxcorr.effects.base import EffectBase, Hypothesis, Preparation, chi2_test, holm
-from dfxcorr.effects.base import Test as EffectTest
+from dfxcorr.effects.base import MEAN, Consistency, EffectBase, Finding, Hypothesis, Pair, Policy, chi2_test
 from dfxcorr.observations import Noise
+from dfxcorr.preparation import Correctable
 from dfxcorr.sim import simulate as S
+from dfxcorr.stats import holm
 
 from conftest import ROOT, sim_config
 
@@ -100,10 +101,9 @@ def test_side_tables_come_from_the_catalogue():
     from dfxcorr.catalogue import CATALOGUE
 
     assert {C.VIBRATION_EFFECTS[k] for k in C.VIBRATION_EFFECTS} == set(CATALOGUE)
-    assert all(f"vibration.{k}" == CATALOGUE[e].config for k, e in C.VIBRATION_EFFECTS.items())
     assert TRUTH_KEYS["phase_offset"] == "vib_phase_offset" and "visibility_tilt" not in TRUTH_KEYS
-    # every registered effect has one entry and one implementation
-    assert all(e.entry.name == n for n, e in REGISTRY.items())
+    # every configuration key an effect names is an option of the schema, with a help text
+    assert all(C.option(e.entry.config).help for e in REGISTRY.values() if e.entry.config)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -147,17 +147,17 @@ class World:
 class Fake(EffectBase):
     """An effect whose test says what the test is told, and whose trial adds it to the model."""
 
-    def __init__(self, name, statistic, *, dof=1, role="mean", tier=2, identifiable=True, material=True, until=None):
+    def __init__(self, name, statistic, *, dof=1, policy=MEAN, identifiable=True, material=True, until=None):
         self.entry = Effect(name, None, False, (), 0.0, "none", name)
-        self.role, self.tier, self.until = role, tier, until
-        self._test = replace(chi2_test(statistic, dof, explains=statistic), identifiable=identifiable,
+        self.policy, self.until = policy, until
+        self._test = replace(chi2_test(statistic, dof, None, explains=statistic), identifiable=identifiable,
                              material=material)
 
     def test(self, ctx, state, flagged):
         if self.name in state.hypothesis.effects:
             return None
         # a proxy's test is significant only while the effect it stands in for is missing
-        return chi2_test(0.5, 1) if self.until in state.hypothesis.effects else self._test
+        return chi2_test(0.5, 1, None) if self.until in state.hypothesis.effects else self._test
 
     def trial(self, ctx, state, test):
         return state.hypothesis.but(effects=(*state.hypothesis.effects, self.name))
@@ -183,11 +183,14 @@ def test_holm_steps_down_and_stops_at_the_first_failure():
 
 
 def test_ranking_tiers_explained_chi_square_and_noise_before_pixels():
-    effects = {e.name: e for e in (Fake("lag", 50, tier=0, role="counts"), Fake("offset", 40, tier=1),
-                                   Fake("small", 60), Fake("big", 900), Fake("motion", 300, role="pixels"),
-                                   Fake("gain", 5000, role="noise", tier=1), Fake("classes", 80, role="noise", tier=0),
+    noise = Policy(noise_model=True)
+    effects = {e.name: e for e in (Fake("lag", 50, policy=Policy(order=0)),
+                                   Fake("offset", 40, policy=Policy(order=1)), Fake("small", 60), Fake("big", 900),
+                                   Fake("motion", 300, policy=Policy(localised=True)),
+                                   Fake("gain", 5000, policy=replace(noise, order=1)),
+                                   Fake("classes", 80, policy=replace(noise, order=0)),
                                    Fake("weak", 1.0), Fake("blind", 800, identifiable=False),
-                                   Fake("immaterial", 700, role="noise", material=False))}
+                                   Fake("immaterial", 700, policy=noise, material=False))}
     tests = {n: e.test(None, FakeState(_hypothesis(), [], 0, 0), None) for n, e in effects.items()}
     assert loop.ranked(tests, effects, 0.01) == ["lag", "offset", "big", "classes", "gain", "motion", "small"]
 
@@ -222,8 +225,8 @@ def test_an_unidentifiable_effect_that_explains_the_misfit_stops_the_diagnosis_w
     # the proxy is significant and identifiable; the truth is not identifiable here but explains the signature
     out = _run([Fake("proxy", 100), Fake("blind", 400, identifiable=False)], world)
     assert out.steps == []
-    assert out.blind["blind"]["explains_misfit"] and out.blind["blind"]["explained_share"] == pytest.approx(1.0)
-    assert out.blind["blind"]["stopped"]
+    assert out.blind["blind"].explains_misfit and out.blind["blind"].explained_share == pytest.approx(1.0)
+    assert out.blind["blind"].stopped
     # the identifiable candidate was tried, explained less than the unidentifiable one, and was refused
     assert [h for h, _ in world.fits] == [(), ("blind",), ("proxy",)] and "proxy" in out.rejected
 
@@ -237,7 +240,7 @@ def test_an_identifiable_effect_that_explains_as_much_as_an_unidentifiable_one_i
     fake_vis.trial = lambda ctx, state, test: state.hypothesis.but(effects=(*state.hypothesis.effects, "phase"))
     out = _run([Fake("phase", 400), fake_vis], world)
     assert [s.name for s in out.steps] == ["phase"]
-    assert out.blind["visibility"]["explains_misfit"] and "stopped" not in out.blind["visibility"]
+    assert out.blind["visibility"].explains_misfit and not out.blind["visibility"].stopped
 
 
 def test_of_two_candidates_the_tests_cannot_tell_apart_the_better_fit_is_named():
@@ -275,8 +278,7 @@ def test_a_refined_effect_refits_at_the_estimate_of_its_own_trial():
         def test(self, ctx, state, flagged):
             return self._test
 
-    effect = Estimated("noise", 500, role="noise")
-    effect.refinements = 1
+    effect = Estimated("noise", 500, policy=Policy(noise_model=True, refinements=1))
     out = _run([effect], world)
     assert [s.name for s in out.steps] == ["noise"]
     assert [h for h, _ in world.fits] == [(), ("noise",), ("noise", "noise")]
@@ -286,7 +288,7 @@ def test_an_unidentifiable_effect_that_explains_nothing_does_not_stop_it():
     world = World({"true": {("frame", "mean"): 300.0}})
     out = _run([Fake("true", 100), Fake("blind", 400, identifiable=False)], world)
     assert [s.name for s in out.steps] == ["true"]
-    assert not out.blind["blind"]["explains_misfit"]
+    assert not out.blind["blind"].explains_misfit
 
 
 def test_the_loop_stops_without_a_fit_when_nothing_is_significant_and_within_max_rounds():
@@ -300,8 +302,7 @@ def test_the_loop_stops_without_a_fit_when_nothing_is_significant_and_within_max
 
 def test_a_fresh_start_effect_is_fitted_from_scratch():
     world = World({"data": {("count", "variance"): 200.0}})
-    effect = Fake("data", 300, role="counts")
-    effect.fresh_start = True
+    effect = Fake("data", 300, policy=Policy(fresh_start=True))
     start = replace(world.fit(_hypothesis(), {}, "start"), params={"phase_offset": np.zeros((3, 1))})
     loop.run({"data": effect}, None, start, fit=world.fit, alpha=0.01, explain_share=0.25, proxy_spread=1.0,
              max_rounds=3)
@@ -313,37 +314,32 @@ def test_a_fresh_start_effect_is_fitted_from_scratch():
 # --------------------------------------------------------------------------------------------------
 
 
-class Pedestal(EffectBase):
+class Pedestal(EffectBase[float]):
     """Toy: the detector adds a constant pedestal that the file's dark does not hold. Measured, like detector lag,
     in the rows the active area has just left (they hold dark + pedestal); corrected by adding it to the dark."""
 
     entry = Effect("toy_pedestal", None, False, ("p",), 0.0, "none", "a constant pedestal missing from the dark",
                    unit="counts")
-    role = "counts"
-    tier = -1
-    fresh_start = True
+    policy = Policy(order=-1, fresh_start=True)
+    files = ("pedestal.txt",)
 
-    def prepare(self, prep: Preparation, setting) -> Preparation:
-        return replace(prep, store=replace(prep.store, dark=prep.store.dark + setting))
+    def apply(self, data: Correctable, setting) -> Correctable:
+        return replace(data, store=replace(data.store, dark=data.store.dark + setting))
 
     def test(self, ctx, state, flagged):
-        store = ctx.prepared(state.hypothesis).store
+        store = ctx.corrected(state.hypothesis).store
         signal = store.left_counts.astype(float) - store.dark[store.row[store.left_prev]]
         # the file's rounding (0.5 count) bounds the error where nothing else is left
         p, se = float(signal.mean()), max(float(signal.std()), 0.5) / np.sqrt(signal.size)
-        return chi2_test((p / se) ** 2, 1, explains=(p / se) ** 2, payload={"value": p})
+        return chi2_test((p / se) ** 2, 1, p, explains=(p / se) ** 2)
 
     def trial(self, ctx, state, test):
-        return state.hypothesis.but(corrections=(*state.hypothesis.corrections, (self.name, test.payload["value"])))
+        return state.hypothesis.but(corrections=(*state.hypothesis.corrections, (self.name, test.payload)))
 
     def accepted(self, ctx, before, after, test):
-        return {"value": test.payload["value"]}
-
-    def estimate(self, extra, params, good):
-        return f"p = {extra['value']:.3g} counts"
-
-    def artefacts(self, final, extra, cfg):
-        return {} if extra is None else {"pedestal.txt": lambda path: path.write_text(f"{extra['value']}\n")}
+        p = test.payload
+        return Finding("rows the active area has just left", f"p = {p:.3g} counts", {"value": p},
+                       files={"pedestal.txt": lambda path: path.write_text(f"{p}\n")})
 
 
 def test_a_toy_effect_is_found_corrected_and_reported_through_the_one_interface(tmp_path):
@@ -354,8 +350,8 @@ def test_a_toy_effect_is_found_corrected_and_reported_through_the_one_interface(
     found = [e for e in diag.effects if e.detected]
     assert [e.name for e in found] == ["toy_pedestal"], [(e.name, e.statistic) for e in diag.effects]
     # the rows just left hold the pedestal and Poisson noise of nothing: exact up to the file's rounding
-    assert found[0].extra["value"] == pytest.approx(200.0, abs=0.5)
-    assert diag.final.corrections == (("toy_pedestal", found[0].extra["value"]),)
+    assert found[0].values["value"] == pytest.approx(200.0, abs=0.5)
+    assert diag.final.corrections == (("toy_pedestal", found[0].values["value"]),)
     assert diag.final_chi2 == pytest.approx(1.0, abs=0.05)
     written = write_report(diag, tmp_path)
     assert tmp_path / "pedestal.txt" in written
@@ -396,8 +392,8 @@ class OfOneSize(Fake):
         self.p, self.spread = p, spread
 
     def consistency(self, ctx, before, state):
-        return EffectTest(20.0, 1, self.p, float(np.log(self.p)),
-                          payload={"axis": "count", "strata": [1 - self.spread / 2, 1 + self.spread / 2]})
+        return Consistency(20.0, 1, self.p, float(np.log(self.p)), "count",
+                           (1 - self.spread / 2, 1 + self.spread / 2))
 
 
 @pytest.mark.parametrize(("p", "spread", "named"), [(1e-6, 5.0, False), (1e-6, 0.3, True), (0.5, 5.0, True)])
@@ -410,7 +406,7 @@ def test_a_candidate_of_another_size_in_other_strata_is_refused_as_a_proxy(p, sp
     assert ("true" in out.inconsistent) is not named
     if not named:
         test, odd = out.inconsistent["true"]
-        assert test.statistic == 200 and odd.payload["axis"] == "count"
+        assert test.statistic == 200 and odd.axis == "count"
 
 
 def test_a_proxy_whose_signature_the_next_effect_explains_is_not_reported():
@@ -420,3 +416,53 @@ def test_a_proxy_whose_signature_the_next_effect_explains_is_not_reported():
     out = _run([OfOneSize("proxy", 500, p=1e-6, spread=5.0, until="true"), Fake("true", 300)], world)
     assert [s.name for s in out.steps] == ["true"]
     assert out.inconsistent == {}
+
+
+def test_the_noise_model_is_held_while_the_mean_model_is_grossly_off():
+    """A misfit of the residuals' mean that no candidate explains (reduced chi-square 2.5): the noise model, whose
+    trial would match any misfit with a variance large enough, is not tried; the report says why."""
+    from dfxcorr.analysis.diagnose import _not_added
+
+    world = World({"missing": {("frame", "mean"): 1500.0}})
+    out = _run([Fake("noise", 5000, policy=Policy(noise_model=True))], world)
+    assert out.steps == [] and out.held == {"noise": "gross"} and len(world.fits) == 1
+    report = _not_added("noise", out.tests["noise"], out, alpha=0.01, tested=1)
+    assert report.verdict == "held: gross misfit" and "grossly off" in report.verdict_text()
+    # at a reduced chi-square within the gross level it is tried
+    mild = World({"missing": {("frame", "mean"): 500.0}})
+    assert _run([Fake("noise", 5000, policy=Policy(noise_model=True))], mild).held == {}
+
+
+class Joinable(Fake):
+    """A fake that a trial of another candidate can take up too."""
+
+    def joined(self, hypothesis):
+        return hypothesis.but(effects=(*hypothesis.effects, self.name))
+
+
+class Shares(Joinable):
+    """A fake whose pair test with another candidate says what it is told."""
+
+    def __init__(self, name, statistic, *, beyond, other, shared=2):
+        super().__init__(name, statistic)
+        self.pair = Pair((statistic, 4), {name: beyond[0], other: beyond[1]}, shared)
+
+    def beside(self, ctx, state, other):
+        return self.pair if other in self.pair.beyond else None
+
+
+@pytest.mark.parametrize(("beyond", "named", "alternatives"), [
+    (((50.0, 2), (0.5, 2)), ["a"], ()),     # only a's share beyond b: a
+    (((0.5, 2), (50.0, 2)), ["b"], ()),     # only b's: b, tried in a's place
+    (((0.5, 2), (0.4, 2)), ["a"], ("b",)),  # neither: one finding, 'a or b'
+    (((50.0, 2), (60.0, 2)), ["a", "b"], ()),  # both: fitted together
+])
+def test_confounded_candidates_are_decided_on_their_shares_beyond_each_other(beyond, named, alternatives):
+    world = World({"a": {("frame", "mean"): 200.0}, "b": {("frame", "mean"): 200.0}})
+    a = Shares("a", 400, beyond=beyond, other="b")
+    b = Joinable("b", 390)
+    out = _run([a, b], world, max_rounds=1)
+    (step,) = out.steps
+    assert list(step.names) == named and tuple(n for n, _ in step.alternatives) == alternatives
+    if named == ["b"]:
+        assert out.held == {"a": "b"}

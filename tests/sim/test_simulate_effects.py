@@ -14,14 +14,14 @@ from conftest import sim_config
 
 EXACT = {"simulate.noise": False, "simulate.dtype": "float64"}
 
-# sha256 of scan.data.tobytes() of sim_config(**settings), computed on main at 24fe9e2 (before these options
-# existed) with S.simulate; scans made with the earlier options must stay bit-identical.
-EARLIER = {
+# sha256 of scan.data.tobytes() of sim_config(**settings) with S.simulate, pinned: options added to the simulator
+# must leave scans made without them bit-identical.
+PINNED = {
     "default": ({}, "2884401680639ec4cf64e13e15eb883ff9348e3b567a89463fbd30f80c8be15f"),
-    "earlier options": ({"effects.read_noise": 25.0, "effects.detector_lag": 0.03, "effects.detector_gain": 2.0,
-                         "effects.pixel_noise": 0.5, "effects.position_error": 0.3, "effects.dose": 0.02,
-                         "effects.background": 0.05, "simulate.reference_steps": 5, "simulate.tiles": 4},
-                        "60b6cdc591adf30faa506a8899c6b86d743e352cf658bab225464e8c984c7513"),
+    "detector options": ({"effects.read_noise": 25.0, "effects.detector_lag": 0.03, "effects.detector_gain": 2.0,
+                          "effects.pixel_noise": 0.5, "effects.position_error": 0.3, "effects.dose": 0.02,
+                          "effects.background": 0.05, "simulate.reference_steps": 5, "simulate.tiles": 4},
+                         "60b6cdc591adf30faa506a8899c6b86d743e352cf658bab225464e8c984c7513"),
     "stepping": ({"simulate.geometry": "stepping", "simulate.steps": 5, "simulate.steps_per_period": 5,
                   "effects.read_noise": 25.0, "simulate.flux": 2000.0},
                  "5ea67bd999f193e0612031f029ef503bf827fc1a68bab8eb0c510fe3ebafcd51"),
@@ -36,9 +36,9 @@ def lit_rows(scan, j: int) -> np.ndarray:
     return lit_blocks(scan.position[j:j + 1], scan.reference.transmission.shape[0], scan.shape[1])[0]
 
 
-@pytest.mark.parametrize("case", list(EARLIER))
-def test_earlier_scans_are_bit_identical(case):
-    settings, digest = EARLIER[case]
+@pytest.mark.parametrize("case", list(PINNED))
+def test_pinned_scans_are_bit_identical(case):
+    settings, digest = PINNED[case]
     assert hashlib.sha256(counts(**settings).tobytes()).hexdigest() == digest
 
 
