@@ -162,10 +162,6 @@ COARSE_MIN_COLUMNS = 16
 #: adds :data:`FIT_SECONDS_PER_SAMPLE` per sample of the coarse pass): 0.53 us on the paper study at every column
 #: with both cores free (fit 5.7 s, its coarse pass on every 7th column about 2 s).
 POLISH_SECONDS_PER_SAMPLE = 0.5e-6
-#: Wall seconds of a reconstruction's other stages (alignment, motion mask, retrieval of every pixel) per lit sample
-#: of the scan: what ``fit.time_floor`` leaves to the fit (0.076 us on the binned and 0.077 on the full-resolution
-#: clinical scan, 0.11 on the paper study; docs/benchmark.json, load 3.4-4.1).
-REST_SECONDS_PER_SAMPLE = 0.08e-6
 
 
 @dataclass(frozen=True)
@@ -265,10 +261,8 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
     evenly spread columns at the vibrations ``pilot`` (default :func:`pilot_estimate`) by
     :func:`dfxcorr.fit.pilot_uncertainty`; columns add information independently, so n columns give
     sigma_pilot sqrt(pilot columns / n). It takes the fewest evenly spaced columns predicted to reach
-    ``fit.target_uncertainty``, or more where the whole run is predicted to take at most ``fit.time_floor``
-    seconds with them (the fit's :func:`fit_seconds` and the other stages' :data:`REST_SECONDS_PER_SAMPLE` per
-    sample of the scan: a small scan's run is short, and its fit takes every column, the paper study's too), or
-    with ``fit.time_budget`` the most predicted to fit in that time (:func:`fit_seconds`); never more than
+    ``fit.target_uncertainty`` (a run ends when that precision is reached, however small the scan), or with
+    ``fit.time_budget`` the most predicted to fit in that time (:func:`fit_seconds`); never more than
     ``fit.max_samples`` samples (memory) nor a spacing beyond the alias limit W / 4. Logged when ``report``.
     """
     f = cfg["fit"]
@@ -290,11 +284,6 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
             need = size * (sigma / f["target_uncertainty"]) ** 2
             n = min(max(int(W / max(need, 1.0)), 1), max(W // 4, 1))
             why = f"fit.target_uncertainty={f['target_uncertainty']:g} rad"
-            rest = REST_SECONDS_PER_SAMPLE * per_column * W
-            floor = W if f["time_floor"] is None else within_seconds(cfg, W, per_column, f["time_floor"] - rest)
-            if floor < n:
-                n, why = floor, (f"the most columns within fit.time_floor={f['time_floor']:g} s for the whole run, "
-                                 f"its other stages predicted {rest:.1f} s")
             n = max(n, cap)
         why += f"; pilot of {size} columns {sigma:.2g} rad"
         if n == cap and cap > 1:

@@ -187,12 +187,11 @@ def test_column_step_is_the_smallest_within_the_samples(width, samples_per_colum
 def test_subsample_auto_reaches_the_target_uncertainty_it_predicts(small_scan, caplog):
     """The pilot's prediction is what the fit on the chosen columns then reports (within 25 %, and not
     optimistic by more than 10 %); a looser target takes fewer columns, a time budget the columns it
-    predicts to fit in it, a time floor at least those (this small scan's every column); the log names the
-    columns, the predicted uncertainty and time."""
+    predicts to fit in it; the log names the columns, the predicted uncertainty and time."""
     scan, _ = small_scan()
     prep = prepare(scan, C.defaults())
     with caplog.at_level("INFO", logger="dfxcorr"):
-        plans = {t: planning.plan_columns(prep, C.load([], [f"fit.target_uncertainty={t}", "fit.time_floor=null"]))
+        plans = {t: planning.plan_columns(prep, C.load([], [f"fit.target_uncertainty={t}"]))
                  for t in (0.007, 0.012)}
     assert "predicted phi0/phi1 uncertainty" in caplog.text and "predicted fit time" in caplog.text
     assert plans[0.012].columns.size < plans[0.007].columns.size < scan.shape[2]
@@ -206,13 +205,6 @@ def test_subsample_auto_reaches_the_target_uncertainty_it_predicts(small_scan, c
     budget = planning.plan_columns(prep, C.load([], [f"fit.time_budget={plan.seconds / 2}"]))
     assert budget.seconds <= plan.seconds / 2 and budget.columns.size >= plan.columns.size // 2 - 1
     assert budget.uncertainty == pytest.approx(plan.uncertainty * np.sqrt(plan.columns.size / budget.columns.size))
-    # the floor is the whole run's: the fit's predicted seconds and the other stages' for every sample of the scan
-    rest = planning.REST_SECONDS_PER_SAMPLE * prep.store.samples_per_column() * scan.shape[2]
-    floor = planning.plan_columns(prep, C.load([], ["fit.target_uncertainty=0.012",
-                                                    f"fit.time_floor={plan.seconds + rest}"]))
-    assert floor.columns.size >= plan.columns.size and floor.seconds <= plan.seconds
-    every = planning.plan_columns(prep, C.load([], ["fit.target_uncertainty=0.012"]))
-    assert every.columns.size == scan.shape[2] and every.seconds + rest <= C.defaults()["fit"]["time_floor"]
 
 
 @pytest.mark.slow
