@@ -30,8 +30,8 @@ if TYPE_CHECKING:  # the planning (numba kernels) is imported only where a check
 NAME_MAX = 255
 #: Memory model of a streamed reconstruction: the store of lit rows (counts as stored), the images
 #: (corrected and uncorrected t, v, phi in float64: 48 bytes per pixel), the retrieval's row blocks
-#: (``retrieve.block_mb``) and the fit's samples (float32 observations, weights, cos/sin of the
-#: flat-field phase and the pilot's temporaries: FIT_BYTES each). Against the peak resident set
+#: (``retrieve.block_mb``) and the fit's samples (float32 observations and weights, the solves' outputs
+#: and the pilot's temporaries: FIT_BYTES each). Against the peak resident set
 #: (/usr/bin/time -v, 2 cores) it errs high: 1.50 GB for 1.35 GB measured at 195 x 2880 x 2880,
 #: 0.84 GB for 0.72 GB at 195 x 1440 x 1440 (fit.max_samples 2e6).
 IMAGE_BYTES = 48
@@ -243,7 +243,7 @@ def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, pilot: bool) 
     W = scan.shape[2]
     n = cfg["fit"]["subsample"]
     try:
-        if n == "auto" and pilot:
+        if pilot:
             return plan_columns(prepare(scan, cfg, effects=REGISTRY.values()), cfg, report=False)
         step = column_step(W, samples_per_column, most=cfg["fit"]["max_samples"]) if n == "auto" else n
         cols = fit_columns(W, cfg, step)
@@ -290,8 +290,9 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     diagnose : bool
         Also check the ``diagnose`` section.
     pilot : bool
-        For ``fit.subsample: auto``, prepare the scan (reading its frames) and run the pilot that chooses the
-        fit's columns (:func:`dfxcorr.planning.plan_columns`); otherwise the columns are the most auto may take.
+        Prepare the scan (reading its frames) and run the pilot that predicts the fit's uncertainty and, for
+        ``fit.subsample: auto``, chooses its columns (:func:`dfxcorr.planning.plan_columns`); otherwise the columns
+        are ``fit.subsample``'s, or the most auto may take, without a predicted uncertainty.
 
     Raises
     ------

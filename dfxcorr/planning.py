@@ -255,9 +255,10 @@ def pilot_estimate(prep: Prepared) -> dict:
 
 
 def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report: bool = True) -> ColumnPlan:
-    """Columns entering the vibration fit: ``fit.subsample``, or for ``auto`` those a target precision needs.
+    """Columns entering the vibration fit: ``fit.subsample``, or for ``auto`` those a target precision needs, with the
+    uncertainty and time predicted for them.
 
-    ``auto`` predicts the uncertainty from a pilot: the profiled Fisher information of :data:`PILOT_COLUMNS`
+    The uncertainty is predicted from a pilot: the profiled Fisher information of :data:`PILOT_COLUMNS`
     evenly spread columns at the vibrations ``pilot`` (default :func:`pilot_estimate`) by
     :func:`dfxcorr.fit.pilot_uncertainty`; columns add information independently, so n columns give
     sigma_pilot sqrt(pilot columns / n). It takes the fewest evenly spaced columns predicted to reach
@@ -269,13 +270,13 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
     W = prep.shape[2]
     per_column = prep.store.samples_per_column()
     n, why = f["subsample"], "fit.subsample"
-    sigma, size = float("nan"), 0
+    # the pilot's prediction at every setting: the log states what the chosen columns are expected to give
+    spread = subsample_columns(W, max(W // PILOT_COLUMNS, 1))
+    size = spread.size
+    pilot = pilot_estimate(prep) if pilot is None else pilot
+    sigma = pilot_uncertainty(prep.observations(columns=spread, dtype=np.float32), params=pilot,
+                              gauge_fraction=f["gauge_fraction"])
     if n == "auto":
-        spread = subsample_columns(W, max(W // PILOT_COLUMNS, 1))
-        size = spread.size
-        pilot = pilot_estimate(prep) if pilot is None else pilot
-        sigma = pilot_uncertainty(prep.observations(columns=spread, dtype=np.float32), params=pilot,
-                                  gauge_fraction=f["gauge_fraction"])
         cap = column_step(W, per_column, most=f["max_samples"])
         if f["time_budget"] is not None:
             n = max(within_seconds(cfg, W, per_column, f["time_budget"]), cap)
@@ -290,8 +291,7 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
             why += f"; held at fit.max_samples={f['max_samples']:g}"
     cols = fit_columns(W, cfg, n)
     coarse = coarse_step(cfg, cols.size, per_column, step=n, width=W)
-    out = ColumnPlan(columns=cols, why=why,
-                     uncertainty=sigma * np.sqrt(size / cols.size) if size else float("nan"),
+    out = ColumnPlan(columns=cols, why=why, uncertainty=sigma * np.sqrt(size / cols.size),
                      seconds=fit_seconds(cols.size, per_column, coarse), pilot=pilot, coarse=coarse)
     if report:
         log.info("vibration fit columns: %s", out.summary())
