@@ -68,6 +68,9 @@ def _within(lo, hi):
 
 
 _NUM = (int, float)
+#: Largest scatter per unit primary (load.scatter, effects.scatter): thick samples reach several times the primary;
+#: beyond this the primary behind it is lost in the scatter's noise (a field scaled by 1e300 underflows to zero).
+MAX_SCATTER = 100.0
 #: Vibration estimators (``fit.method``): this paper's, its two baselines, and no correction.
 METHODS = ("ml", "alternating", "correlation", "none")
 
@@ -84,10 +87,12 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "pixel_noise": Option(None, "TIFF of per-pixel noise variance factors f (variance f * gain * mean + "
                                     "electronic), e.g. the pixel_noise.tif that dfxcorr diagnose writes; null: 1",
                               str, nullable=True),
-        "scatter": Option(0.0, "Compton scatter-to-primary ratio s: each frame's primary (t^f t on its lit rows, t "
-                               "estimated from the scan) blurred by a Gaussian of scatter_width_mm, scaled to s times "
-                               "its total, is added to the model's unmodulated offset (dfxcorr diagnose estimates it "
-                               "as scatter); 0: none", _NUM, check=_nonneg),
+        "scatter": Option(0.0, "Compton scatter per unit primary s (1 or more for thick samples): s times the "
+                               "superposition of each frame's primary (t^f t on its lit rows, t estimated from the "
+                               "scan) under a normalised Gaussian of scatter_width_mm, nothing renormalised (a narrow "
+                               "band under a wide kernel gets less than s times its primary), is added to the model's "
+                               "unmodulated offset (dfxcorr diagnose estimates it as scatter); 0: none", _NUM,
+                          check=_within(0, MAX_SCATTER)),
         "scatter_width_mm": Option(50.0, "std of the scatter's Gaussian kernel at the detector (mm; the scan file's "
                                          "pixel size converts it to pixels)", _NUM, check=_positive),
         "saturation": Option(None, "counts at or above this are saturated (the panel's direct beam) and left out of "

@@ -99,6 +99,10 @@ def estimate_error(name: str, diag, truth: dict) -> dict:
         odd = lit & (tru != 1)
         return {"factor": float(np.median(est[odd])), "truth": float(np.median(tru[odd])),
                 "misclassified": float(np.mean((est[lit] != 1) != (tru[lit] != 1)))}
+    if name == "scatter":
+        # the simulator's truth is s, the scatter per unit primary; "value" is the ratio measured in the lit bands
+        return {"estimate": float(extra["s"]), "truth": float(truth["scatter"]),
+                "measured_ratio": float(extra["value"])}
     if "value" in extra:
         return {"estimate": float(extra["value"]), "truth": float(truth.get(name, np.nan))}
     if "values" in extra:

@@ -228,7 +228,8 @@ def _not_added(name: str, test: Test[Any], out: loop.Outcome, *, alpha: float, t
         verdict = "not significant"
     return EffectReport(name, False, bool(test.identifiable), test.statistic, int(test.dof), test.p_value, verdict,
                         rejection=out.rejected.get(name), blind=blind,
-                        refused=out.inconsistent[name][1] if name in out.inconsistent else None, excess=test.excess)
+                        refused=out.inconsistent[name][1] if name in out.inconsistent else None, excess=test.excess,
+                        shared=test.shared)
 
 
 def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = None, *, base: str = "configured",

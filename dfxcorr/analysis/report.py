@@ -54,6 +54,8 @@ class EffectReport:
         Where refused as a proxy: the consistency test that refused it.
     excess : int
         Information-free directions of its parameters beyond its gauge.
+    shared : int
+        Directions it shares with the model's effects (tested and fitted in the rest).
     replication : Replication or None
         Where added: its estimate on disjoint parts of the detector.
     alternatives : tuple of str
@@ -77,6 +79,7 @@ class EffectReport:
     blind: Blind | None = None
     refused: Consistency | None = None
     excess: int = 0
+    shared: int = 0
     replication: Replication | None = None
     alternatives: tuple[str, ...] = ()
     alternative_estimates: Mapping[str, str] = field(default_factory=dict)
@@ -110,6 +113,8 @@ class EffectReport:
         d.update(self.values)
         if self.excess:
             d["excess_null_directions"] = self.excess
+        if self.shared:
+            d["shared_directions"] = self.shared
         if self.rejection is not None:
             d["explained_share"] = self.rejection.share
             if self.rejection.astray:

@@ -176,7 +176,8 @@ def test_unidentifiable_effects_are_never_detected():
     for name in ("visibility_loss", "background"):
         assert not verdict[name].identifiable and not verdict[name].detected, name
     steps = scan.shape[0]
-    assert verdict["dose"].excess == 2 and verdict["dose"].dof == steps - 1 - 2 and not verdict["dose"].detected
+    assert verdict["dose"].shared == 2 and verdict["dose"].dof == steps - 1 - 2 and not verdict["dose"].detected
+    assert verdict["dose"].identifiable and verdict["dose"].excess == 0
     assert not any(e.detected for e in diag.effects)
 
 
