@@ -243,7 +243,7 @@ def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, pilot: bool) 
     W = scan.shape[2]
     n = cfg["fit"]["subsample"]
     try:
-        if pilot:
+        if n == "auto" and pilot:
             return plan_columns(prepare(scan, cfg, effects=REGISTRY.values()), cfg, report=False)
         step = column_step(W, samples_per_column, most=cfg["fit"]["max_samples"]) if n == "auto" else n
         cols = fit_columns(W, cfg, step)
@@ -290,9 +290,8 @@ def plan(scan: io.Scan, cfg: dict, *, name: str = "", outputs=(), diagnose: bool
     diagnose : bool
         Also check the ``diagnose`` section.
     pilot : bool
-        Prepare the scan (reading its frames) and run the pilot that predicts the fit's uncertainty and, for
-        ``fit.subsample: auto``, chooses its columns (:func:`dfxcorr.planning.plan_columns`); otherwise the columns
-        are ``fit.subsample``'s, or the most auto may take, without a predicted uncertainty.
+        For ``fit.subsample: auto``, prepare the scan (reading its frames) and run the pilot that chooses the
+        fit's columns (:func:`dfxcorr.planning.plan_columns`); otherwise the columns are the most auto may take.
 
     Raises
     ------

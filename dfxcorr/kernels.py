@@ -36,9 +36,8 @@ CHANNEL_IDS = {"phase": PHASE, "visibility": VISIBILITY, "dose": DOSE, "backgrou
 #: Columns per tile of the retrieval: a tile's design arrays of one row (up to a few hundred frames) stay in
 #: the L2 cache.
 TILE = 64
-#: Columns per tile of the fit's cost, which keeps only a few numbers per column between its passes: wider
-#: tiles mean fewer passes over a row's blocks (cost+gradient 18.0 -> 15.5 ns CPU per sample on the paper
-#: study at every column, scripts/bench_kernels.py, medians of three alternations; results unchanged)
+#: Columns per tile of the fit's cost, which keeps only a few numbers per column between its passes: wider tiles mean
+#: fewer passes over a row's blocks (cost+gradient 18.0 -> 15.5 ns CPU per sample on the paper study at every column)
 FIT_TILE = 512
 
 #: Gauss-Newton steps of the per-pixel solve after the first (harmonic-free) one when the second harmonic
@@ -238,44 +237,12 @@ def _solve(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used, out, inv):
 
 
 @njit(cache=True, inline="always")
-def _angle_design(fc, fs, cos_p, sin_p, tf, vis, dose, k, c, j, hc, hs, harm):
-    """:func:`_turned` then :func:`_design` of sample (k, c) in frame j.
-
-    Returns (Fc, Fs, tf vf (cos 2θ, sin 2θ), A, Bc, Bs, Hc, Hs).
-    """
-    Fc, Fs = _turned(fc[k, c], fs[k, c], cos_p[j, c], sin_p[j, c])
-    c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dose[j] * tf[k, c], dose[j] * vis[j, c], hc, hs, harm)
-    return Fc, Fs, c2, s2, a, bc, bs, hcc, hcs
-
-
-@njit(cache=True, inline="always")
-def _accumulate(N, rhs, used, i, wk, a, x1, x2, target):
-    """Add one sample to column i of the tile's normal equations."""
-    N[0, i] += wk * a * a
-    N[1, i] += wk * a * x1
-    N[2, i] += wk * a * x2
-    N[3, i] += wk * x1 * x1
-    N[4, i] += wk * x1 * x2
-    N[5, i] += wk * x2 * x2
-    rhs[0, i] += wk * a * target
-    rhs[1, i] += wk * x1 * target
-    rhs[2, i] += wk * x2 * target
-    used[i] += 1.0 if wk > 0 else 0.0
-
-
-@njit(cache=True, inline="always")
 def _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, ww, a, x1, x2, target):
     """Add one sample of weight ww, design (a, x1, x2) and target to column i of a tile's normal equations."""
     wa, w1, w2 = ww * a, ww * x1, ww * x2
-    n00[i] += wa * a
-    n01[i] += wa * x1
-    n02[i] += wa * x2
-    n11[i] += w1 * x1
-    n12[i] += w1 * x2
-    n22[i] += w2 * x2
-    r0[i] += wa * target
-    r1[i] += w1 * target
-    r2[i] += w2 * target
+    n00[i], n01[i], n02[i] = n00[i] + wa * a, n01[i] + wa * x1, n02[i] + wa * x2
+    n11[i], n12[i], n22[i] = n11[i] + w1 * x1, n12[i] + w1 * x2, n22[i] + w2 * x2
+    r0[i], r1[i], r2[i] = r0[i] + wa * target, r1[i] + w1 * target, r2[i] + w2 * target
     used[i] += 1.0 if ww > 0 else 0.0
 
 
@@ -284,12 +251,9 @@ def _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb, f_p, f_v
     """Add one sample to column i of the phase, visibility, dose and background sums: gradient sum (-2 w r) F with
     g = -2 w r, or Gauss-Newton diagonal sum (w F) F with g = w (``square``). Every sum is taken, times 0 (np_, ...)
     where not asked for: a store under a condition would keep the loop from being vectorised."""
-    gp[i] += np_ * g * (f_p * f_p if square else f_p)
-    gv[i] += nv * g * (f_v * f_v if square else f_v)
-    gd[i] += nd * g * (f_d * f_d if square else f_d)
-    gb0[i] += nb * g
-    gb1[i] += nb * g * (x * x if square else x)
-    gb2[i] += nb * g * (y * y if square else y)
+    gp[i], gv[i] = gp[i] + np_ * g * (f_p * f_p if square else f_p), gv[i] + nv * g * (f_v * f_v if square else f_v)
+    gd[i], gb0[i] = gd[i] + nd * g * (f_d * f_d if square else f_d), gb0[i] + nb * g
+    gb1[i], gb2[i] = gb1[i] + nb * g * (x * x if square else x), gb2[i] + nb * g * (y * y if square else y)
 
 
 @njit(cache=True, parallel=True)
@@ -323,31 +287,28 @@ def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_
         # one 1-d array per accumulator, each sample row's operands as 1-d slices: the column loops below are
         # elementwise over contiguous memory, which the compiler vectorises (a 2-d accumulator indexed [q, i] and
         # the samples indexed [k, c] were about eight times slower per sample)
-        n00, n01, n02 = np.empty(tile), np.empty(tile), np.empty(tile)
-        n11, n12, n22 = np.empty(tile), np.empty(tile), np.empty(tile)
-        r0, r1, r2, used = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile)
-        ct, cc, cs = np.empty(tile), np.empty(tile), np.empty(tile)
+        n00, n01, n02, n11, n12, n22 = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
+            np.empty(tile), np.empty(tile)
+        r0, r1, r2, used, ct, cc, cs = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
+            np.empty(tile), np.empty(tile), np.empty(tile)
         du, dw, de, df = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile)
         u = np.empty(3)
         inv = np.empty((3, 3))
         for r in range(chunks[t], chunks[t + 1]):
             lo, hi = bounds[r], bounds[r + 1]
             for c0 in range(0, C, tile):
-                T = min(tile, C - c0)
-                c1 = c0 + T
-                xs = x[c0:c1]
+                c1 = min(c0 + tile, C)
+                T, xs = c1 - c0, x[c0:c1]
                 for step in range(steps):
                     n00[:T], n01[:T], n02[:T], n11[:T], n12[:T], n22[:T] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
                     r0[:T], r1[:T], r2[:T], used[:T] = 0.0, 0.0, 0.0, 0.0
                     for k in range(lo, hi):
                         j = frame[k]
-                        dj = dose[j]
-                        off = b0 + b2 * y[k]
+                        dj, off = dose[j], b0 + b2 * y[k]
                         cnt, tfk, fck, fsk = counts[k, c0:c1], tf[k, c0:c1], fc[k, c0:c1], fs[k, c0:c1]
                         dk, wk = dark[k, c0:c1], w[k, c0:c1]
                         cp, sp, vv = cos_p[j, c0:c1], sin_p[j, c0:c1], vis[j, c0:c1]
-                        # the first solve (the only one without the harmonic) in a loop of its own: a branch on the
-                        # step inside it kept the loop from being vectorised (3.5x slower per sample)
+                        # the first solve in a loop of its own: a branch on the step kept it from being vectorised
                         if step == 0:
                             for i in range(T):
                                 Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
@@ -370,21 +331,17 @@ def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_
                         cc[i] = m00 * u[1] + m10 * u[2]
                         cs[i] = m01 * u[1] + m11 * u[2]
                         du[i], dw[i], de[i], df[i] = _direction(cc[i], cs[i])
-                costs = cost[t, c0:c1]
+                costs, gh0, gh1 = cost[t, c0:c1], g_harm[t, 0, c0:c1], g_harm[t, 1, c0:c1]
                 gb0, gb1, gb2 = g_bg[t, 0, c0:c1], g_bg[t, 1, c0:c1], g_bg[t, 2, c0:c1]
-                gh0, gh1 = g_harm[t, 0, c0:c1], g_harm[t, 1, c0:c1]
                 for k in range(lo, hi):
-                    j = frame[k]
-                    dj = dose[j]
-                    yk = y[k]
-                    off = b0 + b2 * yk
+                    j, yk = frame[k], y[k]
+                    dj, off = dose[j], b0 + b2 * yk
                     cnt, tfk, fck, fsk = counts[k, c0:c1], tf[k, c0:c1], fc[k, c0:c1], fs[k, c0:c1]
                     dk, wk = dark[k, c0:c1], w[k, c0:c1]
                     cp, sp, vv = cos_p[j, c0:c1], sin_p[j, c0:c1], vis[j, c0:c1]
                     gp, gv, gd = g_phase[t, j, c0:c1], g_vis[t, j, c0:c1], g_dose[t, j, c0:c1]
                     if not double:
-                        # without the harmonic, in a loop of its own (the general one below is several times slower
-                        # per sample): _design and _derivatives at hc = hs = 0
+                        # without the harmonic in a loop of its own: _design and _derivatives at hc = hs = 0
                         for i in range(T):
                             Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
                             dv = dj * vv[i]
@@ -400,8 +357,7 @@ def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_
                     for i in range(T):
                         Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
                         c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
-                        tt, cs_, ss = ct[i], cc[i], cs[i]
-                        e, f = de[i], df[i]
+                        tt, cs_, ss, e, f = ct[i], cc[i], cs[i], de[i], df[i]
                         f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs_, ss, Fc, Fs, c2, s2, e, f, tfk[i], dj, vv[i],
                                                                 hc, hs)
                         ww = np.float64(wk[i])
@@ -415,9 +371,8 @@ def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_
 
 
 def weights_dtype(obs) -> np.dtype:
-    """The dtype in which the fit's cost reads the weights: single precision unless the samples are in double (the
-    rounding, 6e-8 relative, is far below any noise; one compiled specialisation per dtype, and 4 bytes per sample
-    less)."""
+    """The dtype of the weights the fit's cost reads: single precision unless the samples are double (rounding 6e-8
+    relative, far below any noise; one compiled specialisation per dtype, 4 bytes per sample less)."""
     return np.result_type(obs.counts.dtype, np.float32)
 
 
@@ -437,7 +392,7 @@ def reduced_cost(obs, ch, weights: np.ndarray, *, phase: float | None = None, sq
         Instead of the gradient sum -2 w r F, return the Gauss-Newton sums sum w F^2 (the Fisher
         diagonal, per channel value).
     channels : sequence of str
-        Channels whose sums are wanted (the others are returned as zeros, at no cost per sample).
+        Channels whose sums are wanted (the others are returned as zeros).
 
     Returns
     -------
@@ -496,6 +451,7 @@ def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, 
         n_sel[t] = 0.0
         N = np.empty((6, tile))
         rhs = np.empty((3, tile))
+        N0, N1, N2, N3, N4, N5, R0, R1, R2 = N[0], N[1], N[2], N[3], N[4], N[5], rhs[0], rhs[1], rhs[2]
         used = np.empty(tile)
         dirn = np.empty((4, tile))  # u, w, e, f of each column's images (_direction)
         u = np.empty(3)
@@ -552,7 +508,8 @@ def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, 
                                 if step > 0:
                                     # Gauss-Newton step of the harmonic: the columns at the current images
                                     bc, bs = _image_columns(bc, bs, Hc[b, i], Hs[b, i], dirn[0, i], dirn[1, i])
-                                _accumulate(N, rhs, used, i, w[b, i], A[b, i], bc, bs, counts[k, c0 + i] - off[b, i])
+                                _add(N0, N1, N2, N3, N4, N5, R0, R1, R2, used, i, w[b, i], A[b, i], bc, bs,
+                                     counts[k, c0 + i] - off[b, i])
                         for i in range(T):
                             c = c0 + i
                             valid[r, c] = _solve(N[0, i], N[1, i], N[2, i], N[3, i], N[4, i], N[5, i], rhs[0, i],
@@ -693,8 +650,9 @@ def _fisher(tf, fc, fs, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose,
                         continue
                     tt, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
                     du, dw, e, f = dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c]
-                    Fc, Fs, c2, s2, a, bc, bs, hcc, hcs = _angle_design(fc, fs, cos_p, sin_p, tf, vis, dose, k, c, j,
-                                                                        hc, hs, double)
+                    Fc, Fs = _turned(fc[k, c], fs[k, c], cos_p[j, c], sin_p[j, c])
+                    c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dose[j] * tf[k, c], dose[j] * vis[j, c], hc, hs,
+                                                          double)
                     basis[0], basis[1], basis[2], basis[3], basis[4] = _derivatives(
                         tt, cs, ss, Fc, Fs, c2, s2, e, f, tf[k, c], dose[j], vis[j, c], hc, hs)
                     # the images' columns of the profiled correction: their derivatives at the images
