@@ -283,7 +283,10 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
             why = f"the most columns within fit.time_budget={f['time_budget']:g} s"
         else:
             need = size * (sigma / f["target_uncertainty"]) ** 2
-            n = min(max(int(W / max(need, 1.0)), 1), max(W // 4, 1))
+            # the widest spacing whose columns reach that many: from the offset, fewer than W / n of them
+            n = max(W // 4, 1)
+            while n > 1 and subsample_columns(W, n, offset=f["column_offset"]).size < need:
+                n -= 1
             why = f"fit.target_uncertainty={f['target_uncertainty']:g} rad"
             n = max(n, cap)
         why += f"; pilot of {size} columns {sigma:.2g} rad"

@@ -127,6 +127,7 @@ def test_whitened_variables_round_trip_and_their_gradient_matches_finite_differe
         assert g @ d == pytest.approx(fd, rel=1e-4, abs=1e-6 * np.abs(g).max())
 
 
+@pytest.mark.slow
 def test_optimizers_and_preconditioners_reach_the_same_minimum(small_scan, monkeypatch):
     """Gauss-Newton at its default tolerance, also with its Hessian from a third of the columns (scaled to all,
     as on large detectors), and L-BFGS under either preconditioner converged tightly find the same estimates

@@ -1,5 +1,5 @@
-"""Streaming: frames read lazily, row blocks, one preparation for every analysis, subsample auto, frame-by-frame
-simulation."""
+"""Streaming: frames read lazily, row blocks, one preparation for every analysis, every column of a small scan,
+frame-by-frame simulation."""
 import itertools
 import json
 import subprocess
@@ -52,6 +52,7 @@ def test_lazy_scan_reads_only_the_lit_rows_and_those_just_left_and_closes_the_fi
                                                                store.row[store.left_prev]])
 
 
+@pytest.mark.slow
 def test_reading_a_scan_holds_a_fraction_of_its_frames(tmp_path):
     # 100 frames of 800 x 800 uint16 (128 MB) with a 40-row active area: the lit rows are 5 MB
     J, H, W, A = 100, 800, 800, 40
@@ -169,42 +170,6 @@ def test_diagnose_and_reconstruct_see_the_same_data(monkeypatch):
     default = prepare(scan, C.defaults())
     assert not np.allclose(default.reference.phase, seen[0].reference.phase)
     assert 0 < a.roi.mean() < 1 and np.all(a.vf[~a.roi] == 0)
-
-
-@pytest.mark.parametrize("width, samples_per_column, budget, expected", [
-    (204, 8 * 180, 10_000_000, 1),  # the 8-step stepping recording of 180 x 204: every column
-    (1440, 195 * 220, 10_000_000, 7),  # the binned clinical scan
-    (2880, 195 * 440, 10_000_000, 25),  # the full-resolution clinical scan
-    (400, 10_000, 10, 100),  # a tiny budget stops at the alias limit W / 4
-])
-def test_column_step_is_the_smallest_within_the_samples(width, samples_per_column, budget, expected):
-    n = planning.column_step(width, samples_per_column, most=budget)
-    assert n == expected
-    assert expected == width // 4 or samples_per_column * width / expected <= budget
-    assert expected == 1 or samples_per_column * width / (expected - 1) > budget
-
-
-def test_subsample_auto_reaches_the_target_uncertainty_it_predicts(small_scan, caplog):
-    """The pilot's prediction is what the fit on the chosen columns then reports (within 25 %, and not
-    optimistic by more than 10 %); a looser target takes fewer columns, a time budget the columns it
-    predicts to fit in it; the log names the columns, the predicted uncertainty and time."""
-    scan, _ = small_scan()
-    prep = prepare(scan, C.defaults())
-    with caplog.at_level("INFO", logger="dfxcorr"):
-        plans = {t: planning.plan_columns(prep, C.load([], [f"fit.target_uncertainty={t}"]))
-                 for t in (0.007, 0.012)}
-    assert "predicted phi0/phi1 uncertainty" in caplog.text and "predicted fit time" in caplog.text
-    assert plans[0.012].columns.size < plans[0.007].columns.size < scan.shape[2]
-    plan = plans[0.007]
-    assert plan.uncertainty <= 0.007
-    obs = prep.observations(columns=plan.columns, dtype=np.float32)
-    fitted = fit_vibrations(obs)
-    good = fitted.well_determined
-    reported = max(float(np.median(fitted.uncertainty[n][good])) for n in ("phase_offset", "tilt"))
-    assert 0.75 * plan.uncertainty < reported < 1.1 * plan.uncertainty
-    budget = planning.plan_columns(prep, C.load([], [f"fit.time_budget={plan.seconds / 2}"]))
-    assert budget.seconds <= plan.seconds / 2 and budget.columns.size >= plan.columns.size // 2 - 1
-    assert budget.uncertainty == pytest.approx(plan.uncertainty * np.sqrt(plan.columns.size / budget.columns.size))
 
 
 @pytest.mark.slow

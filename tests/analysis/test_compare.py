@@ -28,6 +28,7 @@ def scans(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_compare_writes_results_pictures_and_table(scans, tmp_path):
     out = tmp_path / "cmp"
     res = run("compare", scans / "thorax.h5", "-o", out, "--truth", scans / "thorax.truth.npz", *FAST)
@@ -62,6 +63,7 @@ def test_compare_refuses_a_truth_that_does_not_fit_and_unknown_methods(scans, tm
     assert res.exit_code == 2 and "magic" in res.output
 
 
+@pytest.mark.slow
 def test_nps_of_blank_scans(scans, tmp_path):
     out = tmp_path / "nps"
     res = run("nps", scans / "blank1.h5", scans / "blank2.h5", "-o", out, *FAST)

@@ -157,6 +157,7 @@ def test_row_gain_pattern_is_named_pixel_noise():
     assert diag.unexplained == [], diag.unexplained
 
 
+@pytest.mark.slow
 def test_base_none_rediscovers_the_papers_model():
     scan, _ = S.simulate(sim_config(**{"simulate.seed": 3}))
     diag = diagnose(scan, C.defaults(), base="none")
@@ -234,6 +235,7 @@ def test_real_recording_is_diagnosed(tmp_path, order):
     assert not any(e.detected for e in diag.effects if e.name not in ("detector_gain", "pixel_noise"))
 
 
+@pytest.mark.slow
 def test_unidentifiable_effect_that_explains_the_misfit_stops_the_naming():
     # phase stepping with a per-step visibility loss: the configured model drops visibility_loss (not
     # identifiable, paper Sec. II-F); proxies (sample_motion, curvature, pixel_noise) must not be named for it
@@ -308,6 +310,7 @@ def test_held_band_is_every_column_or_a_centred_band():
     assert held_band(100, 10 ** 9, most=1e4).size == 4  # never fewer columns than a test needs
 
 
+@pytest.mark.slow
 def test_a_scan_larger_than_the_held_samples_is_tested_on_a_band_and_fitted_over_the_detector():
     # the concealed step errors are still named first with the per-pixel tests on a band of a third of the columns;
     # the pixels outside it are tested by nothing (NaN in the residual map), the fit still sees every part
@@ -325,9 +328,9 @@ def test_a_scan_larger_than_the_held_samples_is_tested_on_a_band_and_fitted_over
 
 
 def test_a_gross_misfit_of_the_mean_is_not_absorbed_by_the_noise_model():
-    """Frames in reversed order: the mean model is off everywhere (reduced chi-square ~1e5). Any misfit is matched
-    by a variance large enough, so no noise-model effect may be named for it; the misfit is located and called
-    gross, and nothing is recommended."""
+    """Frames in reversed order: the mean model is off everywhere (reduced chi-square ~1e5, the standardized
+    residuals' kurtosis 37). Any misfit is matched by a variance large enough, so no noise-model effect may be
+    named for it; the misfit is located and called gross, and nothing is recommended."""
     from dfxcorr.analysis.report import GROSS, _markdown, reconstruct_settings
 
     scan, _ = S.simulate(sim_config(**{"simulate.seed": 7}))

@@ -123,6 +123,7 @@ def test_config_defaults_and_check(tmp_path):
     assert res.exit_code == 0 and yaml.safe_load(res.output)["fit"]["subsample"] == 7
 
 
+@pytest.mark.slow
 def test_installed_entry_point_runs_in_a_subprocess(scan_file, tmp_path):
     exe = shutil.which("dfxcorr")
     cmd = [exe] if exe else [sys.executable, "-m", "dfxcorr.cli"]

@@ -173,9 +173,7 @@ def assert_clean(outcome, out: Path):
         assert not out.exists() and not list(out.parent.glob(".*part"))
 
 
-@settings(max_examples=150, **SETTINGS)
-@given(mutations=mutations, seed=st.integers(0, 2 ** 16), method=st.sampled_from(["none", "none", "none", "ml"]))
-def test_mutated_scans_end_cleanly(template, mutations, seed, method):
+def mutated_scan_ends_cleanly(template, mutations, seed, method):
     rng = np.random.default_rng(seed)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -193,6 +191,24 @@ def test_mutated_scans_end_cleanly(template, mutations, seed, method):
         assert_clean(cli_capped("reconstruct", path, "-o", out, "--method", method, *FAST), out)
 
 
+scan_mutations = given(mutations=mutations, seed=st.integers(0, 2 ** 16),
+                       method=st.sampled_from(["none", "none", "none", "ml"]))
+
+
+# a few examples in the fast tier, many in the slow one (80 ms each)
+@settings(max_examples=12, **SETTINGS)
+@scan_mutations
+def test_a_few_mutated_scans_end_cleanly(template, mutations, seed, method):
+    mutated_scan_ends_cleanly(template, mutations, seed, method)
+
+
+@pytest.mark.slow
+@settings(max_examples=150, **SETTINGS)
+@scan_mutations
+def test_mutated_scans_end_cleanly(template, mutations, seed, method):
+    mutated_scan_ends_cleanly(template, mutations, seed, method)
+
+
 VALID_YAML = """fit:
   method: none
   subsample: 4
@@ -206,10 +222,7 @@ YAML_BITS = [":", "-", "[", "]", "{", "}", "\t", "&a", "*a", "!!python/object", 
              "~", "\n", "  ", "'", '"', "%", "<<: *a", "\x00", "\u2028", "yes", "null", "?", ",", "#"]
 
 
-@settings(max_examples=60, **SETTINGS)
-@given(edits=st.lists(st.tuples(st.integers(0, len(VALID_YAML)), st.sampled_from(YAML_BITS), st.integers(0, 3)),
-                      min_size=1, max_size=4))
-def test_mutated_configs_end_cleanly(template, edits):
+def mutated_config_ends_cleanly(edits):
     text = VALID_YAML
     for at, bit, drop in edits:
         text = text[:at] + bit + text[at + drop:]
@@ -221,6 +234,23 @@ def test_mutated_configs_end_cleanly(template, edits):
         assert outcome.exit_code in (0, 2), outcome
         if outcome.exit_code == 2:
             assert one_error_line(outcome.stderr), outcome.stderr
+
+
+yaml_edits = given(edits=st.lists(st.tuples(st.integers(0, len(VALID_YAML)), st.sampled_from(YAML_BITS),
+                                            st.integers(0, 3)), min_size=1, max_size=4))
+
+
+@settings(max_examples=10, **SETTINGS)
+@yaml_edits
+def test_a_few_mutated_configs_end_cleanly(template, edits):
+    mutated_config_ends_cleanly(edits)
+
+
+@pytest.mark.slow
+@settings(max_examples=60, **SETTINGS)
+@yaml_edits
+def test_mutated_configs_end_cleanly(template, edits):
+    mutated_config_ends_cleanly(edits)
 
 
 #: Configuration numbers beyond what makes sense (fit.reweight=10**31 raised OverflowError).
@@ -235,11 +265,26 @@ def _numeric_keys():
                   if int in (o.kind if isinstance(o.kind, tuple) else (o.kind,)))
 
 
-@settings(max_examples=200, **SETTINGS)
-@given(sets=st.lists(st.tuples(st.sampled_from(_numeric_keys()), st.sampled_from(ABSURD)), min_size=1, max_size=2))
-def test_absurd_configuration_numbers_end_cleanly(template, sets):
+def absurd_numbers_end_cleanly(template, sets):
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "r.h5"
         args = [a for key, value in sets for a in ("--set", f"{key}={value}")]
         outcome = cli_capped("reconstruct", template, "-o", out, "--method", "none", *FAST, *args, timeout=60)
         assert_clean(outcome, out)
+
+
+absurd_sets = given(sets=st.lists(st.tuples(st.sampled_from(_numeric_keys()), st.sampled_from(ABSURD)),
+                                  min_size=1, max_size=2))
+
+
+@settings(max_examples=15, **SETTINGS)
+@absurd_sets
+def test_a_few_absurd_configuration_numbers_end_cleanly(template, sets):
+    absurd_numbers_end_cleanly(template, sets)
+
+
+@pytest.mark.slow
+@settings(max_examples=200, **SETTINGS)
+@absurd_sets
+def test_absurd_configuration_numbers_end_cleanly(template, sets):
+    absurd_numbers_end_cleanly(template, sets)

@@ -8,7 +8,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 import zlib
 from pathlib import Path
 
@@ -194,15 +193,25 @@ def test_huge_unlit_declaration_refused_within_memory_cap(tmp_path):
         assert res.exit_code == 2 and one_error_line(res.stderr, "no detector row is lit"), res.stderr + res.traceback
 
 
-def test_unlit_float_frames_are_not_read(tmp_path):
+def test_unlit_float_frames_are_not_read(tmp_path, monkeypatch):
     path = tmp_path / "wide.h5"
     _unlit(path, 2000, 20000, 500, np.float64, (1, 64, 500))
-    t0 = time.perf_counter()
+    read = []
+    real = h5py.Dataset.__getitem__
+
+    def spy(dset, key):
+        out = real(dset, key)
+        if dset.name == f"/{DET}/data":
+            read.append(np.size(out))
+        return out
+    monkeypatch.setattr(h5py.Dataset, "__getitem__", spy)
     for command in ("check", "reconstruct"):
         refused(run(command, path, "-o", tmp_path / "r.h5"), "no detector row is lit")
-    assert time.perf_counter() - t0 < 5  # reading every declared frame would take tens of seconds
+    # the float frames' counts are checked on the lit rows only: here none (160 GB declared)
+    assert sum(read) == 0
 
 
+@pytest.mark.slow
 def test_sigterm_inside_a_compiled_kernel_ends_cleanly(tmp_path):
     # a parallel numba kernel returning when the handler has raised: numba wraps the exit in a SystemError
     script = textwrap.dedent("""
@@ -386,7 +395,8 @@ def test_a_compressed_dark_map_that_expands_to_gigabytes_is_refused_within_the_c
 
 def test_disk_full_ends_in_one_line_and_keeps_the_old_result(scan_file, tmp_path):
     out = tmp_path / "r.h5"
-    assert run("reconstruct", scan_file, "-o", out).exit_code == 0
+    # the write is what fails: no vibration fit is needed before it
+    assert run("reconstruct", scan_file, "-o", out, "--method", "none").exit_code == 0
     before = digest(out)
     # a file size limit makes writes fail as a full disk does (EFBIG instead of ENOSPC)
     script = textwrap.dedent("""
@@ -397,7 +407,8 @@ def test_disk_full_ends_in_one_line_and_keeps_the_old_result(scan_file, tmp_path
         main(sys.argv[1:])
     """)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    res = subprocess.run([sys.executable, "-c", script, "reconstruct", str(scan_file), "-o", str(out), "--overwrite"],
+    res = subprocess.run([sys.executable, "-c", script, "reconstruct", str(scan_file), "-o", str(out), "--overwrite",
+                          "--method", "none"],
                          capture_output=True, text=True, env=env, timeout=120, check=False, cwd=tmp_path)
     assert res.returncode == 2, res.stderr  # not a segmentation fault after HDF5's tracebacks
     assert one_error_line(res.stderr, "r.h5", "cannot write", "File too large") and "h5py" not in res.stderr

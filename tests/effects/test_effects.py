@@ -342,6 +342,7 @@ class Pedestal(EffectBase[float]):
                        files={"pedestal.txt": lambda path: path.write_text(f"{p}\n")})
 
 
+@pytest.mark.slow
 def test_a_toy_effect_is_found_corrected_and_reported_through_the_one_interface(tmp_path):
     scan, _ = S.simulate(sim_config(**{"simulate.seed": 3}))
     scan = replace(scan, data=scan.data + np.uint16(200))

@@ -84,6 +84,7 @@ def test_one_model_in_kernels_and_numpy_oracle():
     np.testing.assert_array_equal(sub.offset, obs.offset[:, 3:40])
 
 
+@pytest.mark.slow
 def test_reconstruct_with_the_scatter_removes_the_false_dark_field():
     scan, truth = S.simulate(sim_config(**SCATTER))
     twin, _ = S.simulate(sim_config(**{**SCATTER, "effects.scatter": 0.0}))
@@ -102,6 +103,7 @@ def test_reconstruct_with_the_scatter_removes_the_false_dark_field():
     assert plain.reduced_chi2 > 1.1 and fixed.reduced_chi2 == pytest.approx(clean.reduced_chi2, abs=0.01)
 
 
+@pytest.mark.slow
 def test_diagnose_names_scatter_first_and_estimates_s_within_its_noise():
     scan, truth = S.simulate(sim_config(**SCATTER))
     diag = diagnose(scan, C.defaults())
@@ -127,6 +129,7 @@ def test_diagnose_names_scatter_first_and_estimates_s_within_its_noise():
     assert fixed < 1.25 * clean, (fixed, clean)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("width", [25.0, 100.0])
 def test_the_kernel_width_is_found_with_s(width):
     # the configured width is 50 mm: the trial profiles the width (factor-2 grid) with s

@@ -129,6 +129,7 @@ def test_region_without_fringes_is_left_out_and_nan(stepping):
 
 
 @pytest.mark.shared
+@pytest.mark.slow
 def test_real_recording_imports_and_reconstructs(tmp_path):
     folder = shared_path("real", "tum-ipp-stepping")
     scan = import_stepping(tmp_path / "ipp.h5", sample=str(folder / "data_stepping_*.npy"),

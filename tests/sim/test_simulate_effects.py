@@ -179,6 +179,7 @@ def test_a_flat_panel_fits_to_the_noise_once_its_read_noise_is_stated():
     assert stated.reduced_chi2 == pytest.approx(1.0, abs=0.03)
 
 
+@pytest.mark.slow
 def test_scatter_fakes_a_dark_field_signal():
     from dfxcorr.pipeline import reconstruct
 
