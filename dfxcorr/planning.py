@@ -270,6 +270,8 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
     W = prep.shape[2]
     per_column = prep.store.samples_per_column()
     n, why = f["subsample"], "fit.subsample"
+    if n != "auto":
+        fit_columns(W, cfg, n)  # a setting beyond the detector is refused before the pilot runs
     # the pilot's prediction at every setting: the log states what the chosen columns are expected to give
     spread = subsample_columns(W, max(W // PILOT_COLUMNS, 1))
     size = spread.size
