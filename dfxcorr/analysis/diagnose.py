@@ -214,7 +214,7 @@ def _not_added(name: str, test: Test[Any], out: loop.Outcome, *, alpha: float, t
     if held is not None:
         verdict = "held: gross misfit" if held == "gross" else "explained by another"
         return EffectReport(name, False, bool(test.identifiable), test.statistic, int(test.dof), test.p_value,
-                            verdict, alternatives=() if held == "gross" else (held,), excess=test.excess)
+                            verdict, explained_by=None if held == "gross" else held, excess=test.excess)
     if blind is not None:
         verdict = "explains, not identifiable" if blind.explains_misfit else "not identifiable"
     elif not test.identifiable:

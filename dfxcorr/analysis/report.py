@@ -59,10 +59,12 @@ class EffectReport:
     replication : Replication or None
         Where added: its estimate on disjoint parts of the detector.
     alternatives : tuple of str
-        Effects that explain the same misfit and that this acquisition cannot tell from it (for "explained by
-        another": the one whose share beyond it was significant).
+        Effects that explain the same misfit and that this acquisition cannot tell from it.
     alternative_estimates : mapping
         Each alternative's estimate (one line).
+    explained_by : str or None
+        For "explained by another": the candidate it shares directions with whose share beyond it was significant
+        (the data tell the two apart: no alternative).
     """
 
     name: str
@@ -83,6 +85,7 @@ class EffectReport:
     replication: Replication | None = None
     alternatives: tuple[str, ...] = ()
     alternative_estimates: Mapping[str, str] = field(default_factory=dict)
+    explained_by: str | None = None
 
     @property
     def values(self) -> Mapping[str, Any]:
@@ -131,6 +134,8 @@ class EffectReport:
         if self.alternatives:
             d["alternatives"] = list(self.alternatives)
             d["alternative_estimates"] = dict(self.alternative_estimates)
+        if self.explained_by is not None:
+            d["explained_by"] = self.explained_by
         return d
 
     def verdict_text(self) -> str:
@@ -154,8 +159,7 @@ class EffectReport:
         if self.verdict == "held: gross misfit":
             return "significant, but not judged: the mean model is grossly off (the noise model would absorb it)"
         if self.verdict == "explained by another":
-            return (f"significant, but nothing beyond {', '.join(self.alternatives)}, which explains what they "
-                    f"share: not tried")
+            return f"significant, but nothing beyond {self.explained_by}, which explains what they share: not tried"
         if self.verdict == "alternative":
             return (f"explains the misfit that {', '.join(self.alternatives)} explains: this acquisition cannot tell "
                     f"them apart (named together)")

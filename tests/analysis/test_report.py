@@ -47,6 +47,8 @@ def _every_verdict() -> list[EffectReport]:
                      blind=Blind(True, None, 1.02, stopped=True)),
         EffectReport("detector_gain", False, True, 12.0, 1, 1e-3, "not material"),
         EffectReport("scatter", False, True, 0.5, 1, 0.5, "not significant"),
+        EffectReport("tilt", False, True, 70.0, 4, 1e-14, "explained by another", explained_by="dose"),
+        EffectReport("electronic_noise", False, True, 900.0, 1, 0.0, "held: gross misfit"),
     ]
 
 
@@ -69,6 +71,9 @@ def test_every_verdict_kind_renders_in_the_report_and_the_json():
     assert by_name["dose"]["alternatives"] == ["phase_offset"] and by_name["dose"]["replication"]["replicated"]
     assert by_name["visibility_loss"]["stopped"] and by_name["visibility_tilt"]["excess_null_directions"] == 4
     assert doc["format_version"] == 4 and doc["unexplained"][0]["axis"] == "count"
+    # a candidate the data tell from its partner names it, not as an alternative
+    assert "nothing beyond dose" in rows["tilt"] and by_name["tilt"]["explained_by"] == "dose"
+    assert "alternatives" not in by_name["tilt"] and "grossly off" in rows["electronic_noise"]
 
 
 def test_a_finding_that_does_not_replicate_is_not_recommended():
