@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import evaluate as E
 from . import kernels as K
 from . import model as M
 from .fit import spread_columns
@@ -87,7 +88,7 @@ def information(obs: M.Observations, ch: M.Channels, images: M.Images, weights: 
     by the tests): the plain information and the profiled correction in one pass.
     """
     K.set_threads()
-    plain_matrix, corr = K.fisher(obs, ch, weights, images.coef, images.inverse,
+    plain_matrix, corr = E.fisher(obs, ch, weights, images.coef, images.inverse,
                                   M.component_table(names)[:3])
     info, index = plain_matrix - corr, M.fisher_index(names, obs.n_frames)
     plain = np.diag(plain_matrix)
@@ -161,7 +162,7 @@ def select(obs: M.Observations, weights: np.ndarray, names, *, max_columns: int 
     obs, weights = spread_columns(obs, weights, most=max_columns)
     ch = M.channels(M.neutral_params(names, obs.n_frames), x=obs.x, n_frames=obs.n_frames)
     K.set_threads()
-    solved = K.retrieve(obs, ch, weights=weights, keep_inverse=True)
+    solved = E.retrieve(obs, ch, weights=weights, keep_inverse=True)
     inf = information(obs, ch, M.Images(solved["coef"], solved["valid"], solved["inverse"]), weights, names)
     chosen: list[str] = []
     out = []

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import evaluate as E
 from . import kernels as K
 from . import model as M
 
@@ -69,9 +70,9 @@ def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_
     Retrieval
     """
     K.set_threads()
-    out = K.retrieve(obs, M.channels(params, x=obs.x, n_frames=obs.n_frames), iterations=iterations, gain=gain,
+    out = E.retrieve(obs, M.channels(params, x=obs.x, n_frames=obs.n_frames), iterations=iterations, gain=gain,
                      keep_inverse=keep_inverse, keep_expected=keep_expected)
-    images = M.Images(out["coef"], out["valid"], out["inverse"])
+    images = M.Images(out["coef"], out["valid"], out["inverse"], out["coupling"])
     n_par = sum(np.size(p) for p in params.values()) if n_frame_params is None else n_frame_params
     chi2 = per_dof(out["chi2"], out["samples"], int(images.valid.sum()), n_par, 3)
     return Retrieval(images=images, expected=out["expected"], weights=out["weights"], reduced_chi2=chi2,
@@ -100,7 +101,7 @@ def chi2_sums(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *,
 
     Each is a sum over pixels, so the sums of row blocks give :func:`reduced_chi2` of the whole scan.
     """
-    sel = valid[obs.pixel] & obs.use
+    sel = obs.gather_valid(valid) & obs.use
     return float(M.pearson(obs, ibar, gain=gain)[sel].sum()), int(sel.sum()), int(valid.sum())
 
 

@@ -155,7 +155,7 @@ HEAVY_TAILS = 25.0
 def kurtosis(state: State) -> float:
     """The kurtosis of the standardized residuals of the fit's used samples of solved pixels (3 for Gaussian)."""
     obs, rec = state.fit_obs, state.fit_rec
-    sel = obs.use & rec.images.valid[obs.pixel]
+    sel = obs.use & obs.gather_valid(rec.images.valid)
     z2 = ((obs.counts - rec.expected) ** 2 * rec.weights)[sel]
     m2 = float(np.mean(z2)) if z2.size else 0.0
     return float(np.mean(z2 ** 2)) / m2 ** 2 if m2 > 0 else 0.0
