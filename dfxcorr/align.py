@@ -22,7 +22,7 @@ from . import kernels as K
 from .errors import DfxcorrError
 from .faults import Faults, saturated
 from .io import Reference, Scan, frame_rows, lit_rows
-from .observations import Observations, lateral_coordinate
+from .observations import Observations, displaced_reading, lateral_coordinate
 from .stats import ranges
 
 log = logging.getLogger(__name__)
@@ -181,6 +181,13 @@ class LitStore:
         False for samples left out as detector faults (:meth:`without`); None: every sample is good.
     bad_frames : tuple of int
         Frames left out whole as detector faults.
+    displacement : ndarray, shape (J,), or None
+        Rows by which each frame sees the sample displaced along the scan (``beam_path``): its samples read the
+        images at their row + displacement, between rows (:class:`dfxcorr.observations.Reading`); samples that read
+        beyond the held rows are not used. None: at their own row.
+    position : ndarray, shape (J,), or None
+        The recorded position of each frame (``scan/position``: the active area's top edge, rows); None: as the
+        blocks' ``u`` give it.
     """
 
     counts: np.ndarray
@@ -197,6 +204,8 @@ class LitStore:
     offset: np.ndarray | OffsetField | None = None
     good: np.ndarray | None = None
     bad_frames: tuple[int, ...] = ()
+    displacement: np.ndarray | None = None
+    position: np.ndarray | None = None
 
     def frame_blocks(self) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
         """(j, rows, counts) of each frame that lights a held row, frames ascending (rows ascending within)."""
@@ -229,6 +238,23 @@ class LitStore:
         """
         delta = np.broadcast_to(np.asarray(rows, dtype=np.float64), (self.shape[0],))
         return replace(self, u=self.u - delta[self.frame])
+
+    def travel(self, active_rows: int) -> np.ndarray:
+        """c_j - c_0 of each frame (rows): the active area's centre from the detector's, by the recorded positions
+        (the flat field's alignment, :meth:`shifted`, aside)."""
+        J, H, _ = self.shape
+        position = np.zeros(J)
+        if self.position is not None:
+            position = self.position
+        else:
+            # u = r + 0.5 - position of every block (scan-format.md)
+            position[self.frame] = self.row + 0.5 - self.u
+        # the active area's centre at position + A / 2, the detector's at H / 2 (edge coordinates)
+        return position + active_rows / 2.0 - H / 2.0
+
+    def displaced(self, displacement: np.ndarray | None) -> LitStore:
+        """The same samples seeing the sample ``displacement`` (J,) rows along the scan (None: not displaced)."""
+        return replace(self, displacement=None if displacement is None else np.asarray(displacement, np.float64))
 
     def samples_per_column(self) -> int:
         """Lit samples in one detector column (K)."""
@@ -307,11 +333,15 @@ class LitStore:
         held = np.ix_(np.unique(row), cols)
         if self.good is not None:
             use &= self.good[lo:hi] if columns is None else self.good[lo:hi, cols]
+        reading = None
+        if self.displacement is not None:
+            reading, inside = displaced_reading(row, frame, np.unique(row), self.displacement)
+            use &= inside[:, None]
         return Observations(counts=counts, tf=tf, vf=vf, phif=phif, dark=dark, use=use,
                             row=row, frame=frame, columns=cols, shape=(J, H, W),
                             gain=self.gain if gain is None else gain, electronic=electronic,
                             noise=None if noise is None else noise[held],
-                            offset=offset)
+                            offset=offset, reading=reading)
 
 
 def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: int = 3) -> LitStore:
@@ -369,7 +399,8 @@ def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: 
     assert scan.dark is not None  # Scan.__post_init__ fills it
     return LitStore(counts=counts, row=row, frame=frame, u=u, shape=(J, H, W),
                     phase_step=np.asarray(scan.phase_step, dtype=np.float64), dark=scan.dark, gain=scan.gain,
-                    left_counts=left_counts, left_prev=left_prev)
+                    left_counts=left_counts, left_prev=left_prev,
+                    position=np.asarray(scan.position, dtype=np.float64))
 
 
 def read_position_errors(path: str | Path, n_frames: int) -> np.ndarray:

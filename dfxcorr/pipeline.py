@@ -16,6 +16,7 @@ from __future__ import annotations
 import datetime
 import hashlib
 import logging
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -140,8 +141,7 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
             for _ in params]
     sums = np.zeros((len(params), 3))  # chi-square, samples, pixels
     left_out = 0
-    for rows in blocks:
-        obs = prep.observations(rows=rows, dtype=np.float32)
+    for obs in retrieval_parts(prep, blocks):
         roi = obs.in_roi
         with np.errstate(invalid="ignore"):
             kept = obs.segment_sum(obs.use.astype(np.float64)) / obs.segment_sum(np.ones(obs.use.shape))
@@ -159,6 +159,19 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
             for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
 
 
+def retrieval_parts(prep: Prepared, blocks: list[tuple[int, int]]) -> Iterator[M.Observations]:
+    """The float32 observations the retrieval goes through, one part at a time: the blocks of rows; or where the
+    samples read the images between rows (``beam_path``: the images of a column are then one solve), as many runs
+    of whole columns, each holding about a block's samples."""
+    if prep.store.displacement is None:
+        for rows in blocks:
+            yield prep.observations(rows=rows, dtype=np.float32)
+        return
+    W = prep.shape[2]
+    for cols in np.array_split(np.arange(W), min(len(blocks), W)):
+        yield prep.observations(columns=cols, dtype=np.float32)
+
+
 def fit_motion_mask(prep: Prepared, cfg: dict, plan: ColumnPlan, blocks: list[tuple[int, int]]) -> np.ndarray:
     """The pixels (H, W) of the fit's columns the motion mask leaves out of the vibration fit (``mask.*``)."""
     H, W = prep.shape[1:]
@@ -167,8 +180,10 @@ def fit_motion_mask(prep: Prepared, cfg: dict, plan: ColumnPlan, blocks: list[tu
     m = cfg["mask"]
     pilot = pilot_estimate(prep) if plan.pilot is None else plan.pilot
     # the per-pixel statistics of the fit's columns only (the others never enter the fit), block by block
+    # where the samples read between rows the images of a column are one solve: the fit's columns whole
+    rows_of = blocks if prep.store.displacement is None else [None]
     moving, _, thr = motion_mask((prep.observations(columns=plan.columns, rows=rows, dtype=np.float32)
-                                  for rows in blocks),
+                                  for rows in rows_of),
                                  pilot=pilot, threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
     log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
     return moving
