@@ -122,10 +122,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                   nullable=True),
     },
     "geometry": {
-        "parallax": Option(0.0, "rows by which a frame sees the sample displaced along the scan per row the active area "
-                                "travels from the detector's centre, kappa (a source that moves with the gratings: "
-                                "the sample's height over the source-to-sample distance; beam_path of dfxcorr "
-                                "diagnose); 0: the beam paths stay fixed, as in the paper", _NUM,
+        "parallax": Option(0.0, "rows by which a frame sees the sample displaced along the scan per row the active "
+                                "area travels from the detector's centre, kappa (a source that moves with the "
+                                "gratings: the sample's height over the source-to-sample distance; beam_path of "
+                                "dfxcorr diagnose); 0: the beam paths stay fixed, as in the paper", _NUM,
                            check=_within(-0.9, 0.9)),
     },
     "mask": {

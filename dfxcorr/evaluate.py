@@ -16,9 +16,10 @@ import numpy as np
 from . import kernels as K
 from . import model as M
 from .noise import noise_weights, variance
+from .observations import Observations
 
 
-def retrieve(obs: M.Observations, ch: M.Channels, *, weights: np.ndarray | None = None, iterations: int = 1,
+def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = None, iterations: int = 1,
              gain: float | None = None, keep_inverse: bool = False, keep_expected: bool = True,
              next_weights: bool = False) -> dict:
     """Images, expected counts, weights and Pearson chi-square: :func:`dfxcorr.kernels.retrieve`'s values.
@@ -53,7 +54,7 @@ def retrieve(obs: M.Observations, ch: M.Channels, *, weights: np.ndarray | None 
             "weights": w_out if keep else empty, "chi2": chi2, "samples": int(sel.sum())}
 
 
-def reduced_cost(obs: M.Observations, ch: M.Channels, weights: np.ndarray, cos_phif: np.ndarray,
+def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, cos_phif: np.ndarray,
                  sin_phif: np.ndarray, *, phase: float | None = None, square: bool = False,
                  channels=tuple(K.CHANNEL_IDS)) -> tuple[float, tuple[np.ndarray, ...]]:
     """Reduced cost and its channel gradients (or Gauss-Newton sums): :func:`dfxcorr.kernels.reduced_cost`'s values."""
@@ -80,7 +81,7 @@ def reduced_cost(obs: M.Observations, ch: M.Channels, weights: np.ndarray, cos_p
     return cost, tuple(out)
 
 
-def fisher(obs: M.Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray | None,
+def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray | None,
            table: tuple, *, profiled: bool = True, columns: int = 16) -> tuple[np.ndarray, np.ndarray]:
     """Fisher information of channel components and its profiled correction: :func:`dfxcorr.kernels.fisher`'s values.
 

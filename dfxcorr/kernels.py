@@ -12,7 +12,7 @@ non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton 
 :func:`_image_columns` at the previous images (``model.solve_images``).
 
 Layout: a pixel is (row, column); its samples are the blocks ``starts[r]:starts[r + 1]`` of one row
-(:class:`dfxcorr.model.Observations`). The kernels run over chunks of rows in parallel; every chunk owns its
+(:class:`dfxcorr.observations.Observations`). The kernels run over chunks of rows in parallel; every chunk owns its
 accumulators (summed afterwards), so no two threads write the same memory. Within a row the columns are handled in
 tiles (:data:`TILE`, :data:`FIT_TILE`) so that the second pass over a tile finds what the first left in cache. Sums
 are accumulated in float64 whatever the sample dtype.

@@ -20,9 +20,12 @@ from scipy import ndimage, special
 from . import evaluate as E
 from . import kernels as K
 from . import model as M
+from .catalogue import PAPER_MODEL, neutral_params
+from .noise import noise_weights
+from .observations import Observations
 
 
-def motion_statistics(obs: M.Observations, params: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def motion_statistics(obs: Observations, params: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-pixel reduced residual, fringe sensitivity and degrees of freedom: what :func:`motion_score` and
     :func:`mask_from_score` need.
 
@@ -75,7 +78,7 @@ def score_from_statistics(eps: np.ndarray, q: np.ndarray) -> np.ndarray:
         return np.where(ok, eps / (1.0 + gamma * q), np.nan)
 
 
-def motion_score(obs: M.Observations, params: dict, *, chunk: float = 1e6) -> np.ndarray:
+def motion_score(obs: Observations, params: dict, *, chunk: float = 1e6) -> np.ndarray:
     """Per-pixel residual relative to what noise and (unmodelled) vibrations explain.
 
     ``params`` as :func:`motion_statistics`'s. The statistics are taken a run of about ``chunk`` samples' columns
@@ -93,7 +96,7 @@ def motion_score(obs: M.Observations, params: dict, *, chunk: float = 1e6) -> np
     return score_from_statistics(eps, q)
 
 
-def deviance(obs: M.Observations, ibar: np.ndarray) -> np.ndarray:
+def deviance(obs: Observations, ibar: np.ndarray) -> np.ndarray:
     """Poisson deviance of each sample in photon units, shape (K, C); about chi-square(1) per sample.
 
     With electronic noise it is scaled by g mu / (g mu + sigma_e^2), the photon share of the variance; g is
@@ -107,7 +110,7 @@ def deviance(obs: M.Observations, ibar: np.ndarray) -> np.ndarray:
     return d * (g * mu / (g * mu + obs.electronic))
 
 
-def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4, tol: float = 3e-3) -> dict:
+def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, tol: float = 3e-3) -> dict:
     """A quick estimate of the paper's per-frame phase offset, tilt and visibility for the motion score.
 
     Gauss-Newton steps (at most ``iterations``, until the rms step is below ``tol``) on every
@@ -124,14 +127,14 @@ def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4
     dict
         'phase_offset', 'tilt', 'visibility_loss', each (J, 1).
     """
-    names = M.PAPER_MODEL
+    names = PAPER_MODEL
     K.set_threads()
     sub = obs.subset(np.arange(0, obs.columns.size, every))
     fringe = K.fringe(sub)
     table = M.component_table(names)[:3]
     index = M.fisher_index(names, sub.n_frames)
-    params = M.neutral_params(names, obs.n_frames)
-    weights = M.noise_weights(sub, np.maximum(sub.counts, 1.0))
+    params = neutral_params(names, obs.n_frames)
+    weights = noise_weights(sub, np.maximum(sub.counts, 1.0))
     ch = M.channels(params, x=sub.x, n_frames=sub.n_frames)
     solved = E.retrieve(sub, ch, weights=weights)
     for _ in range(iterations):
@@ -196,7 +199,7 @@ def mask_from_score(image: np.ndarray, *, dof: np.ndarray | None = None, thresho
     return moving, thr
 
 
-def motion_mask(blocks: Iterable[M.Observations], *, pilot: dict, threshold: float | None = None,
+def motion_mask(blocks: Iterable[Observations], *, pilot: dict, threshold: float | None = None,
                 sigma: float = 6.0, dilate: int = 1) -> tuple[np.ndarray, np.ndarray, float]:
     """Pixels whose frames disagree beyond noise and vibrations (paper Sec. II-E), block by block.
 

@@ -39,9 +39,6 @@ linear least squares, eq. 9) for given per-frame parameters; v = sqrt(c^2 + s^2)
 refined by Gauss-Newton steps (:func:`solve_images`), each again a closed-form solve whose columns are
 the model's derivatives at the current direction of (c, s) (by Euler's identity the linearised model
 has no constant term), so the solution is the least-squares optimum and the envelope theorem holds.
-
-The names of the catalogue, the observations and the noise model are available here too (``M.effect``,
-``M.Observations``, ``M.variance``): the model is what they are for.
 """
 from __future__ import annotations
 
@@ -53,14 +50,11 @@ from scipy import sparse
 
 from . import kernels
 from .banded import factor_read_between, solve_read_between
-from .catalogue import CATALOGUE, MEAN_EFFECTS, PAPER_MODEL, Effect, effect, neutral_params
-from .noise import noise_weights, pearson, variance
-from .observations import Noise, Observations, lateral_coordinate
+from .catalogue import effect
+from .observations import Observations
 
-__all__ = ["CATALOGUE", "MEAN_EFFECTS", "PAPER_MODEL", "Effect", "effect", "neutral_params", "Noise", "Observations",
-           "lateral_coordinate", "noise_weights", "pearson", "variance", "Channels", "channels", "channel_adjoint",
-           "component_table", "fisher_index", "Design", "design", "design_channels", "channel_fields",
-           "read_between_correction", "background_basis", "harmonic_factors",
+__all__ = ["Channels", "channels", "channel_adjoint", "component_table", "fisher_index", "Design", "design",
+           "design_channels", "channel_fields", "read_between_correction", "background_basis", "harmonic_factors",
            "image_columns", "Images", "solve_pixels", "solve_images", "harmonic_term", "expected", "circular_mean",
            "sample_derivatives", "reduce_component", "gradient", "leverage", "frame_leverage", "fisher_matrix"]
 

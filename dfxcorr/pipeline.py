@@ -24,14 +24,15 @@ import numpy as np
 
 from . import __version__
 from . import config as C
-from . import model as M
 from .align import tilt_alias_period
+from .catalogue import effect
 from .effects import REGISTRY
 from .estimators import ESTIMATORS
 from .faults import MIN_KEPT_SHARE
 from .fit import FitResult
 from .io import Scan
 from .mask import motion_mask
+from .observations import Observations
 from .planning import ColumnPlan, pilot_estimate, plan_columns, resolve_effects, row_blocks
 from .preparation import Prepared, prepare
 from .progress import Progress, stage
@@ -159,7 +160,7 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
             for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
 
 
-def retrieval_parts(prep: Prepared, blocks: list[tuple[int, int]]) -> Iterator[M.Observations]:
+def retrieval_parts(prep: Prepared, blocks: list[tuple[int, int]]) -> Iterator[Observations]:
     """The float32 observations the retrieval goes through, one part at a time: the blocks of rows; or where the
     samples read the images between rows (``beam_path``: the images of a column are then one solve), as many runs
     of whole columns, each holding about a block's samples."""
@@ -189,7 +190,7 @@ def fit_motion_mask(prep: Prepared, cfg: dict, plan: ColumnPlan, blocks: list[tu
     return moving
 
 
-def fit_observations(prep: Prepared, columns: np.ndarray, moving: np.ndarray) -> M.Observations:
+def fit_observations(prep: Prepared, columns: np.ndarray, moving: np.ndarray) -> Observations:
     """The vibration fit's observations: ``columns`` in float32, the pixels ``moving`` (H, W) left out. What the
     fit and the decision which effects it can determine (:func:`dfxcorr.planning.resolve_effects`) see."""
     obs = prep.observations(columns=columns, dtype=np.float32)
@@ -247,7 +248,7 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
     if not result.converged:
         log.warning("the vibration fit stopped before converging (%s)", "; ".join(result.messages))
     for name in result.params:
-        if M.effect(name).per_frame and result.well_determined is not None:
+        if effect(name).per_frame and result.well_determined is not None:
             good = result.well_determined
             log.info("  %s: std %.4g over %d well-determined frames, median uncertainty %.2g", name,
                      float(np.std(result.params[name][good])), int(good.sum()),

@@ -20,6 +20,7 @@ from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr import preparation
 from dfxcorr.align import build_observations
+from dfxcorr.catalogue import MEAN_EFFECTS, effect
 from dfxcorr.effects import REGISTRY
 from dfxcorr.io import Reference, Scan
 from dfxcorr.sim import simulate as S
@@ -112,14 +113,14 @@ def tiny_obs(rng, *, J=12, H=6, W=7, A=4):
 def random_params(rng, J, names):
     p = {}
     for n in names:
-        e = M.effect(n)
+        e = effect(n)
         shape = (J, e.size) if e.per_frame else (e.size,)
         scale = {"background": 20.0}.get(n, 0.05)
         p[n] = e.neutral + rng.normal(0, scale, shape)
     return p
 
 
-ALL = [n for n in M.MEAN_EFFECTS]
+ALL = [n for n in MEAN_EFFECTS]
 
 
 #: Extra address space a run may take beyond what the process held at the fork; measured small runs take

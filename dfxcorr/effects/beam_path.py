@@ -79,7 +79,7 @@ def kappa_score(obs: Observations, params: dict[str, np.ndarray], images: M.Imag
     columns at a time.
     """
     score = info = 0.0
-    for cols, sub, im, dsg, ibar in M.expected_by_columns(obs, params, images, samples=samples):
+    for _, sub, im, dsg, ibar in M.expected_by_columns(obs, params, images, samples=samples):
         w = np.where(sub.gather_valid(im.valid), noise_weights(sub, ibar), 0.0)
         F = kappa_field(sub, dsg, im, travel)
         at = sub.gather(im.coef)

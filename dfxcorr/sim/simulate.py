@@ -21,6 +21,7 @@ from .. import model as M
 from ..align import interpolate_rows, lit_blocks
 from ..config import MAX_SCATTER, ConfigError, Option, _fraction, _nonneg, _positive, _within
 from ..io import Reference, Scan, SteppingReference, write_scan
+from ..observations import Observations, lateral_coordinate
 from ..reference import stepping_observations
 
 log = logging.getLogger(__name__)
@@ -244,12 +245,12 @@ def flat_field(cfg: dict, A: int, W: int) -> Reference:
     """
     s = cfg["simulate"]
     u = (np.arange(A) + 0.5)[:, None]
-    x = M.lateral_coordinate(np.arange(W), W)[None, :]
+    x = lateral_coordinate(np.arange(W), W)[None, :]
     n = s["tiles"]
     tile = np.minimum((np.arange(W) * n) // W, n - 1)[None, :] if n else np.zeros((1, W), int)
     if n:
         rng = np.random.default_rng([s["seed"], 1])
-        centre = M.lateral_coordinate((np.arange(n) + 0.5) * W / n - 0.5, W)
+        centre = lateral_coordinate((np.arange(n) + 0.5) * W / n - 0.5, W)
         jitter = rng.uniform(-1, 1, (4, n))
         fringes = (s["fringes_centre"] + (s["fringes_edge"] - s["fringes_centre"]) * centre ** 2
                    + s["tile_fringes"] * jitter[0])[tile]
@@ -417,10 +418,10 @@ class Simulation:
         u = u - self.shift[j]
         phif = interpolate_rows(self._phase, u) + g["phase_step"][j]
         zeros = np.zeros((row.size, W))
-        obs = M.Observations(counts=zeros, tf=interpolate_rows(ref.transmission, u),
-                             vf=interpolate_rows(ref.visibility, u), phif=phif, dark=zeros,
-                             use=np.ones((row.size, W), bool), row=row, frame=np.full(row.size, j), columns=cols,
-                             shape=self.shape)
+        obs = Observations(counts=zeros, tf=interpolate_rows(ref.transmission, u),
+                           vf=interpolate_rows(ref.visibility, u), phif=phif, dark=zeros,
+                           use=np.ones((row.size, W), bool), row=row, frame=np.full(row.size, j), columns=cols,
+                           shape=self.shape)
         # the heart has moved from the middle frame on
         img = self.after if self.after is not None and j >= J // 2 else self.images
         t, v, phi = (img[k][row] for k in ("transmission", "dark_field", "differential_phase"))
