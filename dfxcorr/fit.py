@@ -24,6 +24,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 from scipy.optimize import minimize
 
+from . import engine as E
 from . import kernels as K
 from . import model as M
 from .catalogue import PAPER_MODEL, effect, neutral_params
@@ -190,7 +191,7 @@ class _Problem:
             self._spread[columns] = spread_columns(self.obs, self.weights, most=columns)
         obs, weights = self._spread[columns]
         images = _solve(obs, params, weights, keep_inverse=True)
-        plain, corr = K.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
+        plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
                                M.component_table(self.names)[:3])
         offsets = np.cumsum([0] + [int(np.prod(shp)) for shp in self.shapes])
         where = {n: (o, shp) for n, o, shp in zip(self.names, offsets[:-1], self.shapes, strict=True)}
@@ -236,7 +237,7 @@ class _Problem:
     def _channel_sums(self, params: dict[str, np.ndarray], *, square: bool) -> tuple[float, np.ndarray]:
         """Reduced cost and the per-parameter sums of the kernel (gradient, or sum w F^2 if ``square``)."""
         self.evaluations += 1
-        cost, g = K.reduced_cost(self.obs, _channels(self.obs, params), self.weights, *self.fringe, phase=self.phase,
+        cost, g = E.reduced_cost(self.obs, _channels(self.obs, params), self.weights, *self.fringe, phase=self.phase,
                                  square=square,
                                  channels={effect(n).channel for n in self.names})
         sums = M.channel_adjoint(self.names, M.Channels(*g), x=self.obs.x, square=square)
@@ -684,13 +685,13 @@ def _channels(obs: Observations, params: dict) -> M.Channels:
 
 def _model_weights(obs: Observations, params: dict, weights: np.ndarray) -> np.ndarray:
     """Inverse noise variances of the model solved with ``weights`` (the weights of a second solve)."""
-    return K.retrieve(obs, _channels(obs, params), weights=weights, next_weights=True)["weights"]
+    return E.retrieve(obs, _channels(obs, params), weights=weights, next_weights=True)["weights"]
 
 
 def _solve(obs: Observations, params: dict, weights: np.ndarray, *, keep_inverse: bool = False) -> M.Images:
     """Closed-form images for fixed parameters and weights."""
-    out = K.retrieve(obs, _channels(obs, params), weights=weights, keep_inverse=keep_inverse)
-    return M.Images(out["coef"], out["valid"], out["inverse"])
+    out = E.retrieve(obs, _channels(obs, params), weights=weights, keep_inverse=keep_inverse)
+    return M.Images(out["coef"], out["valid"], out["inverse"], out["coupling"])
 
 
 def uncertainty(obs: Observations, params: dict, weights: np.ndarray) -> dict[str, np.ndarray]:
@@ -705,7 +706,7 @@ def uncertainty(obs: Observations, params: dict, weights: np.ndarray) -> dict[st
         return out
     K.set_threads()
     images = _solve(obs, params, weights, keep_inverse=True)
-    plain, corr = K.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
+    plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
                            M.component_table(names)[:3])
     info, index = plain - corr, M.fisher_index(names, obs.n_frames)
     d = np.diag(info).copy()

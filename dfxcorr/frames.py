@@ -7,7 +7,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from . import kernels as K
+from . import engine as E
 from . import model as M
 from .align import gauge_frames
 from .catalogue import effect
@@ -73,7 +73,7 @@ def rescue_frames(obs: Observations, params: dict, weights: np.ndarray, frames: 
     """
     params = {k: v.copy() for k, v in params.items()}
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
-    now = K.retrieve(obs, ch, weights=weights)
+    now = E.retrieve(obs, ch, weights=weights)
     c1, w1 = (float(np.ravel(prior["tilt"][0])[0]), float(np.ravel(prior["tilt"][1])[0])) if "tilt" in prior else (0, 1)
     offsets = np.linspace(-np.pi, np.pi, n_offset, endpoint=False)
     tilts = c1 + np.linspace(-4 * w1, 4 * w1, n_tilt) if "tilt" in params else np.zeros(1)
@@ -131,7 +131,7 @@ def frame_grid_cost(obs: Observations, ch: M.Channels, coef: np.ndarray, weights
     """
     j = obs.frame[blocks[0]]
     x = obs.x
-    cf = coef[obs.pixel[blocks]]
+    cf = obs.gather(coef, blocks)
     theta = obs.phif[blocks] + ch.phase[j] - held
     amp = ch.dose[j] * obs.tf[blocks]
     P = amp * obs.vf[blocks] * ch.vis[j] * (cf[..., 1] + 1j * cf[..., 2]) * np.exp(1j * theta)

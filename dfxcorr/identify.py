@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import engine as E
 from . import kernels as K
 from . import model as M
 from .catalogue import effect, neutral_params
@@ -89,7 +90,7 @@ def information(obs: Observations, ch: M.Channels, images: M.Images, weights: np
     by the tests): the plain information and the profiled correction in one pass.
     """
     K.set_threads()
-    plain_matrix, corr = K.fisher(obs, ch, weights, images.coef, images.inverse,
+    plain_matrix, corr = E.fisher(obs, ch, weights, images.coef, images.inverse,
                                   M.component_table(names)[:3])
     info, index = plain_matrix - corr, M.fisher_index(names, obs.n_frames)
     plain = np.diag(plain_matrix)
@@ -163,7 +164,7 @@ def select(obs: Observations, weights: np.ndarray, names, *, max_columns: int = 
     obs, weights = spread_columns(obs, weights, most=max_columns)
     ch = M.channels(neutral_params(names, obs.n_frames), x=obs.x, n_frames=obs.n_frames)
     K.set_threads()
-    solved = K.retrieve(obs, ch, weights=weights, keep_inverse=True)
+    solved = E.retrieve(obs, ch, weights=weights, keep_inverse=True)
     inf = information(obs, ch, M.Images(solved["coef"], solved["valid"], solved["inverse"]), weights, names)
     chosen: list[str] = []
     out = []

@@ -117,6 +117,12 @@ def _c(a: np.ndarray, dtype=None) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=dtype)
 
 
+def _per_pixel(obs) -> None:
+    """The compiled loops solve each pixel's images from its own samples: refuse samples that read between rows."""
+    if obs.reading is not None:
+        raise ValueError("samples read the images between rows: evaluate them through dfxcorr.engine")
+
+
 def _bounds(obs) -> np.ndarray:
     """Block boundaries of the rows, shape (R + 1,)."""
     return np.append(obs.starts, obs.frame.size).astype(np.int64)
@@ -389,6 +395,7 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
     grads : tuple
         Per channel value: phase (J, C), visibility (J, C), dose (J,), background (3,), harmonic (2,).
     """
+    _per_pixel(obs)
     hold = np.eye(2) if phase is None else np.array([[np.cos(phase), np.sin(phase)], [0.0, 0.0]])
     need = np.isin(list(CHANNEL_IDS), list(channels))
     bounds = _bounds(obs)
@@ -555,6 +562,7 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         ``keep_expected`` or ``next_weights``), 'chi2' (Pearson chi-square
         over the used samples of valid pixels), 'samples' (their number).
     """
+    _per_pixel(obs)
     if iterations < 1:
         raise ValueError("iterations must be at least 1")
     g = obs.pixel_gain(gain)
@@ -717,6 +725,7 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray |
     correction : ndarray, shape (P, P)
         sum over pixels of Y^T N^-1 Y (Y = X^T W F): the profiled information is plain - correction.
     """
+    _per_pixel(obs)
     channel, power, n_per_frame = table
     bounds = _bounds(obs)
     inv = np.zeros((0, 0, 3, 3)) if inverse is None else inverse

@@ -17,6 +17,7 @@ from collections.abc import Iterable
 import numpy as np
 from scipy import ndimage, special
 
+from . import engine as E
 from . import kernels as K
 from . import model as M
 from .catalogue import PAPER_MODEL, neutral_params
@@ -56,14 +57,14 @@ def motion_statistics(obs: Observations, params: dict) -> tuple[np.ndarray, np.n
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
     # the model's weights (a solve with the data's first): the score compares the residual with the noise the
     # model predicts, not with the data's own scatter
-    solved = K.retrieve(obs, ch, iterations=2)
+    solved = E.retrieve(obs, ch, iterations=2)
     weights, ibar = solved["weights"], solved["expected"]
     n = obs.segment_sum((weights > 0).astype(float))
     # the fringe's amplitude per unit image modulation, |(Bc, Bs)| = D tf vf V of model.design
     fringe_amp = ch.dose[obs.frame][:, None] * obs.tf * obs.vf * ch.vis[obs.frame]
     with np.errstate(divide="ignore", invalid="ignore"):
         eps = obs.segment_sum(np.where(weights > 0, deviance(obs, ibar), 0.0)) / (n - 3)
-        amp = np.hypot(solved["coef"][..., 1], solved["coef"][..., 2])[obs.pixel]
+        amp = obs.gather(np.hypot(solved["coef"][..., 1], solved["coef"][..., 2]))
         q = obs.segment_sum(weights * (amp * fringe_amp) ** 2) / n
     ok = solved["valid"] & (n > 3) & np.isfinite(eps) & np.isfinite(q)
     return np.where(ok, eps, np.nan), np.where(ok, q, np.nan), n - 3
@@ -135,17 +136,17 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
     params = neutral_params(names, obs.n_frames)
     weights = noise_weights(sub, np.maximum(sub.counts, 1.0))
     ch = M.channels(params, x=sub.x, n_frames=sub.n_frames)
-    solved = K.retrieve(sub, ch, weights=weights)
+    solved = E.retrieve(sub, ch, weights=weights)
     for _ in range(iterations):
         resid = sub.counts - solved["expected"]
         z2 = sub.segment_sum(weights * resid ** 2) / np.maximum(sub.segment_sum((weights > 0) * 1.0), 1)
         # no pixel seen in more frames than its images' unknowns: nothing to compare with
         outlier = z2 > (4.0 * np.median(z2[solved["valid"]]) if solved["valid"].any() else np.inf)
         w = np.where(outlier | ~solved["valid"], 0.0, 1.0)[sub.pixel] * weights
-        held = K.retrieve(sub, ch, weights=w, keep_inverse=True)
-        plain, corr = K.fisher(sub, ch, w, held["coef"], held["inverse"], table)
+        held = E.retrieve(sub, ch, weights=w, keep_inverse=True)
+        plain, corr = E.fisher(sub, ch, w, held["coef"], held["inverse"], table)
         # the reduced cost's gradient is that at the images solved with w (envelope theorem)
-        grad = M.channel_adjoint(names, M.Channels(*K.reduced_cost(sub, ch, w, *fringe,
+        grad = M.channel_adjoint(names, M.Channels(*E.reduced_cost(sub, ch, w, *fringe,
                                                                     channels=("phase", "visibility"))[1]), x=sub.x)
         rhs = -0.5 * np.array([grad[n][j, m] for n, j, m in index])
         step = np.linalg.lstsq(plain - corr, rhs, rcond=1e-8)[0]
@@ -155,7 +156,7 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
             break
         # noise weights from the model solved with the current weights; the solve with them is the next step's
         ch = M.channels(params, x=sub.x, n_frames=sub.n_frames)
-        solved = K.retrieve(sub, ch, weights=weights, iterations=2)
+        solved = E.retrieve(sub, ch, weights=weights, iterations=2)
         weights = solved["weights"]
     return params
 

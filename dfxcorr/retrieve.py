@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import engine as E
 from . import kernels as K
 from . import model as M
 from .noise import pearson
@@ -71,9 +72,9 @@ def retrieve(obs: Observations, params: dict, *, iterations: int = 2, n_frame_pa
     Retrieval
     """
     K.set_threads()
-    out = K.retrieve(obs, M.channels(params, x=obs.x, n_frames=obs.n_frames), iterations=iterations, gain=gain,
+    out = E.retrieve(obs, M.channels(params, x=obs.x, n_frames=obs.n_frames), iterations=iterations, gain=gain,
                      keep_inverse=keep_inverse, keep_expected=keep_expected)
-    images = M.Images(out["coef"], out["valid"], out["inverse"])
+    images = M.Images(out["coef"], out["valid"], out["inverse"], out["coupling"])
     n_par = sum(np.size(p) for p in params.values()) if n_frame_params is None else n_frame_params
     chi2 = per_dof(out["chi2"], out["samples"], int(images.valid.sum()), n_par, 3)
     return Retrieval(images=images, expected=out["expected"], weights=out["weights"], reduced_chi2=chi2,
@@ -102,7 +103,7 @@ def chi2_sums(obs: Observations, ibar: np.ndarray, valid: np.ndarray, *,
 
     Each is a sum over pixels, so the sums of row blocks give :func:`reduced_chi2` of the whole scan.
     """
-    sel = valid[obs.pixel] & obs.use
+    sel = obs.gather_valid(valid) & obs.use
     return float(pearson(obs, ibar, gain=gain)[sel].sum()), int(sel.sum()), int(valid.sum())
 
 

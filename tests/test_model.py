@@ -9,19 +9,7 @@ from dfxcorr import model as M
 from dfxcorr.catalogue import PAPER_MODEL, effect, neutral_params
 from dfxcorr.noise import noise_weights
 
-from conftest import ALL, random_params, tiny_obs
-
-
-def random_images(rng, obs):
-    """Images (t, c, s) with t in [0.2, 1], v in [0.3, 1], phi in [-1, 1] for every pixel of ``obs``."""
-    R, C = obs.rows.size, obs.columns.size
-    t, v, phi = rng.uniform(0.2, 1.0, (R, C)), rng.uniform(0.3, 1.0, (R, C)), rng.uniform(-1, 1, (R, C))
-    return M.Images(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], -1), np.ones((R, C), bool))
-
-
-def modelled_counts(rng, obs, params):
-    """Poisson counts of the model at random images: data the model describes, with their noise."""
-    return rng.poisson(M.expected(obs, M.design(obs, params), random_images(rng, obs))).astype(np.float64)
+from conftest import ALL, modelled_counts, random_images, random_params, tiny_obs
 
 
 def test_neutral_parameters_leave_the_model_unchanged(rng):

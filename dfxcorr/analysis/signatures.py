@@ -154,7 +154,7 @@ def signatures(obs: Observations, params: dict[str, Any], *, n_params: int, alph
     rec = retrieve(obs, params, keep_inverse=True) if rec is None else rec
     dsg = M.design(obs, params)
     images, ibar = rec.images, rec.expected
-    sel = obs.use & images.valid[obs.pixel] & (rec.weights > 0)
+    sel = obs.use & obs.gather_valid(images.valid) & (rec.weights > 0)
     w = np.where(sel, rec.weights, 0.0)
     # the fit's per-frame parameters take their share too, largest where a frame's information is
     # (edge columns for the tilt, bright modulated samples for the phase)
@@ -181,7 +181,8 @@ def signatures(obs: Observations, params: dict[str, Any], *, n_params: int, alph
     kappa_pixels *= tails
     K, C_ = obs.counts.shape
     frame = np.broadcast_to(obs.frame[:, None], (K, C_))
-    psi = M.wrap_angle(dsg.theta + images.phi[obs.pixel])
+    at = obs.gather(images.coef)
+    psi = M.wrap_angle(dsg.theta + np.arctan2(at[..., 2], at[..., 1]))
     pedges = np.linspace(-np.pi, np.pi, 17)
     cedges = np.quantile(ibar[sel], np.linspace(0, 1, 13)) if sel.any() else np.arange(13.0)
     labels = {

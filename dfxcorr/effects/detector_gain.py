@@ -220,7 +220,7 @@ def state_noise(state: State, flagged: np.ndarray) -> NoiseFit:
     (and their rim) left out."""
     obs, params, rec = state.fit_obs, state.params, state.fit_rec
     dsg = M.design(obs, params)
-    w = np.where(obs.use & rec.images.valid[obs.pixel], rec.weights, 0.0)
+    w = np.where(obs.use & obs.gather_valid(rec.images.valid), rec.weights, 0.0)
     h = M.leverage(obs, dsg, rec.images, rec.weights) + M.frame_leverage(obs, dsg, rec.images, w, params)[0]
     return noise_model(obs, rec.expected, h, exclude=obs.pixel_mask(ndimage.binary_dilation(flagged)))
 

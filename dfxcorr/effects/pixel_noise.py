@@ -215,7 +215,7 @@ def class_chi2(obs: Observations, ibar: np.ndarray, valid: np.ndarray, classes: 
 
     ``classes`` (H, W) int labels; returns label -> reduced chi-square (under the noise model of ``obs``).
     """
-    sel = obs.use & valid[obs.pixel]
+    sel = obs.use & obs.gather_valid(valid)
     n = obs.segment_sum(sel.astype(float))
     X = obs.to_image(obs.segment_sum(np.where(sel, pearson(obs, ibar), 0.0)), fill=0.0)
     dof = obs.to_image(np.maximum(n - 3, 0.0), fill=0.0)

@@ -18,7 +18,7 @@ def fit_counts(state: State) -> np.ndarray:
     """The expected counts of the fit's used, solved samples in the region of interest on the columns held for the
     per-pixel tests (``state.obs``): where bins of expected count are cut from, without every column's."""
     obs, rec = state.fit_obs, state.fit_rec
-    held = obs.use & obs.in_roi & rec.images.valid[obs.pixel] & np.isin(obs.columns, state.obs.columns)[None, :]
+    held = obs.use & obs.in_roi & obs.gather_valid(rec.images.valid) & np.isin(obs.columns, state.obs.columns)[None, :]
     return rec.expected[held]
 
 
