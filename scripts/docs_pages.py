@@ -222,8 +222,8 @@ How the decisions are made, and what the study's other cases show:
 COST = """\
 Each command in a process of its own (its own peak resident memory, VmHWM), warm numba cache, the cases one
 after another (the load average after each in the table); diagnose against reconstruct of the same scan. Where
-the time goes, from each case's `test <effect>` and `trial fits` timings (summed over the diagnosis's rounds):
-the largest shares below.
+the time goes, from each case's `test <effect>` and `trial fits` timings (summed over the diagnosis's rounds) and
+the replication of its findings on halves of the detector: the largest shares below.
 
 On a scan larger than `diagnose.max_held_samples` the per-pixel tests (sample motion, pixel noise, reference
 offset, the residual maps) see a band of contiguous columns in the middle of the detector, while the fit and the
@@ -480,11 +480,12 @@ def cost_section(cost: dict) -> list[str]:
     rows, where = [], []
     for name, c in cost["cases"].items():
         rows.append([labels.get(name, name),
-                     f"{c['time_ratio']:.1f}x ({c['diagnose_s']:.1f} s against {c['reconstruct_s']:.1f} s)",
-                     f"{c['memory_ratio']:.1f}x ({c['diagnose_mb']:.0f} MB against {c['reconstruct_mb']:.0f} MB)",
+                     f"{c['time_ratio']:.2f}x ({c['diagnose_s']:.1f} s against {c['reconstruct_s']:.1f} s)",
+                     f"{c['memory_ratio']:.2f}x ({c['diagnose_mb']:.0f} MB against {c['reconstruct_mb']:.0f} MB)",
                      load_text(c.get("load_average_after"))])
-        parts = {k.removeprefix("test "): v for k, v in c["diagnose_stages_s"].items()
-                 if k.startswith("test ") or k == "trial fits"}
+        parts = {("replication" if k.startswith("replication") else k.removeprefix("test ")): v
+                 for k, v in c["diagnose_stages_s"].items()
+                 if k.startswith(("test ", "replication")) or k == "trial fits"}
         top = sorted(parts.items(), key=lambda kv: -kv[1])[:4]
         where.append(f"- {labels.get(name, name)}: " + ", ".join(f"{k} {v:.1f} s" for k, v in top if v >= 0.05))
     return ["", "## What the diagnosis costs", "",
@@ -679,7 +680,7 @@ def readme_table(docs: Path) -> str:
         t = [c["time_ratio"] for c in goal]
         m = [c["memory_ratio"] for c in goal]
         rows.append([f"`diagnose` against `reconstruct`, {len(goal)} scans (recording, paper, stepping, clinical)",
-                     "", f"{min(t):.1f}-{max(t):.1f}x the time, {min(m):.1f}-{max(m):.1f}x the peak memory",
+                     "", f"{min(t):.2f}-{max(t):.2f}x the time, {min(m):.2f}-{max(m):.2f}x the peak memory",
                      "`diagnose_cost.py`"])
     machine = bench.get("clinical", {}).get("machine") or bench.get("paper", {}).get("machine", "")
     return "\n".join(table(["case", "accuracy", "speed and memory", "script (`scripts/`)"], rows)
