@@ -12,7 +12,7 @@ non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton 
 :func:`_image_columns` at the previous images (``model.solve_images``).
 
 Layout: a pixel is (row, column); its samples are the blocks ``starts[r]:starts[r + 1]`` of one row
-(:class:`dfxcorr.model.Observations`). The kernels run over chunks of rows in parallel; every chunk owns its
+(:class:`dfxcorr.observations.Observations`). The kernels run over chunks of rows in parallel; every chunk owns its
 accumulators (summed afterwards), so no two threads write the same memory. Within a row the columns are handled in
 tiles (:data:`TILE`, :data:`FIT_TILE`) so that the second pass over a tile finds what the first left in cache. Sums
 are accumulated in float64 whatever the sample dtype.
@@ -117,6 +117,12 @@ def _c(a: np.ndarray, dtype=None) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=dtype)
 
 
+def _per_pixel(obs) -> None:
+    """The compiled loops solve each pixel's images from its own samples: refuse samples that read between rows."""
+    if obs.reading is not None:
+        raise ValueError("samples read the images between rows: evaluate them through dfxcorr.engine")
+
+
 def _bounds(obs) -> np.ndarray:
     """Block boundaries of the rows, shape (R + 1,)."""
     return np.append(obs.starts, obs.frame.size).astype(np.int64)
@@ -161,8 +167,8 @@ def _direction(cs, ss):
 @njit(cache=True, inline="always")
 def _image_columns(bc, bs, hcc, hcs, u, w):
     """dIbar/dc, dIbar/ds of one sample at images of direction (u, w) (model.image_columns)."""
-    return bc + hcc * u * (1.0 + 2.0 * w * w) - hcs * 2.0 * w * w * w, \
-        bs - hcc * w * (1.0 + 2.0 * u * u) - hcs * 2.0 * u * u * u
+    return (bc + hcc * u * (1.0 + 2.0 * w * w) - hcs * 2.0 * w * w * w,
+            bs - hcc * w * (1.0 + 2.0 * u * u) - hcs * 2.0 * u * u * u)
 
 
 @njit(cache=True, inline="always")
@@ -335,8 +341,8 @@ def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chun
                         f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs, ss, ct, st, c2, s2, e, f, tf[k, c], vf[k, c],
                                                                 amp, bc, bs, vis[j, c], hc, hs)
                         wk = w[k, c]
-                        res = counts[k, c] - dark[k, c] - off - bg[1] * x[c] - (tt * a + cs * bc + ss * bs) \
-                            - (hcc * e - hcs * f)
+                        res = (counts[k, c] - dark[k, c] - off - bg[1] * x[c] - (tt * a + cs * bc + ss * bs)
+                               - (hcc * e - hcs * f))
                         cost[t, c] += wk * res * res
                         # gradient: sum (-2 w r) F; Gauss-Newton diagonal: sum (w F) F
                         g = -2.0 * wk * res
@@ -389,6 +395,7 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
     grads : tuple
         Per channel value: phase (J, C), visibility (J, C), dose (J,), background (3,), harmonic (2,).
     """
+    _per_pixel(obs)
     hold = np.eye(2) if phase is None else np.array([[np.cos(phase), np.sin(phase)], [0.0, 0.0]])
     need = np.isin(list(CHANNEL_IDS), list(channels))
     bounds = _bounds(obs)
@@ -472,8 +479,8 @@ def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds
                             Hc[b, i], Hs[b, i] = hcc, hcs
                         off[b, i] = dark[k, c] + bg[0] + bg[1] * x[c] + bg[2] * y[k]
                         if from_data:
-                            w[b, i] = 1.0 / _variance(gain[r, c], counts[k, c], quiet[k, c], electronic) \
-                                if use[k, c] else 0.0
+                            w[b, i] = (1.0 / _variance(gain[r, c], counts[k, c], quiet[k, c], electronic)
+                                       if use[k, c] else 0.0)
                         else:
                             w[b, i] = start[k, c]
                 for it in range(iterations):
@@ -484,8 +491,8 @@ def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds
                             for i in range(T):
                                 c = c0 + i
                                 m = _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn)
-                                w[b, i] = 1.0 / _variance(gain[r, c], m, quiet[k, c], electronic) if use[k, c] \
-                                    else 0.0
+                                w[b, i] = (1.0 / _variance(gain[r, c], m, quiet[k, c], electronic) if use[k, c]
+                                           else 0.0)
                     for step in range(steps):
                         N[:, :T] = 0.0
                         rhs[:, :T] = 0.0
@@ -555,6 +562,7 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         ``keep_expected`` or ``next_weights``), 'chi2' (Pearson chi-square
         over the used samples of valid pixels), 'samples' (their number).
     """
+    _per_pixel(obs)
     if iterations < 1:
         raise ValueError("iterations must be at least 1")
     g = obs.pixel_gain(gain)
@@ -717,6 +725,7 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray |
     correction : ndarray, shape (P, P)
         sum over pixels of Y^T N^-1 Y (Y = X^T W F): the profiled information is plain - correction.
     """
+    _per_pixel(obs)
     channel, power, n_per_frame = table
     bounds = _bounds(obs)
     inv = np.zeros((0, 0, 3, 3)) if inverse is None else inverse

@@ -3,9 +3,10 @@
 Expected counts come from :mod:`dfxcorr.model` (the one forward model); the simulator adds what the
 model leaves out on purpose: photon noise, detector gain, electronic noise and a dark offset (a flat
 panel in detector units), Compton scatter, a sample region that changes during the scan
-(``sample_motion``), and detector effects that no catalogue names (a non-linearity, a ghost of an
-earlier frame, line noise). The truth is returned beside the scan with the same keys as the shared
-truth files (``image_*``, ``vib_*``).
+(``sample_motion``), beam paths through the sample that change during the scan (``parallax``: the
+phantom evaluated where each frame sees it), and detector effects that no catalogue names (a
+non-linearity, a ghost of an earlier frame, line noise). The truth is returned beside the scan with
+the same keys as the shared truth files (``image_*``, ``vib_*``).
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from .. import model as M
 from ..align import interpolate_rows, lit_blocks
 from ..config import MAX_SCATTER, ConfigError, Option, _fraction, _nonneg, _positive, _within
 from ..io import Reference, Scan, SteppingReference, write_scan
+from ..observations import Observations, lateral_coordinate
 from ..reference import stepping_observations
 
 log = logging.getLogger(__name__)
@@ -42,6 +44,9 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "step_mm": Option(2.5, "motion of the active area between exposures (mm)", _NUM, check=_positive),
         "magnification": Option(1.2, "source-detector / source-sample distance (1.8 m / 1.5 m)", _NUM,
                                 check=_positive),
+        "supersample": Option(2, "thorax: sub-pixel samples per axis averaged into a pixel's t and v (phi's average "
+                                 "along the rows is exact); a sample displaced by effects.parallax changes them in "
+                                 "steps of 1 / supersample row at its edges", int, check=_within(1, 16)),
         "steps": Option(11, "stepping geometry: number of phase steps", int, check=_within(3, 10000)),
         "steps_per_period": Option(11, "stepping geometry: steps per grating period", _NUM, check=_positive),
         "flux": Option(2e4, "flat-field counts per pixel and frame, t^f", _NUM, check=_within(1e-3, 1e9)),
@@ -90,6 +95,13 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                 check=_nonneg),
         "heart_step_mm": Option(0.0, "the heart moves this far (mm at the sample plane, along the rows) half-way "
                                      "through the scan and stays there; 0: it does not move", _NUM, check=_nonneg),
+        "parallax": Option(0.0, "beam paths that change during the scan (a source that travels with the gratings): "
+                                "frame j sees the sample displaced by kappa (c_j - c_0) rows, c_j the active "
+                                "area's centre row (position + (A - 1) / 2), c_0 = (H - 1) / 2 the detector's; the "
+                                "phantom is evaluated at the displaced rows (sample_motion's disc stays on its "
+                                "pixels; the moved heart after heart_step_mm's step is not displaced); 0: none",
+                           _NUM,
+                           check=lambda v: None if -1 < v < 1 else "must lie in (-1, 1)"),
         "detector_gain": Option(1.0, "true detector units per photon (noise variance g * mean)", _NUM,
                                 check=_positive),
         "declare_gain": Option(True, "write the true gain into the file (false conceals it: readers assume 1)",
@@ -182,6 +194,8 @@ CONCEALED = {
     # a flat panel at 2000 counts with a dark of 100; the file states the dark, not the noise
     "electronic_noise": ("effects.read_noise", 25.0, [10.0, 5.0, 2.0, 1.0], FLAT_PANEL, []),
     "scatter": ("effects.scatter", 0.1, [0.05, 0.02, 0.01, 0.005], {}, []),
+    # a source that travels with the gratings: the sample seen 0.02 rows further per row of travel
+    "beam_path": ("effects.parallax", 0.02, [0.01, 0.005, 0.002, 0.001], {}, []),
 }
 
 #: Detector effects in no catalogue, in the format of :data:`CONCEALED` (the last entry: reconstruct
@@ -244,12 +258,12 @@ def flat_field(cfg: dict, A: int, W: int) -> Reference:
     """
     s = cfg["simulate"]
     u = (np.arange(A) + 0.5)[:, None]
-    x = M.lateral_coordinate(np.arange(W), W)[None, :]
+    x = lateral_coordinate(np.arange(W), W)[None, :]
     n = s["tiles"]
     tile = np.minimum((np.arange(W) * n) // W, n - 1)[None, :] if n else np.zeros((1, W), int)
     if n:
         rng = np.random.default_rng([s["seed"], 1])
-        centre = M.lateral_coordinate((np.arange(n) + 0.5) * W / n - 0.5, W)
+        centre = lateral_coordinate((np.arange(n) + 0.5) * W / n - 0.5, W)
         jitter = rng.uniform(-1, 1, (4, n))
         fringes = (s["fringes_centre"] + (s["fringes_edge"] - s["fringes_centre"]) * centre ** 2
                    + s["tile_fringes"] * jitter[0])[tile]
@@ -271,16 +285,29 @@ def flat_field(cfg: dict, A: int, W: int) -> Reference:
     return Reference(transmission=flux * tf_tile, visibility=vis * vf_tile, phase=phase)
 
 
-def sample_images(cfg: dict, H: int, W: int) -> dict[str, np.ndarray]:
-    """t, v, phi of the configured phantom, shape (H, W)."""
+def sample_images(cfg: dict, H: int, W: int, *, rows: np.ndarray | None = None,
+                  shift: float = 0.0) -> dict[str, np.ndarray]:
+    """t, v, phi (rad) of the configured phantom on an H x W detector, each (n, W), at ``rows`` (ascending
+    detector rows without repeats, also beyond [0, H); default all H), the sample displaced by ``shift`` rows:
+    row u shows what row u + shift shows undisplaced (:func:`~dfxcorr.sim.phantom.thorax`; the slab and the
+    blank are the same everywhere)."""
     from . import phantom
 
     s = cfg["simulate"]
     if s["phantom"] == "thorax":
-        return phantom.thorax(shape=(H, W), pixel_mm=s["pixel_mm"], magnification=s["magnification"])
+        return phantom.thorax(shape=(H, W), rows=rows, shift=shift, pixel_mm=s["pixel_mm"],
+                              magnification=s["magnification"], supersample=s["supersample"])
+    n = H if rows is None else len(rows)
     if s["phantom"] == "slab":
-        return phantom.slab(shape=(H, W), pixel_mm=s["pixel_mm"], magnification=s["magnification"])
-    return phantom.blank(shape=(H, W))
+        return phantom.slab(shape=(n, W), pixel_mm=s["pixel_mm"], magnification=s["magnification"])
+    return phantom.blank(shape=(n, W))
+
+
+def parallax_shift(cfg: dict, position: np.ndarray, A: int, H: int) -> np.ndarray:
+    """Displacement d_j = kappa (c_j - c_0) (rows, shape (J,)) of the sample each frame sees (``effects.parallax``):
+    c_j = position_j + (A - 1) / 2 is the centre row of frame j's active area (its first row at position_j, as in
+    lit_blocks), c_0 = (H - 1) / 2 the detector's."""
+    return cfg["effects"]["parallax"] * (np.asarray(position, dtype=float) + (A - 1) / 2 - (H - 1) / 2)
 
 
 def draw_effects(cfg: dict, J: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -289,8 +316,8 @@ def draw_effects(cfg: dict, J: int, rng: np.random.Generator) -> dict[str, np.nd
     p = {"phase_offset": rng.normal(0, e["phase_offset"], (J, 1)), "tilt": rng.normal(0, e["tilt"], (J, 1))}
     if s["geometry"] == "stepping":
         p["tilt"][:] = rng.normal(0, e["tilt"], (J, 1)) if e["tilt"] else 0.0
-    p["visibility_loss"] = np.abs(1 - np.abs(rng.normal(0, e["visibility_loss"], (J, 1)))) if e["visibility_loss"] \
-        else np.ones((J, 1))
+    p["visibility_loss"] = (np.abs(1 - np.abs(rng.normal(0, e["visibility_loss"], (J, 1)))) if e["visibility_loss"]
+                            else np.ones((J, 1)))
     if e["curvature"]:
         p["curvature"] = rng.normal(0, e["curvature"], (J, 1))
     if e["visibility_tilt"]:
@@ -383,6 +410,8 @@ class Simulation:
         self.flat = flat_field(cfg, A, W)
         self._phase = np.unwrap(self.flat.phase, axis=0)
         self.images = sample_images(cfg, H, W)
+        #: Rows by which frame j sees the sample displaced (``effects.parallax``), shape (J,).
+        self.displacement = parallax_shift(cfg, g["position"], A, H)
         self.params = draw_effects(cfg, J, rng)
         self.moving = motion_region(H, W) if e["sample_motion"] else np.zeros((H, W), bool)
         self.after = None
@@ -397,13 +426,13 @@ class Simulation:
         self._streams = np.random.SeedSequence(s["seed"]).spawn(J)
         self.dtype = np.dtype(s["dtype"])
         # a stream of its own: switching the position errors on leaves every other draw as it was
-        self.jitter = np.random.default_rng([s["seed"], 2]).normal(0, e["position_error"], J) \
-            if e["position_error"] else np.zeros(J)
+        self.jitter = (np.random.default_rng([s["seed"], 2]).normal(0, e["position_error"], J)
+                       if e["position_error"] else np.zeros(J))
         #: Rows by which frame j reads the flat-field maps off its nominal local rows (maps at u - shift[j]).
         self.shift = e["reference_offset"] + self.jitter
         #: Line noise: the offset of each (frame, detector row), shape (J, H), from a stream of its own.
-        self.line_offset = np.random.default_rng([s["seed"], 3]).normal(0, e["line_noise"], (J, H)) \
-            if e["line_noise"] else np.zeros((J, H))
+        self.line_offset = (np.random.default_rng([s["seed"], 3]).normal(0, e["line_noise"], (J, H))
+                            if e["line_noise"] else np.zeros((J, H)))
 
     def frame_counts(self, j: int) -> tuple[int, np.ndarray]:
         """Detected counts (float64, before storage) of frame j's lit rows: (r0, array (n, W))."""
@@ -417,13 +446,20 @@ class Simulation:
         u = u - self.shift[j]
         phif = interpolate_rows(self._phase, u) + g["phase_step"][j]
         zeros = np.zeros((row.size, W))
-        obs = M.Observations(counts=zeros, tf=interpolate_rows(ref.transmission, u),
-                             vf=interpolate_rows(ref.visibility, u), phif=phif, dark=zeros,
-                             use=np.ones((row.size, W), bool), row=row, frame=np.full(row.size, j), columns=cols,
-                             shape=self.shape)
+        obs = Observations(counts=zeros, tf=interpolate_rows(ref.transmission, u),
+                           vf=interpolate_rows(ref.visibility, u), phif=phif, dark=zeros,
+                           use=np.ones((row.size, W), bool), row=row, frame=np.full(row.size, j), columns=cols,
+                           shape=self.shape)
+        keys = ("transmission", "dark_field", "differential_phase")
         # the heart has moved from the middle frame on
-        img = self.after if self.after is not None and j >= J // 2 else self.images
-        t, v, phi = (img[k][row] for k in ("transmission", "dark_field", "differential_phase"))
+        moved = self.after if self.after is not None and j >= J // 2 else None
+        img = self.images if moved is None else moved
+        t, v, phi = (img[k][row] for k in keys)
+        if self.displacement[j]:
+            seen = sample_images(self.cfg, H, W, rows=row, shift=self.displacement[j])
+            # the moved heart is a shift of the static images: no parallax inside it
+            keep = np.zeros((row.size, W), bool) if moved is None else moved["region"][row]
+            t, v, phi = (np.where(keep, a, seen[k]) for a, k in zip((t, v, phi), keys, strict=True))
         images = M.Images(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], axis=-1), np.ones(t.shape, bool))
         dsg = M.design(obs, self.params)
         ibar = M.expected(obs, dsg, images)
@@ -536,6 +572,7 @@ class Simulation:
                      reference_steps=self.reference_steps, reference_transmission=ref.transmission,
                      reference_visibility=ref.visibility, reference_phase=ref.phase,
                      reference_offset=np.float64(e["reference_offset"]), vib_position_jitter=self.jitter,
+                     beam_path=np.float64(e["parallax"]),
                      electronic_noise=np.float64(e["read_noise"]), dark=np.float64(e["dark"]),
                      scatter=np.float64(e["scatter"]), detector_nonlinearity=np.float64(e["detector_nonlinearity"]),
                      ghost=np.float64(e["ghost"]), line_offset=self.line_offset, config=json.dumps(self.cfg))
@@ -564,7 +601,9 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
         ``reference_*``; ``electronic_noise`` (read noise std) and ``dark`` (detector units);
         ``scatter`` (s, the scatter per unit primary before the lit band's loss); ``detector_nonlinearity``
         (beta), ``ghost`` (the fraction) and ``line_offset`` (J, H)
-        (detector units); ``config`` (JSON, every setting).
+        (detector units); ``beam_path`` (kappa of ``effects.parallax``: frame j saw the sample at row
+        u + kappa (c_j - c_0), :func:`parallax_shift`; the ``image_*`` are the sample undisplaced, what
+        every frame sees at kappa = 0); ``config`` (JSON, every setting).
     """
     sim = Simulation(cfg)
     data = np.zeros(sim.shape, sim.dtype)
@@ -617,8 +656,8 @@ def _heart_step(img: dict, cfg: dict) -> dict[str, np.ndarray]:
     shift = e["heart_step_mm"] / p
     x0, y0, _, a, b, _ = _HEART
     r, c = np.mgrid[:H, :W]
-    region = (((c + 0.5 - W / 2) * p - x0) / (a + e["heart_step_mm"])) ** 2 \
-        + (((r + 0.5 - H / 2) * p - y0) / (b + e["heart_step_mm"])) ** 2 < 1
+    region = ((((c + 0.5 - W / 2) * p - x0) / (a + e["heart_step_mm"])) ** 2
+              + (((r + 0.5 - H / 2) * p - y0) / (b + e["heart_step_mm"])) ** 2 < 1)
     out = {k: np.where(region, ndimage.shift(v, (shift, 0), order=1, mode="nearest"), v) for k, v in img.items()}
     out["region"] = region
     return out
