@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -108,7 +109,8 @@ def main() -> None:
         print(json.dumps(row))
         rows.append(row)
     H, W = scan.shape[1:]
-    record = {"machine": machine(), "pixel_mm": args.pixel_mm, "flux": sim_config(args.pixel_mm)["simulate"]["flux"],
+    record = {"machine": machine(), "load_average_after": os.getloadavg()[0], "pixel_mm": args.pixel_mm,
+              "flux": sim_config(args.pixel_mm)["simulate"]["flux"],
               "interpolation_z2": interpolation_floor(sim_config(args.pixel_mm), (H, W)), "runs": rows}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "parallax.json").write_text(json.dumps(record, indent=2) + "\n")
