@@ -186,7 +186,9 @@ class _Problem:
             Its diagonal without the profiled correction (2 x the plain Fisher diagonal, eq. 27, plus the prior).
         """
         if columns is None:
-            columns = max(FACTOR_MIN_COLUMNS, FACTOR_PIXELS // max(self.obs.rows.size, 1))
+            # where samples read between rows each column's images are one solve in numpy: the fewest columns
+            columns = (FACTOR_MIN_COLUMNS if self.obs.reading is not None
+                       else max(FACTOR_MIN_COLUMNS, FACTOR_PIXELS // max(self.obs.rows.size, 1)))
         if columns not in self._spread:
             self._spread[columns] = spread_columns(self.obs, self.weights, most=columns)
         obs, weights = self._spread[columns]

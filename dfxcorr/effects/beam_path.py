@@ -31,6 +31,7 @@ from ..noise import noise_weights
 from ..observations import Observations
 from ..preparation import Correctable
 from .base import (
+    Consistency,
     Context,
     EffectBase,
     Estimate,
@@ -43,6 +44,7 @@ from .base import (
     chi2_test,
     dispersion,
 )
+from .channel import strata
 
 
 def read_slope(obs: Observations, coef: np.ndarray, moves: np.ndarray) -> np.ndarray:
@@ -128,10 +130,7 @@ class BeamPath(EffectBase[Estimate]):
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[Estimate] | None:
         if ctx.stepping:
             return None
-        store = ctx.corrected(state.hypothesis).store
-        # the blocks of the held rows' observations are the store's, in its order
-        lo, hi = np.searchsorted(store.row, (state.obs.row[0], state.obs.row[-1] + 1))
-        moves = read_moves(store, store.parallax)[lo:hi]
+        moves = self._moves(ctx.corrected(state.hypothesis).store, state.obs)
         obs = replace(state.obs, use=state.obs.use & ~state.obs.pixel_mask(flagged))
         score, info = kappa_score(obs, state.params, state.rec.images, moves)
         if info <= 0:
@@ -141,6 +140,35 @@ class BeamPath(EffectBase[Estimate]):
         step, se = score / info, float(np.sqrt(scale / info))
         stat = score ** 2 / (info * scale)
         return chi2_test(stat, 1, Estimate(np.asarray(step), np.asarray(se)), explains=stat)
+
+    def consistency(self, ctx: Context, before: State, state: State) -> Consistency | None:
+        # one geometry for the whole detector: kappa refitted on the pixels of each stratum of detector rows (one
+        # step from the trial's kappa) must agree; a misfit of another kind that the score picked up does not
+        store = ctx.corrected(state.hypothesis).store
+        if not store.parallax:
+            return None
+        moves = self._moves(store, state.obs)
+        obs = state.obs
+        labels = strata(obs, np.zeros(obs.counts.shape), by="row")
+        n = int(labels.max()) + 1
+        U, info = np.zeros(n), np.zeros(n)
+        for k in range(n):
+            U[k], info[k] = kappa_score(replace(obs, use=obs.use & (labels == k)), state.params, state.rec.images,
+                                        moves)
+        ok = info > 0
+        if ok.sum() < 2:
+            return None
+        stat = float(np.sum(U[ok] ** 2 / info[ok])) - float(U[ok].sum()) ** 2 / float(info[ok].sum())
+        sizes = 1.0 + np.where(ok, U / np.where(ok, info, 1.0), 0.0) / store.parallax
+        t = chi2_test(max(stat, 0.0) / dispersion(state), int(ok.sum()) - 1, tuple(float(v) for v in sizes))
+        return Consistency(t.statistic, t.dof, t.p_value, t.log_p, "row", t.payload)
+
+    @staticmethod
+    def _moves(store: LitStore, obs: Observations) -> np.ndarray:
+        """d(read position) / d kappa of the blocks of ``obs`` (the held rows' blocks are the store's, in its
+        order)."""
+        lo, hi = np.searchsorted(store.row, (obs.row[0], obs.row[-1] + 1))
+        return read_moves(store, store.parallax)[lo:hi]
 
     def trial(self, ctx: Context, state: State, test: Test[Estimate]) -> Hypothesis:
         return state.hypothesis.but(corrections=(*state.hypothesis.corrections, (self.name, float(test.payload.value))))

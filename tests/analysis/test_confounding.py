@@ -24,9 +24,10 @@ def _found(diag) -> dict[str, tuple[str, ...]]:
 
 
 @pytest.mark.parametrize(("effects", "named"), [
-    ({"effects.dose": 0.02, "effects.phase_offset": 0.0}, {"dose": ()}),
-    ({"effects.dose": 0.0, "effects.phase_offset": 0.05}, {"phase_offset": ()}),
-    ({"effects.dose": 0.02, "effects.phase_offset": 0.05}, {"dose": (), "phase_offset": ()}),
+    pytest.param({"effects.dose": 0.02, "effects.phase_offset": 0.0}, {"dose": ()}, marks=pytest.mark.slow),
+    pytest.param({"effects.dose": 0.0, "effects.phase_offset": 0.05}, {"phase_offset": ()}, marks=pytest.mark.slow),
+    pytest.param({"effects.dose": 0.02, "effects.phase_offset": 0.05}, {"dose": (), "phase_offset": ()},
+                 marks=pytest.mark.slow),
 ])
 def test_dose_and_phase_errors_are_told_apart_where_the_data_do(effects, named):
     scan, _ = S.simulate(sim_config(**{**STEPPING, **effects}))
