@@ -110,6 +110,13 @@ def test_a_blank_or_a_slab_looks_the_same_from_everywhere(phantom):
     np.testing.assert_array_equal(seen.data, S.simulate(sim_config(**{"simulate.phantom": phantom}))[0].data)
 
 
+def test_phase_stepping_has_no_travel_and_so_no_parallax():
+    stepping = {"simulate.geometry": "stepping", "simulate.steps": 5, "simulate.steps_per_period": 5}
+    sim = S.Simulation(sim_config(**stepping, **{"effects.parallax": 0.5}))
+    assert not sim.displacement.any()
+    np.testing.assert_array_equal(S.simulate(sim.cfg)[0].data, S.simulate(sim_config(**stepping))[0].data)
+
+
 def test_the_moved_heart_keeps_its_shifted_images_and_the_rest_moves_with_the_parallax():
     heart = {**EXACT, "effects.heart_step_mm": 10.0}
     moving = S.Simulation(sim_config(**heart, **{"effects.parallax": 0.05}))
