@@ -95,6 +95,7 @@ def test_any_rows_of_the_displaced_thorax_are_those_of_the_whole_detector(supers
         np.testing.assert_array_equal(some[k], whole[k][rows])
 
 
+@pytest.mark.slow
 def test_the_truth_carries_kappa_and_the_undisplaced_images():
     scan, truth = S.simulate(sim_config(**{"effects.parallax": -0.04}))
     _, plain = S.simulate(sim_config())
