@@ -339,6 +339,7 @@ class LitStore:
         if self.parallax:
             shift = self.parallax / (1.0 + self.parallax) * self.centred()[lo:hi]
             reading, inside = displaced_reading(row, np.unique(row), shift)
+            reading = replace(reading, kappa=self.parallax)
             use &= inside[:, None]
         return Observations(counts=counts, tf=tf, vf=vf, phif=phif, dark=dark, use=use,
                             row=row, frame=frame, columns=cols, shape=(J, H, W),

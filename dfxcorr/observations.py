@@ -55,10 +55,15 @@ class Reading:
         Position in :attr:`Observations.rows` of the image row below the read position.
     frac : ndarray, shape (K,)
         Fraction of the way to the next held row, in [0, 1); 0 at the last held row.
+    kappa : float
+        The parallax that places the reads (``beam_path``): the images are those each pixel sees with the active
+        area centred on it (:func:`dfxcorr.align.to_detector_rows` gives them as the detector-centred frame sees
+        them).
     """
 
     lo: np.ndarray
     frac: np.ndarray
+    kappa: float = 0.0
 
 
 def displaced_reading(row: np.ndarray, rows: np.ndarray, shift: np.ndarray) -> tuple[Reading, np.ndarray]:

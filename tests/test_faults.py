@@ -101,6 +101,7 @@ def test_the_dtype_maximum_is_saturation_by_default(rng):
     assert saturation_level(np.dtype(np.float32), None) is None
 
 
+@pytest.mark.slow
 def test_check_reports_the_faults(twin, tmp_path):
     scan, *_ = twin
     data = np.array(scan.data)

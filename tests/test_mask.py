@@ -69,6 +69,7 @@ def test_chi2_tail_matches_scipy_stats():
     np.testing.assert_allclose(_chi2_logsf(x, k), stats.chi2.logsf(x, k), rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_row_blocks_give_the_mask_of_one_pass(small_scan):
     scan, _ = small_scan(**{"effects.sample_motion": 0.3})
     prep = prepare(scan, C.defaults())

@@ -40,6 +40,7 @@ def test_dose_and_phase_errors_are_told_apart_where_the_data_do(effects, named):
     assert not [u for u in diag.unexplained if u.axis in ("frame", "phase")], diag.unexplained
 
 
+@pytest.mark.slow
 def test_a_dose_the_phase_errors_explain_as_well_is_named_with_them():
     """A dose that follows the first harmonic of the step phase is what phase errors would do: one finding,
     'phase errors or dose', each with its estimate; neither named alone."""
