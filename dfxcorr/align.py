@@ -22,7 +22,7 @@ from . import kernels as K
 from .errors import DfxcorrError
 from .faults import Faults, saturated
 from .io import Reference, Scan, frame_rows, lit_rows
-from .observations import Observations, displaced_reading, lateral_coordinate
+from .observations import Observations, displaced_reading
 from .stats import ranges
 
 log = logging.getLogger(__name__)
@@ -474,8 +474,7 @@ def tilt_alias_period(width: int, n: int) -> float:
 
 
 __all__ = ["AlignmentError", "LitStore", "build_observations", "collect_lit_rows", "interpolate_rows", "lit_blocks",
-           "no_lit_rows", "read_position_errors",
-           "subsample_columns", "tilt_alias_period", "lateral_coordinate"]
+           "no_lit_rows", "read_position_errors", "subsample_columns", "tilt_alias_period"]
 
 
 def to_detector_rows(images: np.ndarray, kappa: float) -> np.ndarray:

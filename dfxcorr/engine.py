@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from scipy import sparse
 
 from . import kernels as K
 from . import model as M
@@ -62,18 +63,21 @@ def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, cos_phi
         return K.reduced_cost(obs, ch, weights, cos_phif, sin_phif, phase=phase, square=square, channels=channels)
     dsg = M.design_channels(obs, ch)
     images = M.solve_images(obs, dsg, weights, phase=phase)
-    resid = obs.counts - M.expected(obs, dsg, images)
+    at = obs.gather(images.coef)
+    resid = obs.counts - M.expected(obs, dsg, images, at=at)
     cost = float(np.sum(weights * resid ** 2))
     J, C = obs.n_frames, obs.columns.size
     out: list[np.ndarray] = [np.zeros((J, C)), np.zeros((J, C)), np.zeros(J), np.zeros(3), np.zeros(2)]
     g = -2.0 * weights * resid
+    by_frame = sparse.csr_matrix((np.ones(obs.frame.size), (obs.frame, np.arange(obs.frame.size))),
+                                 shape=(J, obs.frame.size))
     for name, cid in K.CHANNEL_IDS.items():
         if name not in channels:
             continue
-        fields = M.channel_fields(obs, dsg, images, cid)
+        fields = M.channel_fields(obs, dsg, images, cid, at=at)
         sums = [(weights * F if square else g) * F for F in fields]
         if cid in (K.PHASE, K.VISIBILITY):
-            np.add.at(out[cid], obs.frame, sums[0])
+            out[cid] = by_frame @ sums[0]
         elif cid == K.DOSE:
             out[cid] = obs.frame_sum(sums[0].sum(axis=1))
         else:

@@ -13,6 +13,7 @@ q_i that sensitivity and gamma fitted robustly over all pixels, for what the pil
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import replace
 
 import numpy as np
 from scipy import ndimage, special
@@ -143,8 +144,11 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
         # no pixel seen in more frames than its images' unknowns: nothing to compare with
         outlier = z2 > (4.0 * np.median(z2[solved["valid"]]) if solved["valid"].any() else np.inf)
         w = np.where(outlier | ~solved["valid"], 0.0, 1.0)[sub.pixel] * weights
-        held = E.retrieve(sub, ch, weights=w, keep_inverse=True)
-        plain, corr = E.fisher(sub, ch, w, held["coef"], held["inverse"], table)
+        # the step's matrix need only be close (the gradient decides where the steps end): where samples read
+        # between rows, that of the images solved per pixel by the compiled kernels
+        flat = replace(sub, reading=None)
+        held = E.retrieve(flat, ch, weights=w, keep_inverse=True)
+        plain, corr = E.fisher(flat, ch, w, held["coef"], held["inverse"], table)
         # the reduced cost's gradient is that at the images solved with w (envelope theorem)
         grad = M.channel_adjoint(names, M.Channels(*E.reduced_cost(sub, ch, w, *fringe,
                                                                     channels=("phase", "visibility"))[1]), x=sub.x)

@@ -479,9 +479,10 @@ def solve_images(obs: Observations, dsg: Design, weights: np.ndarray, *, phase: 
     steps = 1 + (kernels.HARMONIC_STEPS if any(dsg.harmonic) else 0)
     coef = np.zeros((obs.rows.size, obs.columns.size, 3))
     coupling = None
-    for _ in range(steps):
-        at = obs.gather(coef)
-        Xc, Xs = image_columns(dsg, at[..., 1], at[..., 2])
+    for step in range(steps):
+        # the first solve leaves the harmonic out: its columns need no images
+        at = obs.gather(coef) if step else coef[:0]
+        Xc, Xs = image_columns(dsg, at[..., 1], at[..., 2]) if step else (dsg.Bc, dsg.Bs)
         if phase is None and obs.reading is not None:
             coef, valid, inv, coupling = solve_read_between(obs, [dsg.A, Xc, Xs], target, weights,
                                                             keep_inverse=keep_inverse)
@@ -502,9 +503,9 @@ def harmonic_term(obs: Observations, dsg: Design, images: Images) -> np.ndarray:
     return dsg.Hc * e - dsg.Hs * f
 
 
-def expected(obs: Observations, dsg: Design, images: Images) -> np.ndarray:
-    """Expected counts Ibar, shape (K, C)."""
-    c = obs.gather(images.coef)
+def expected(obs: Observations, dsg: Design, images: Images, *, at: np.ndarray | None = None) -> np.ndarray:
+    """Expected counts Ibar, shape (K, C) (``at``: the images at every sample, where the caller has them)."""
+    c = obs.gather(images.coef) if at is None else at
     linear = c[..., 0] * dsg.A + c[..., 1] * dsg.Bc + c[..., 2] * dsg.Bs + dsg.offset
     return linear + harmonic_term(obs, dsg, images) if any(dsg.harmonic) else linear
 
@@ -557,11 +558,13 @@ def sample_derivatives(obs: Observations, dsg: Design, images: Images, name: str
     return fields
 
 
-def channel_fields(obs: Observations, dsg: Design, images: Images, cid: int) -> list[np.ndarray]:
+def channel_fields(obs: Observations, dsg: Design, images: Images, cid: int, *, at: np.ndarray | None = None
+                   ) -> list[np.ndarray]:
     """dIbar/d(channel value) at every sample, each (K, C): [dIbar/dΦ], [dIbar/dV], [dIbar/dD], the three
     background basis fields, or the two of the harmonic (hc, hs); the channel ``cid`` of
-    :data:`dfxcorr.kernels.CHANNEL_IDS`. :func:`sample_derivatives` multiplies them by the powers of x."""
-    c = obs.gather(images.coef)
+    :data:`dfxcorr.kernels.CHANNEL_IDS`. :func:`sample_derivatives` multiplies them by the powers of x. ``at``: the
+    images at every sample (``obs.gather(images.coef)``), where the caller has them."""
+    c = obs.gather(images.coef) if at is None else at
     t, cc, ss = c[..., 0], c[..., 1], c[..., 2]
     hc, hs = dsg.harmonic
     amp = dsg.dose * obs.tf

@@ -166,6 +166,10 @@ POLISH_SECONDS_PER_SAMPLE = 0.5e-6
 #: of the scan: what ``fit.time_floor`` leaves to the fit (0.076 us on the binned and 0.077 on the full-resolution
 #: clinical scan, 0.11 on the paper study; docs/benchmark.json, load 3.4-4.1).
 REST_SECONDS_PER_SAMPLE = 0.08e-6
+#: How much slower the fit runs where the samples read between rows (``geometry.parallax``: the model's numpy
+#: arrays and the block-tridiagonal solve instead of the compiled kernels): 32.9 s against 3.4 s on the 5 mm
+#: parallax scan, both under load 8.
+READ_BETWEEN_SLOWDOWN = 10.0
 
 
 @dataclass(frozen=True)
@@ -214,12 +218,19 @@ def coarse_step(cfg: dict, n_columns: int, samples_per_column: int, *, step: int
     return max(1, min(int(c), max(width // 4, 1) // max(step, 1)))
 
 
-def fit_seconds(n_columns: int, samples_per_column: int, coarse: int) -> float:
-    """Predicted wall time (s) of a fit of ``n_columns`` columns whose stages run on every ``coarse``-th first."""
+def fit_seconds(n_columns: int, samples_per_column: int, coarse: int, *, slowdown: float = 1.0) -> float:
+    """Predicted wall time (s) of a fit of ``n_columns`` columns whose stages run on every ``coarse``-th first,
+    ``slowdown`` times that of the compiled kernels (:func:`slowdown`)."""
     if coarse <= 1:
-        return FIT_SECONDS_PER_SAMPLE * n_columns * samples_per_column
-    return ((FIT_SECONDS_PER_SAMPLE * -(-n_columns // coarse) + POLISH_SECONDS_PER_SAMPLE * n_columns)
+        return slowdown * FIT_SECONDS_PER_SAMPLE * n_columns * samples_per_column
+    return (slowdown * (FIT_SECONDS_PER_SAMPLE * -(-n_columns // coarse) + POLISH_SECONDS_PER_SAMPLE * n_columns)
             * samples_per_column)
+
+
+def slowdown(cfg: dict) -> float:
+    """How much slower than the compiled kernels the configured fit runs: :data:`READ_BETWEEN_SLOWDOWN` where the
+    samples read between rows (``geometry.parallax``), else 1."""
+    return READ_BETWEEN_SLOWDOWN if cfg["geometry"]["parallax"] else 1.0
 
 
 def within_seconds(cfg: dict, width: int, samples_per_column: int, seconds: float) -> int:
@@ -227,7 +238,7 @@ def within_seconds(cfg: dict, width: int, samples_per_column: int, seconds: floa
     for n in range(1, max(width // 4, 1) + 1):
         cols = subsample_columns(width, n, offset=cfg["fit"]["column_offset"]).size
         coarse = coarse_step(cfg, cols, samples_per_column, step=n, width=width)
-        if fit_seconds(cols, samples_per_column, coarse) <= seconds:
+        if fit_seconds(cols, samples_per_column, coarse, slowdown=slowdown(cfg)) <= seconds:
             return n
     return max(width // 4, 1)
 
@@ -306,7 +317,8 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
     coarse = coarse_step(cfg, cols.size, per_column, step=n, width=W)
     out = ColumnPlan(columns=cols, why=why,
                      uncertainty=sigma * np.sqrt(size / cols.size) if size else float("nan"),
-                     seconds=fit_seconds(cols.size, per_column, coarse), pilot=pilot, coarse=coarse)
+                     seconds=fit_seconds(cols.size, per_column, coarse, slowdown=slowdown(cfg)), pilot=pilot,
+                     coarse=coarse)
     if report:
         log.info("vibration fit columns: %s", out.summary())
     return out

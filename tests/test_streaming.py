@@ -144,6 +144,7 @@ def test_float32_fit_agrees_with_float64_within_its_uncertainty(prepared_scan):
         assert diff.max() < 0.1 * np.median(fits[np.float64].uncertainty[name][good])
 
 
+@pytest.mark.slow
 def test_diagnose_and_reconstruct_see_the_same_data(monkeypatch):
     # a reference stepping series with non-default reference options and region of interest
     scan, _ = S.simulate(sim_config(**{"simulate.reference_steps": 5, "simulate.reference_step_errors": 0.05,

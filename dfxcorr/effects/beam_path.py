@@ -31,6 +31,7 @@ from ..noise import noise_weights
 from ..observations import Observations
 from ..preparation import Correctable
 from .base import (
+    Consistency,
     Context,
     EffectBase,
     Estimate,
@@ -43,6 +44,7 @@ from .base import (
     chi2_test,
     dispersion,
 )
+from .channel import strata
 
 
 def read_slope(obs: Observations, coef: np.ndarray, moves: np.ndarray) -> np.ndarray:
@@ -80,24 +82,44 @@ def kappa_field(obs: Observations, dsg: M.Design, images: M.Images, moves: np.nd
 
 
 def kappa_score(obs: Observations, params: dict[str, np.ndarray], images: M.Images, moves: np.ndarray, *,
-                samples: float = 1e6) -> tuple[float, float]:
-    """Score sum w r F_perp and information sum w F_perp^2 of kappa at the images and parameters given.
+                labels: np.ndarray | None = None, samples: float = 1e6) -> tuple[np.ndarray, np.ndarray]:
+    """Score sum w r F_perp and information sum w F_perp^2 of kappa at the images and parameters given, per stratum.
 
     F_perp is :func:`kappa_field` less its least-squares fit by the images' own design (what the images absorb);
-    w the inverse noise variances of the model, r the residuals. Computed a run of about ``samples`` samples'
-    columns at a time.
+    w the inverse noise variances of the model, r the residuals. ``labels`` (K, C): the stratum of each sample
+    (-1: left out; strata of whole pixels); None: one. Computed a run of about ``samples`` samples' columns at a
+    time.
+
+    Returns
+    -------
+    score, info : ndarray, shape (n,)
+        Per stratum.
     """
-    score = info = 0.0
-    for _, sub, im, dsg, ibar in M.expected_by_columns(obs, params, images, samples=samples):
+    n = 1 if labels is None else max(int(labels.max()) + 1, 1)
+    score, info = np.zeros(n), np.zeros(n)
+    for cols, sub, im, dsg, ibar in M.expected_by_columns(obs, params, images, samples=samples):
         w = np.where(sub.gather_valid(im.valid), noise_weights(sub, ibar), 0.0)
         F = kappa_field(sub, dsg, im, moves)
         at = sub.gather(im.coef)
         design = [dsg.A, *M.image_columns(dsg, at[..., 1], at[..., 2])]
         fitted = sub.gather(M.solve_pixels(sub, design, F, w)[0])
         perp = F - sum(fitted[..., a] * X for a, X in enumerate(design))
-        score += float(np.sum(w * (sub.counts - ibar) * perp))
-        info += float(np.sum(w * perp * perp))
+        lab = np.zeros(sub.counts.shape, np.int64) if labels is None else labels[:, cols]
+        keep = lab >= 0
+        score += np.bincount(lab[keep], weights=(w * (sub.counts - ibar) * perp)[keep], minlength=n)
+        info += np.bincount(lab[keep], weights=(w * perp * perp)[keep], minlength=n)
     return score, info
+
+
+def one_size(score: np.ndarray, info: np.ndarray) -> tuple[float, int, np.ndarray]:
+    """The test that the strata share one step in kappa: sum U^2 / I - (sum U)^2 / sum I (chi-square with the strata
+    less one dof, before the dispersion), its dof, and each stratum's step relative to the common one."""
+    ok = info > 0
+    if ok.sum() < 2:
+        return 0.0, 0, np.ones(int(ok.sum()))
+    stat = float(np.sum(score[ok] ** 2 / info[ok])) - float(score[ok].sum()) ** 2 / float(info[ok].sum())
+    common = float(score[ok].sum()) / float(info[ok].sum())
+    return max(stat, 0.0), int(ok.sum()) - 1, (score[ok] / info[ok]) / common if common else np.zeros(int(ok.sum()))
 
 
 def read_moves(store: LitStore, kappa: float) -> np.ndarray:
@@ -128,19 +150,49 @@ class BeamPath(EffectBase[Estimate]):
     def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[Estimate] | None:
         if ctx.stepping:
             return None
-        store = ctx.corrected(state.hypothesis).store
-        # the blocks of the held rows' observations are the store's, in its order
-        lo, hi = np.searchsorted(store.row, (state.obs.row[0], state.obs.row[-1] + 1))
-        moves = read_moves(store, store.parallax)[lo:hi]
-        obs = replace(state.obs, use=state.obs.use & ~state.obs.pixel_mask(flagged))
-        score, info = kappa_score(obs, state.params, state.rec.images, moves)
-        if info <= 0:
+        score, info = self._strata(ctx, state, flagged)
+        total = float(info.sum())
+        if total <= 0:
             return Test(0.0, 1, 1.0, 0.0, Estimate(np.asarray(0.0), np.asarray(np.inf)), identifiable=False,
                         excess=1)
-        scale = dispersion(state)
-        step, se = score / info, float(np.sqrt(scale / info))
-        stat = score ** 2 / (info * scale)
+        # one geometry for the whole detector: the common step is judged against how much the strata of rows
+        # disagree about it where that exceeds their noise (a misfit of another kind that the score picked up asks
+        # for steps of other sizes and signs in other rows; quasi-likelihood, as the dispersion for the samples)
+        spread_stat, dof, _ = one_size(score, info)
+        scale = dispersion(state) * (max(1.0, spread_stat / dispersion(state) / dof) if dof else 1.0)
+        step, se = float(score.sum()) / total, float(np.sqrt(scale / total))
+        stat = float(score.sum()) ** 2 / (total * scale)
         return chi2_test(stat, 1, Estimate(np.asarray(step), np.asarray(se)), explains=stat)
+
+    def _strata(self, ctx: Context, state: State, flagged: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """kappa's score and information at ``state`` on each of six strata of detector rows, ``flagged`` pixels
+        left out."""
+        moves = self._moves(ctx.corrected(state.hypothesis).store, state.obs)
+        obs = replace(state.obs, use=state.obs.use & ~state.obs.pixel_mask(flagged))
+        labels = strata(obs, np.zeros(obs.counts.shape), by="row")
+        return kappa_score(obs, state.params, state.rec.images, moves, labels=labels)
+
+    def consistency(self, ctx: Context, before: State, state: State) -> Consistency | None:
+        # one geometry for the whole detector: kappa refitted on the pixels of each stratum of detector rows (one
+        # step from the trial's kappa) must agree; a misfit of another kind that the score picked up does not
+        store = ctx.corrected(state.hypothesis).store
+        if not store.parallax:
+            return None
+        score, info = self._strata(ctx, state, state.hypothesis.motion)
+        stat, dof, _ = one_size(score, info)
+        if dof < 1:
+            return None
+        ok = info > 0
+        sizes = 1.0 + (score[ok] / info[ok]) / store.parallax
+        t = chi2_test(stat / dispersion(state), dof, tuple(float(v) for v in sizes))
+        return Consistency(t.statistic, t.dof, t.p_value, t.log_p, "row", t.payload)
+
+    @staticmethod
+    def _moves(store: LitStore, obs: Observations) -> np.ndarray:
+        """d(read position) / d kappa of the blocks of ``obs`` (the held rows' blocks are the store's, in its
+        order)."""
+        lo, hi = np.searchsorted(store.row, (obs.row[0], obs.row[-1] + 1))
+        return read_moves(store, store.parallax)[lo:hi]
 
     def trial(self, ctx: Context, state: State, test: Test[Estimate]) -> Hypothesis:
         return state.hypothesis.but(corrections=(*state.hypothesis.corrections, (self.name, float(test.payload.value))))

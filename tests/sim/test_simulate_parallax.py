@@ -95,6 +95,7 @@ def test_any_rows_of_the_displaced_thorax_are_those_of_the_whole_detector(supers
         np.testing.assert_array_equal(some[k], whole[k][rows])
 
 
+@pytest.mark.slow
 def test_the_truth_carries_kappa_and_the_undisplaced_images():
     scan, truth = S.simulate(sim_config(**{"effects.parallax": -0.04}))
     _, plain = S.simulate(sim_config())
@@ -108,6 +109,13 @@ def test_the_truth_carries_kappa_and_the_undisplaced_images():
 def test_a_blank_or_a_slab_looks_the_same_from_everywhere(phantom):
     seen = S.simulate(sim_config(**{"simulate.phantom": phantom, "effects.parallax": 0.5}))[0]
     np.testing.assert_array_equal(seen.data, S.simulate(sim_config(**{"simulate.phantom": phantom}))[0].data)
+
+
+def test_phase_stepping_has_no_travel_and_so_no_parallax():
+    stepping = {"simulate.geometry": "stepping", "simulate.steps": 5, "simulate.steps_per_period": 5}
+    sim = S.Simulation(sim_config(**stepping, **{"effects.parallax": 0.5}))
+    assert not sim.displacement.any()
+    np.testing.assert_array_equal(S.simulate(sim.cfg)[0].data, S.simulate(sim_config(**stepping))[0].data)
 
 
 def test_the_moved_heart_keeps_its_shifted_images_and_the_rest_moves_with_the_parallax():
