@@ -44,7 +44,6 @@ from .base import (
     chi2_test,
     dispersion,
 )
-from .channel import strata
 
 
 def read_slope(obs: Observations, coef: np.ndarray, moves: np.ndarray) -> np.ndarray:
@@ -82,13 +81,12 @@ def kappa_field(obs: Observations, dsg: M.Design, images: M.Images, moves: np.nd
 
 
 def kappa_score(obs: Observations, params: dict[str, np.ndarray], images: M.Images, moves: np.ndarray, *,
-                labels: np.ndarray | None = None, samples: float = 1e6) -> tuple[np.ndarray, np.ndarray]:
+                labels: np.ndarray | None = None, samples: float = 2.5e5) -> tuple[np.ndarray, np.ndarray]:
     """Score sum w r F_perp and information sum w F_perp^2 of kappa at the images and parameters given, per stratum.
 
     F_perp is :func:`kappa_field` less its least-squares fit by the images' own design (what the images absorb);
-    w the inverse noise variances of the model, r the residuals. ``labels`` (K, C): the stratum of each sample
-    (-1: left out; strata of whole pixels); None: one. Computed a run of about ``samples`` samples' columns at a
-    time.
+    w the inverse noise variances of the model, r the residuals. ``labels`` (K,): the stratum of each block (-1:
+    left out; strata of whole rows); None: one. Computed a run of about ``samples`` samples' columns at a time.
 
     Returns
     -------
@@ -97,18 +95,30 @@ def kappa_score(obs: Observations, params: dict[str, np.ndarray], images: M.Imag
     """
     n = 1 if labels is None else max(int(labels.max()) + 1, 1)
     score, info = np.zeros(n), np.zeros(n)
-    for cols, sub, im, dsg, ibar in M.expected_by_columns(obs, params, images, samples=samples):
+    for _, sub, im, dsg, ibar in M.expected_by_columns(obs, params, images, samples=samples):
         w = np.where(sub.gather_valid(im.valid), noise_weights(sub, ibar), 0.0)
         F = kappa_field(sub, dsg, im, moves)
         at = sub.gather(im.coef)
         design = [dsg.A, *M.image_columns(dsg, at[..., 1], at[..., 2])]
         fitted = sub.gather(M.solve_pixels(sub, design, F, w)[0])
         perp = F - sum(fitted[..., a] * X for a, X in enumerate(design))
-        lab = np.zeros(sub.counts.shape, np.int64) if labels is None else labels[:, cols]
+        # the strata are whole rows: one label per block, the samples' sums over columns first
+        lab = np.zeros(sub.row.size, np.int64) if labels is None else labels
         keep = lab >= 0
-        score += np.bincount(lab[keep], weights=(w * (sub.counts - ibar) * perp)[keep], minlength=n)
-        info += np.bincount(lab[keep], weights=(w * perp * perp)[keep], minlength=n)
+        score += np.bincount(lab[keep], weights=np.sum(w * (sub.counts - ibar) * perp, axis=1)[keep], minlength=n)
+        info += np.bincount(lab[keep], weights=np.sum(w * perp * perp, axis=1)[keep], minlength=n)
     return score, info
+
+
+def row_strata(obs: Observations, n: int = 6) -> np.ndarray:
+    """Stratum of each block (K,): ``n`` strata of equally many of the detector rows that have samples in use
+    (0: the first rows), -1 for the blocks of rows without."""
+    lit = obs.segment_sum(np.asarray(obs.use.any(axis=1), dtype=np.int64)) > 0
+    out = np.full(obs.rows.size, -1)
+    if lit.sum() >= n:
+        edges = np.quantile(obs.rows[lit], np.linspace(0, 1, n + 1)[1:-1])
+        out[lit] = np.searchsorted(edges, obs.rows[lit])
+    return out[obs.pixel]
 
 
 def one_size(score: np.ndarray, info: np.ndarray) -> tuple[float, int, np.ndarray]:
@@ -169,8 +179,7 @@ class BeamPath(EffectBase[Estimate]):
         left out."""
         moves = self._moves(ctx.corrected(state.hypothesis).store, state.obs)
         obs = replace(state.obs, use=state.obs.use & ~state.obs.pixel_mask(flagged))
-        labels = strata(obs, np.zeros(obs.counts.shape), by="row")
-        return kappa_score(obs, state.params, state.rec.images, moves, labels=labels)
+        return kappa_score(obs, state.params, state.rec.images, moves, labels=row_strata(obs))
 
     def consistency(self, ctx: Context, before: State, state: State) -> Consistency | None:
         # one geometry for the whole detector: kappa refitted on the pixels of each stratum of detector rows (one
