@@ -9,6 +9,7 @@ The signatures and returned values are the kernels'.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -86,32 +87,16 @@ def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, cos_phi
 
 
 def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray | None,
-           table: tuple, *, profiled: bool = True, columns: int = 16) -> tuple[np.ndarray, np.ndarray]:
-    """Fisher information of channel components and its profiled correction: :func:`dfxcorr.kernels.fisher`'s values.
+           names: Sequence[str], *, profiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Fisher information of the parameters of ``names`` and its profiled correction, in
+    :func:`dfxcorr.model.fisher_index`'s order: :func:`dfxcorr.kernels.fisher`'s values.
 
-    Where ``obs.reading`` is set, a pixel's images share samples with its neighbours', so the correction
-    sum Y^T N^-1 Y runs over whole columns (N block tridiagonal, :mod:`dfxcorr.banded`), ``columns`` at a time.
+    Where ``obs.reading`` is set, :func:`dfxcorr.model.fisher_parts` (a pixel's images share samples with its
+    neighbours', so the correction runs over whole columns).
     """
     if obs.reading is None:
         K.set_threads()
-        return K.fisher(obs, ch, weights, coef, inverse, table, profiled=profiled)
-    channel, power, n_per_frame = table
-    J = obs.n_frames
-    dsg = M.design_channels(obs, ch)
-    images = M.Images(coef, np.ones(coef.shape[:2], bool))
-    fields = {cid: M.channel_fields(obs, dsg, images, cid) for cid in set(np.asarray(channel).tolist())}
-    comps = enumerate(zip(channel, power, strict=True))
-    F = [fields[cid][0] * obs.x[None, :] ** pw if cid in (K.PHASE, K.VISIBILITY) and q < n_per_frame
-         else fields[cid][pw if q >= n_per_frame else 0] for q, (cid, pw) in comps]
-    Pf, Pg = int(n_per_frame), len(F) - int(n_per_frame)
-    P = J * Pf + Pg
-    # column of each (sample, component) in the information: (frame, component) per frame, then the global ones
-    where = [obs.frame * Pf + q if q < Pf else np.full(obs.frame.size, J * Pf + q - Pf) for q in range(len(F))]
-    plain = np.zeros((P, P))
-    for a in range(len(F)):
-        for b in range(len(F)):
-            np.add.at(plain, (where[a], where[b]), (weights * F[a] * F[b]).sum(axis=1))
-    corr = np.zeros((P, P))
-    if not profiled:
-        return plain, corr
-    return plain, M.read_between_correction(obs, dsg, coef, weights, F, where, P, columns=columns)
+        return K.fisher(obs, ch, weights, coef, inverse, M.component_table(names)[:3], profiled=profiled)
+    images = M.Images(coef, np.ones(coef.shape[:2], bool), inverse)
+    plain, corr, _ = M.fisher_parts(obs, M.design_channels(obs, ch), images, weights, names, profiled=profiled)
+    return plain, corr

@@ -195,8 +195,7 @@ class _Problem:
             self._spread[columns] = (replace(obs, reading=None), weights)
         obs, weights = self._spread[columns]
         images = _solve(obs, params, weights, keep_inverse=True)
-        plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
-                               M.component_table(self.names)[:3])
+        plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse, self.names)
         offsets = np.cumsum([0] + [int(np.prod(shp)) for shp in self.shapes])
         where = {n: (o, shp) for n, o, shp in zip(self.names, offsets[:-1], self.shapes, strict=True)}
         order = np.array([where[n][0] + (np.ravel_multi_index((j, m), where[n][1]) if j >= 0 else m)
@@ -710,8 +709,7 @@ def uncertainty(obs: Observations, params: dict, weights: np.ndarray) -> dict[st
         return out
     K.set_threads()
     images = _solve(obs, params, weights, keep_inverse=True)
-    plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
-                           M.component_table(names)[:3])
+    plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse, names)
     info, index = plain - corr, M.fisher_index(names, obs.n_frames)
     d = np.diag(info).copy()
     has = d > 1e-12 * max(d.max(), 1e-300)

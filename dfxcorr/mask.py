@@ -132,7 +132,6 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
     K.set_threads()
     sub = obs.subset(np.arange(0, obs.columns.size, every))
     fringe = K.fringe(sub)
-    table = M.component_table(names)[:3]
     index = M.fisher_index(names, sub.n_frames)
     params = neutral_params(names, obs.n_frames)
     weights = noise_weights(sub, np.maximum(sub.counts, 1.0))
@@ -148,7 +147,7 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
         # between rows, that of the images solved per pixel by the compiled kernels
         flat = replace(sub, reading=None)
         held = E.retrieve(flat, ch, weights=w, keep_inverse=True)
-        plain, corr = E.fisher(flat, ch, w, held["coef"], held["inverse"], table)
+        plain, corr = E.fisher(flat, ch, w, held["coef"], held["inverse"], names)
         # the reduced cost's gradient is that at the images solved with w (envelope theorem)
         grad = M.channel_adjoint(names, M.Channels(*E.reduced_cost(sub, ch, w, *fringe,
                                                                     channels=("phase", "visibility"))[1]), x=sub.x)

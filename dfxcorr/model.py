@@ -425,12 +425,10 @@ def read_between_correction(obs: Observations, dsg: Design, coef: np.ndarray, we
     -------
     ndarray, shape (P, P)
     """
-    rd = obs.reading
-    assert rd is not None
     at = obs.gather(coef)
     X = [dsg.A, *image_columns(dsg, at[..., 1], at[..., 2])]
     R, K = obs.rows.size, obs.frame.size
-    hi = np.minimum(rd.lo + 1, R - 1)
+    lo, hi, frac = obs.read_rows()
     owners = [np.unique(wq, return_inverse=True) for wq in where]
     corr = np.zeros((n_params, n_params))
     for start in range(0, obs.columns.size, columns):
@@ -444,7 +442,7 @@ def read_between_correction(obs: Observations, dsg: Design, coef: np.ndarray, we
             # sums over the samples of each (image row, parameter) pair, with what each sample reads of the row
             spread = sum(sparse.csr_matrix((share, (rows * params.size + owner, np.arange(K))),
                                            shape=(R * params.size, K))
-                         for rows, share in ((rd.lo, 1.0 - rd.frac), (hi, rd.frac)))
+                         for rows, share in ((lo, 1.0 - frac), (hi, frac)))
             for a, Xa in enumerate(Xs):
                 Y[:, :, a, params] += np.moveaxis((spread @ (w * Xa * Fq[:, cols])).reshape(R, params.size, cols.size),
                                                   1, 2)
@@ -496,9 +494,10 @@ def solve_images(obs: Observations, dsg: Design, weights: np.ndarray, *, phase: 
     return Images(coef, valid, inv, coupling)
 
 
-def harmonic_term(obs: Observations, dsg: Design, images: Images) -> np.ndarray:
-    """The second harmonic's share of the expected counts, Hc e - Hs f, shape (K, C)."""
-    c = obs.gather(images.coef)
+def harmonic_term(obs: Observations, dsg: Design, images: Images, *, at: np.ndarray | None = None) -> np.ndarray:
+    """The second harmonic's share of the expected counts, Hc e - Hs f, shape (K, C) (``at``: the images at every
+    sample, where the caller has them)."""
+    c = obs.gather(images.coef) if at is None else at
     _, _, e, f = harmonic_factors(c[..., 1], c[..., 2])
     return dsg.Hc * e - dsg.Hs * f
 
@@ -507,7 +506,7 @@ def expected(obs: Observations, dsg: Design, images: Images, *, at: np.ndarray |
     """Expected counts Ibar, shape (K, C) (``at``: the images at every sample, where the caller has them)."""
     c = obs.gather(images.coef) if at is None else at
     linear = c[..., 0] * dsg.A + c[..., 1] * dsg.Bc + c[..., 2] * dsg.Bs + dsg.offset
-    return linear + harmonic_term(obs, dsg, images) if any(dsg.harmonic) else linear
+    return linear + harmonic_term(obs, dsg, images, at=c) if any(dsg.harmonic) else linear
 
 
 def expected_by_columns(obs: Observations, params: dict, images: Images, *, samples: float = 1e6
@@ -633,9 +632,8 @@ def leverage(obs: Observations, dsg: Design, images: Images, weights: np.ndarray
     if images.coupling is None:
         raise ValueError("leverage of samples read between rows needs the inverse's coupling blocks")
     # the sample's design on both rows it reads: (1 - f) x on row lo, f x on row lo + 1
-    lo, f = obs.reading.lo, obs.reading.frac[:, None, None]
-    hi = np.minimum(lo + 1, images.inverse.shape[0] - 1)
-    a, b = (1.0 - f) * X, f * X
+    lo, hi, f = obs.read_rows()
+    a, b = (1.0 - f[:, None, None]) * X, f[:, None, None] * X
     return weights * (np.einsum("kca,kcab,kcb->kc", a, images.inverse[lo], a)
                       + 2 * np.einsum("kca,kcab,kcb->kc", a, images.coupling[lo], b)
                       + np.einsum("kca,kcab,kcb->kc", b, images.inverse[hi], b))
@@ -669,6 +667,14 @@ def frame_leverage(obs: Observations, dsg: Design, images: Images, weights: np.n
 
 def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, names: Sequence[str],
                   *, profiled: bool = True) -> tuple[np.ndarray, list[tuple[str, int, int]]]:
+    """Fisher information of all effect parameters, with the images profiled out: :func:`fisher_parts`'s plain
+    information less its correction, and the meaning of each axis entry."""
+    plain, corr, index = fisher_parts(obs, dsg, images, weights, names, profiled=profiled)
+    return plain - corr, index
+
+
+def fisher_parts(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, names: Sequence[str],
+                 *, profiled: bool = True) -> tuple[np.ndarray, np.ndarray, list[tuple[str, int, int]]]:
     """Fisher information of all effect parameters, with the images profiled out.
 
     The images are estimated from the same data, so the information of the effect parameters is
@@ -692,8 +698,10 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
 
     Returns
     -------
-    info : ndarray, shape (P, P)
-        For the log-likelihood -sum w r^2 / 2.
+    plain : ndarray, shape (P, P)
+        The information at known images, for the log-likelihood -sum w r^2 / 2.
+    correction : ndarray, shape (P, P)
+        The share the profiled images take (zero without ``profiled``): the information is plain - correction.
     index : list of (name, frame, component)
         Meaning of each axis entry; frame is -1 for global effects.
     """
@@ -719,12 +727,12 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
     info[J * Pf:, J * Pf:] += np.einsum("kca,kcb->ab", wFg, Fg)
     info[J * Pf:, :J * Pf] = info[:J * Pf, J * Pf:].T
     if not profiled:
-        return info, index
+        return info, np.zeros_like(info), index
     # the correction sum_i Y_i^T N_i^-1 Y_i (Y = X^T W D per pixel) couples the frames of each row
     if obs.reading is not None:
         where = ([obs.frame * Pf + q for q in range(Pf)] + [np.full(obs.frame.size, J * Pf + g) for g in range(Pg)])
         F = [F for *_, F in per_frame] + [F for *_, F in glob]
-        return info - read_between_correction(obs, dsg, images.coef, weights, F, where, J * Pf + Pg), index
+        return info, read_between_correction(obs, dsg, images.coef, weights, F, where, J * Pf + Pg), index
     kernels.set_threads()
     _, corr = kernels.fisher(obs, dsg.channels, weights, images.coef, images.inverse, component_table(names)[:3])
-    return info - corr, index
+    return info, corr, index

@@ -188,21 +188,29 @@ class Observations:
         """The region of interest as an array, shape (K, C)."""
         return np.ones(self.counts.shape, bool) if self.roi is None else self.roi
 
+    def read_rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The two image rows each block reads (positions in :attr:`rows`, each (K,)) and the fraction of the way to
+        the second: its own row twice and 0 without a :attr:`reading`."""
+        if self.reading is None:
+            return self.pixel, self.pixel, np.zeros(self.pixel.size)
+        lo = self.reading.lo
+        return lo, np.minimum(lo + 1, self.rows.size - 1), self.reading.frac
+
     def gather(self, a: np.ndarray, blocks: np.ndarray | slice = slice(None)) -> np.ndarray:
         """Per-pixel values (R, C, ...) at every sample (K, C, ...), or at those of some ``blocks``: the pixel's own, or
         where :attr:`reading` says."""
         if self.reading is None:
             return a[self.pixel[blocks]]
-        lo, f = self.reading.lo[blocks], self.reading.frac[blocks]
+        lo, hi, f = (v[blocks] for v in self.read_rows())
         f = f.reshape(f.shape + (1,) * (a.ndim - 1))
-        return (1.0 - f) * a[lo] + f * a[np.minimum(lo + 1, a.shape[0] - 1)]
+        return (1.0 - f) * a[lo] + f * a[hi]
 
     def gather_valid(self, valid: np.ndarray) -> np.ndarray:
         """Per-pixel flags (R, C) at every sample (K, C): true where every image row the sample reads is flagged."""
         if self.reading is None:
             return valid[self.pixel]
-        lo, f = self.reading.lo, self.reading.frac
-        return valid[lo] & (valid[np.minimum(lo + 1, valid.shape[0] - 1)] | (f == 0)[:, None])
+        lo, hi, f = self.read_rows()
+        return valid[lo] & (valid[hi] | (f == 0)[:, None])
 
     def segment_sum(self, a: np.ndarray, dtype: DTypeLike | None = None) -> np.ndarray:
         """Sum over the blocks of each row: (K, ...) -> (R, ...), R = number of rows held (in ``dtype``, e.g. to count

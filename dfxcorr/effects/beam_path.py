@@ -53,16 +53,15 @@ def read_slope(obs: Observations, coef: np.ndarray, moves: np.ndarray) -> np.nda
     geometry, kappa = 0) the slope of the interval the read position moves into as kappa grows (``moves``, (K,)):
     the one-sided derivative of the model.
     """
-    R = coef.shape[0]
-    lo = obs.pixel if obs.reading is None else obs.reading.lo
-    frac = np.zeros(lo.size) if obs.reading is None else obs.reading.frac
-    forward = coef[np.minimum(lo + 1, R - 1)] - coef[lo]
+    lo, _, frac = obs.read_rows()
+    forward = coef[np.minimum(lo + 1, coef.shape[0] - 1)] - coef[lo]
     backward = coef[lo] - coef[np.maximum(lo - 1, 0)]
     ahead = ((frac > 0) | (moves >= 0)).reshape((-1,) + (1,) * (coef.ndim - 1))
     return np.where(ahead, forward, backward)
 
 
-def kappa_field(obs: Observations, dsg: M.Design, images: M.Images, moves: np.ndarray) -> np.ndarray:
+def kappa_field(obs: Observations, dsg: M.Design, images: M.Images, moves: np.ndarray, *,
+                at: np.ndarray | None = None) -> np.ndarray:
     """d Ibar / d kappa at every sample (K, C): how far its read position moves per unit kappa times
     sum_a X_a d coef_a / du (:func:`read_slope`).
 
@@ -73,8 +72,10 @@ def kappa_field(obs: Observations, dsg: M.Design, images: M.Images, moves: np.nd
     images : Images
     moves : ndarray, shape (K,)
         d(read position) / d kappa of each block (rows).
+    at : ndarray, shape (K, C, 3), optional
+        The images at every sample (``obs.gather(images.coef)``), where the caller has them.
     """
-    at = obs.gather(images.coef)
+    at = obs.gather(images.coef) if at is None else at
     slope = read_slope(obs, images.coef, moves)
     Xc, Xs = M.image_columns(dsg, at[..., 1], at[..., 2])
     return moves[:, None] * (dsg.A * slope[..., 0] + Xc * slope[..., 1] + Xs * slope[..., 2])
@@ -97,8 +98,8 @@ def kappa_score(obs: Observations, params: dict[str, np.ndarray], images: M.Imag
     score, info = np.zeros(n), np.zeros(n)
     for _, sub, im, dsg, ibar in M.expected_by_columns(obs, params, images, samples=samples):
         w = np.where(sub.gather_valid(im.valid), noise_weights(sub, ibar), 0.0)
-        F = kappa_field(sub, dsg, im, moves)
         at = sub.gather(im.coef)
+        F = kappa_field(sub, dsg, im, moves, at=at)
         design = [dsg.A, *M.image_columns(dsg, at[..., 1], at[..., 2])]
         fitted = sub.gather(M.solve_pixels(sub, design, F, w)[0])
         perp = F - sum(fitted[..., a] * X for a, X in enumerate(design))
@@ -121,15 +122,14 @@ def row_strata(obs: Observations, n: int = 6) -> np.ndarray:
     return out[obs.pixel]
 
 
-def one_size(score: np.ndarray, info: np.ndarray) -> tuple[float, int, np.ndarray]:
+def one_size(score: np.ndarray, info: np.ndarray) -> tuple[float, int]:
     """The test that the strata share one step in kappa: sum U^2 / I - (sum U)^2 / sum I (chi-square with the strata
-    less one dof, before the dispersion), its dof, and each stratum's step relative to the common one."""
+    less one dof, before the dispersion) and its dof."""
     ok = info > 0
     if ok.sum() < 2:
-        return 0.0, 0, np.ones(int(ok.sum()))
+        return 0.0, 0
     stat = float(np.sum(score[ok] ** 2 / info[ok])) - float(score[ok].sum()) ** 2 / float(info[ok].sum())
-    common = float(score[ok].sum()) / float(info[ok].sum())
-    return max(stat, 0.0), int(ok.sum()) - 1, (score[ok] / info[ok]) / common if common else np.zeros(int(ok.sum()))
+    return max(stat, 0.0), int(ok.sum()) - 1
 
 
 def read_moves(store: LitStore, kappa: float) -> np.ndarray:
@@ -168,7 +168,7 @@ class BeamPath(EffectBase[Estimate]):
         # one geometry for the whole detector: the common step is judged against how much the strata of rows
         # disagree about it where that exceeds their noise (a misfit of another kind that the score picked up asks
         # for steps of other sizes and signs in other rows; quasi-likelihood, as the dispersion for the samples)
-        spread_stat, dof, _ = one_size(score, info)
+        spread_stat, dof = one_size(score, info)
         scale = dispersion(state) * (max(1.0, spread_stat / dispersion(state) / dof) if dof else 1.0)
         step, se = float(score.sum()) / total, float(np.sqrt(scale / total))
         stat = float(score.sum()) ** 2 / (total * scale)
@@ -188,7 +188,7 @@ class BeamPath(EffectBase[Estimate]):
         if not store.parallax:
             return None
         score, info = self._strata(ctx, state, state.hypothesis.motion)
-        stat, dof, _ = one_size(score, info)
+        stat, dof = one_size(score, info)
         if dof < 1:
             return None
         ok = info > 0
@@ -206,10 +206,6 @@ class BeamPath(EffectBase[Estimate]):
     def trial(self, ctx: Context, state: State, test: Test[Estimate]) -> Hypothesis:
         return state.hypothesis.but(corrections=(*state.hypothesis.corrections, (self.name, float(test.payload.value))))
 
-    def _kappa(self, hypothesis: Hypothesis) -> float:
-        """The kappa a hypothesis holds beyond the configured one."""
-        return float(sum(setting for name, setting in hypothesis.corrections if name == self.name))
-
     def accepted(self, ctx: Context, before: State, after: State, test: Test[Estimate]) -> Finding:
         found = self.measure(ctx, after)
         assert found is not None
@@ -225,7 +221,8 @@ class BeamPath(EffectBase[Estimate]):
         t = self.test(ctx, state, np.zeros(state.hypothesis.motion.shape, bool))
         if t is None:
             return None
-        kappa = ctx.cfg["geometry"]["parallax"] + self._kappa(state.hypothesis) + float(t.payload.value)
+        # the corrected scan holds the configured kappa and the hypothesis's
+        kappa = ctx.corrected(state.hypothesis).store.parallax + float(t.payload.value)
         return Estimate(np.asarray(kappa), np.asarray(t.payload.se))
 
 
