@@ -243,7 +243,7 @@ class _Problem:
         cost, g = E.reduced_cost(self.obs, _channels(self.obs, params), self.weights, *self.fringe, phase=self.phase,
                                  square=square,
                                  channels={effect(n).channel for n in self.names})
-        sums = M.channel_adjoint(self.names, M.Channels(*g), x=self.obs.x, square=square)
+        sums = M.channel_adjoint(self.names, g, x=self.obs.x, square=square)
         return cost, np.concatenate([sums[n].ravel() for n in self.names])
 
     def _curvature(self, params: dict[str, np.ndarray]) -> np.ndarray:
