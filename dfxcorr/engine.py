@@ -10,7 +10,7 @@ quantities then come from :mod:`dfxcorr.model`'s expressions. The signatures and
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -65,7 +65,7 @@ def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = 
 
 def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, cos_phif: np.ndarray,
                  sin_phif: np.ndarray, *, phase: float | None = None, square: bool = False,
-                 channels=tuple(K.CHANNEL_IDS)) -> tuple[float, M.Channels]:
+                 channels: Collection[str] = tuple(K.CHANNEL_IDS)) -> tuple[float, M.Channels]:
     """Reduced cost and its channel gradients (or Gauss-Newton sums): :func:`dfxcorr.kernels.reduced_cost`'s values,
     as a :class:`~dfxcorr.model.Channels` whose ``rows`` holds those of the coefficients of powers of y."""
     if compiled(obs, ch):

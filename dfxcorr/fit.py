@@ -242,7 +242,7 @@ class _Problem:
         self.evaluations += 1
         cost, g = E.reduced_cost(self.obs, _channels(self.obs, params), self.weights, *self.fringe, phase=self.phase,
                                  square=square,
-                                 channels={effect(n).channel for n in self.names})
+                                 channels={c for n in self.names if (c := effect(n).channel) is not None})
         sums = M.channel_adjoint(self.names, g, x=self.obs.x, square=square)
         return cost, np.concatenate([sums[n].ravel() for n in self.names])
 
