@@ -142,8 +142,11 @@ def test_time_floor_is_the_whole_runs_and_takes_every_column_of_a_small_scan(pla
     floor = planning.plan_columns(prep, fit_cfg(target_uncertainty=0.012, time_floor=plan.seconds + rest),
                                   pilot=pilot)
     assert floor.columns.size >= plan.columns.size and floor.seconds <= plan.seconds
-    every = planning.plan_columns(prep, fit_cfg(target_uncertainty=0.012), pilot=pilot)
-    assert every.columns.size == W and every.seconds + rest <= C.defaults()["fit"]["time_floor"]
+    every = planning.plan_columns(prep, fit_cfg(target_uncertainty=0.012, time_floor=7.0), pilot=pilot)
+    assert every.columns.size == W and every.seconds + rest <= 7.0
+    # without a floor (the default) the fit ends at the target
+    default = planning.plan_columns(prep, fit_cfg(target_uncertainty=0.007), pilot=pilot)
+    assert np.array_equal(default.columns, plan.columns)
 
 
 def test_max_samples_holds_the_columns_of_auto(planned):
