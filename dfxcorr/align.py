@@ -262,6 +262,21 @@ class LitStore:
         """Lit samples in one detector column (K)."""
         return int(self.row.size)
 
+    def unmodulated(self, lo: int, hi: int, columns: np.ndarray | None = None, *, dtype: DTypeLike = np.float64
+                    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The unmodulated counts of blocks [lo, hi) at ``columns`` (default all): the dark, the offset included,
+        and the offset alone (None without one), each (hi - lo, C) in ``dtype``."""
+        row = self.row[lo:hi]
+        # whole rows are taken by row (a 2-d fancy index of every column was most of a block's own time)
+        dark = (self.dark[row] if columns is None else self.dark[row[:, None], columns[None, :]]).astype(dtype,
+                                                                                                         copy=False)
+        offset = None
+        if isinstance(self.offset, np.ndarray):
+            offset = (self.offset[lo:hi] if columns is None else self.offset[lo:hi, columns]).astype(dtype, copy=False)
+        elif self.offset is not None:
+            offset = self.offset.take(lo, hi, columns).astype(dtype, copy=False)
+        return (dark if offset is None else dark + offset), offset
+
     def row_runs(self, samples: float) -> list[tuple[int, int]]:
         """Detector-row ranges [r0, r1) whose blocks hold at most ``samples`` samples (at least one row each),
         covering every held row: pixels, and a pixel's frames, never straddle two of them."""
@@ -322,15 +337,7 @@ class LitStore:
         # C order whatever the store's: the kernels walk a sample row at a time (a Fortran-ordered copy made
         # every cost evaluation about 1.7x slower)
         counts = (self.counts[lo:hi] if columns is None else self.counts[lo:hi, cols]).astype(dtype, order="C")
-        # whole rows are taken by row (a 2-d fancy index of every column was most of a block's own time)
-        dark = (self.dark[row] if columns is None else self.dark[row[:, None], cols[None, :]]).astype(dtype, copy=False)
-        offset = None
-        if isinstance(self.offset, np.ndarray):
-            offset = (self.offset[lo:hi] if columns is None else self.offset[lo:hi, cols]).astype(dtype, copy=False)
-        elif self.offset is not None:
-            offset = self.offset.take(lo, hi, cols).astype(dtype, copy=False)
-        if offset is not None:
-            dark = dark + offset
+        dark, offset = self.unmodulated(lo, hi, None if columns is None else cols, dtype=dtype)
         use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
         held = np.ix_(np.unique(row), cols)
         if self.good is not None:
@@ -426,14 +433,25 @@ def read_position_errors(path: str | Path, n_frames: int) -> np.ndarray:
     return values
 
 
-def realign(store: LitStore, reference: Reference, like: Observations, shift: np.ndarray | float) -> Observations:
+def realign(store: LitStore, reference: Reference, like: Observations, shift: np.ndarray | float, *,
+            base: LitStore | None = None) -> Observations:
     """Observations of the samples of ``like`` with the flat field read at u - shift (rows; scalar or (J,)).
 
     ``like`` must come from ``store`` (same rows and columns); its ``use``, noise model and region of
-    interest (v^f = 0 outside) are kept, so that the realigned samples are the same samples.
+    interest (v^f = 0 outside) are kept, so that the realigned samples are the same samples. ``base``: the store
+    ``like`` was read from, where known; if ``store`` shifted holds the same counts read at the same flat-field rows
+    (a correction of the offset only), ``like``'s arrays are kept and only the unmodulated counts are made (the
+    held samples of a large scan, in float32, are hundreds of megabytes each time).
     """
     rows = (int(like.row[0]), int(like.row[-1]) + 1)
-    obs = store.shifted(shift).observations(reference, columns=like.columns, rows=rows, gain=like.gain,
+    moved = store.shifted(shift)
+    if (base is not None and moved.counts is base.counts and moved.good is base.good and moved.dark is base.dark
+            and moved.phase_step is base.phase_step and moved.parallax == base.parallax
+            and np.array_equal(moved.u, base.u)):
+        lo, hi = np.searchsorted(moved.row, rows)
+        dark, offset = moved.unmodulated(int(lo), int(hi), like.columns, dtype=like.counts.dtype)
+        return replace(like, dark=dark, offset=offset)
+    obs = moved.observations(reference, columns=like.columns, rows=rows, gain=like.gain,
                                             electronic=like.electronic, dtype=like.counts.dtype)
     return replace(obs, noise=like.noise, vf=np.where(like.in_roi, obs.vf, 0).astype(obs.vf.dtype, copy=False),
                    use=like.use, roi=like.roi)

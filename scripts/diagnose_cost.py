@@ -118,9 +118,9 @@ def main():
             print(case, json.dumps(rows["cases"][case]), flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     out = args.out / "diagnose-cost.json"
-    # the cases not run this time keep their last measurement
+    # the cases not run this time keep their last measurement, and every case its place in the file
     kept = json.loads(out.read_text())["cases"] if out.exists() else {}
-    rows["cases"] = {**{k: v for k, v in kept.items() if k not in rows["cases"]}, **rows["cases"]}
+    rows["cases"] = {**kept, **rows["cases"]}
     out.write_text(json.dumps(rows, indent=2) + "\n")
 
 

@@ -131,10 +131,14 @@ class Session:
             moved = hypothesis.corrections or np.any(hypothesis.shift)
             # the current alignment and a trial's: older ones are not asked for again
             self._aligned = {k: v for k, v in list(self._aligned.items())[-1:]}
-            # the states of one alignment share their samples
-            realigned = self.realigner(hypothesis)
-            self._aligned[key] = ((realigned(self.obs, hypothesis.shift), realigned(self.fit_base, hypothesis.shift))
-                                  if moved else (self.obs, self.fit_base))
+            # the states of one alignment share their samples, and with the prepared scan's those that a correction
+            # leaves as they are
+            prep = self.corrected(hypothesis)
+
+            def realigned(like: Observations) -> Observations:
+                return realign(prep.store, prep.reference, like, hypothesis.shift, base=self.prep.store)
+
+            self._aligned[key] = (realigned(self.obs), realigned(self.fit_base)) if moved else (self.obs, self.fit_base)
         every, fit_columns = self._aligned[key]
         base, fit_obs = every.with_noise(hypothesis.noise), fit_columns.with_noise(hypothesis.noise)
         obs = replace(base, use=base.use & base.in_roi & ~base.pixel_mask(hypothesis.motion))

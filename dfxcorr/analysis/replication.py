@@ -111,18 +111,24 @@ def replicate(effects: Mapping[str, EffectBase[Any]], ctx: Context, final: State
     ``skip``: findings not compared, and why.
     """
     skip = {} if skip is None else skip
-    pairs = halves(shape, rows=rows)
-    fitted = {part: fit_part(final.hypothesis, final.params, part) for pair in pairs for part in pair}
     out = {}
     for name, effect in effects.items():
         if name in skip or effect.policy.pixelwise:
             why = skip.get(name, "a finding of some pixels, not of the whole detector: no halves to compare")
             out[name] = Replication((), float("nan"), 0, float("nan"), None, why)
-            continue
+    compared = {name: effect for name, effect in effects.items() if name not in out}
+    pairs = halves(shape, rows=rows) if compared else []
+    measured: dict[Part, dict[str, Estimate | None]] = {}
+    for part in (part for pair in pairs for part in pair):
+        # one part's fit at a time: each holds its share of the held samples, the diagnosis's largest arrays
+        state = fit_part(final.hypothesis, final.params, part)
+        measured[part] = {name: effect.measure(ctx, state) for name, effect in compared.items()}
+        del state
+    for name, effect in compared.items():
         parts: list[dict[str, Any]] = []
         stat, dof = 0.0, 0
         for a, b in pairs:
-            ea, eb = effect.measure(ctx, fitted[a]), effect.measure(ctx, fitted[b])
+            ea, eb = measured[a][name], measured[b][name]
             if ea is None or eb is None:
                 continue
             s, k = difference(ea, eb, gauge=effect.entry.gauge)

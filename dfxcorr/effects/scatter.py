@@ -102,8 +102,9 @@ WIDTHS = np.array([0.25, 0.5, 1.0, 2.0, 4.0])
 #: Most rounds of s and the transmission behind its field in a trial (they stop once s moves by less than a quarter
 #: of its standard error).
 ROUNDS = 6
-#: Samples per retrieval block of the transmission estimate (about 160 bytes each at the peak).
-BLOCK_SAMPLES = 2_000_000
+#: Samples per retrieval block of the transmission estimate (about 160 bytes each at the peak: 80 MB; a pixel's
+#: retrieval does not depend on the blocks).
+BLOCK_SAMPLES = 500_000
 #: Profiled over known-image information below this share: s is a share of the transmission (not identifiable).
 MIN_INFORMATION_SHARE = 1e-6
 
@@ -116,11 +117,13 @@ class ScatterError(DfxcorrError, ValueError):
 class Setting:
     """A scatter correction: s (scatter per unit primary) and the kernel's std (mm at the detector). A hashable value
     of those two; ``measured``, the scatter-to-primary ratio over the lit samples that it makes (NaN where not
-    computed), does not take part in comparisons."""
+    computed), and ``start``, the transmission behind the primary at a nearby setting where one is known (H, W),
+    from which the correction's fixed point starts (:func:`transmission`), do not take part in comparisons."""
 
     ratio: float
     width_mm: float
     measured: float = dc_field(default=float("nan"), compare=False)
+    start: np.ndarray | None = dc_field(default=None, compare=False, repr=False)
 
 
 def kernel_pixels(width_mm: float, pixel_mm: tuple[float, float] | None) -> tuple[float, float]:
@@ -140,15 +143,24 @@ def kernel_pixels(width_mm: float, pixel_mm: tuple[float, float] | None) -> tupl
 def blur(a: np.ndarray, sigma: float, *, axis: int = -1) -> np.ndarray:
     """Gaussian blur of ``a`` along ``axis`` (std ``sigma`` pixels, kernel cut at 4 sigma), zeros beyond the edges.
 
-    scipy.ndimage.gaussian_filter1d(mode='constant') by FFT: the scatter's kernel spans hundreds of pixels
-    (50 mm at 0.3 mm: sigma 167), where the direct sum took 10 s for a 5-step 512 x 1536 scan.
+    scipy.ndimage.gaussian_filter1d(mode='constant'), by FFT along an axis longer than :data:`DIRECT_BLUR`: the
+    scatter's kernel spans hundreds of pixels (50 mm at 0.3 mm: sigma 167), where the direct sum took 10 s for a
+    5-step 512 x 1536 scan. Along a shorter axis as a product with the kernel's band matrix: the FFT pads the axis
+    to the kernel's span (a binned clinical scan's 44 block rows under a kernel of 271 blocks: 1.9 s by FFT, 0.05 s
+    so, for its every frame).
     """
     radius = int(4.0 * sigma + 0.5)
     x = np.arange(-radius, radius + 1, dtype=float)
     kernel = np.exp(-0.5 * (x / max(sigma, 1e-12)) ** 2)
+    kernel /= kernel.sum()
+    n = a.shape[axis]
+    if n <= DIRECT_BLUR:
+        apart = np.arange(n)[:, None] - np.arange(n)[None, :]
+        band = np.where(np.abs(apart) <= radius, kernel[np.clip(apart + radius, 0, 2 * radius)], 0.0)
+        return np.moveaxis(np.tensordot(band, a, axes=([1], [axis])), 0, axis)
     shape = [1] * a.ndim
     shape[axis] = kernel.size
-    return signal.fftconvolve(a, (kernel / kernel.sum()).reshape(shape), mode="same", axes=axis)
+    return signal.fftconvolve(a, kernel.reshape(shape), mode="same", axes=axis)
 
 
 def primary(store: LitStore, reference: Reference, t: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
@@ -254,40 +266,59 @@ def unit_scatter(primary: Callable[[np.ndarray], np.ndarray], row: np.ndarray, f
     J = int(frame.max(initial=-1)) + 1
     order = np.argsort(frame, kind="stable")
     bounds = np.searchsorted(frame[order], np.arange(J + 1))
-    grids: list[np.ndarray] = []
-    rows, origin, W = np.ones(J, int), np.zeros(J, int), 0
+    lit = np.flatnonzero(np.diff(bounds))
+    origin = np.zeros(J, int)
+    origin[lit] = np.minimum.reduceat(row[order], bounds[lit])
+    rows = np.ones(J, int)
+    rows[lit] = (np.maximum.reduceat(row[order], bounds[lit]) - origin[lit]) // b + 1
     lit_total, primary_total = np.zeros(J), np.zeros(J)
-    for j in range(J):
-        idx = order[bounds[j]:bounds[j + 1]]
-        if idx.size == 0:
-            grids.append(np.zeros((1, 1)))
-            continue
-        p = primary(idx).astype(np.float64)
-        W = p.shape[1]
-        origin[j] = row[idx].min()
-        at = (row[idx] - origin[j]) // b
-        nr, nc = int(at.max()) + 1, -(-W // b)
-        # within a frame the rows ascend: each block row's samples are one run
-        first = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
-        band = np.zeros((nr, nc))
-        band[at[first]] = np.add.reduceat(np.add.reduceat(p, first, axis=0), np.arange(0, W, b), axis=1)
-        # the kernel on the block grid is normalised over blocks: per pixel it is b^-2 of that
-        grid = blur(blur(band, width[0] / b, axis=0), width[1] / b, axis=1) / float(b * b)
-        lit = np.zeros((nr, nc))
-        lit[at[first]] = np.outer(np.diff(np.r_[first, at.size]), np.diff(np.r_[np.arange(0, W, b), W]))
-        lit_total[j], primary_total[j] = float(np.sum(grid * lit)), float(p.sum())
-        grids.append(grid)
-        rows[j] = nr
     # float32: where b = 1 the grids are every sample's field (a binned clinical scan's at 12.5 mm: 0.25 GB)
-    stack = np.zeros((J, max((g.shape[0] for g in grids), default=1), max((g.shape[1] for g in grids), default=1)),
-                     np.float32)
-    for j, g in enumerate(grids):
-        stack[j, :g.shape[0], :g.shape[1]] = g
+    stack = np.zeros((J, int(rows.max(initial=1)), 1), np.float32)
+    W = 0
+    # the frames blurred together, about BLUR_VALUES block values at a time (a frame at a time, the blur's overhead on
+    # grids of 44 x 288 blocks was most of the field's time on a binned clinical scan), holding only those frames'
+    # block sums (all of them at once, at b = 1: 1 GB). The bands are padded to a common height with zeros, which the
+    # blur assumes beyond a band's last row anyway
+    j0, step = 0, 1
+    while j0 < J:
+        j1 = min(j0 + step, J)
+        padded = np.zeros((j1 - j0, *stack.shape[1:]))
+        counts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for j in range(j0, j1):
+            idx = order[bounds[j]:bounds[j + 1]]
+            if idx.size == 0:
+                continue
+            p = primary(idx).astype(np.float64)
+            if not W:
+                W = p.shape[1]
+                stack = np.zeros((J, stack.shape[1], -(-W // b)), np.float32)
+                padded = np.zeros((j1 - j0, *stack.shape[1:]))
+            at = (row[idx] - origin[j]) // b
+            # within a frame the rows ascend: each block row's samples are one run
+            first = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
+            # (a sum over blocks of one pixel is the pixel: at b = 1, a fifth of the field's time)
+            by_row = p if first.size == at.size else np.add.reduceat(p, first, axis=0)
+            padded[j - j0, at[first]] = by_row if b == 1 else np.add.reduceat(by_row, np.arange(0, W, b), axis=1)
+            counts[j] = (at[first], np.diff(np.r_[first, at.size]))
+            primary_total[j] = float(p.sum())
+        # the kernel on the block grid is normalised over blocks: per pixel it is b^-2 of that
+        blurred = blur(blur(padded, width[0] / b, axis=1), width[1] / b, axis=2) / float(b * b)
+        per_column = np.diff(np.r_[np.arange(0, W, b), W])
+        for j, (held, n) in counts.items():
+            grid = blurred[j - j0, :rows[j]]
+            # the field's sum over the frame's lit samples: each block's value times its samples
+            lit_total[j] = float(n @ grid[held] @ per_column)
+            stack[j, :rows[j]] = grid
+        j0, step = j1, max(int(BLUR_VALUES // stack[0].size), 1)
     return ScatterField(stack, rows, origin, b, row, frame, W, lit_total=lit_total, primary_total=primary_total)
 
 
 #: unit_scatter blurs on blocks of sigma / COARSE_PER_SIGMA pixels (at least one).
 COARSE_PER_SIGMA = 32
+#: unit_scatter blurs the frames' block grids together, about this many values (float64) at a time.
+BLUR_VALUES = 1_000_000
+#: blur sums directly along an axis of at most this many values (by FFT along a longer one).
+DIRECT_BLUR = 512
 
 
 def block(width: tuple[float, float]) -> int:
@@ -335,11 +366,23 @@ def field(store: LitStore, reference: Reference, t: np.ndarray, width: tuple[flo
     return unit_scatter(primary(store, reference, t), store.row, store.frame, width)
 
 
-def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_mm: tuple[float, float] | None
-                 ) -> np.ndarray:
+def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_mm: tuple[float, float] | None, *,
+                 start: np.ndarray | None = None, plain: np.ndarray | None = None) -> np.ndarray:
     """The sample's transmission (H, W) under the scatter of ``setting``: a retrieval without it, divided by the
     measured ratio's 1 + s share, then damped fixed-point updates with the previous transmission's scatter in the
     offset until the remaining change is below :data:`TOLERANCE` (at most :data:`MAX_UPDATES`).
+
+    Parameters
+    ----------
+    store, reference
+        The samples (without an offset) and their flat field.
+    setting : Setting
+    pixel_mm : (float, float) or None
+        The detector's pixel pitch (mm).
+    start : ndarray, shape (H, W), optional
+        A transmission to update from instead (the one behind a nearby setting: the updates stop sooner).
+    plain : ndarray, shape (H, W), optional
+        The retrieval without the scatter (:func:`retrieved` at the kernel's :func:`block`), where already made.
 
     Raises
     ------
@@ -350,10 +393,13 @@ def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_
         raise ValueError("these samples already hold an unmodulated offset")
     width = kernel_pixels(setting.width_mm, pixel_mm)
     step, s = block(width), setting.ratio
-    t = retrieved(store, reference, step=step)
-    # the retrieval without the offset takes the scatter for transmission: t is high by about the measured ratio;
-    # dividing that out leaves the error's variation across the sample, which the updates take out
-    t = t / (1.0 + field(store, reference, t, width).scaled(s).share())
+    if start is None:
+        t = retrieved(store, reference, step=step) if plain is None else plain
+        # the retrieval without the offset takes the scatter for transmission: t is high by about the measured ratio;
+        # dividing that out leaves the error's variation across the sample, which the updates take out
+        t = t / (1.0 + field(store, reference, t, width).scaled(s).share())
+    else:
+        t = start
     # an update maps an error e of t to about -s L e, L the superposition over the band, of gain at most 1: plain
     # updates (omega = 1) diverge for s > 1 (t falls to 0 and the field with it: no correction at all). Damped,
     # every error shrinks by at least q = s / (2 + s) a step (s = 0.1: 0.05)
@@ -381,13 +427,14 @@ def scattered(store: LitStore, reference: Reference, setting: Setting, pixel_mm:
     ValueError
         If the store already holds an offset.
     """
-    t = transmission(store, reference, setting, pixel_mm)
+    t = transmission(store, reference, setting, pixel_mm, start=setting.start)
     return replace(store, offset=field(store, reference, t, kernel_pixels(setting.width_mm, pixel_mm)).scaled(
         setting.ratio))
 
 
-def profiler(prep: Prepared, state: State) -> Callable[[np.ndarray, float], tuple[float, float, float]]:
-    """(t, width_mm) -> s at that kernel width and transmission behind the primary, at the fit's per-frame parameters.
+def profiler(prep: Prepared, state: State) -> Callable[[ScatterField], tuple[float, float, float]]:
+    """Unit field -> s along it (a kernel width and a transmission behind the primary), at the fit's per-frame
+    parameters.
 
     For a given field S the model is linear in s and the images are profiled per pixel: one Gauss-Newton step
     from s = 0 is the weighted least-squares estimate, exactly. The samples and the images at s = 0 are made once,
@@ -403,9 +450,9 @@ def profiler(prep: Prepared, state: State) -> Callable[[np.ndarray, float], tupl
     Returns
     -------
     callable
-        (t (H, W) the transmission behind the primary (:func:`transmission`), kernel std in mm at the detector) ->
-        (s, at least 0; the weighted least-squares cost at it with the fit's weights, images profiled; the
-        measured ratio per unit s, :meth:`ScatterField.share`).
+        (the unit field, :func:`field` of a transmission behind the primary (:func:`transmission`) at a kernel
+        width) -> (s, at least 0; the weighted least-squares cost at it with the fit's weights, images profiled;
+        the measured ratio per unit s, :meth:`ScatterField.share`).
     """
     # the fit's weights, the same for every candidate: the Pearson chi-square's variance floors would turn a
     # candidate that over-subtracts somewhere into a huge cost (measured: 164137 at 50 mm against 118789 at
@@ -415,8 +462,7 @@ def profiler(prep: Prepared, state: State) -> Callable[[np.ndarray, float], tupl
     obs = realign(prep.store, prep.reference, state.fit_obs, state.hypothesis.shift)
     images = M.solve_images(obs, M.design(obs, state.params), weights)
 
-    def fitted(t: np.ndarray, width_mm: float) -> tuple[float, float, float]:
-        F = field(prep.store, prep.reference, t, kernel_pixels(width_mm, pixel_mm(prep.scan)))
+    def fitted(F: ScatterField) -> tuple[float, float, float]:
         U, info, _, cost = score(obs, state.params, images, weights, F.take(columns=obs.columns).astype(np.float64))
         # no information: a field that vanishes on the fit's columns (a transmission of 0) leaves s at 0
         s = max(U / info, 0.0) if info > 0 else 0.0
@@ -425,8 +471,7 @@ def profiler(prep: Prepared, state: State) -> Callable[[np.ndarray, float], tupl
     return fitted
 
 
-def refitted(prep: Prepared, state: State, fit: dict[str, Any], t: np.ndarray, width_mm: float, s: float
-             ) -> tuple[float, float]:
+def refitted(prep: Prepared, state: State, fit: dict[str, Any], F: ScatterField, s: float) -> tuple[float, float]:
     """s once more, after the fit's per-frame parameters are refitted with s S in the model: (s, the measured ratio
     per unit s).
 
@@ -440,16 +485,13 @@ def refitted(prep: Prepared, state: State, fit: dict[str, Any], t: np.ndarray, w
         As :func:`profiler`.
     fit : dict
         The ``fit`` section of the configuration (the refit's options, as the diagnosis's own fits).
-    t : ndarray, shape (H, W)
-        The transmission behind the primary at ``s``.
-    width_mm : float
-        The kernel's std (mm at the detector).
+    F : ScatterField
+        The unit field (:func:`field`) of the transmission behind the primary at ``s``, at the kernel's width.
     s : float
         The scatter per unit primary of the first estimate.
     """
     weights = state.fit_rec.weights
     obs = realign(prep.store, prep.reference, state.fit_obs, state.hypothesis.shift)
-    F = field(prep.store, prep.reference, t, kernel_pixels(width_mm, pixel_mm(prep.scan)))
     S = F.take(columns=obs.columns).astype(np.float64)
     held = replace(obs, dark=obs.dark + s * S, offset=s * S if obs.offset is None else obs.offset + s * S)
     params = state.params
@@ -520,20 +562,17 @@ class ScatterScore:
 
 
 @dataclass(frozen=True)
-class TestField:
-    """The unit scatter field on some columns of a prepared scan at one kernel width (what the test scores s along;
-    a value, so that the diagnosis makes it once per corrected scan)."""
+class Unscattered:
+    """The transmission of a prepared scan retrieved without scatter (:func:`retrieved`, at the :func:`block` of a
+    kernel of ``width_mm``) and the unit field of its primary at that width: what the test scores s along, and
+    where the trial's fixed point starts (a value, so that the diagnosis makes them once per corrected scan)."""
 
     width_mm: float
-    columns: tuple[int, ...]
 
-    def __call__(self, prep: Prepared) -> np.ndarray:
-        # the fit's columns only, the primary a frame at a time: a clinical scan's field of every sample was most
-        # of its diagnosis's peak memory
+    def __call__(self, prep: Prepared) -> tuple[np.ndarray, ScatterField]:
         width = kernel_pixels(self.width_mm, pixel_mm(prep.scan))
         t = retrieved(prep.store, prep.reference, step=block(width))
-        made = field(prep.store, prep.reference, t, width).take(columns=np.asarray(self.columns))
-        return np.asarray(made, dtype=np.float64)
+        return t, field(prep.store, prep.reference, t, width)
 
 
 class Scatter(EffectBase[ScatterScore]):
@@ -567,7 +606,9 @@ class Scatter(EffectBase[ScatterScore]):
         # On the fit's columns, as the channel effects' tests: the score of every column would cost a fifth of the
         # paper study's tests (a stepping recording shows its ~1e-31 share of information there as well)
         obs = state.fit_obs
-        S = ctx.cached(TestField(width_mm, tuple(int(c) for c in obs.columns)), state.hypothesis)
+        # the fit's columns only (the field is held coarse): a clinical scan's field of every sample was most of its
+        # diagnosis's peak memory
+        S = ctx.cached(Unscattered(width_mm), state.hypothesis)[1].take(columns=obs.columns).astype(np.float64)
         U, info, known, _ = score(obs, state.params, state.fit_rec.images, state.fit_rec.weights, S)
         identifiable = info > MIN_INFORMATION_SHARE * known
         # quasi-likelihood: the dispersion of the fit, not the stated noise model, scales the score's variance
@@ -586,9 +627,14 @@ class Scatter(EffectBase[ScatterScore]):
         # s = 0.117 for 0.1 and a dark field 12 % low); the search's t at the test's estimate, the final one at the
         # best setting (the module's text)
         configured = float(test.payload.width_mm)
-        t = transmission(prep.store, prep.reference, Setting(start, configured), pixel_mm(prep.scan))
+        plain, _ = ctx.cached(Unscattered(configured), hyp)
+        t = transmission(prep.store, prep.reference, Setting(start, configured), pixel_mm(prep.scan), plain=plain)
         profile = profiler(prep, state)
-        fitted = {w: profile(t, w) for w in configured * WIDTHS}
+
+        def unit(t: np.ndarray, width_mm: float) -> ScatterField:
+            return field(prep.store, prep.reference, t, kernel_pixels(width_mm, pixel_mm(prep.scan)))
+
+        fitted = {w: profile(unit(t, w)) for w in configured * WIDTHS}
         widths = sorted(fitted)
         best = min(range(len(widths)), key=lambda i: fitted[widths[i]][1])
         if 0 < best < len(widths) - 1:
@@ -596,18 +642,21 @@ class Scatter(EffectBase[ScatterScore]):
             a, b, _ = np.polyfit(x, [fitted[w][1] for w in widths[best - 1:best + 2]], 2)
             if a > 0:
                 w = float(np.exp(np.clip(-b / (2 * a), x[0], x[2])))
-                fitted[w] = profile(t, w)
+                fitted[w] = profile(unit(t, w))
         width_mm = float(min(fitted, key=lambda w: fitted[w][1]))
         # s and the t behind its field, in turn: a t made at a low s is high by the scatter left in it, its field
         # too, and s comes out low again; each round shrinks the gap by about s times the measured ratio per unit s
-        # (0.035 at s = 0.1 on the 5 mm test scan, one round; at s = 1.5, 0.5: 1.30 after one round for 1.5)
+        # (0.035 at s = 0.1 on the 5 mm test scan, one round; at s = 1.5, 0.5: 1.30 after one round for 1.5). Each
+        # round's t is updated from the last one's: s moves little, so one or two updates reach the tolerance
         s = fitted[width_mm][0]
         for _ in range(ROUNDS):
-            t = transmission(prep.store, prep.reference, Setting(s, width_mm), pixel_mm(prep.scan))
-            (s, share), moved = refitted(prep, state, ctx.cfg["fit"], t, width_mm, profile(t, width_mm)[0]), s
+            t = transmission(prep.store, prep.reference, Setting(s, width_mm), pixel_mm(prep.scan), start=t)
+            F = unit(t, width_mm)
+            (s, share), moved = refitted(prep, state, ctx.cfg["fit"], F, profile(F)[0]), s
             if abs(s - moved) < 0.25 * test.payload.se:
                 break
-        return hyp.but(corrections=(*hyp.corrections, (self.name, Setting(s, width_mm, measured=s * share))))
+        # the correction's t starts at the last round's (s has moved little since: an update or two)
+        return hyp.but(corrections=(*hyp.corrections, (self.name, Setting(s, width_mm, measured=s * share, start=t))))
 
     def accepted(self, ctx: Context, before: State, after: State, test: Test[ScatterScore]) -> Finding:
         setting = dict(after.hypothesis.corrections)[self.name]
@@ -630,7 +679,7 @@ class Scatter(EffectBase[ScatterScore]):
             return None
         # the score of s beyond the fitted one along the fitted field, at this fit: its step and standard error
         U, info, _, _ = score(state.fit_obs, state.params, state.fit_rec.images, state.fit_rec.weights,
-                              self._unit_field(ctx, state, setting))
+                              self._unit_field(ctx, state))
         if info <= 0:
             return Estimate(np.asarray(setting.ratio), np.asarray(np.inf))  # no field on these columns
         return Estimate(np.asarray(setting.ratio + U / info), np.asarray(np.sqrt(dispersion(state) / info)))
@@ -642,7 +691,7 @@ class Scatter(EffectBase[ScatterScore]):
         setting = dict(state.hypothesis.corrections).get(self.name)
         if setting is None or setting.ratio <= 0:
             return None
-        S = self._unit_field(ctx, state, setting)
+        S = self._unit_field(ctx, state)
         obs, rec = state.fit_obs, state.fit_rec
         found = {}
         axes: tuple[ConsistencyAxis, ...] = ("row", "count")
@@ -666,14 +715,13 @@ class Scatter(EffectBase[ScatterScore]):
         axis, t = strongest(found)
         return Consistency(t.statistic, t.dof, t.p_value, t.log_p, axis, t.payload)
 
-    def _unit_field(self, ctx: Context, state: State, setting: Setting) -> np.ndarray:
-        """The unit scatter field of ``setting`` on the fit's columns of ``state`` (its transmission behind the
-        primary at that setting, on the scan without this hypothesis's scatter)."""
-        prep = ctx.corrected(state.hypothesis.without(self.name))
-        t = transmission(prep.store, prep.reference, setting, pixel_mm(prep.scan))
-        S = field(prep.store, prep.reference, t, kernel_pixels(setting.width_mm, pixel_mm(prep.scan))).take(
-            columns=state.fit_obs.columns)
-        return np.asarray(S, dtype=np.float64)
+    def _unit_field(self, ctx: Context, state: State) -> np.ndarray:
+        """The unit scatter field in the model of ``state`` on its fit's columns: its corrected scan's offset per unit
+        s (made once, by the correction: the transmission behind it is the costliest part of the diagnosis)."""
+        offset = ctx.corrected(state.hypothesis).store.offset
+        if not isinstance(offset, ScatterField):
+            raise ValueError("the hypothesis holds no scatter correction")
+        return np.asarray(replace(offset, ratio=1.0).take(columns=state.fit_obs.columns), dtype=np.float64)
 
 
 EFFECT = Scatter()
