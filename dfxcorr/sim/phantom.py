@@ -216,7 +216,7 @@ def _images(lengths, c_v, phi):
     return {"transmission": t, "dark_field": v, "differential_phase": phi}
 
 
-def thorax(*, shape, pixel_mm: float = 1.0, magnification: float = 1.2, c_v: float = 1.0,
+def thorax(*, shape, shift: float = 0.0, pixel_mm: float = 1.0, magnification: float = 1.2, c_v: float = 1.0,
            c_phi_mm: float = 0.040, supersample: int = 2) -> dict[str, np.ndarray]:
     """Transmission, dark-field and differential-phase images of the thorax phantom.
 
@@ -228,6 +228,8 @@ def thorax(*, shape, pixel_mm: float = 1.0, magnification: float = 1.2, c_v: flo
     ----------
     shape : tuple of int
         Detector shape (H rows, W columns).
+    shift : float
+        Displacement of the sample along the rows, detector rows (:func:`thorax_rows`).
     pixel_mm : float
         Detector pixel pitch, mm.
     magnification : float
@@ -243,30 +245,69 @@ def thorax(*, shape, pixel_mm: float = 1.0, magnification: float = 1.2, c_v: flo
     -------
     dict of str to ndarray
         'transmission', 'dark_field' (both in (0, 1]) and 'differential_phase' (rad), each
-        float64 [H, W]. t and v use the pixel-averaged path lengths of :func:`path_lengths`. The
-        derivative is across the horizontal grating lines, i.e. along rows; phi is its exact pixel
-        average, c_phi * (P(lower edge) - P(upper edge)) / pixel size at the sample, with the
-        projected decrement P averaged over ``supersample`` points along x, so it is finite even
-        at truncated (flat-ended) solids.
+        float64 [H, W], as :func:`thorax_rows` gives them for every row.
+    """
+    h, w = _check_shape(shape)
+    out = {k: np.empty((h, w)) for k in ("transmission", "dark_field", "differential_phase")}
+    # strips of rows: every solid's chord depends on (x, y) only, so strips give the same pixels
+    for r0 in range(0, h, _STRIP_ROWS):
+        r1 = min(r0 + _STRIP_ROWS, h)
+        strip = thorax_rows(rows=np.arange(r0, r1), shape=(h, w), shift=shift, pixel_mm=pixel_mm,
+                            magnification=magnification, c_v=c_v, c_phi_mm=c_phi_mm, supersample=supersample)
+        for k, v in strip.items():
+            out[k][r0:r1] = v
+    return out
+
+
+def thorax_rows(*, rows, shape, shift: float = 0.0, pixel_mm: float = 1.0, magnification: float = 1.2,
+                c_v: float = 1.0, c_phi_mm: float = 0.040, supersample: int = 2) -> dict[str, np.ndarray]:
+    """The thorax phantom's images at some detector rows, the sample displaced along the rows.
+
+    Row u shows the sample where an undisplaced detector's row u + ``shift`` would see it: the phantom
+    is evaluated at y + shift x (pixel size at the sample), so rows beyond the detector's edges still
+    see the phantom (it is a function of mm, not of pixels).
+
+    Parameters
+    ----------
+    rows : array_like of int, shape (n,)
+        Ascending detector rows, without repeats; any integers (outside [0, H) too).
+    shape : tuple of int
+        Detector shape (H rows, W columns): it places the origin at the detector's centre.
+    shift : float
+        Displacement in detector rows (a fraction of a row too).
+    pixel_mm, magnification, c_v, c_phi_mm, supersample
+        As :func:`thorax`.
+
+    Returns
+    -------
+    dict of str to ndarray
+        'transmission', 'dark_field' and 'differential_phase' (rad), each float64 [n, W]. t and v
+        average the path lengths over ``supersample`` x ``supersample`` points of each pixel; phi is
+        the exact pixel average of c_phi times the row derivative of the projected decrement P,
+        c_phi * (P(lower edge) - P(upper edge)) / pixel size at the sample, with P averaged over
+        ``supersample`` points along x, so it is finite even at truncated (flat-ended) solids.
     """
     h, w = _check_shape(shape)
     p = _sample_pixel(pixel_mm, magnification)
     s = int(supersample)
     if s < 1:
         raise ValueError("supersample must be >= 1")
-    x, y = _axis(w, p, s), _axis(h, p, s)
-    edges = (np.arange(h + 1) - h / 2.0) * p
-    out = {k: np.empty((h, w)) for k in ("transmission", "dark_field", "differential_phase")}
-    # strips of rows: every solid's chord depends on (x, y) only, so strips give the same pixels
-    for r0 in range(0, h, _STRIP_ROWS):
-        r1 = min(r0 + _STRIP_ROWS, h)
-        lengths = _pixel_average(path_lengths_at(x_mm=x, y_mm=y[r0 * s:r1 * s]), s)
-        at_edges = path_lengths_at(x_mm=x, y_mm=edges[r0:r1 + 1])
-        proj = sum(MATERIALS[m]["delta"] * v for m, v in at_edges.items())
-        phi = (c_phi_mm / p) * np.diff(proj, axis=0).reshape(r1 - r0, w, s).mean(axis=2)
-        for k, v in _images(lengths, c_v, phi).items():
-            out[k][r0:r1] = v
-    return out
+    r = np.asarray(rows)
+    if r.ndim != 1 or r.dtype.kind not in "iu" or np.any(np.diff(r) <= 0):
+        raise ValueError("rows must be ascending integers without repeats")
+    if not np.isfinite(shift):
+        raise ValueError("shift must be finite")
+    x = _axis(w, p, s)
+    # sub-pixel samples and edges where :func:`_axis` places them on the whole detector, then displaced
+    fine = (np.repeat(r * s, s) + np.tile(np.arange(s), r.size) + 0.5) * (p / s) - h * p / 2.0 + shift * p
+    top = np.union1d(r, r + 1)
+    edges = (top - h / 2.0) * p + shift * p
+    lengths = _pixel_average(path_lengths_at(x_mm=x, y_mm=fine), s)
+    at_edges = path_lengths_at(x_mm=x, y_mm=edges)
+    proj = np.asarray(sum(MATERIALS[m]["delta"] * v for m, v in at_edges.items()))
+    upper, lower = np.searchsorted(top, r), np.searchsorted(top, r + 1)
+    phi = (c_phi_mm / p) * (proj[lower] - proj[upper]).reshape(r.size, w, s).mean(axis=2)
+    return _images(lengths, c_v, phi)
 
 
 def slab(*, shape, pixel_mm: float = 1.0, magnification: float = 1.2,

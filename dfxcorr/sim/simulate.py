@@ -3,9 +3,10 @@
 Expected counts come from :mod:`dfxcorr.model` (the one forward model); the simulator adds what the
 model leaves out on purpose: photon noise, detector gain, electronic noise and a dark offset (a flat
 panel in detector units), Compton scatter, a sample region that changes during the scan
-(``sample_motion``), and detector effects that no catalogue names (a non-linearity, a ghost of an
-earlier frame, line noise). The truth is returned beside the scan with the same keys as the shared
-truth files (``image_*``, ``vib_*``).
+(``sample_motion``), beam paths through the sample that change during the scan (``parallax``: the
+phantom evaluated where each frame sees it), and detector effects that no catalogue names (a
+non-linearity, a ghost of an earlier frame, line noise). The truth is returned beside the scan with
+the same keys as the shared truth files (``image_*``, ``vib_*``).
 """
 from __future__ import annotations
 
@@ -91,6 +92,13 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                 check=_nonneg),
         "heart_step_mm": Option(0.0, "the heart moves this far (mm at the sample plane, along the rows) half-way "
                                      "through the scan and stays there; 0: it does not move", _NUM, check=_nonneg),
+        "parallax": Option(0.0, "beam paths that change during the scan (a source that travels with the gratings): "
+                                "frame j sees the sample displaced by kappa (c_j - c_0) rows, c_j the active "
+                                "area's centre row (position + (A - 1) / 2), c_0 = (H - 1) / 2 the detector's; the "
+                                "phantom is evaluated at the displaced rows (sample_motion's disc stays on its "
+                                "pixels; the moved heart after heart_step_mm's step is not displaced); 0: none",
+                           _NUM,
+                           check=lambda v: None if -1 < v < 1 else "must lie in (-1, 1)"),
         "detector_gain": Option(1.0, "true detector units per photon (noise variance g * mean)", _NUM,
                                 check=_positive),
         "declare_gain": Option(True, "write the true gain into the file (false conceals it: readers assume 1)",
@@ -272,16 +280,51 @@ def flat_field(cfg: dict, A: int, W: int) -> Reference:
     return Reference(transmission=flux * tf_tile, visibility=vis * vf_tile, phase=phase)
 
 
-def sample_images(cfg: dict, H: int, W: int) -> dict[str, np.ndarray]:
-    """t, v, phi of the configured phantom, shape (H, W)."""
+def sample_images(cfg: dict, H: int, W: int, *, rows: np.ndarray | None = None,
+                  shift: float = 0.0) -> dict[str, np.ndarray]:
+    """t, v, phi of the configured phantom on an H x W detector, at some of its rows, the sample displaced.
+
+    Parameters
+    ----------
+    cfg : dict
+        Resolved configuration of :data:`SCHEMA` (``simulate.phantom``, ``pixel_mm``, ``magnification``).
+    H, W : int
+        Detector rows and columns.
+    rows : ndarray of int, shape (n,), optional
+        Ascending detector rows without repeats, also beyond [0, H) (default: every row).
+    shift : float
+        Displacement along the rows (detector rows): row u shows the sample that row u + shift shows
+        undisplaced. The thorax is evaluated there (:func:`~dfxcorr.sim.phantom.thorax_rows`); the slab and
+        the blank are the same everywhere.
+
+    Returns
+    -------
+    dict of str to ndarray
+        'transmission', 'dark_field', 'differential_phase' (rad), each shape (n, W) ((H, W) by default).
+    """
     from . import phantom
 
     s = cfg["simulate"]
+    if s["phantom"] == "thorax" and rows is None:
+        return phantom.thorax(shape=(H, W), shift=shift, pixel_mm=s["pixel_mm"], magnification=s["magnification"])
     if s["phantom"] == "thorax":
-        return phantom.thorax(shape=(H, W), pixel_mm=s["pixel_mm"], magnification=s["magnification"])
+        return phantom.thorax_rows(rows=np.asarray(rows), shape=(H, W), shift=shift, pixel_mm=s["pixel_mm"],
+                                   magnification=s["magnification"])
+    n = H if rows is None else len(rows)
     if s["phantom"] == "slab":
-        return phantom.slab(shape=(H, W), pixel_mm=s["pixel_mm"], magnification=s["magnification"])
-    return phantom.blank(shape=(H, W))
+        return phantom.slab(shape=(n, W), pixel_mm=s["pixel_mm"], magnification=s["magnification"])
+    return phantom.blank(shape=(n, W))
+
+
+def parallax_shift(cfg: dict, position: np.ndarray, A: int, H: int) -> np.ndarray:
+    """Displacement d_j of the sample seen by each frame (detector rows) under ``effects.parallax`` kappa.
+
+    d_j = kappa (c_j - c_0), with c_j = position_j + (A - 1) / 2 the centre row of frame j's active area
+    (its first row sits at ``position_j``, lit_blocks' convention) and c_0 = (H - 1) / 2 the detector's
+    centre row: the frame at the detector's centre sees the sample undisplaced. Shape (J,).
+    """
+    centre = np.asarray(position, dtype=float) + (A - 1) / 2
+    return cfg["effects"]["parallax"] * (centre - (H - 1) / 2)
 
 
 def draw_effects(cfg: dict, J: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -384,6 +427,8 @@ class Simulation:
         self.flat = flat_field(cfg, A, W)
         self._phase = np.unwrap(self.flat.phase, axis=0)
         self.images = sample_images(cfg, H, W)
+        #: Rows by which frame j sees the sample displaced (``effects.parallax``), shape (J,).
+        self.displacement = parallax_shift(cfg, g["position"], A, H)
         self.params = draw_effects(cfg, J, rng)
         self.moving = motion_region(H, W) if e["sample_motion"] else np.zeros((H, W), bool)
         self.after = None
@@ -422,9 +467,16 @@ class Simulation:
                            vf=interpolate_rows(ref.visibility, u), phif=phif, dark=zeros,
                            use=np.ones((row.size, W), bool), row=row, frame=np.full(row.size, j), columns=cols,
                            shape=self.shape)
+        keys = ("transmission", "dark_field", "differential_phase")
         # the heart has moved from the middle frame on
-        img = self.after if self.after is not None and j >= J // 2 else self.images
-        t, v, phi = (img[k][row] for k in ("transmission", "dark_field", "differential_phase"))
+        moved = self.after if self.after is not None and j >= J // 2 else None
+        img = self.images if moved is None else moved
+        t, v, phi = (img[k][row] for k in keys)
+        if self.displacement[j]:
+            seen = sample_images(self.cfg, H, W, rows=row, shift=self.displacement[j])
+            # the moved heart is a shift of the static images: no parallax inside it
+            keep = np.zeros((row.size, W), bool) if moved is None else moved["region"][row]
+            t, v, phi = (np.where(keep, a, seen[k]) for a, k in zip((t, v, phi), keys, strict=True))
         images = M.Images(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], axis=-1), np.ones(t.shape, bool))
         dsg = M.design(obs, self.params)
         ibar = M.expected(obs, dsg, images)
@@ -537,6 +589,7 @@ class Simulation:
                      reference_steps=self.reference_steps, reference_transmission=ref.transmission,
                      reference_visibility=ref.visibility, reference_phase=ref.phase,
                      reference_offset=np.float64(e["reference_offset"]), vib_position_jitter=self.jitter,
+                     beam_path=np.float64(e["parallax"]),
                      electronic_noise=np.float64(e["read_noise"]), dark=np.float64(e["dark"]),
                      scatter=np.float64(e["scatter"]), detector_nonlinearity=np.float64(e["detector_nonlinearity"]),
                      ghost=np.float64(e["ghost"]), line_offset=self.line_offset, config=json.dumps(self.cfg))
@@ -565,7 +618,9 @@ def simulate(cfg: dict) -> tuple[Scan, dict]:
         ``reference_*``; ``electronic_noise`` (read noise std) and ``dark`` (detector units);
         ``scatter`` (s, the scatter per unit primary before the lit band's loss); ``detector_nonlinearity``
         (beta), ``ghost`` (the fraction) and ``line_offset`` (J, H)
-        (detector units); ``config`` (JSON, every setting).
+        (detector units); ``beam_path`` (kappa of ``effects.parallax``: frame j saw the sample at row
+        u + kappa (c_j - c_0), :func:`parallax_shift`; the ``image_*`` are the sample undisplaced, what
+        every frame sees at kappa = 0); ``config`` (JSON, every setting).
     """
     sim = Simulation(cfg)
     data = np.zeros(sim.shape, sim.dtype)
