@@ -24,7 +24,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 from scipy.optimize import minimize
 
-from . import evaluate as E
+from . import engine as E
 from . import kernels as K
 from . import model as M
 from .catalogue import PAPER_MODEL, effect, neutral_params

@@ -7,7 +7,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from . import evaluate as E
+from . import engine as E
 from . import model as M
 from .align import gauge_frames
 from .catalogue import effect

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import evaluate as E
+from . import engine as E
 from . import kernels as K
 from . import model as M
 from .catalogue import effect, neutral_params

@@ -120,7 +120,7 @@ def _c(a: np.ndarray, dtype=None) -> np.ndarray:
 def _per_pixel(obs) -> None:
     """The compiled loops solve each pixel's images from its own samples: refuse samples that read between rows."""
     if obs.reading is not None:
-        raise ValueError("samples read the images between rows: evaluate them through dfxcorr.evaluate")
+        raise ValueError("samples read the images between rows: evaluate them through dfxcorr.engine")
 
 
 def _bounds(obs) -> np.ndarray:

@@ -17,7 +17,7 @@ from collections.abc import Iterable
 import numpy as np
 from scipy import ndimage, special
 
-from . import evaluate as E
+from . import engine as E
 from . import kernels as K
 from . import model as M
 from .catalogue import PAPER_MODEL, neutral_params

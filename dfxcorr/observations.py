@@ -61,18 +61,17 @@ class Reading:
     frac: np.ndarray
 
 
-def displaced_reading(row: np.ndarray, frame: np.ndarray, rows: np.ndarray, displacement: np.ndarray
-                      ) -> tuple[Reading, np.ndarray]:
-    """The reading of blocks whose frame sees the sample ``displacement`` rows along the scan.
+def displaced_reading(row: np.ndarray, rows: np.ndarray, shift: np.ndarray) -> tuple[Reading, np.ndarray]:
+    """The reading of blocks that see the images ``shift`` rows off their own row.
 
     Parameters
     ----------
-    row, frame : ndarray of int, shape (K,)
-        Detector row and frame of each block.
+    row : ndarray of int, shape (K,)
+        Detector row of each block.
     rows : ndarray of int, shape (R,)
         The held detector rows, ascending: the image rows.
-    displacement : ndarray, shape (J,)
-        d_j (rows): frame j's block of row r sees the images at r + d_j.
+    shift : ndarray, shape (K,)
+        Block k reads the images at row[k] + shift[k].
 
     Returns
     -------
@@ -81,7 +80,7 @@ def displaced_reading(row: np.ndarray, frame: np.ndarray, rows: np.ndarray, disp
         Blocks that read between two consecutive held rows (or on one); the others see the sample outside
         the images and must not be used.
     """
-    at = row + np.asarray(displacement, dtype=np.float64)[frame]
+    at = row + np.asarray(shift, dtype=np.float64)
     base = np.floor(at)
     lo = np.searchsorted(rows, base, side="left")
     lo_c = np.clip(lo, 0, rows.size - 1)

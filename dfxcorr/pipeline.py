@@ -24,7 +24,7 @@ import numpy as np
 
 from . import __version__
 from . import config as C
-from .align import tilt_alias_period
+from .align import tilt_alias_period, to_detector_rows
 from .catalogue import effect
 from .effects import REGISTRY
 from .estimators import ESTIMATORS
@@ -153,6 +153,8 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
                 obs.place(m[k], v)
             acc += (rec.chi2_sum, rec.samples, int(rec.images.valid.sum()))
         left_out += int(np.count_nonzero(obs.segment_sum(roi.astype(np.float64)) == 0))
+    if prep.store.parallax:
+        maps = [detector_rows(m, prep.store.parallax) for m in maps]
     if left_out:
         log.info("region of interest: %d pixels see no fringe (reference visibility < %.3g) and are left out "
                  "of the images", left_out, prep.min_visibility)
@@ -160,11 +162,21 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
             for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
 
 
+def detector_rows(maps: dict[str, np.ndarray], kappa: float) -> dict[str, np.ndarray]:
+    """Images each pixel sees with the active area centred on it, as a frame centred on the detector sees them
+    (:func:`dfxcorr.align.to_detector_rows`): t, v, phi maps (H, W) in, the same out."""
+    t, v, phi = maps["transmission"], maps["dark_field"], maps["differential_phase"]
+    tcs = to_detector_rows(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], axis=-1), kappa)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return {"transmission": tcs[..., 0], "dark_field": np.hypot(tcs[..., 1], tcs[..., 2]) / tcs[..., 0],
+                "differential_phase": np.arctan2(tcs[..., 2], tcs[..., 1])}
+
+
 def retrieval_parts(prep: Prepared, blocks: list[tuple[int, int]]) -> Iterator[Observations]:
     """The float32 observations the retrieval goes through, one part at a time: the blocks of rows; or where the
     samples read the images between rows (``beam_path``: the images of a column are then one solve), as many runs
     of whole columns, each holding about a block's samples."""
-    if prep.store.displacement is None:
+    if not prep.store.parallax:
         for rows in blocks:
             yield prep.observations(rows=rows, dtype=np.float32)
         return
@@ -182,7 +194,7 @@ def fit_motion_mask(prep: Prepared, cfg: dict, plan: ColumnPlan, blocks: list[tu
     pilot = pilot_estimate(prep) if plan.pilot is None else plan.pilot
     # the per-pixel statistics of the fit's columns only (the others never enter the fit), block by block
     # where the samples read between rows the images of a column are one solve: the fit's columns whole
-    rows_of = blocks if prep.store.displacement is None else [None]
+    rows_of = blocks if not prep.store.parallax else [None]
     moving, _, thr = motion_mask((prep.observations(columns=plan.columns, rows=rows, dtype=np.float32)
                                   for rows in rows_of),
                                  pilot=pilot, threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])

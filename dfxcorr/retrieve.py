@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import evaluate as E
+from . import engine as E
 from . import kernels as K
 from . import model as M
 from .noise import pearson

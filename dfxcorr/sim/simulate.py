@@ -191,6 +191,8 @@ CONCEALED = {
     # a flat panel at 2000 counts with a dark of 100; the file states the dark, not the noise
     "electronic_noise": ("effects.read_noise", 25.0, [10.0, 5.0, 2.0, 1.0], FLAT_PANEL, []),
     "scatter": ("effects.scatter", 0.1, [0.05, 0.02, 0.01, 0.005], {}, []),
+    # a source that travels with the gratings: the sample seen 0.02 rows further per row of travel
+    "beam_path": ("effects.parallax", 0.02, [0.01, 0.005, 0.002, 0.001], {}, []),
 }
 
 #: Detector effects in no catalogue, in the format of :data:`CONCEALED` (the last entry: reconstruct

@@ -4,7 +4,7 @@ Every stage that solves images, evaluates the reduced cost or the Fisher informa
 (never :mod:`dfxcorr.kernels` directly). Where each sample reads the images of its own pixel (the paper's geometry)
 they are the compiled loops of :mod:`dfxcorr.kernels`; where the beam paths move during the scan
 (``Observations.reading``, ``beam_path``) the images of neighbouring rows are coupled and the same quantities come
-from :mod:`dfxcorr.model`'s expressions with the block-tridiagonal solve (:func:`dfxcorr.model.solve_read_between`).
+from :mod:`dfxcorr.model`'s expressions with the block-tridiagonal solve (:func:`dfxcorr.banded.solve_read_between`).
 The signatures and returned values are the kernels'.
 """
 from __future__ import annotations

@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from dfxcorr import evaluate as E
+from dfxcorr import engine as E
 from dfxcorr import kernels as K
 from dfxcorr import model as M
 from dfxcorr.observations import displaced_reading
@@ -17,7 +17,8 @@ NAMES = ("phase_offset", "tilt", "visibility_loss", "dose")
 
 def displaced(rng, obs, spread=1.3):
     """``obs`` with each frame reading the images up to ``spread`` rows off its own, samples reading outside unused."""
-    reading, inside = displaced_reading(obs.row, obs.frame, obs.rows, rng.uniform(-spread, spread, obs.n_frames))
+    shift = rng.uniform(-spread, spread, obs.n_frames)[obs.frame]
+    reading, inside = displaced_reading(obs.row, obs.rows, shift)
     return replace(obs, reading=reading, use=obs.use & inside[:, None])
 
 
@@ -36,7 +37,7 @@ def dense_design(obs, columns):
 def test_displaced_reading_of_whole_rows():
     row = np.array([0, 0, 1, 1, 2, 2, 3])
     frame = np.array([0, 1, 0, 1, 0, 1, 0])
-    reading, inside = displaced_reading(row, frame, np.arange(4), np.array([1.0, -0.25]))
+    reading, inside = displaced_reading(row, np.arange(4), np.array([1.0, -0.25])[frame])
     # frame 0 reads one row further (the last row reads beyond the images); frame 1 a quarter row back
     np.testing.assert_array_equal(inside, [True, False, True, True, True, True, False])
     np.testing.assert_array_equal(reading.lo[inside], [1, 2, 0, 3, 1])
@@ -69,7 +70,7 @@ def test_reading_at_the_own_row_is_the_compiled_path(rng):
     obs = tiny_obs(rng, J=14, H=8, W=5)
     params = random_params(rng, obs.n_frames, NAMES)
     obs = replace(obs, counts=modelled_counts(rng, obs, params))
-    reading, inside = displaced_reading(obs.row, obs.frame, obs.rows, np.zeros(obs.n_frames))
+    reading, inside = displaced_reading(obs.row, obs.rows, np.zeros(obs.row.size))
     assert inside.all()
     same = replace(obs, reading=reading)
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
