@@ -43,6 +43,9 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "step_mm": Option(2.5, "motion of the active area between exposures (mm)", _NUM, check=_positive),
         "magnification": Option(1.2, "source-detector / source-sample distance (1.8 m / 1.5 m)", _NUM,
                                 check=_positive),
+        "supersample": Option(2, "thorax: sub-pixel samples per axis averaged into a pixel's t and v (phi's average "
+                                 "along the rows is exact); a sample displaced by effects.parallax changes them in "
+                                 "steps of 1 / supersample row at its edges", int, check=_within(1, 16)),
         "steps": Option(11, "stepping geometry: number of phase steps", int, check=_within(3, 10000)),
         "steps_per_period": Option(11, "stepping geometry: steps per grating period", _NUM, check=_positive),
         "flux": Option(2e4, "flat-field counts per pixel and frame, t^f", _NUM, check=_within(1e-3, 1e9)),
@@ -293,7 +296,7 @@ def sample_images(cfg: dict, H: int, W: int, *, rows: np.ndarray | None = None,
         Ascending detector rows without repeats, also beyond [0, H) (default: every row).
     shift : float
         Displacement along the rows (detector rows): row u shows the sample that row u + shift shows
-        undisplaced. The thorax is evaluated there (:func:`~dfxcorr.sim.phantom.thorax_rows`); the slab and
+        undisplaced. The thorax is evaluated there (:func:`~dfxcorr.sim.phantom.thorax`); the slab and
         the blank are the same everywhere.
 
     Returns
@@ -304,11 +307,9 @@ def sample_images(cfg: dict, H: int, W: int, *, rows: np.ndarray | None = None,
     from . import phantom
 
     s = cfg["simulate"]
-    if s["phantom"] == "thorax" and rows is None:
-        return phantom.thorax(shape=(H, W), shift=shift, pixel_mm=s["pixel_mm"], magnification=s["magnification"])
     if s["phantom"] == "thorax":
-        return phantom.thorax_rows(rows=np.asarray(rows), shape=(H, W), shift=shift, pixel_mm=s["pixel_mm"],
-                                   magnification=s["magnification"])
+        return phantom.thorax(shape=(H, W), rows=rows, shift=shift, pixel_mm=s["pixel_mm"],
+                              magnification=s["magnification"], supersample=s["supersample"])
     n = H if rows is None else len(rows)
     if s["phantom"] == "slab":
         return phantom.slab(shape=(n, W), pixel_mm=s["pixel_mm"], magnification=s["magnification"])

@@ -85,6 +85,16 @@ def test_rows_beyond_the_detector_see_the_phantom_where_it_continues():
     assert (seen["transmission"] < 1).any()  # the body reaches below the detector
 
 
+@pytest.mark.parametrize("supersample", [1, 2, 8])
+def test_any_rows_of_the_displaced_thorax_are_those_of_the_whole_detector(supersample):
+    H, W = 90, 102
+    whole = P.thorax(shape=(H, W), shift=-2.3, pixel_mm=5.0, supersample=supersample)
+    rows = np.array([0, 1, 2, 17, 18, 40, 41, 42, 43, 60, 89])  # strips of 16 rows at 8 x 8, of all at 2 x 2
+    some = P.thorax(shape=(H, W), rows=rows, shift=-2.3, pixel_mm=5.0, supersample=supersample)
+    for k in KEYS:
+        np.testing.assert_array_equal(some[k], whole[k][rows])
+
+
 def test_the_truth_carries_kappa_and_the_undisplaced_images():
     scan, truth = S.simulate(sim_config(**{"effects.parallax": -0.04}))
     _, plain = S.simulate(sim_config())
@@ -123,6 +133,13 @@ def test_the_moved_heart_keeps_its_shifted_images_and_the_rest_moves_with_the_pa
 def test_the_parallax_setting_is_validated(value, words):
     with pytest.raises(C.ConfigError, match=re.escape(f"effects.parallax {words}")):
         sim_config(**{"effects.parallax": value})
+
+
+@pytest.mark.parametrize("value,words", [(0, "must lie in [1, 16]"), (17, "must lie in [1, 16]"),
+                                         (2.5, "must be int")])
+def test_the_supersample_setting_is_validated(value, words):
+    with pytest.raises(C.ConfigError, match=re.escape(f"simulate.supersample {words}")):
+        sim_config(**{"simulate.supersample": value})
 
 
 def test_simulate_refuses_a_parallax_of_a_whole_row_per_row_in_one_line(tmp_path):
