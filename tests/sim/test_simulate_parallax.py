@@ -9,7 +9,7 @@ from dfxcorr import config as C
 from dfxcorr.sim import phantom as P
 from dfxcorr.sim import simulate as S
 
-from conftest import cli_capped, one_error_line, sim_config
+from conftest import ROOT, cli_capped, one_error_line, sim_config
 
 EXACT = {"simulate.noise": False, "simulate.dtype": "float64"}
 # an odd height puts the detector's centre on a row, so that d_j = kappa (c_j - c_0) takes whole values
@@ -146,3 +146,12 @@ def test_simulate_refuses_a_parallax_of_a_whole_row_per_row_in_one_line(tmp_path
     res = cli_capped("simulate", "-o", tmp_path / "s.h5", "--set", "effects.parallax=1", timeout=60)
     assert res.exit_code == 2 and one_error_line(res.stderr, "effects.parallax", "(-1, 1)"), res.stderr + res.traceback
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_parallax_configuration_is_the_shared_scans_geometry_with_kappa():
+    cfg = C.load([ROOT / "configs" / "parallax-simulation.yaml"], [], schema=S.SCHEMA)
+    g = S.geometry(cfg)
+    assert (g["H"], g["W"], g["A"], g["position"].size) == (180, 204, 30, 209)
+    assert cfg["effects"]["parallax"] == 0.02 and cfg["simulate"]["flux"] == 2e4
+    d = S.parallax_shift(cfg, g["position"], g["A"], g["H"])
+    assert d[-1] - d[-30] == pytest.approx(0.02 * 29)  # the 30 frames lighting the last row: 0.58 rows apart
