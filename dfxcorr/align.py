@@ -22,7 +22,7 @@ from . import kernels as K
 from .errors import DfxcorrError
 from .faults import Faults, saturated
 from .io import Reference, Scan, frame_rows, lit_rows
-from .observations import Observations, lateral_coordinate
+from .observations import Observations, displaced_reading, lateral_coordinate
 from .stats import ranges
 
 log = logging.getLogger(__name__)
@@ -181,6 +181,18 @@ class LitStore:
         False for samples left out as detector faults (:meth:`without`); None: every sample is good.
     bad_frames : tuple of int
         Frames left out whole as detector faults.
+    parallax : float
+        kappa of ``beam_path`` (``geometry.parallax``): frame j sees the sample displaced by kappa (c_j - c_0) rows
+        (c_j the active area's centre, c_0 the detector's). The images are those each pixel sees with the active
+        area centred on it, so the samples of pixel r read them at r + kappa (c_j - r) / (1 + kappa), between rows
+        (:class:`dfxcorr.observations.Reading`: within a fraction of a row of their own for the frames that light
+        them, a well-posed solve); :func:`to_detector_rows` gives the images where a frame centred on the detector
+        sees them. Samples that read beyond the held rows are not used. 0: every sample reads its own row.
+    position : ndarray, shape (J,), or None
+        The recorded position of each frame (``scan/position``: the active area's top edge, rows); None: as the
+        blocks' ``u`` give it.
+    active_rows : int or None
+        A, the active area's height in rows (needed with ``parallax``).
     """
 
     counts: np.ndarray
@@ -197,6 +209,9 @@ class LitStore:
     offset: np.ndarray | OffsetField | None = None
     good: np.ndarray | None = None
     bad_frames: tuple[int, ...] = ()
+    parallax: float = 0.0
+    position: np.ndarray | None = None
+    active_rows: int | None = None
 
     def frame_blocks(self) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
         """(j, rows, counts) of each frame that lights a held row, frames ascending (rows ascending within)."""
@@ -229,6 +244,19 @@ class LitStore:
         """
         delta = np.broadcast_to(np.asarray(rows, dtype=np.float64), (self.shape[0],))
         return replace(self, u=self.u - delta[self.frame])
+
+    def centred(self) -> np.ndarray:
+        """c_j - (r + 0.5) of every block (rows): how far the active area's centre lies from the block's pixel, by
+        the recorded positions (the flat field's alignment, :meth:`shifted`, aside)."""
+        if self.active_rows is None:
+            raise ValueError("the active area's height is not known to this store")
+        # u = r + 0.5 - position of every block (scan-format.md); the active area's centre at position + A / 2
+        u = self.u if self.position is None else self.row + 0.5 - self.position[self.frame]
+        return self.active_rows / 2.0 - u
+
+    def with_parallax(self, kappa: float) -> LitStore:
+        """The same samples seeing the sample displaced by ``kappa`` rows per row of travel (:attr:`parallax`)."""
+        return replace(self, parallax=float(kappa))
 
     def samples_per_column(self) -> int:
         """Lit samples in one detector column (K)."""
@@ -307,11 +335,16 @@ class LitStore:
         held = np.ix_(np.unique(row), cols)
         if self.good is not None:
             use &= self.good[lo:hi] if columns is None else self.good[lo:hi, cols]
+        reading = None
+        if self.parallax:
+            shift = self.parallax / (1.0 + self.parallax) * self.centred()[lo:hi]
+            reading, inside = displaced_reading(row, np.unique(row), shift)
+            use &= inside[:, None]
         return Observations(counts=counts, tf=tf, vf=vf, phif=phif, dark=dark, use=use,
                             row=row, frame=frame, columns=cols, shape=(J, H, W),
                             gain=self.gain if gain is None else gain, electronic=electronic,
                             noise=None if noise is None else noise[held],
-                            offset=offset)
+                            offset=offset, reading=reading)
 
 
 def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: int = 3) -> LitStore:
@@ -369,7 +402,8 @@ def collect_lit_rows(scan: Scan, *, active_rows: int | None = None, min_frames: 
     assert scan.dark is not None  # Scan.__post_init__ fills it
     return LitStore(counts=counts, row=row, frame=frame, u=u, shape=(J, H, W),
                     phase_step=np.asarray(scan.phase_step, dtype=np.float64), dark=scan.dark, gain=scan.gain,
-                    left_counts=left_counts, left_prev=left_prev)
+                    left_counts=left_counts, left_prev=left_prev,
+                    position=np.asarray(scan.position, dtype=np.float64), active_rows=int(A))
 
 
 def read_position_errors(path: str | Path, n_frames: int) -> np.ndarray:
@@ -442,3 +476,29 @@ def tilt_alias_period(width: int, n: int) -> float:
 __all__ = ["AlignmentError", "LitStore", "build_observations", "collect_lit_rows", "interpolate_rows", "lit_blocks",
            "no_lit_rows", "read_position_errors",
            "subsample_columns", "tilt_alias_period", "lateral_coordinate"]
+
+
+def to_detector_rows(images: np.ndarray, kappa: float) -> np.ndarray:
+    """Images (t, c, s) seen with the active area centred on each pixel (:attr:`LitStore.parallax`), resampled to
+    where a frame centred on the detector sees them: the sample's images u of ``spec/diagnosis.md``'s beam_path.
+
+    The pixel whose centre is y (rows, edge coordinates) sees, centred, what the detector-centred frame sees at
+    y + kappa (y - H / 2); row u of the result is therefore read at y = (u + 0.5 + kappa H / 2) / (1 + kappa), between
+    rows (linear in (t, c, s): intensities add). Rows read beyond the images are NaN.
+
+    Parameters
+    ----------
+    images : ndarray, shape (H, W, 3)
+    kappa : float
+
+    Returns
+    -------
+    ndarray, shape (H, W, 3)
+    """
+    H = images.shape[0]
+    q = (np.arange(H) + 0.5 + kappa * H / 2.0) / (1.0 + kappa) - 0.5
+    lo = np.floor(q).astype(np.int64)
+    f = (q - lo)[:, None, None]
+    inside = (lo >= 0) & (lo < H - 1) | (lo == H - 1) & (f[:, 0, 0] == 0)
+    a, b = images[np.clip(lo, 0, H - 1)], images[np.clip(lo + 1, 0, H - 1)]
+    return np.where(inside[:, None, None], (1 - f) * a + f * b, np.nan)

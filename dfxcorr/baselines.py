@@ -23,9 +23,12 @@ import numpy as np
 from scipy import sparse
 
 from . import model as M
+from .catalogue import PAPER_MODEL, effect, neutral_params
 from .config import ConfigError
 from .fit import FitResult, initial_weights, uncertainty
 from .frames import fix_gauge, well_determined, wrap_phases
+from .noise import noise_weights
+from .observations import Observations
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +37,7 @@ log = logging.getLogger(__name__)
 # --------------------------------------------------------------------------------------------------
 
 
-def fit_alternating(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict | None = None,
+def fit_alternating(obs: Observations, *, effects=PAPER_MODEL, start: dict | None = None,
                     weights: np.ndarray | None = None, maxiter: int = 300, gtol: float = 1e-3,
                     inner: int = 2, reweight: int = 1, visibility_gauge: str = "max",
                     visibility_quantile: float = 0.99, gauge_fraction: float = 0.5,
@@ -73,8 +76,8 @@ def fit_alternating(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict |
         ``cost`` holds sum w (I - Ibar)^2 at the closed-form images after each alternation, the value
         the ML fit records per L-BFGS iteration.
     """
-    names = [n for n in effects if M.effect(n).channel is not None]
-    params = M.neutral_params(names, obs.n_frames)
+    names = [n for n in effects if effect(n).channel is not None]
+    params = neutral_params(names, obs.n_frames)
     if start:
         params.update({k: np.array(v, dtype=np.float64) for k, v in start.items() if k in params})
     if weights is None:
@@ -85,7 +88,7 @@ def fit_alternating(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict |
             break
         if label == "reweight":
             dsg = M.design(obs, params)
-            weights = M.noise_weights(obs, M.expected(obs, dsg, M.solve_images(obs, dsg, weights)))
+            weights = noise_weights(obs, M.expected(obs, dsg, M.solve_images(obs, dsg, weights)))
         cb = None if on_iteration is None else (lambda c, _l=label: on_iteration(_l, c))
         params, c, converged = alternate(obs, names, params, weights, maxiter=maxiter, gtol=gtol, inner=inner,
                                          on_iteration=cb)
@@ -102,7 +105,7 @@ def fit_alternating(obs: M.Observations, *, effects=M.PAPER_MODEL, start: dict |
                      well_determined=good)
 
 
-def alternate(obs: M.Observations, names, params: dict, weights: np.ndarray, *, maxiter: int = 300,
+def alternate(obs: Observations, names, params: dict, weights: np.ndarray, *, maxiter: int = 300,
               gtol: float = 1e-3, inner: int = 2, on_iteration=None) -> tuple[dict, list[float], bool]:
     """One stage of alternating minimisation of sum w (I - Ibar)^2 at fixed weights.
 
@@ -131,7 +134,7 @@ def alternate(obs: M.Observations, names, params: dict, weights: np.ndarray, *, 
         Cost at the closed-form images after each alternation.
     converged : bool
     """
-    blocks = [b for b in ([n for n in names if M.effect(n).per_frame], [n for n in names if not M.effect(n).per_frame])
+    blocks = [b for b in ([n for n in names if effect(n).per_frame], [n for n in names if not effect(n).per_frame])
               if b]
     costs: list[float] = []
     for it in range(maxiter + 1):
@@ -157,7 +160,7 @@ def alternate(obs: M.Observations, names, params: dict, weights: np.ndarray, *, 
     return params, costs, False
 
 
-def update_block(obs: M.Observations, names, params: dict, images: M.Images, weights: np.ndarray, *,
+def update_block(obs: Observations, names, params: dict, images: M.Images, weights: np.ndarray, *,
                  steps: int = 2, damping: float = 1e-3, dsg: M.Design | None = None) -> tuple[dict, float, float]:
     """Levenberg-Marquardt steps on one block of parameters with the images held fixed.
 
@@ -190,15 +193,15 @@ def update_block(obs: M.Observations, names, params: dict, images: M.Images, wei
     cost : float
         sum w (I - Ibar)^2 at the starting point.
     """
-    per_frame = M.effect(names[0]).per_frame
+    per_frame = effect(names[0]).per_frame
     n_groups = obs.n_frames if per_frame else 1
     group = obs.frame if per_frame else np.zeros(obs.frame.size, dtype=np.int64)
 
     def group_sum(a):
         return np.bincount(group, weights=a.sum(axis=1), minlength=n_groups)
 
-    sizes = [M.effect(n).size for n in names]
-    lower = np.concatenate([np.full(s, -np.inf if M.effect(n).lower is None else M.effect(n).lower)
+    sizes = [effect(n).size for n in names]
+    lower = np.concatenate([np.full(s, -np.inf if effect(n).lower is None else effect(n).lower)
                             for n, s in zip(names, sizes, strict=True)])
 
     def pack(p):
@@ -260,7 +263,7 @@ def update_block(obs: M.Observations, names, params: dict, images: M.Images, wei
 # --------------------------------------------------------------------------------------------------
 
 
-def fit_correlation(obs: M.Observations, *, effects=M.PAPER_MODEL, grid: int = 360, bisquare: float = 4.685,
+def fit_correlation(obs: Observations, *, effects=PAPER_MODEL, grid: int = 360, bisquare: float = 4.685,
                     min_rows: int = 3, irls_iterations: int = 200, gauge_fraction: float = 0.5) -> FitResult:
     """Estimate grating phase per frame from column-wise correlation with the flat field (paper ref. [18]).
 
@@ -297,14 +300,14 @@ def fit_correlation(obs: M.Observations, *, effects=M.PAPER_MODEL, grid: int = 3
     ConfigError
         If ``effects`` holds no phase effect.
     """
-    phase = [n for n in effects if M.effect(n).channel == "phase"]
+    phase = [n for n in effects if effect(n).channel == "phase"]
     if not phase:
         raise ConfigError("fit.method=correlation estimates grating positions only: enable vibration.phase_offset, "
                           "vibration.tilt or vibration.curvature")
-    skipped = [n for n in effects if M.effect(n).channel is not None and n not in phase]
+    skipped = [n for n in effects if effect(n).channel is not None and n not in phase]
     if skipped:
         log.info("the correlation method does not estimate %s (left neutral)", ", ".join(skipped))
-    powers = [M.effect(n).powers[0] for n in phase]
+    powers = [effect(n).powers[0] for n in phase]
     positions, valid = column_positions(obs, grid=grid, min_rows=min_rows)
     coef, sigma, converged = robust_polyfit(obs.x, positions, valid, powers=powers, tuning=bisquare,
                                             iterations=irls_iterations)
@@ -319,13 +322,13 @@ def fit_correlation(obs: M.Observations, *, effects=M.PAPER_MODEL, grid: int = 3
                      well_determined=good)
 
 
-def _frame_matrix(obs: M.Observations) -> sparse.csr_matrix:
+def _frame_matrix(obs: Observations) -> sparse.csr_matrix:
     """(J, K) indicator of the blocks of each frame: sums over a frame's blocks per column as a product."""
     K = obs.frame.size
     return sparse.csr_matrix((np.ones(K), (obs.frame, np.arange(K))), shape=(obs.n_frames, K))
 
 
-def column_positions(obs: M.Observations, *, grid: int = 360, min_rows: int = 3,
+def column_positions(obs: Observations, *, grid: int = 360, min_rows: int = 3,
                      chunk: int = 2_000_000) -> tuple[np.ndarray, np.ndarray]:
     """Grating position per frame and column that maximises the correlation with the flat-field pattern.
 

@@ -121,6 +121,13 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                         "u - delta_j (position_errors.txt of dfxcorr diagnose); null: none", str,
                                   nullable=True),
     },
+    "geometry": {
+        "parallax": Option(0.0, "rows by which a frame sees the sample displaced along the scan per row the active "
+                                "area travels from the detector's centre, kappa (a source that moves with the "
+                                "gratings: the sample's height over the source-to-sample distance; beam_path of "
+                                "dfxcorr diagnose); 0: the beam paths stay fixed, as in the paper", _NUM,
+                           check=_within(-0.9, 0.9)),
+    },
     "mask": {
         "enabled": Option(True, "leave pixels whose frames disagree (sample motion, paper Sec. II-E) out of the "
                                 "vibration fit (only of it)", bool),

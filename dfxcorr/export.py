@@ -13,9 +13,9 @@ import h5py
 import numpy as np
 import yaml
 
+from .catalogue import CATALOGUE
 from .errors import DfxcorrError, OutputExistsError
 from .io import atomic_path, h5_output
-from .model import CATALOGUE
 from .result import Result, chi2_limits, paper_params
 
 FORMAT = "dfxcorr-result"

@@ -24,8 +24,10 @@ import numpy as np
 from scipy.linalg import solve_triangular
 from scipy.optimize import minimize
 
+from . import engine as E
 from . import kernels as K
 from . import model as M
+from .catalogue import PAPER_MODEL, effect, neutral_params
 from .frames import (
     catalogue_prior,
     empirical_prior,
@@ -35,6 +37,8 @@ from .frames import (
     well_determined,
     wrap_phases,
 )
+from .noise import noise_weights
+from .observations import Observations
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +131,7 @@ LAMBDA_SHRINK = 0.01
 class _Problem:
     """Packs effect parameters into one preconditioned vector for scipy."""
 
-    def __init__(self, obs: M.Observations, names: Iterable[str], params: dict[str, np.ndarray], weights: np.ndarray,
+    def __init__(self, obs: Observations, names: Iterable[str], params: dict[str, np.ndarray], weights: np.ndarray,
                  *, phase: float | None = None, precondition: bool = True, preconditioner: str = "profiled",
                  prior: dict | None = None, fringe: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         if preconditioner not in PRECONDITIONERS:
@@ -147,7 +151,7 @@ class _Problem:
         #: passes of the cost kernel over the samples (cost and gradient, or the Fisher diagonal)
         self.evaluations = 0
         # the spread columns of the Hessian (:meth:`hessian`), by their number
-        self._spread: dict[int, tuple[M.Observations, np.ndarray]] = {}
+        self._spread: dict[int, tuple[Observations, np.ndarray]] = {}
         # z = chol^T (scale theta): chol is the Cholesky factor of the profiled Hessian divided by the diagonal
         # preconditioner's scales (eq. 34), or None
         self.chol: np.ndarray | None = None
@@ -187,7 +191,7 @@ class _Problem:
             self._spread[columns] = spread_columns(self.obs, self.weights, most=columns)
         obs, weights = self._spread[columns]
         images = _solve(obs, params, weights, keep_inverse=True)
-        plain, corr = K.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
+        plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
                                M.component_table(self.names)[:3])
         offsets = np.cumsum([0] + [int(np.prod(shp)) for shp in self.shapes])
         where = {n: (o, shp) for n, o, shp in zip(self.names, offsets[:-1], self.shapes, strict=True)}
@@ -233,9 +237,9 @@ class _Problem:
     def _channel_sums(self, params: dict[str, np.ndarray], *, square: bool) -> tuple[float, np.ndarray]:
         """Reduced cost and the per-parameter sums of the kernel (gradient, or sum w F^2 if ``square``)."""
         self.evaluations += 1
-        cost, g = K.reduced_cost(self.obs, _channels(self.obs, params), self.weights, *self.fringe, phase=self.phase,
+        cost, g = E.reduced_cost(self.obs, _channels(self.obs, params), self.weights, *self.fringe, phase=self.phase,
                                  square=square,
-                                 channels={M.effect(n).channel for n in self.names})
+                                 channels={effect(n).channel for n in self.names})
         sums = M.channel_adjoint(self.names, M.Channels(*g), x=self.obs.x, square=square)
         return cost, np.concatenate([sums[n].ravel() for n in self.names])
 
@@ -262,7 +266,7 @@ class _Problem:
 
     def lower(self) -> np.ndarray:
         """Physical lower bounds of the parameters (visibility and dose stay positive; -inf: none)."""
-        return np.concatenate([np.full(int(np.prod(shp)), -np.inf if M.effect(n).lower is None else M.effect(n).lower)
+        return np.concatenate([np.full(int(np.prod(shp)), -np.inf if effect(n).lower is None else effect(n).lower)
                                for n, shp in zip(self.names, self.shapes, strict=True)])
 
     def bounds(self) -> list[tuple[float | None, None]] | None:
@@ -371,7 +375,7 @@ def gauss_newton(prob: _Problem, *, maxiter: int, gtol: float, on_step: Callable
 OPTIMIZERS = ("gauss-newton", "lbfgs")
 
 
-def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.ndarray], weights: np.ndarray, *,
+def minimise(obs: Observations, names: Sequence[str], params: dict[str, np.ndarray], weights: np.ndarray, *,
              phase: float | None = None, maxiter: int = 200, gtol: float = 1e-3, precondition: bool = True,
              preconditioner: str = "profiled", optimizer: str = "gauss-newton", prior: dict | None = None,
              on_iteration: Callable[[float], None] | None = None,
@@ -482,7 +486,7 @@ def minimise(obs: M.Observations, names: Sequence[str], params: dict[str, np.nda
     return prob.unpack(theta), costs, str(res.message), bool(res.success), evaluations
 
 
-def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODEL, start: dict | None = None,
+def fit_vibrations(obs: Observations, *, effects: Sequence[str] = PAPER_MODEL, start: dict | None = None,
                    weights: np.ndarray | None = None, circmean_iterations: int = 10, staged: bool = True,
                    maxiter: int = 300, gtol: float = 1e-3, precondition: bool = True,
                    preconditioner: str = "profiled", optimizer: str = "gauss-newton", prior: bool = True,
@@ -543,7 +547,7 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
     -------
     FitResult
     """
-    names = [n for n in effects if M.effect(n).channel is not None]
+    names = [n for n in effects if effect(n).channel is not None]
     J = obs.n_frames
     costs, stage_of, messages, evaluations = [], [], [], 0
     if coarse > 1:
@@ -561,12 +565,12 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
         start, staged = first.params, False
     K.set_threads()
     fringe = K.fringe(obs)
-    params = M.neutral_params(names, J)
+    params = neutral_params(names, J)
     if start:
         params.update({k: np.array(v, dtype=np.float64) for k, v in start.items() if k in params})
     if weights is None:
         weights = initial_weights(obs, params)
-    phase_names = [n for n in names if M.effect(n).channel == "phase"]
+    phase_names = [n for n in names if effect(n).channel == "phase"]
     stages = []
     if staged and phase_names:
         if circmean_iterations > 0:
@@ -625,7 +629,7 @@ def fit_vibrations(obs: M.Observations, *, effects: Sequence[str] = M.PAPER_MODE
                      evaluations=evaluations)
 
 
-def pilot_uncertainty(obs: M.Observations, *, params: dict | None = None, effects: Sequence[str] = M.PAPER_MODEL,
+def pilot_uncertainty(obs: Observations, *, params: dict | None = None, effects: Sequence[str] = PAPER_MODEL,
                       gauge_fraction: float = 0.5) -> float:
     """Median one-sigma uncertainty of the phase effects that a fit of ``obs`` would report, before fitting.
 
@@ -652,14 +656,14 @@ def pilot_uncertainty(obs: M.Observations, *, params: dict | None = None, effect
         The larger of the medians of phase_offset (rad) and tilt (rad at the detector's edge) over the
         well-determined frames.
     """
-    names = [n for n in effects if M.effect(n).channel is not None]
-    at = {**M.neutral_params(names, obs.n_frames), **{k: v for k, v in (params or {}).items() if k in names}}
+    names = [n for n in effects if effect(n).channel is not None]
+    at = {**neutral_params(names, obs.n_frames), **{k: v for k, v in (params or {}).items() if k in names}}
     unc = uncertainty(obs, at, initial_weights(obs, at))
     good = well_determined(obs, gauge_fraction)
-    return max(float(np.median(unc[n][good])) for n in names if M.effect(n).channel == "phase")
+    return max(float(np.median(unc[n][good])) for n in names if effect(n).channel == "phase")
 
 
-def spread_columns(obs: M.Observations, weights: np.ndarray, *, most: int) -> tuple[M.Observations, np.ndarray]:
+def spread_columns(obs: Observations, weights: np.ndarray, *, most: int) -> tuple[Observations, np.ndarray]:
     """At most ``most`` evenly spread columns of the observations and their weights (K, C); all if fewer."""
     if obs.columns.size <= most:
         return obs, weights
@@ -668,29 +672,29 @@ def spread_columns(obs: M.Observations, weights: np.ndarray, *, most: int) -> tu
     return obs.subset(keep), np.ascontiguousarray(weights[:, keep])
 
 
-def initial_weights(obs: M.Observations, params: dict) -> np.ndarray:
+def initial_weights(obs: Observations, params: dict) -> np.ndarray:
     """Inverse shot-noise variances from the model at ``params`` after one data-weighted solve (eq. 6)."""
     K.set_threads()
-    return _model_weights(obs, params, M.noise_weights(obs, np.maximum(obs.counts, 1.0)))
+    return _model_weights(obs, params, noise_weights(obs, np.maximum(obs.counts, 1.0)))
 
 
-def _channels(obs: M.Observations, params: dict) -> M.Channels:
+def _channels(obs: Observations, params: dict) -> M.Channels:
     """Channel values of ``params`` on the observations' (frame, column) grid."""
     return M.channels(params, x=obs.x, n_frames=obs.n_frames)
 
 
-def _model_weights(obs: M.Observations, params: dict, weights: np.ndarray) -> np.ndarray:
+def _model_weights(obs: Observations, params: dict, weights: np.ndarray) -> np.ndarray:
     """Inverse noise variances of the model solved with ``weights`` (the weights of a second solve)."""
-    return K.retrieve(obs, _channels(obs, params), weights=weights, next_weights=True)["weights"]
+    return E.retrieve(obs, _channels(obs, params), weights=weights, next_weights=True)["weights"]
 
 
-def _solve(obs: M.Observations, params: dict, weights: np.ndarray, *, keep_inverse: bool = False) -> M.Images:
+def _solve(obs: Observations, params: dict, weights: np.ndarray, *, keep_inverse: bool = False) -> M.Images:
     """Closed-form images for fixed parameters and weights."""
-    out = K.retrieve(obs, _channels(obs, params), weights=weights, keep_inverse=keep_inverse)
-    return M.Images(out["coef"], out["valid"], out["inverse"])
+    out = E.retrieve(obs, _channels(obs, params), weights=weights, keep_inverse=keep_inverse)
+    return M.Images(out["coef"], out["valid"], out["inverse"], out["coupling"])
 
 
-def uncertainty(obs: M.Observations, params: dict, weights: np.ndarray) -> dict[str, np.ndarray]:
+def uncertainty(obs: Observations, params: dict, weights: np.ndarray) -> dict[str, np.ndarray]:
     """One-sigma uncertainty of the effect parameters from the profiled Fisher information.
 
     The pseudo-inverse leaves out the gauge directions (a common shift or scale that the images take
@@ -702,7 +706,7 @@ def uncertainty(obs: M.Observations, params: dict, weights: np.ndarray) -> dict[
         return out
     K.set_threads()
     images = _solve(obs, params, weights, keep_inverse=True)
-    plain, corr = K.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
+    plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
                            M.component_table(names)[:3])
     info, index = plain - corr, M.fisher_index(names, obs.n_frames)
     d = np.diag(info).copy()

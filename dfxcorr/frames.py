@@ -7,12 +7,14 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from . import kernels as K
+from . import engine as E
 from . import model as M
 from .align import gauge_frames
+from .catalogue import effect
+from .observations import Observations
 
 
-def wrap_phases(params: dict, obs: M.Observations) -> dict:
+def wrap_phases(params: dict, obs: Observations) -> dict:
     """Move phase parameters into their symmetry window without changing the model.
 
     A phase offset is defined modulo 2 pi. On columns spaced by n the tilt is defined modulo the alias
@@ -34,7 +36,7 @@ def wrap_phases(params: dict, obs: M.Observations) -> dict:
 
 def catalogue_prior(names: Iterable[str]) -> dict:
     """A wide prior for every per-frame effect: its neutral value, width from the catalogue."""
-    return {n: (M.effect(n).neutral, M.effect(n).scale) for n in names if M.effect(n).per_frame}
+    return {n: (effect(n).neutral, effect(n).scale) for n in names if effect(n).per_frame}
 
 
 def empirical_prior(params: dict, good: np.ndarray, *, floor: float = 1e-3) -> dict:
@@ -46,13 +48,13 @@ def empirical_prior(params: dict, good: np.ndarray, *, floor: float = 1e-3) -> d
     """
     out = {}
     for n, p in params.items():
-        if M.effect(n).per_frame:
+        if effect(n).per_frame:
             med = np.median(p[good], axis=0)
             out[n] = (med, np.maximum(1.4826 * np.median(np.abs(p[good] - med), axis=0), floor))
     return out
 
 
-def rescue_frames(obs: M.Observations, params: dict, weights: np.ndarray, frames: np.ndarray,
+def rescue_frames(obs: Observations, params: dict, weights: np.ndarray, frames: np.ndarray,
                   prior: dict, *, n_offset: int = 48, n_tilt: int = 41) -> tuple[dict, int]:
     """Global search over phase offset and tilt for frames that light only a few rows.
 
@@ -71,7 +73,7 @@ def rescue_frames(obs: M.Observations, params: dict, weights: np.ndarray, frames
     """
     params = {k: v.copy() for k, v in params.items()}
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
-    now = K.retrieve(obs, ch, weights=weights)
+    now = E.retrieve(obs, ch, weights=weights)
     c1, w1 = (float(np.ravel(prior["tilt"][0])[0]), float(np.ravel(prior["tilt"][1])[0])) if "tilt" in prior else (0, 1)
     offsets = np.linspace(-np.pi, np.pi, n_offset, endpoint=False)
     tilts = c1 + np.linspace(-4 * w1, 4 * w1, n_tilt) if "tilt" in params else np.zeros(1)
@@ -98,7 +100,7 @@ def rescue_frames(obs: M.Observations, params: dict, weights: np.ndarray, frames
     return params, moved
 
 
-def frame_grid_cost(obs: M.Observations, ch: M.Channels, coef: np.ndarray, weights: np.ndarray, blocks: np.ndarray,
+def frame_grid_cost(obs: Observations, ch: M.Channels, coef: np.ndarray, weights: np.ndarray, blocks: np.ndarray,
                     offsets: np.ndarray, tilts: np.ndarray, *, held: np.ndarray) -> np.ndarray:
     """Cost sum w (I - Ibar)^2 of some blocks of one frame, at fixed images, over a grid of phase offset and tilt.
 
@@ -129,7 +131,7 @@ def frame_grid_cost(obs: M.Observations, ch: M.Channels, coef: np.ndarray, weigh
     """
     j = obs.frame[blocks[0]]
     x = obs.x
-    cf = coef[obs.pixel[blocks]]
+    cf = obs.gather(coef, blocks)
     theta = obs.phif[blocks] + ch.phase[j] - held
     amp = ch.dose[j] * obs.tf[blocks]
     P = amp * obs.vf[blocks] * ch.vis[j] * (cf[..., 1] + 1j * cf[..., 2]) * np.exp(1j * theta)
@@ -146,13 +148,13 @@ def frame_grid_cost(obs: M.Observations, ch: M.Channels, coef: np.ndarray, weigh
                     for n, Sn in enumerate(S, start=1))
 
 
-def rows_in_use(obs: M.Observations) -> np.ndarray:
+def rows_in_use(obs: Observations) -> np.ndarray:
     """Rows of each frame in ``obs`` that hold a sample the fit uses, (J,): none for a frame left out as a detector
     fault (:mod:`dfxcorr.faults`), whose parameters the data then do not determine at all."""
     return obs.frame_sum(np.any(obs.use, axis=1).astype(np.float64))
 
 
-def well_determined(obs: M.Observations, fraction: float) -> np.ndarray:
+def well_determined(obs: Observations, fraction: float) -> np.ndarray:
     """Frames lighting at least ``fraction`` of the largest number of rows any frame lights in ``obs`` with samples
     in use (:func:`rows_in_use`), (J,) (:func:`dfxcorr.align.gauge_frames`). A frame left out is never one: its
     neutral parameters would pull the gauge, the empirical prior and the reported spread towards them."""
@@ -168,7 +170,7 @@ def fix_gauge(params: dict, good: np.ndarray, *, visibility_gauge: str = "max",
     """
     out = {}
     for name, p in params.items():
-        e = M.effect(name)
+        e = effect(name)
         if not e.per_frame or e.gauge == "none" or not np.any(good):
             out[name] = p
         elif e.gauge == "shift":

@@ -18,9 +18,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import engine as E
 from . import kernels as K
 from . import model as M
+from .catalogue import effect, neutral_params
 from .fit import spread_columns
+from .observations import Observations
 
 
 @dataclass
@@ -80,14 +83,14 @@ class Information:
         return self._inverses[key]
 
 
-def information(obs: M.Observations, ch: M.Channels, images: M.Images, weights: np.ndarray, names) -> Information:
+def information(obs: Observations, ch: M.Channels, images: M.Images, weights: np.ndarray, names) -> Information:
     """Fisher information of ``names`` at the given channel values and images (``images.inverse`` needed).
 
     From the compiled kernel (:func:`dfxcorr.kernels.fisher`, held to :func:`dfxcorr.model.fisher_matrix`
     by the tests): the plain information and the profiled correction in one pass.
     """
     K.set_threads()
-    plain_matrix, corr = K.fisher(obs, ch, weights, images.coef, images.inverse,
+    plain_matrix, corr = E.fisher(obs, ch, weights, images.coef, images.inverse,
                                   M.component_table(names)[:3])
     info, index = plain_matrix - corr, M.fisher_index(names, obs.n_frames)
     plain = np.diag(plain_matrix)
@@ -144,12 +147,12 @@ def conditional(inf: Information, name: str | tuple[str, ...], base) -> Conditio
     projector = inf.matrix[np.ix_(sel, bmask)] @ inf.base_inverse(base)
     schur = inf.matrix[np.ix_(sel, sel)] - projector @ inf.matrix[np.ix_(bmask, sel)]
     inverse, dof = pinv_rank(schur, inf.plain[sel])
-    excess = int(sel.sum()) - dof - sum(M.effect(n).gauge_dims for n in names)
+    excess = int(sel.sum()) - dof - sum(effect(n).gauge_dims for n in names)
     return Conditional(sel, bmask, projector, inverse, dof, Identifiability("+".join(names), excess <= 0 and dof > 0,
                                                                           max(excess, 0)))
 
 
-def select(obs: M.Observations, weights: np.ndarray, names, *, max_columns: int = 64) -> list[Identifiability]:
+def select(obs: Observations, weights: np.ndarray, names, *, max_columns: int = 64) -> list[Identifiability]:
     """Judge effects in turn, each given the identifiable ones before it, at their neutral values.
 
     Identifiability is structural, so at most ``max_columns`` evenly spread columns are used. The images
@@ -159,9 +162,9 @@ def select(obs: M.Observations, weights: np.ndarray, names, *, max_columns: int 
     if not names:
         return []
     obs, weights = spread_columns(obs, weights, most=max_columns)
-    ch = M.channels(M.neutral_params(names, obs.n_frames), x=obs.x, n_frames=obs.n_frames)
+    ch = M.channels(neutral_params(names, obs.n_frames), x=obs.x, n_frames=obs.n_frames)
     K.set_threads()
-    solved = K.retrieve(obs, ch, weights=weights, keep_inverse=True)
+    solved = E.retrieve(obs, ch, weights=weights, keep_inverse=True)
     inf = information(obs, ch, M.Images(solved["coef"], solved["valid"], solved["inverse"]), weights, names)
     chosen: list[str] = []
     out = []

@@ -12,7 +12,7 @@ non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton 
 :func:`_image_columns` at the previous images (``model.solve_images``).
 
 Layout: a pixel is (row, column); its samples are the blocks ``starts[r]:starts[r + 1]`` of one row
-(:class:`dfxcorr.model.Observations`). The kernels run over chunks of rows in parallel; every chunk owns its
+(:class:`dfxcorr.observations.Observations`). The kernels run over chunks of rows in parallel; every chunk owns its
 accumulators (summed afterwards), so no two threads write the same memory. Within a row the columns are handled in
 tiles (:data:`TILE`, :data:`FIT_TILE`) so that the second pass over a tile finds what the first left in cache. Sums
 are accumulated in float64 whatever the sample dtype.
@@ -115,6 +115,12 @@ def _c(a: np.ndarray, dtype=None) -> np.ndarray:
     """``a`` C-ordered (copied only if it is not, or not of ``dtype``): numba compiles a kernel once per layout and
     dtype (a first demo run compiled the retrieval five times, about 6 s each), and walks samples a row at a time."""
     return np.ascontiguousarray(a, dtype=dtype)
+
+
+def _per_pixel(obs) -> None:
+    """The compiled loops solve each pixel's images from its own samples: refuse samples that read between rows."""
+    if obs.reading is not None:
+        raise ValueError("samples read the images between rows: evaluate them through dfxcorr.engine")
 
 
 def _bounds(obs) -> np.ndarray:
@@ -389,6 +395,7 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
     grads : tuple
         Per channel value: phase (J, C), visibility (J, C), dose (J,), background (3,), harmonic (2,).
     """
+    _per_pixel(obs)
     hold = np.eye(2) if phase is None else np.array([[np.cos(phase), np.sin(phase)], [0.0, 0.0]])
     need = np.isin(list(CHANNEL_IDS), list(channels))
     bounds = _bounds(obs)
@@ -555,6 +562,7 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         ``keep_expected`` or ``next_weights``), 'chi2' (Pearson chi-square
         over the used samples of valid pixels), 'samples' (their number).
     """
+    _per_pixel(obs)
     if iterations < 1:
         raise ValueError("iterations must be at least 1")
     g = obs.pixel_gain(gain)
@@ -717,6 +725,7 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray |
     correction : ndarray, shape (P, P)
         sum over pixels of Y^T N^-1 Y (Y = X^T W F): the profiled information is plain - correction.
     """
+    _per_pixel(obs)
     channel, power, n_per_frame = table
     bounds = _bounds(obs)
     inv = np.zeros((0, 0, 3, 3)) if inverse is None else inverse

@@ -17,11 +17,15 @@ from collections.abc import Iterable
 import numpy as np
 from scipy import ndimage, special
 
+from . import engine as E
 from . import kernels as K
 from . import model as M
+from .catalogue import PAPER_MODEL, neutral_params
+from .noise import noise_weights
+from .observations import Observations
 
 
-def motion_statistics(obs: M.Observations, params: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def motion_statistics(obs: Observations, params: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-pixel reduced residual, fringe sensitivity and degrees of freedom: what :func:`motion_score` and
     :func:`mask_from_score` need.
 
@@ -53,14 +57,14 @@ def motion_statistics(obs: M.Observations, params: dict) -> tuple[np.ndarray, np
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
     # the model's weights (a solve with the data's first): the score compares the residual with the noise the
     # model predicts, not with the data's own scatter
-    solved = K.retrieve(obs, ch, iterations=2)
+    solved = E.retrieve(obs, ch, iterations=2)
     weights, ibar = solved["weights"], solved["expected"]
     n = obs.segment_sum((weights > 0).astype(float))
     # the fringe's amplitude per unit image modulation, |(Bc, Bs)| = D tf vf V of model.design
     fringe_amp = ch.dose[obs.frame][:, None] * obs.tf * obs.vf * ch.vis[obs.frame]
     with np.errstate(divide="ignore", invalid="ignore"):
         eps = obs.segment_sum(np.where(weights > 0, deviance(obs, ibar), 0.0)) / (n - 3)
-        amp = np.hypot(solved["coef"][..., 1], solved["coef"][..., 2])[obs.pixel]
+        amp = obs.gather(np.hypot(solved["coef"][..., 1], solved["coef"][..., 2]))
         q = obs.segment_sum(weights * (amp * fringe_amp) ** 2) / n
     ok = solved["valid"] & (n > 3) & np.isfinite(eps) & np.isfinite(q)
     return np.where(ok, eps, np.nan), np.where(ok, q, np.nan), n - 3
@@ -74,7 +78,7 @@ def score_from_statistics(eps: np.ndarray, q: np.ndarray) -> np.ndarray:
         return np.where(ok, eps / (1.0 + gamma * q), np.nan)
 
 
-def motion_score(obs: M.Observations, params: dict, *, chunk: float = 1e6) -> np.ndarray:
+def motion_score(obs: Observations, params: dict, *, chunk: float = 1e6) -> np.ndarray:
     """Per-pixel residual relative to what noise and (unmodelled) vibrations explain.
 
     ``params`` as :func:`motion_statistics`'s. The statistics are taken a run of about ``chunk`` samples' columns
@@ -92,7 +96,7 @@ def motion_score(obs: M.Observations, params: dict, *, chunk: float = 1e6) -> np
     return score_from_statistics(eps, q)
 
 
-def deviance(obs: M.Observations, ibar: np.ndarray) -> np.ndarray:
+def deviance(obs: Observations, ibar: np.ndarray) -> np.ndarray:
     """Poisson deviance of each sample in photon units, shape (K, C); about chi-square(1) per sample.
 
     With electronic noise it is scaled by g mu / (g mu + sigma_e^2), the photon share of the variance; g is
@@ -106,7 +110,7 @@ def deviance(obs: M.Observations, ibar: np.ndarray) -> np.ndarray:
     return d * (g * mu / (g * mu + obs.electronic))
 
 
-def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4, tol: float = 3e-3) -> dict:
+def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, tol: float = 3e-3) -> dict:
     """A quick estimate of the paper's per-frame phase offset, tilt and visibility for the motion score.
 
     Gauss-Newton steps (at most ``iterations``, until the rms step is below ``tol``) on every
@@ -123,26 +127,26 @@ def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4
     dict
         'phase_offset', 'tilt', 'visibility_loss', each (J, 1).
     """
-    names = M.PAPER_MODEL
+    names = PAPER_MODEL
     K.set_threads()
     sub = obs.subset(np.arange(0, obs.columns.size, every))
     fringe = K.fringe(sub)
     table = M.component_table(names)[:3]
     index = M.fisher_index(names, sub.n_frames)
-    params = M.neutral_params(names, obs.n_frames)
-    weights = M.noise_weights(sub, np.maximum(sub.counts, 1.0))
+    params = neutral_params(names, obs.n_frames)
+    weights = noise_weights(sub, np.maximum(sub.counts, 1.0))
     ch = M.channels(params, x=sub.x, n_frames=sub.n_frames)
-    solved = K.retrieve(sub, ch, weights=weights)
+    solved = E.retrieve(sub, ch, weights=weights)
     for _ in range(iterations):
         resid = sub.counts - solved["expected"]
         z2 = sub.segment_sum(weights * resid ** 2) / np.maximum(sub.segment_sum((weights > 0) * 1.0), 1)
         # no pixel seen in more frames than its images' unknowns: nothing to compare with
         outlier = z2 > (4.0 * np.median(z2[solved["valid"]]) if solved["valid"].any() else np.inf)
         w = np.where(outlier | ~solved["valid"], 0.0, 1.0)[sub.pixel] * weights
-        held = K.retrieve(sub, ch, weights=w, keep_inverse=True)
-        plain, corr = K.fisher(sub, ch, w, held["coef"], held["inverse"], table)
+        held = E.retrieve(sub, ch, weights=w, keep_inverse=True)
+        plain, corr = E.fisher(sub, ch, w, held["coef"], held["inverse"], table)
         # the reduced cost's gradient is that at the images solved with w (envelope theorem)
-        grad = M.channel_adjoint(names, M.Channels(*K.reduced_cost(sub, ch, w, *fringe,
+        grad = M.channel_adjoint(names, M.Channels(*E.reduced_cost(sub, ch, w, *fringe,
                                                                     channels=("phase", "visibility"))[1]), x=sub.x)
         rhs = -0.5 * np.array([grad[n][j, m] for n, j, m in index])
         step = np.linalg.lstsq(plain - corr, rhs, rcond=1e-8)[0]
@@ -152,7 +156,7 @@ def pilot_vibrations(obs: M.Observations, *, iterations: int = 8, every: int = 4
             break
         # noise weights from the model solved with the current weights; the solve with them is the next step's
         ch = M.channels(params, x=sub.x, n_frames=sub.n_frames)
-        solved = K.retrieve(sub, ch, weights=weights, iterations=2)
+        solved = E.retrieve(sub, ch, weights=weights, iterations=2)
         weights = solved["weights"]
     return params
 
@@ -195,7 +199,7 @@ def mask_from_score(image: np.ndarray, *, dof: np.ndarray | None = None, thresho
     return moving, thr
 
 
-def motion_mask(blocks: Iterable[M.Observations], *, pilot: dict, threshold: float | None = None,
+def motion_mask(blocks: Iterable[Observations], *, pilot: dict, threshold: float | None = None,
                 sigma: float = 6.0, dilate: int = 1) -> tuple[np.ndarray, np.ndarray, float]:
     """Pixels whose frames disagree beyond noise and vibrations (paper Sec. II-E), block by block.
 

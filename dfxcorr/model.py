@@ -39,9 +39,6 @@ linear least squares, eq. 9) for given per-frame parameters; v = sqrt(c^2 + s^2)
 refined by Gauss-Newton steps (:func:`solve_images`), each again a closed-form solve whose columns are
 the model's derivatives at the current direction of (c, s) (by Euler's identity the linearised model
 has no constant term), so the solution is the least-squares optimum and the envelope theorem holds.
-
-The names of the catalogue, the observations and the noise model are available here too (``M.effect``,
-``M.Observations``, ``M.variance``): the model is what they are for.
 """
 from __future__ import annotations
 
@@ -49,15 +46,15 @@ from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
 
 from . import kernels
-from .catalogue import CATALOGUE, MEAN_EFFECTS, PAPER_MODEL, Effect, effect, neutral_params
-from .noise import noise_weights, pearson, variance
-from .observations import Noise, Observations, lateral_coordinate
+from .banded import factor_read_between, solve_read_between
+from .catalogue import effect
+from .observations import Observations
 
-__all__ = ["CATALOGUE", "MEAN_EFFECTS", "PAPER_MODEL", "Effect", "effect", "neutral_params", "Noise", "Observations",
-           "lateral_coordinate", "noise_weights", "pearson", "variance", "Channels", "channels", "channel_adjoint",
-           "component_table", "fisher_index", "Design", "design", "background_basis", "harmonic_factors",
+__all__ = ["Channels", "channels", "channel_adjoint", "component_table", "fisher_index", "Design", "design",
+           "design_channels", "channel_fields", "read_between_correction", "background_basis", "harmonic_factors",
            "image_columns", "Images", "solve_pixels", "solve_images", "harmonic_term", "expected", "circular_mean",
            "sample_derivatives", "reduce_component", "gradient", "leverage", "frame_leverage", "fisher_matrix"]
 
@@ -237,7 +234,11 @@ def design(obs: Observations, params: dict[str, np.ndarray]) -> Design:
     -------
     Design
     """
-    ch = channels(params, x=obs.x, n_frames=obs.n_frames)
+    return design_channels(obs, channels(params, x=obs.x, n_frames=obs.n_frames))
+
+
+def design_channels(obs: Observations, ch: Channels) -> Design:
+    """:func:`design` from channel values (:func:`channels`) rather than effect parameters."""
     dose = ch.dose[obs.frame][:, None]
     vis = ch.vis[obs.frame]
     background = sum(ch.background[m] * b for m, b in enumerate(background_basis(obs))) if np.any(ch.background) \
@@ -311,12 +312,16 @@ class Images:
     valid : ndarray of bool, shape (R, C)
         Pixels whose normal equations were solvable.
     inverse : ndarray, shape (R, C, 3, 3) or None
-        Inverse normal matrix per pixel (for leverages and Fisher information).
+        Inverse normal matrix per pixel (for leverages and Fisher information): where the samples read between rows
+        (:class:`dfxcorr.observations.Reading`), the pixel's diagonal block of the column's inverse.
+    coupling : ndarray, shape (R, C, 3, 3) or None
+        Where the samples read between rows: the block of the inverse between each row and the next.
     """
 
     coef: np.ndarray
     valid: np.ndarray
     inverse: np.ndarray | None = None
+    coupling: np.ndarray | None = None
 
     @property
     def t(self) -> np.ndarray:
@@ -325,7 +330,8 @@ class Images:
     def subset(self, columns: np.ndarray) -> Images:
         """The images of some of the held columns (positions, as :meth:`Observations.subset` takes them)."""
         return Images(self.coef[:, columns], self.valid[:, columns],
-                      None if self.inverse is None else self.inverse[:, columns])
+                      None if self.inverse is None else self.inverse[:, columns],
+                      None if self.coupling is None else self.coupling[:, columns])
 
     @property
     def v(self) -> np.ndarray:
@@ -362,6 +368,9 @@ def solve_pixels(obs: Observations, columns: list[np.ndarray], target: np.ndarra
         pixel are left out of that pixel's unknowns (coefficient 0).
     inverse : ndarray, shape (R, C, p, p) or None
     """
+    if obs.reading is not None:
+        coef, valid, inverse, _ = solve_read_between(obs, columns, target, weights, keep_inverse=keep_inverse)
+        return coef, valid, inverse
     p = len(columns)
     wX = [weights * X for X in columns]
     N = np.empty(target.shape[:0] + (obs.rows.size, target.shape[1], p, p))
@@ -386,6 +395,61 @@ def solve_pixels(obs: Observations, columns: list[np.ndarray], target: np.ndarra
     if inverse is not None:
         inverse[~valid] = 0.0
     return coef, valid, inverse
+
+
+def read_between_correction(obs: Observations, dsg: Design, coef: np.ndarray, weights: np.ndarray,
+                            F: list[np.ndarray], where: list[np.ndarray], n_params: int, *, columns: int = 16
+                            ) -> np.ndarray:
+    """The profiled images' share of the Fisher information where the samples read between rows.
+
+    sum over columns of Y^T N^-1 Y, Y = X^T W F: a pixel's images share samples with its neighbours', so N is the
+    column's block-tridiagonal normal matrix (:func:`factor_read_between`), solved ``columns`` columns at a time.
+
+    Parameters
+    ----------
+    obs : Observations
+        With ``reading``.
+    dsg : Design
+    coef : ndarray, shape (R, C, 3)
+        The images (the harmonic's image columns are taken at them).
+    weights : ndarray, shape (K, C)
+    F : list of ndarray, each (K, C)
+        dIbar/d(component) of each parameter component at every sample.
+    where : list of ndarray of int, each (K,)
+        The parameter (axis of the information) that component q of block k belongs to: its frame's for per-frame
+        components, one index for a global one.
+    n_params : int
+        P.
+
+    Returns
+    -------
+    ndarray, shape (P, P)
+    """
+    rd = obs.reading
+    assert rd is not None
+    at = obs.gather(coef)
+    X = [dsg.A, *image_columns(dsg, at[..., 1], at[..., 2])]
+    R, K = obs.rows.size, obs.frame.size
+    hi = np.minimum(rd.lo + 1, R - 1)
+    owners = [np.unique(wq, return_inverse=True) for wq in where]
+    corr = np.zeros((n_params, n_params))
+    for start in range(0, obs.columns.size, columns):
+        cols = np.arange(start, min(start + columns, obs.columns.size))
+        sub = obs.subset(cols, copy=False)
+        Xs, w = [x[:, cols] for x in X], weights[:, cols]
+        fac = factor_read_between(sub, Xs, w)
+        # Y of each column: (image row, column, unknown, parameter)
+        Y = np.zeros((R, cols.size, len(X), n_params))
+        for (params, owner), Fq in zip(owners, F, strict=True):
+            # sums over the samples of each (image row, parameter) pair, with what each sample reads of the row
+            spread = sum(sparse.csr_matrix((share, (rows * params.size + owner, np.arange(K))),
+                                           shape=(R * params.size, K))
+                         for rows, share in ((rd.lo, 1.0 - rd.frac), (hi, rd.frac)))
+            for a, Xa in enumerate(Xs):
+                Y[:, :, a, params] += np.moveaxis((spread @ (w * Xa * Fq[:, cols])).reshape(R, params.size, cols.size),
+                                                  1, 2)
+        corr += np.einsum("rcap,rcaq->pq", Y, fac.solve(Y), optimize=True)
+    return corr
 
 
 def solve_images(obs: Observations, dsg: Design, weights: np.ndarray, *, phase: float | None = None,
@@ -414,27 +478,33 @@ def solve_images(obs: Observations, dsg: Design, weights: np.ndarray, *, phase: 
     target = obs.counts - dsg.offset
     steps = 1 + (kernels.HARMONIC_STEPS if any(dsg.harmonic) else 0)
     coef = np.zeros((obs.rows.size, obs.columns.size, 3))
+    coupling = None
     for _ in range(steps):
-        Xc, Xs = image_columns(dsg, coef[obs.pixel, :, 1], coef[obs.pixel, :, 2])
+        at = obs.gather(coef)
+        Xc, Xs = image_columns(dsg, at[..., 1], at[..., 2])
+        if phase is None and obs.reading is not None:
+            coef, valid, inv, coupling = solve_read_between(obs, [dsg.A, Xc, Xs], target, weights,
+                                                            keep_inverse=keep_inverse)
+            continue
         if phase is None:
             coef, valid, inv = solve_pixels(obs, [dsg.A, Xc, Xs], target, weights, keep_inverse=keep_inverse)
             continue
         cp, sp = np.cos(phase), np.sin(phase)
         coef2, valid, _ = solve_pixels(obs, [dsg.A, Xc * cp + Xs * sp], target, weights)
         coef, inv = np.stack([coef2[..., 0], coef2[..., 1] * cp, coef2[..., 1] * sp], axis=-1), None
-    return Images(coef, valid, inv)
+    return Images(coef, valid, inv, coupling)
 
 
 def harmonic_term(obs: Observations, dsg: Design, images: Images) -> np.ndarray:
     """The second harmonic's share of the expected counts, Hc e - Hs f, shape (K, C)."""
-    c = images.coef[obs.pixel]
+    c = obs.gather(images.coef)
     _, _, e, f = harmonic_factors(c[..., 1], c[..., 2])
     return dsg.Hc * e - dsg.Hs * f
 
 
 def expected(obs: Observations, dsg: Design, images: Images) -> np.ndarray:
     """Expected counts Ibar, shape (K, C)."""
-    c = images.coef[obs.pixel]
+    c = obs.gather(images.coef)
     linear = c[..., 0] * dsg.A + c[..., 1] * dsg.Bc + c[..., 2] * dsg.Bs + dsg.offset
     return linear + harmonic_term(obs, dsg, images) if any(dsg.harmonic) else linear
 
@@ -481,10 +551,18 @@ def sample_derivatives(obs: Observations, dsg: Design, images: Images, name: str
     list of ndarray, one (K, C) array per component
     """
     e = effect(name)
-    cid = _channel_id(name)
-    c = images.coef[obs.pixel]
+    fields = channel_fields(obs, dsg, images, _channel_id(name))
+    if e.channel in ("phase", "visibility"):
+        return [fields[0] * obs.x[None, :] ** k_ for k_ in e.powers]
+    return fields
+
+
+def channel_fields(obs: Observations, dsg: Design, images: Images, cid: int) -> list[np.ndarray]:
+    """dIbar/d(channel value) at every sample, each (K, C): [dIbar/dΦ], [dIbar/dV], [dIbar/dD], the three
+    background basis fields, or the two of the harmonic (hc, hs); the channel ``cid`` of
+    :data:`dfxcorr.kernels.CHANNEL_IDS`. :func:`sample_derivatives` multiplies them by the powers of x."""
+    c = obs.gather(images.coef)
     t, cc, ss = c[..., 0], c[..., 1], c[..., 2]
-    x = obs.x[None, :]
     hc, hs = dsg.harmonic
     amp = dsg.dose * obs.tf
     bv = amp * obs.vf * dsg.vis
@@ -504,11 +582,9 @@ def sample_derivatives(obs: Observations, dsg: Design, images: Images, name: str
         p2, q2 = hc * g - hs * k, hc * k + hs * g
     q = cc * np.cos(dsg.theta) - ss * np.sin(dsg.theta)
     if cid == kernels.PHASE:
-        base = cc * dsg.Bs - ss * dsg.Bc - 2 * bv * q2
-        return [base * x ** k_ for k_ in e.powers]
+        return [cc * dsg.Bs - ss * dsg.Bc - 2 * bv * q2]
     if cid == kernels.VISIBILITY:
-        base = amp * obs.vf * (q + p2)
-        return [base * x ** k_ for k_ in e.powers]
+        return [amp * obs.vf * (q + p2)]
     if cid == kernels.DOSE:
         return [(t * dsg.A + cc * dsg.Bc + ss * dsg.Bs + (dsg.Hc * ef - dsg.Hs * ff)) / dsg.dose]
     if cid == kernels.BACKGROUND:
@@ -547,9 +623,19 @@ def leverage(obs: Observations, dsg: Design, images: Images, weights: np.ndarray
     """Leverage of each sample in its pixel's image fit, w x^T N^-1 x, shape (K, C)."""
     if images.inverse is None:
         raise ValueError("leverage needs the inverse normal matrices (solve_images(..., keep_inverse=True))")
-    c = images.coef[obs.pixel]
+    c = obs.gather(images.coef)
     X = np.stack([dsg.A, *image_columns(dsg, c[..., 1], c[..., 2])], axis=-1)
-    return weights * np.einsum("kca,kcab,kcb->kc", X, images.inverse[obs.pixel], X)
+    if obs.reading is None:
+        return weights * np.einsum("kca,kcab,kcb->kc", X, images.inverse[obs.pixel], X)
+    if images.coupling is None:
+        raise ValueError("leverage of samples read between rows needs the inverse's coupling blocks")
+    # the sample's design on both rows it reads: (1 - f) x on row lo, f x on row lo + 1
+    lo, f = obs.reading.lo, obs.reading.frac[:, None, None]
+    hi = np.minimum(lo + 1, images.inverse.shape[0] - 1)
+    a, b = (1.0 - f) * X, f * X
+    return weights * (np.einsum("kca,kcab,kcb->kc", a, images.inverse[lo], a)
+                      + 2 * np.einsum("kca,kcab,kcb->kc", a, images.coupling[lo], b)
+                      + np.einsum("kca,kcab,kcb->kc", b, images.inverse[hi], b))
 
 
 def frame_leverage(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, names: Iterable[str]
@@ -632,6 +718,10 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
     if not profiled:
         return info, index
     # the correction sum_i Y_i^T N_i^-1 Y_i (Y = X^T W D per pixel) couples the frames of each row
+    if obs.reading is not None:
+        where = ([obs.frame * Pf + q for q in range(Pf)] + [np.full(obs.frame.size, J * Pf + g) for g in range(Pg)])
+        F = [F for *_, F in per_frame] + [F for *_, F in glob]
+        return info - read_between_correction(obs, dsg, images.coef, weights, F, where, J * Pf + Pg), index
     kernels.set_threads()
     _, corr = kernels.fisher(obs, dsg.channels, weights, images.coef, images.inverse, component_table(names)[:3])
     return info - corr, index

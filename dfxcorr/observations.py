@@ -42,6 +42,58 @@ class Noise:
 
 
 @dataclass(frozen=True)
+class Reading:
+    """Where each block reads the images when the beam paths change during the scan (``beam_path``).
+
+    Block k sees the sample at the fractional image row ``rows[lo[k]] + frac[k]``: its expected count uses
+    (1 - frac) times the images of held row ``lo`` plus frac times those of held row ``lo + 1`` (the pixel
+    integrates the intensity of both: (t, t v cos phi, t v sin phi) add, not the phase).
+
+    Attributes
+    ----------
+    lo : ndarray of int, shape (K,)
+        Position in :attr:`Observations.rows` of the image row below the read position.
+    frac : ndarray, shape (K,)
+        Fraction of the way to the next held row, in [0, 1); 0 at the last held row.
+    """
+
+    lo: np.ndarray
+    frac: np.ndarray
+
+
+def displaced_reading(row: np.ndarray, rows: np.ndarray, shift: np.ndarray) -> tuple[Reading, np.ndarray]:
+    """The reading of blocks that see the images ``shift`` rows off their own row.
+
+    Parameters
+    ----------
+    row : ndarray of int, shape (K,)
+        Detector row of each block.
+    rows : ndarray of int, shape (R,)
+        The held detector rows, ascending: the image rows.
+    shift : ndarray, shape (K,)
+        Block k reads the images at row[k] + shift[k].
+
+    Returns
+    -------
+    reading : Reading
+    inside : ndarray of bool, shape (K,)
+        Blocks that read between two consecutive held rows (or on one); the others see the sample outside
+        the images and must not be used.
+    """
+    at = row + np.asarray(shift, dtype=np.float64)
+    base = np.floor(at)
+    lo = np.searchsorted(rows, base, side="left")
+    lo_c = np.clip(lo, 0, rows.size - 1)
+    frac = at - base
+    on_row = (lo < rows.size) & (rows[lo_c] == base)
+    last = lo_c == rows.size - 1
+    nxt = rows[np.minimum(lo_c + 1, rows.size - 1)]
+    inside = on_row & ((~last & (nxt == base + 1)) | (frac == 0))
+    frac = np.where(inside, frac, 0.0)
+    return Reading(np.where(inside, lo_c, 0).astype(np.int64), frac), inside
+
+
+@dataclass(frozen=True)
 class Observations:
     """Illuminated samples of a scan with their flat field, as blocks of (row, frame).
 
@@ -79,6 +131,8 @@ class Observations:
         The part of ``dark`` that is photons (counts): known unmodulated photons of each sample, such as Compton
         scatter (:attr:`LitStore.offset <dfxcorr.align.LitStore>`). Their shot noise is in every sample's
         variance (:meth:`photons`); the rest of ``dark`` is the detector's, without photon noise. None: none.
+    reading : Reading or None
+        Where each block reads the images (:class:`Reading`); None: at its own row (the paper's geometry).
     """
 
     counts: np.ndarray
@@ -96,6 +150,7 @@ class Observations:
     noise: np.ndarray | None = None
     roi: np.ndarray | None = None
     offset: np.ndarray | None = None
+    reading: Reading | None = None
     rows: np.ndarray = field(init=False)
     starts: np.ndarray = field(init=False)
     pixel: np.ndarray = field(init=False)
@@ -127,6 +182,22 @@ class Observations:
     def in_roi(self) -> np.ndarray:
         """The region of interest as an array, shape (K, C)."""
         return np.ones(self.counts.shape, bool) if self.roi is None else self.roi
+
+    def gather(self, a: np.ndarray, blocks: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """Per-pixel values (R, C, ...) at every sample (K, C, ...), or at those of some ``blocks``: the pixel's own, or
+        where :attr:`reading` says."""
+        if self.reading is None:
+            return a[self.pixel[blocks]]
+        lo, f = self.reading.lo[blocks], self.reading.frac[blocks]
+        f = f.reshape(f.shape + (1,) * (a.ndim - 1))
+        return (1.0 - f) * a[lo] + f * a[np.minimum(lo + 1, a.shape[0] - 1)]
+
+    def gather_valid(self, valid: np.ndarray) -> np.ndarray:
+        """Per-pixel flags (R, C) at every sample (K, C): true where every image row the sample reads is flagged."""
+        if self.reading is None:
+            return valid[self.pixel]
+        lo, f = self.reading.lo, self.reading.frac
+        return valid[lo] & (valid[np.minimum(lo + 1, valid.shape[0] - 1)] | (f == 0)[:, None])
 
     def segment_sum(self, a: np.ndarray, dtype: DTypeLike | None = None) -> np.ndarray:
         """Sum over the blocks of each row: (K, ...) -> (R, ...), R = number of rows held (in ``dtype``, e.g. to count
@@ -173,7 +244,7 @@ class Observations:
                             self.row, self.frame, self.columns[idx], self.shape, self.gain, self.electronic,
                             None if self.noise is None else cut(self.noise),
                             None if self.roi is None else cut(self.roi),
-                            None if self.offset is None else cut(self.offset))
+                            None if self.offset is None else cut(self.offset), self.reading)
 
     def column_chunks(self, samples: float = 1e6) -> list[np.ndarray]:
         """Positions of ``self.columns`` in consecutive runs holding about ``samples`` samples each (at least one

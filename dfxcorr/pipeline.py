@@ -16,6 +16,7 @@ from __future__ import annotations
 import datetime
 import hashlib
 import logging
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -23,14 +24,15 @@ import numpy as np
 
 from . import __version__
 from . import config as C
-from . import model as M
-from .align import tilt_alias_period
+from .align import tilt_alias_period, to_detector_rows
+from .catalogue import effect
 from .effects import REGISTRY
 from .estimators import ESTIMATORS
 from .faults import MIN_KEPT_SHARE
 from .fit import FitResult
 from .io import Scan
 from .mask import motion_mask
+from .observations import Observations
 from .planning import ColumnPlan, pilot_estimate, plan_columns, resolve_effects, row_blocks
 from .preparation import Prepared, prepare
 from .progress import Progress, stage
@@ -140,8 +142,7 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
             for _ in params]
     sums = np.zeros((len(params), 3))  # chi-square, samples, pixels
     left_out = 0
-    for rows in blocks:
-        obs = prep.observations(rows=rows, dtype=np.float32)
+    for obs in retrieval_parts(prep, blocks):
         roi = obs.in_roi
         with np.errstate(invalid="ignore"):
             kept = obs.segment_sum(obs.use.astype(np.float64)) / obs.segment_sum(np.ones(obs.use.shape))
@@ -152,11 +153,36 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
                 obs.place(m[k], v)
             acc += (rec.chi2_sum, rec.samples, int(rec.images.valid.sum()))
         left_out += int(np.count_nonzero(obs.segment_sum(roi.astype(np.float64)) == 0))
+    if prep.store.parallax:
+        maps = [detector_rows(m, prep.store.parallax) for m in maps]
     if left_out:
         log.info("region of interest: %d pixels see no fringe (reference visibility < %.3g) and are left out "
                  "of the images", left_out, prep.min_visibility)
     return [(m, per_dof(c, int(n), int(px), k, 3), max(int(n) - 3 * int(px) - k, 0))
             for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
+
+
+def detector_rows(maps: dict[str, np.ndarray], kappa: float) -> dict[str, np.ndarray]:
+    """Images each pixel sees with the active area centred on it, as a frame centred on the detector sees them
+    (:func:`dfxcorr.align.to_detector_rows`): t, v, phi maps (H, W) in, the same out."""
+    t, v, phi = maps["transmission"], maps["dark_field"], maps["differential_phase"]
+    tcs = to_detector_rows(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], axis=-1), kappa)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return {"transmission": tcs[..., 0], "dark_field": np.hypot(tcs[..., 1], tcs[..., 2]) / tcs[..., 0],
+                "differential_phase": np.arctan2(tcs[..., 2], tcs[..., 1])}
+
+
+def retrieval_parts(prep: Prepared, blocks: list[tuple[int, int]]) -> Iterator[Observations]:
+    """The float32 observations the retrieval goes through, one part at a time: the blocks of rows; or where the
+    samples read the images between rows (``beam_path``: the images of a column are then one solve), as many runs
+    of whole columns, each holding about a block's samples."""
+    if not prep.store.parallax:
+        for rows in blocks:
+            yield prep.observations(rows=rows, dtype=np.float32)
+        return
+    W = prep.shape[2]
+    for cols in np.array_split(np.arange(W), min(len(blocks), W)):
+        yield prep.observations(columns=cols, dtype=np.float32)
 
 
 def fit_motion_mask(prep: Prepared, cfg: dict, plan: ColumnPlan, blocks: list[tuple[int, int]]) -> np.ndarray:
@@ -167,14 +193,16 @@ def fit_motion_mask(prep: Prepared, cfg: dict, plan: ColumnPlan, blocks: list[tu
     m = cfg["mask"]
     pilot = pilot_estimate(prep) if plan.pilot is None else plan.pilot
     # the per-pixel statistics of the fit's columns only (the others never enter the fit), block by block
+    # where the samples read between rows the images of a column are one solve: the fit's columns whole
+    rows_of = blocks if not prep.store.parallax else [None]
     moving, _, thr = motion_mask((prep.observations(columns=plan.columns, rows=rows, dtype=np.float32)
-                                  for rows in blocks),
+                                  for rows in rows_of),
                                  pilot=pilot, threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
     log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
     return moving
 
 
-def fit_observations(prep: Prepared, columns: np.ndarray, moving: np.ndarray) -> M.Observations:
+def fit_observations(prep: Prepared, columns: np.ndarray, moving: np.ndarray) -> Observations:
     """The vibration fit's observations: ``columns`` in float32, the pixels ``moving`` (H, W) left out. What the
     fit and the decision which effects it can determine (:func:`dfxcorr.planning.resolve_effects`) see."""
     obs = prep.observations(columns=columns, dtype=np.float32)
@@ -232,7 +260,7 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
     if not result.converged:
         log.warning("the vibration fit stopped before converging (%s)", "; ".join(result.messages))
     for name in result.params:
-        if M.effect(name).per_frame and result.well_determined is not None:
+        if effect(name).per_frame and result.well_determined is not None:
             good = result.well_determined
             log.info("  %s: std %.4g over %d well-determined frames, median uncertainty %.2g", name,
                      float(np.std(result.params[name][good])), int(good.sum()),

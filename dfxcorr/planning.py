@@ -15,14 +15,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import config as C
-from . import model as M
 from .align import LitStore, subsample_columns, tilt_alias_period
-from .catalogue import CATALOGUE
+from .catalogue import CATALOGUE, effect
 from .errors import DfxcorrError
 from .fit import initial_weights, pilot_uncertainty
 from .identify import select
 from .io import Scan
 from .mask import pilot_vibrations
+from .observations import Observations
 from .preparation import Prepared
 
 log = logging.getLogger("dfxcorr")
@@ -73,7 +73,7 @@ def refuse_if_asked(cfg: dict, name: str, why: str) -> None:
     IdentifiabilityError
         If ``vibration.<key of name>`` is true (not auto).
     """
-    key = M.effect(name).config
+    key = effect(name).config
     if key is not None and C.get(cfg, key) is True:
         raise IdentifiabilityError(f"{name} is not identifiable here: {why}; set {key}=false"
                                    + (" (or auto)" if C.option(key).default == "auto" else ""))
@@ -103,7 +103,7 @@ def drop_visibility(cfg: dict, effects, why: str | None) -> tuple[list[str], dic
     return kept, dropped
 
 
-def resolve_effects(cfg: dict, scan: Scan, reference, fit_obs: M.Observations) -> tuple[str, ...]:
+def resolve_effects(cfg: dict, scan: Scan, reference, fit_obs: Observations) -> tuple[str, ...]:
     """The effects to fit: the configured ones that this acquisition can determine.
 
     Every enabled effect is checked in turn against the Fisher information of the fit's samples

@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
+from .catalogue import CATALOGUE
 from .export import VibrationDataset, check_output, units, vibration_datasets
 from .io import atomic_path
-from .model import CATALOGUE
 from .result import Result
 
 

@@ -19,7 +19,7 @@ from .align import AlignmentError, build_observations, subsample_columns
 from .catalogue import effect
 from .fit import fit_vibrations, initial_weights
 from .io import FrameSource, Reference, Scan, SteppingReference
-from .model import Observations
+from .observations import Observations
 from .retrieve import retrieve
 
 log = logging.getLogger(__name__)

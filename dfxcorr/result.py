@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import chi2
 
-from . import model as M
+from .catalogue import PAPER_MODEL, neutral_params
 
 
 def paper_params(params: dict, n_frames: int) -> dict:
@@ -19,7 +19,7 @@ def paper_params(params: dict, n_frames: int) -> dict:
     n_frames : int
         J.
     """
-    return {**M.neutral_params(M.PAPER_MODEL, n_frames), **params}
+    return {**neutral_params(PAPER_MODEL, n_frames), **params}
 
 
 #: Tail probability on each side beyond which a reduced chi-square is not noise: that of five standard deviations.

@@ -10,8 +10,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import engine as E
 from . import kernels as K
 from . import model as M
+from .noise import pearson
+from .observations import Observations
 
 
 @dataclass
@@ -41,7 +44,7 @@ class Retrieval:
     samples: int = 0
 
 
-def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_params: int | None = None,
+def retrieve(obs: Observations, params: dict, *, iterations: int = 2, n_frame_params: int | None = None,
              gain: float | None = None, keep_inverse: bool = False, keep_expected: bool = True) -> Retrieval:
     """Solve the images for fixed effect parameters.
 
@@ -50,7 +53,7 @@ def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_
     obs : Observations
         Samples with ``obs.use`` False (outside the region of interest) do not count.
     params : dict
-        Effect parameters (see :func:`dfxcorr.model.neutral_params`).
+        Effect parameters (see :func:`dfxcorr.catalogue.neutral_params`).
     iterations : int
         1: data weights (paper eq. 6); each further iteration takes the weights from the previous model.
     n_frame_params : int, optional
@@ -69,16 +72,16 @@ def retrieve(obs: M.Observations, params: dict, *, iterations: int = 2, n_frame_
     Retrieval
     """
     K.set_threads()
-    out = K.retrieve(obs, M.channels(params, x=obs.x, n_frames=obs.n_frames), iterations=iterations, gain=gain,
+    out = E.retrieve(obs, M.channels(params, x=obs.x, n_frames=obs.n_frames), iterations=iterations, gain=gain,
                      keep_inverse=keep_inverse, keep_expected=keep_expected)
-    images = M.Images(out["coef"], out["valid"], out["inverse"])
+    images = M.Images(out["coef"], out["valid"], out["inverse"], out["coupling"])
     n_par = sum(np.size(p) for p in params.values()) if n_frame_params is None else n_frame_params
     chi2 = per_dof(out["chi2"], out["samples"], int(images.valid.sum()), n_par, 3)
     return Retrieval(images=images, expected=out["expected"], weights=out["weights"], reduced_chi2=chi2,
                      chi2_sum=float(out["chi2"]), samples=int(out["samples"]))
 
 
-def reduced_chi2(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *, n_params: int = 0,
+def reduced_chi2(obs: Observations, ibar: np.ndarray, valid: np.ndarray, *, n_params: int = 0,
                  gain: float | None = None, per_pixel_unknowns: int = 3) -> float:
     """Pearson chi-square per degree of freedom over the used samples of valid pixels.
 
@@ -94,14 +97,14 @@ def per_dof(chi2: float, samples: int, pixels: int, n_params: int, per_pixel_unk
     return chi2 / max(samples - per_pixel_unknowns * pixels - n_params, 1)
 
 
-def chi2_sums(obs: M.Observations, ibar: np.ndarray, valid: np.ndarray, *,
+def chi2_sums(obs: Observations, ibar: np.ndarray, valid: np.ndarray, *,
               gain: float | None = None) -> tuple[float, int, int]:
     """Pearson chi-square over the used samples of valid pixels, the number of those samples and pixels.
 
     Each is a sum over pixels, so the sums of row blocks give :func:`reduced_chi2` of the whole scan.
     """
-    sel = valid[obs.pixel] & obs.use
-    return float(M.pearson(obs, ibar, gain=gain)[sel].sum()), int(sel.sum()), int(valid.sum())
+    sel = obs.gather_valid(valid) & obs.use
+    return float(pearson(obs, ibar, gain=gain)[sel].sum()), int(sel.sum()), int(valid.sum())
 
 
 def image_values(images: M.Images) -> dict[str, np.ndarray]:
@@ -111,6 +114,6 @@ def image_values(images: M.Images) -> dict[str, np.ndarray]:
         return {"transmission": images.t * nan, "dark_field": images.v * nan, "differential_phase": images.phi * nan}
 
 
-def image_maps(obs: M.Observations, images: M.Images) -> dict[str, np.ndarray]:
+def image_maps(obs: Observations, images: M.Images) -> dict[str, np.ndarray]:
     """Detector images t, v, phi (H, W), NaN where a pixel was not lit or not solvable."""
     return {k: obs.to_image(v) for k, v in image_values(images).items()}

@@ -37,6 +37,9 @@ from dfxcorr import kernels as K
 from dfxcorr import model as M
 from dfxcorr import pipeline
 from dfxcorr.align import build_observations
+from dfxcorr.catalogue import PAPER_MODEL, neutral_params
+from dfxcorr.noise import noise_weights
+from dfxcorr.observations import Observations
 from dfxcorr.reference import resolve_reference
 from dfxcorr.sim import simulate as S
 
@@ -69,7 +72,7 @@ def _timed(f, repeat: int) -> tuple[float, float]:
 
 
 def clinical_observations(rng, *, frames: int = 195, height: int = 2880, width: int = 2880, active: int = 440,
-                          every: int = 20) -> M.Observations:
+                          every: int = 20) -> Observations:
     """Synthetic fit observations of a clinical detector: each frame lights ``active`` rows, every n-th column."""
     start = np.round(np.linspace(0, height - active, frames)).astype(int)
     row = (start[:, None] + np.arange(active)[None, :]).ravel()
@@ -83,9 +86,9 @@ def clinical_observations(rng, *, frames: int = 195, height: int = 2880, width: 
     phif = 2 * np.pi * 2.0 * (row[:, None] / active + columns[None, :] / width) + frame[:, None] * 0.3
     counts = rng.poisson(tf * (1 + 0.8 * vf * np.cos(phif)))
     f32 = np.float32
-    return M.Observations(counts.astype(f32), tf.astype(f32), vf.astype(f32), phif.astype(f32),
-                          np.zeros((Kb, Cc), f32), np.ones((Kb, Cc), bool), row, frame, columns,
-                          (frames, height, width))
+    return Observations(counts.astype(f32), tf.astype(f32), vf.astype(f32), phif.astype(f32),
+                        np.zeros((Kb, Cc), f32), np.ones((Kb, Cc), bool), row, frame, columns,
+                        (frames, height, width))
 
 
 def paper_observations() -> tuple:
@@ -94,14 +97,14 @@ def paper_observations() -> tuple:
     return scan, build_observations(scan, resolve_reference(scan), dtype=np.float32)
 
 
-def pass_numbers(obs: M.Observations, bandwidth: float, *, repeat: int) -> dict:
+def pass_numbers(obs: Observations, bandwidth: float, *, repeat: int) -> dict:
     """ns per sample of a cost+gradient evaluation and a retrieval pass, and their bandwidth floors."""
-    params = M.neutral_params(M.PAPER_MODEL, obs.n_frames)
+    params = neutral_params(PAPER_MODEL, obs.n_frames)
     rng = np.random.default_rng(0)
     params["phase_offset"] += rng.normal(0, 0.1, params["phase_offset"].shape)
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
     # float64 as the fit's weights (kernels.retrieve returns them so): no conversion inside the timed calls
-    weights = np.asarray(M.noise_weights(obs, obs.counts), dtype=np.float64)
+    weights = np.asarray(noise_weights(obs, obs.counts), dtype=np.float64)
     fringe = K.fringe(obs)
     n = obs.counts.size
     K.reduced_cost(obs, ch, weights, *fringe)
@@ -171,18 +174,21 @@ COMPILE_PROBE = """
 import time, numpy as np
 t0 = time.perf_counter()
 from dfxcorr import kernels as K, model as M
+from dfxcorr.catalogue import PAPER_MODEL
+from dfxcorr.noise import noise_weights
+from dfxcorr.observations import Observations
 rng = np.random.default_rng(0)
 row = np.repeat(np.arange(8), 4); frame = np.tile(np.arange(4), 8); shape = (8, 4, 6)
 a = lambda lo, hi: rng.uniform(lo, hi, (32, 6))
 f = lambda v: np.asarray(v, np.float32)  # a reconstruction's observations are float32
-obs = M.Observations(f(a(500, 900)), f(a(900, 1100)), f(a(0.2, 0.4)), f(a(-3, 3)), f(np.zeros((32, 6))),
-                     np.ones((32, 6), bool), row, frame, np.arange(6), (4, 8, 6))
+obs = Observations(f(a(500, 900)), f(a(900, 1100)), f(a(0.2, 0.4)), f(a(-3, 3)), f(np.zeros((32, 6))),
+                   np.ones((32, 6), bool), row, frame, np.arange(6), (4, 8, 6))
 K.set_threads()
 ch = M.channels({}, x=obs.x, n_frames=4)
-w = M.noise_weights(obs, obs.counts)
+w = noise_weights(obs, obs.counts)
 K.reduced_cost(obs, ch, w, *K.fringe(obs))
 r = K.retrieve(obs, ch, weights=w, keep_inverse=True)
-K.fisher(obs, ch, w, r["coef"], r["inverse"], M.component_table(M.PAPER_MODEL)[:3])
+K.fisher(obs, ch, w, r["coef"], r["inverse"], M.component_table(PAPER_MODEL)[:3])
 print(time.perf_counter() - t0)
 """
 

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dfxcorr import catalogue
 from dfxcorr import config as C
-from dfxcorr import model as M
 from dfxcorr.analysis.compare import machine
 from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.effects import REGISTRY
@@ -112,7 +112,7 @@ def estimate_error(name: str, diag, truth: dict) -> dict:
     p = diag.params.get(name)
     if p is None:
         return {}
-    e = M.effect(name)
+    e = catalogue.effect(name)
     if not e.per_frame:
         est = np.asarray(p, float)
         tru = np.asarray(truth.get(name, np.full_like(est, np.nan)), float)

@@ -29,12 +29,12 @@ from pathlib import Path
 import numpy as np
 
 from dfxcorr import config as C
-from dfxcorr import model as M
 from dfxcorr import pipeline, plots
 from dfxcorr.align import build_observations
 from dfxcorr.analysis import compare as CMP
 from dfxcorr.analysis.evaluate import frames_lighting, image_rmse, vibration_rmse
 from dfxcorr.baselines import fit_alternating
+from dfxcorr.catalogue import neutral_params
 from dfxcorr.fit import fit_vibrations, initial_weights
 from dfxcorr.reference import resolve_reference
 from dfxcorr.result import Result
@@ -127,7 +127,7 @@ def fig6(args) -> dict:
     scan, truth = simulated(args.pixel_mm, args.seed, ("effects.tilt=0", "effects.visibility_loss=0"))
     obs = build_observations(scan, resolve_reference(scan))
     effects = ("phase_offset",)
-    weights = initial_weights(obs, M.neutral_params(effects, obs.n_frames))
+    weights = initial_weights(obs, neutral_params(effects, obs.n_frames))
     # the plain estimators of the paper's comparison: no prior, no reweighting, one stage
     common = dict(effects=effects, weights=weights, reweight=0, maxiter=args.iterations, gtol=1e-7)
     runs = {"ML, preconditioned (eq. 34)": lambda: fit_vibrations(obs, **common, circmean_iterations=0, staged=False,

@@ -20,6 +20,7 @@ from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr import preparation
 from dfxcorr.align import build_observations
+from dfxcorr.catalogue import MEAN_EFFECTS, effect
 from dfxcorr.effects import REGISTRY
 from dfxcorr.io import Reference, Scan
 from dfxcorr.sim import simulate as S
@@ -112,14 +113,14 @@ def tiny_obs(rng, *, J=12, H=6, W=7, A=4):
 def random_params(rng, J, names):
     p = {}
     for n in names:
-        e = M.effect(n)
+        e = effect(n)
         shape = (J, e.size) if e.per_frame else (e.size,)
         scale = {"background": 20.0}.get(n, 0.05)
         p[n] = e.neutral + rng.normal(0, scale, shape)
     return p
 
 
-ALL = [n for n in M.MEAN_EFFECTS]
+ALL = [n for n in MEAN_EFFECTS]
 
 
 #: Extra address space a run may take beyond what the process held at the fork; measured small runs take
@@ -191,3 +192,15 @@ def one_error_line(stderr: str, *words: str) -> bool:
     """True if ``stderr`` (log lines aside) holds exactly one ``error:`` line, naming ``words``, and no traceback."""
     errors = [ln for ln in stderr.splitlines() if ln.startswith("error:")]
     return (len(errors) == 1 and all(w in errors[0] for w in words) and "Traceback" not in stderr)
+
+
+def random_images(rng, obs):
+    """Images (t, c, s) with t in [0.2, 1], v in [0.3, 1], phi in [-1, 1] for every pixel of ``obs``."""
+    R, C = obs.rows.size, obs.columns.size
+    t, v, phi = rng.uniform(0.2, 1.0, (R, C)), rng.uniform(0.3, 1.0, (R, C)), rng.uniform(-1, 1, (R, C))
+    return M.Images(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], -1), np.ones((R, C), bool))
+
+
+def modelled_counts(rng, obs, params):
+    """Poisson counts of the model at random images: data the model describes, with their noise."""
+    return rng.poisson(M.expected(obs, M.design(obs, params), random_images(rng, obs))).astype(np.float64)

@@ -9,6 +9,7 @@ from dfxcorr import pipeline
 from dfxcorr.align import build_observations, subsample_columns
 from dfxcorr.analysis.evaluate import frames_lighting, gauge_median, vibration_rmse
 from dfxcorr.baselines import fit_alternating, fit_correlation, robust_polyfit
+from dfxcorr.catalogue import PAPER_MODEL, neutral_params
 from dfxcorr.fit import fit_vibrations, initial_weights
 from dfxcorr.reference import resolve_reference
 
@@ -28,7 +29,7 @@ def reduced_cost(obs, params, weights):
 def test_alternating_converges_to_the_ml_optimum(small_scan):
     scan, _ = small_scan()
     obs = fit_data(scan, 3)
-    w = initial_weights(obs, M.neutral_params(M.PAPER_MODEL, obs.n_frames))
+    w = initial_weights(obs, neutral_params(PAPER_MODEL, obs.n_frames))
     ml = fit_vibrations(obs, weights=w, reweight=0, gtol=1e-4)
     alt = fit_alternating(obs, weights=w, reweight=0, maxiter=600)
     assert alt.converged
@@ -39,7 +40,7 @@ def test_alternating_converges_to_the_ml_optimum(small_scan):
     # ML's cost carries its weak prior; its likelihood part matches (to the prior's pull)
     assert reduced_cost(obs, ml.params, w) == pytest.approx(alt.cost[-1], rel=1e-3)
     good = ml.well_determined
-    for name in M.PAPER_MODEL:
+    for name in PAPER_MODEL:
         z = (alt.params[name] - ml.params[name])[good] / ml.uncertainty[name][good]
         assert np.sqrt(np.mean(z ** 2)) < 0.2, name
         assert np.abs(z).max() < 0.5, name
@@ -50,8 +51,8 @@ def test_alternating_converges_to_the_ml_optimum(small_scan):
 def test_alternating_updates_global_effects_as_one_block(small_scan):
     scan, truth = small_scan(**{"effects.harmonic": 0.05})
     obs = fit_data(scan, 4)
-    effects = (*M.PAPER_MODEL, "harmonic")
-    w = initial_weights(obs, M.neutral_params(effects, obs.n_frames))
+    effects = (*PAPER_MODEL, "harmonic")
+    w = initial_weights(obs, neutral_params(effects, obs.n_frames))
     # both fits start at the true per-frame parameters, so that neither meets a local minimum of an
     # edge frame, and must then find the same harmonic
     start = {"phase_offset": truth["vib_phase_offset"][:, None], "tilt": truth["vib_tilt"][:, None],

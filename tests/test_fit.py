@@ -10,6 +10,7 @@ from dfxcorr import fit as F
 from dfxcorr import model as M
 from dfxcorr import pipeline
 from dfxcorr.analysis.evaluate import frames_lighting, gauge_median
+from dfxcorr.catalogue import CATALOGUE, PAPER_MODEL
 from dfxcorr.planning import IdentifiabilityError
 
 from conftest import prepare
@@ -112,9 +113,9 @@ def test_whitened_variables_round_trip_and_their_gradient_matches_finite_differe
     from test_model import random_params, tiny_obs
 
     obs = tiny_obs(rng)
-    params = random_params(rng, obs.n_frames, M.PAPER_MODEL)
+    params = random_params(rng, obs.n_frames, PAPER_MODEL)
     w = 1.0 / np.maximum(obs.counts, 1.0)
-    prob = F._Problem(obs, M.PAPER_MODEL, params, w, prior=F.catalogue_prior(M.PAPER_MODEL))
+    prob = F._Problem(obs, PAPER_MODEL, params, w, prior=F.catalogue_prior(PAPER_MODEL))
     assert prob.chol is not None and prob.bounds() is None
     np.testing.assert_allclose(prob.to_theta(prob.to_z(prob.theta0)), prob.theta0, rtol=1e-10, atol=1e-12)
     z = prob.to_z(prob.theta0)
@@ -161,10 +162,10 @@ def test_a_bound_the_whitened_fit_crosses_is_kept(small_scan, monkeypatch, caplo
     free = F.fit_vibrations(obs, prior=False, reweight=0)
     floor = 0.97
     assert np.mean(free.params["visibility_loss"] < floor) > 0.2  # the unbounded optimum is below it
-    catalogue = {**M.CATALOGUE, "visibility_loss": replace(M.CATALOGUE["visibility_loss"], lower=floor)}
+    catalogue = {**CATALOGUE, "visibility_loss": replace(CATALOGUE["visibility_loss"], lower=floor)}
     monkeypatch.setattr(catalogue_module, "CATALOGUE", catalogue)
     with caplog.at_level("DEBUG", logger="dfxcorr.fit"):
-        params = F.minimise(obs, M.PAPER_MODEL, free.params, F.initial_weights(obs, free.params))[0]
+        params = F.minimise(obs, PAPER_MODEL, free.params, F.initial_weights(obs, free.params))[0]
     assert any("below their bounds" in r.getMessage() for r in caplog.records)
     assert params["visibility_loss"].min() >= floor
 
@@ -175,16 +176,16 @@ def test_whitening_factor_is_the_profiled_fisher_information(rng):
     from test_model import random_params, tiny_obs
 
     obs = tiny_obs(rng)
-    params = random_params(rng, obs.n_frames, M.PAPER_MODEL)
+    params = random_params(rng, obs.n_frames, PAPER_MODEL)
     w = 1.0 / np.maximum(obs.counts, 1.0)
-    prob = F._Problem(obs, M.PAPER_MODEL, params, w, prior=F.catalogue_prior(M.PAPER_MODEL))
+    prob = F._Problem(obs, PAPER_MODEL, params, w, prior=F.catalogue_prior(PAPER_MODEL))
     dsg = M.design(obs, params)
-    info, index = M.fisher_matrix(obs, dsg, M.solve_images(obs, dsg, w, keep_inverse=True), w, M.PAPER_MODEL)
+    info, index = M.fisher_matrix(obs, dsg, M.solve_images(obs, dsg, w, keep_inverse=True), w, PAPER_MODEL)
     # where each (effect, frame, component) sits among the optimiser's variables, read off unit vectors
     slot = {}
     for i in range(prob.theta0.size):
         unit = prob.unpack(np.eye(prob.theta0.size)[i])
-        name = next(n for n in M.PAPER_MODEL if np.any(unit[n]))
+        name = next(n for n in PAPER_MODEL if np.any(unit[n]))
         j, m = np.argwhere(unit[name])[0]
         slot[(name, int(j), int(m))] = i
     order = np.array([slot[ix] for ix in index])

@@ -7,6 +7,7 @@ from dfxcorr import identify as I
 from dfxcorr import kernels as K
 from dfxcorr import model as M
 from dfxcorr.align import build_observations
+from dfxcorr.catalogue import PAPER_MODEL, effect, neutral_params
 from dfxcorr.fit import initial_weights
 from dfxcorr.io import Reference, Scan
 
@@ -35,7 +36,7 @@ def uniform_scan_obs(rng, *, J=12, H=6, W=7, A=4):
 def information(obs, names):
     """:func:`dfxcorr.identify.information` at the neutral model and images retrieved with the initial weights."""
     weights = initial_weights(obs, {})
-    ch = M.channels(M.neutral_params(names, obs.n_frames), x=obs.x, n_frames=obs.n_frames)
+    ch = M.channels(neutral_params(names, obs.n_frames), x=obs.x, n_frames=obs.n_frames)
     solved = K.retrieve(obs, ch, weights=weights, keep_inverse=True)
     return I.information(obs, ch, M.Images(solved["coef"], solved["valid"], solved["inverse"]), weights, names)
 
@@ -86,14 +87,14 @@ def test_background_over_a_uniform_flat_field_is_taken_up_by_the_transmission(rn
 
 def test_the_papers_model_in_a_scan_is_identifiable(rng):
     obs = tiny_obs(rng)
-    verdicts = I.select(obs, initial_weights(obs, {}), M.PAPER_MODEL)
-    assert verdicts == [I.Identifiability(n, True, 0) for n in M.PAPER_MODEL]
+    verdicts = I.select(obs, initial_weights(obs, {}), PAPER_MODEL)
+    assert verdicts == [I.Identifiability(n, True, 0) for n in PAPER_MODEL]
     # and each of its effects given the other two keeps every direction beyond its gauge
-    inf = information(obs, list(M.PAPER_MODEL))
-    live = int(inf.live.sum()) // len(M.PAPER_MODEL)
-    for name in M.PAPER_MODEL:
-        cond = I.conditional(inf, name, [n for n in M.PAPER_MODEL if n != name])
-        assert cond.dof == live - M.effect(name).gauge_dims
+    inf = information(obs, list(PAPER_MODEL))
+    live = int(inf.live.sum()) // len(PAPER_MODEL)
+    for name in PAPER_MODEL:
+        cond = I.conditional(inf, name, [n for n in PAPER_MODEL if n != name])
+        assert cond.dof == live - effect(name).gauge_dims
 
 
 def test_select_drops_what_the_chosen_effects_leave_undetermined(rng):

@@ -6,11 +6,14 @@ import pytest
 
 from dfxcorr import kernels as K
 from dfxcorr import model as M
+from dfxcorr.catalogue import PAPER_MODEL, effect
+from dfxcorr.noise import noise_weights, pearson
+from dfxcorr.observations import Observations
 
 from conftest import ALL, random_params, tiny_obs
 
 #: Effect sets: each mean effect with the paper's model, and all together.
-SETS = [tuple(dict.fromkeys((*M.PAPER_MODEL, n))) for n in ALL] + [tuple(ALL)]
+SETS = [tuple(dict.fromkeys((*PAPER_MODEL, n))) for n in ALL] + [tuple(ALL)]
 
 
 def prepared(rng, *, masked=False, dtype=np.float64):
@@ -26,9 +29,9 @@ def prepared(rng, *, masked=False, dtype=np.float64):
 
 def as_float64(obs):
     """The same samples in float64 (the oracle computes in float64)."""
-    return M.Observations(*(np.asarray(a, dtype=np.float64) for a in (obs.counts, obs.tf, obs.vf, obs.phif,
-                                                                       obs.dark)), obs.use, obs.row, obs.frame,
-                          obs.columns, obs.shape, obs.gain, obs.electronic)
+    return Observations(*(np.asarray(a, dtype=np.float64) for a in (obs.counts, obs.tf, obs.vf, obs.phif,
+                                                                     obs.dark)), obs.use, obs.row, obs.frame,
+                        obs.columns, obs.shape, obs.gain, obs.electronic)
 
 
 #: Agreement of the retrieval with the model's float64 definition: it evaluates the fringe's cos and sin in
@@ -53,7 +56,7 @@ def kernel_cost(obs, params, w, names, *, phase=None, square=False):
 def test_reduced_cost_and_gradient_match_the_model(rng, names, masked):
     obs = prepared(rng, masked=masked)
     params = random_params(rng, obs.n_frames, names)
-    w = M.noise_weights(obs, obs.counts)
+    w = noise_weights(obs, obs.counts)
     for phase in (None, 0.7):
         dsg = M.design(obs, params)
         images = M.solve_images(obs, dsg, w, phase=phase)
@@ -74,7 +77,7 @@ def test_float32_samples_give_the_float64_result(rng):
     obs = replace(obs, counts=np.rint(obs.counts).astype(np.uint16))
     ref = as_float64(obs)
     params = random_params(rng, obs.n_frames, ALL)
-    w = M.noise_weights(ref, ref.counts).astype(np.float32)
+    w = noise_weights(ref, ref.counts).astype(np.float32)
     cost, grad = kernel_cost(obs, params, w, ALL)
     cost64, grad64 = kernel_cost(ref, params, w.astype(np.float64), ALL)
     assert cost == pytest.approx(cost64, rel=1e-10)
@@ -91,12 +94,12 @@ def test_retrieval_matches_the_model(rng, masked, iterations):
     obs = replace(obs, electronic=3.0, gain=1.5)
     params = random_params(rng, obs.n_frames, ALL)
     dsg = M.design(obs, params)
-    w = M.noise_weights(obs, obs.counts)
+    w = noise_weights(obs, obs.counts)
     for it in range(iterations):
         images = M.solve_images(obs, dsg, w, keep_inverse=True)
         ibar = M.expected(obs, dsg, images)
         if it + 1 < iterations:
-            w = M.noise_weights(obs, ibar)
+            w = noise_weights(obs, ibar)
     out = K.retrieve(obs, dsg.channels, iterations=iterations, keep_inverse=True)
     assert np.array_equal(out["valid"], images.valid)
     assert masked == (not images.valid.all())
@@ -106,7 +109,7 @@ def test_retrieval_matches_the_model(rng, masked, iterations):
     close(out["weights"], w, rtol=1e-12 if iterations == 1 else TRIG32)
     sel = images.valid[obs.pixel] & obs.use
     assert out["samples"] == sel.sum()
-    assert out["chi2"] == pytest.approx(float(M.pearson(obs, ibar)[sel].sum()), rel=TRIG32)
+    assert out["chi2"] == pytest.approx(float(pearson(obs, ibar)[sel].sum()), rel=TRIG32)
     start = K.retrieve(obs, dsg.channels, weights=w)
     close(start["coef"], M.solve_images(obs, dsg, w).coef, rtol=TRIG32)
     # the weights of a solve's model without the next solve: those that iterations + 1 would solve with
@@ -117,8 +120,8 @@ def test_retrieval_matches_the_model(rng, masked, iterations):
 def correction_oracle(obs, dsg, images, w, names):
     """sum over pixels of Y^T N^-1 Y, Y = X^T W D (the profiled part of model.fisher_matrix), row by row."""
     J = obs.n_frames
-    per_frame = [F for n in names if M.effect(n).per_frame for F in M.sample_derivatives(obs, dsg, images, n)]
-    glob = [F for n in names if not M.effect(n).per_frame for F in M.sample_derivatives(obs, dsg, images, n)]
+    per_frame = [F for n in names if effect(n).per_frame for F in M.sample_derivatives(obs, dsg, images, n)]
+    glob = [F for n in names if not effect(n).per_frame for F in M.sample_derivatives(obs, dsg, images, n)]
     Pf, Pg = len(per_frame), len(glob)
     D = np.stack(per_frame + glob, axis=-1)
     c = images.coef[obs.pixel]
@@ -138,11 +141,11 @@ def correction_oracle(obs, dsg, images, w, names):
     return out
 
 
-@pytest.mark.parametrize("names", [M.PAPER_MODEL, tuple(ALL)], ids="+".join)
+@pytest.mark.parametrize("names", [PAPER_MODEL, tuple(ALL)], ids="+".join)
 def test_fisher_information_matches_the_model(rng, names):
     obs = prepared(rng, masked=True)
     params = random_params(rng, obs.n_frames, names)
-    w = M.noise_weights(obs, obs.counts)
+    w = noise_weights(obs, obs.counts)
     dsg = M.design(obs, params)
     images = M.solve_images(obs, dsg, w, keep_inverse=True)
     plain, corr = K.fisher(obs, dsg.channels, w, images.coef, images.inverse, M.component_table(names)[:3])
@@ -191,7 +194,7 @@ def test_only_the_requested_channels_are_summed(rng):
     obs = prepared(rng)
     params = random_params(rng, obs.n_frames, ALL)
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
-    w = M.noise_weights(obs, obs.counts)
+    w = noise_weights(obs, obs.counts)
     cost, full = K.reduced_cost(obs, ch, w, *K.fringe(obs))
     part_cost, part = K.reduced_cost(obs, ch, w, *K.fringe(obs), channels=("phase", "background"))
     assert part_cost == cost
@@ -204,7 +207,7 @@ def test_frame_grid_cost_is_the_direct_cost(rng):
     from dfxcorr.frames import frame_grid_cost
     obs = prepared(rng, masked=True)
     params = random_params(rng, obs.n_frames, ALL)
-    w = M.noise_weights(obs, obs.counts)
+    w = noise_weights(obs, obs.counts)
     dsg = M.design(obs, params)
     images = M.solve_images(obs, dsg, w)
     j = obs.frame[obs.starts[2]]

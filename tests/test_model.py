@@ -6,31 +6,21 @@ import pytest
 
 from dfxcorr import kernels as K
 from dfxcorr import model as M
+from dfxcorr.catalogue import PAPER_MODEL, effect, neutral_params
+from dfxcorr.noise import noise_weights
 
-from conftest import ALL, random_params, tiny_obs
-
-
-def random_images(rng, obs):
-    """Images (t, c, s) with t in [0.2, 1], v in [0.3, 1], phi in [-1, 1] for every pixel of ``obs``."""
-    R, C = obs.rows.size, obs.columns.size
-    t, v, phi = rng.uniform(0.2, 1.0, (R, C)), rng.uniform(0.3, 1.0, (R, C)), rng.uniform(-1, 1, (R, C))
-    return M.Images(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], -1), np.ones((R, C), bool))
-
-
-def modelled_counts(rng, obs, params):
-    """Poisson counts of the model at random images: data the model describes, with their noise."""
-    return rng.poisson(M.expected(obs, M.design(obs, params), random_images(rng, obs))).astype(np.float64)
+from conftest import ALL, modelled_counts, random_images, random_params, tiny_obs
 
 
 def test_neutral_parameters_leave_the_model_unchanged(rng):
     obs = tiny_obs(rng)
     plain = M.design(obs, {})
-    neutral = M.design(obs, M.neutral_params(ALL, obs.n_frames))
+    neutral = M.design(obs, neutral_params(ALL, obs.n_frames))
     for a in ("A", "Bc", "Bs", "offset"):
         np.testing.assert_allclose(getattr(neutral, a), getattr(plain, a), rtol=1e-14, atol=1e-12)
 
 
-@pytest.mark.parametrize("names", [M.PAPER_MODEL, ALL], ids=["paper", "all"])
+@pytest.mark.parametrize("names", [PAPER_MODEL, ALL], ids=["paper", "all"])
 def test_closed_form_images_reproduce_noise_free_data(rng, names):
     obs = tiny_obs(rng)
     params = random_params(rng, obs.n_frames, names)
@@ -84,10 +74,10 @@ def test_harmonic_steps_reach_the_converged_images(rng, monkeypatch):
     amplitude: every pixel within 1 % of its standard error, most at rounding (the slowest are pixels whose
     modulation is hardly above noise, where the direction of (c, s) is poorly determined)."""
     obs = tiny_obs(rng, J=40, H=20, W=30, A=8)
-    params = random_params(rng, obs.n_frames, M.PAPER_MODEL)
+    params = random_params(rng, obs.n_frames, PAPER_MODEL)
     params["harmonic"] = 0.06 * np.array([np.cos(0.5), np.sin(0.5)])
     obs = replace(obs, counts=modelled_counts(rng, obs, params))
-    w = M.noise_weights(obs, obs.counts)
+    w = noise_weights(obs, obs.counts)
     dsg = M.design(obs, params)
     images = M.solve_images(obs, dsg, w, keep_inverse=True)
     first = np.abs(M.solve_pixels(obs, [dsg.A, dsg.Bc, dsg.Bs], obs.counts - dsg.offset, w)[0] - images.coef)
@@ -101,8 +91,8 @@ def test_harmonic_steps_reach_the_converged_images(rng, monkeypatch):
 
 def test_zero_harmonic_is_the_model_without_it(rng):
     obs = tiny_obs(rng)
-    params = random_params(rng, obs.n_frames, M.PAPER_MODEL)
-    w = M.noise_weights(obs, obs.counts)
+    params = random_params(rng, obs.n_frames, PAPER_MODEL)
+    w = noise_weights(obs, obs.counts)
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
     zero = M.channels({**params, "harmonic": np.zeros(2)}, x=obs.x, n_frames=obs.n_frames)
     for key in ("coef", "expected", "weights"):
@@ -120,7 +110,7 @@ def test_sample_derivatives_match_finite_differences(rng, name):
     params = random_params(rng, obs.n_frames, ALL)
     images = M.solve_images(obs, M.design(obs, params), np.ones_like(obs.counts))
     fields = M.sample_derivatives(obs, M.design(obs, params), images, name)
-    e = M.effect(name)
+    e = effect(name)
     for m, F in enumerate(fields):
         h = 1e-6 * max(1.0, abs(e.neutral))
         up, down = {k: v.copy() for k, v in params.items()}, {k: v.copy() for k, v in params.items()}
@@ -134,7 +124,7 @@ def test_sample_derivatives_match_finite_differences(rng, name):
         np.testing.assert_allclose(F, fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
 
 
-@pytest.mark.parametrize("names", [M.PAPER_MODEL, ALL])
+@pytest.mark.parametrize("names", [PAPER_MODEL, ALL])
 def test_reduced_cost_gradient_matches_finite_differences(rng, names, monkeypatch):
     """Envelope theorem (paper eq. 25): the gradient at fixed images is the gradient of the reduced cost.
 
@@ -154,7 +144,7 @@ def test_reduced_cost_gradient_matches_finite_differences(rng, names, monkeypatc
     images = M.solve_images(obs, dsg, w)
     grad = M.gradient(obs, dsg, images, w, obs.counts - M.expected(obs, dsg, images), names)
     for name in names:
-        e = M.effect(name)
+        e = effect(name)
         idx = [(3, 0), (7, e.size - 1)] if e.per_frame else [(i,) for i in range(e.size)]
         for ix in idx:
             h = 1e-6 * (100.0 if name == "background" else 1.0)
@@ -168,7 +158,7 @@ def test_reduced_cost_gradient_matches_finite_differences(rng, names, monkeypatc
 def test_gauge_transformations_leave_the_prediction_unchanged(rng):
     """Paper eq. 22: phase offset/tilt shifts and a visibility scale are taken up by the images."""
     obs = tiny_obs(rng)
-    params = random_params(rng, obs.n_frames, M.PAPER_MODEL)
+    params = random_params(rng, obs.n_frames, PAPER_MODEL)
     w = np.ones_like(obs.counts)
 
     def prediction(p):
@@ -185,12 +175,12 @@ def test_gauge_transformations_leave_the_prediction_unchanged(rng):
 
 def test_profiled_fisher_is_smaller_than_plain_and_positive(rng):
     obs = tiny_obs(rng)
-    params = random_params(rng, obs.n_frames, M.PAPER_MODEL)
+    params = random_params(rng, obs.n_frames, PAPER_MODEL)
     w = 1.0 / np.maximum(obs.counts, 1.0)
     dsg = M.design(obs, params)
     images = M.solve_images(obs, dsg, w, keep_inverse=True)
-    prof, index = M.fisher_matrix(obs, dsg, images, w, M.PAPER_MODEL)
-    plain, _ = M.fisher_matrix(obs, dsg, images, w, M.PAPER_MODEL, profiled=False)
+    prof, index = M.fisher_matrix(obs, dsg, images, w, PAPER_MODEL)
+    plain, _ = M.fisher_matrix(obs, dsg, images, w, PAPER_MODEL, profiled=False)
     lit = np.bincount(obs.frame, minlength=obs.n_frames) > 0
     assert np.all(np.diag(prof)[lit[[j for _, j, _ in index]]] > 0)
     # profiling removes information, never adds it: plain - profiled is positive semi-definite
@@ -206,4 +196,4 @@ def test_profiled_fisher_is_smaller_than_plain_and_positive(rng):
 
 def test_unknown_effect_is_refused():
     with pytest.raises(ValueError, match="unknown effect 'tilted'"):
-        M.effect("tilted")
+        effect("tilted")

@@ -14,6 +14,7 @@ from dfxcorr import align, pipeline, planning
 from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr.analysis import diagnose as D
+from dfxcorr.catalogue import PAPER_MODEL
 from dfxcorr.fit import fit_vibrations
 from dfxcorr.io import H5Frames, Reference, Scan, read_scan, write_scan
 from dfxcorr.retrieve import retrieve
@@ -134,7 +135,7 @@ def test_float32_fit_agrees_with_float64_within_its_uncertainty(prepared_scan):
     scan, _ = prepared_scan
     prep = prepare(scan, C.defaults())
     cols = np.arange(1, scan.shape[2], 3)
-    fits = {dt: fit_vibrations(prep.observations(columns=cols, dtype=dt), effects=M.PAPER_MODEL)
+    fits = {dt: fit_vibrations(prep.observations(columns=cols, dtype=dt), effects=PAPER_MODEL)
             for dt in (np.float32, np.float64)}
     assert fits[np.float32].converged and fits[np.float64].converged
     good = fits[np.float64].well_determined

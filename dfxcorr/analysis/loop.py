@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from ..effects.base import Consistency, Context, EffectBase, Hypothesis, Pair, State, Test
+from ..effects.base import Consistency, Context, EffectBase, Hypothesis, Pair, State, Test, dispersion
 from ..progress import stage
 from ..stats import chi2_tail
 
@@ -155,7 +155,7 @@ HEAVY_TAILS = 25.0
 def kurtosis(state: State) -> float:
     """The kurtosis of the standardized residuals of the fit's used samples of solved pixels (3 for Gaussian)."""
     obs, rec = state.fit_obs, state.fit_rec
-    sel = obs.use & rec.images.valid[obs.pixel]
+    sel = obs.use & obs.gather_valid(rec.images.valid)
     z2 = ((obs.counts - rec.expected) ** 2 * rec.weights)[sel]
     m2 = float(np.mean(z2)) if z2.size else 0.0
     return float(np.mean(z2 ** 2)) / m2 ** 2 if m2 > 0 else 0.0
@@ -212,6 +212,13 @@ def accepts(before: list[Signature], after: list[Signature], *, explain_share: f
     significant to begin with: then its own test decides)."""
     share = explained_share(before, after, judged)
     return share is None or share >= explain_share or (share >= 0 and silences(before, after, judged))
+
+
+def confirms(before: State, after: State, test: Test[Any], *, explain_share: float) -> bool:
+    """The acceptance rule of an effect judged on its own signature: its trial lowers the chi-square (in units of
+    the fit's dispersion, :func:`~dfxcorr.effects.base.dispersion`) by at least ``explain_share`` of what its test
+    said it would: the likelihood ratio confirms the score."""
+    return (before.chi2 - after.chi2) / dispersion(before) >= explain_share * test.statistic
 
 
 def round_tests(effects: Effects, ctx: Context, state: State, done: list[str],
@@ -285,14 +292,18 @@ def _trial(effect: EffectBase[Any], ctx: Context, state: State, test: Test[Any],
     return Trial(trial, False)
 
 
-def _admitted(effect: EffectBase[Any], ctx: Context, before: State, trial: Trial, *, explain_share: float,
-              alpha: float, proxy_spread: float) -> tuple[bool, Consistency | None]:
+def _admitted(effect: EffectBase[Any], ctx: Context, before: State, trial: Trial, test: Test[Any], *,
+              explain_share: float, alpha: float, proxy_spread: float) -> tuple[bool, Consistency | None]:
     """Whether a trial justifies adding ``effect``: not astray, explains the signatures it is judged on
-    (:func:`accepts`), and of one size across the recording (:meth:`EffectBase.consistency`: refused as a proxy
-    where that test is significant and its sizes span more than ``proxy_spread``). Also the consistency test that
-    refused it, or None."""
-    if trial.astray or not accepts(before.signatures, trial.state.signatures, explain_share=explain_share,
-                                   judged=judge(effect)):
+    (:func:`accepts`; for an effect judged on its own signature, :func:`confirms`), and of one size across the
+    recording (:meth:`EffectBase.consistency`: refused as a proxy where that test is significant and its sizes span
+    more than ``proxy_spread``). Also the consistency test that refused it, or None."""
+    if trial.astray:
+        return False, None
+    if effect.policy.own_signature:
+        if not confirms(before, trial.state, test, explain_share=explain_share):
+            return False, None
+    elif not accepts(before.signatures, trial.state.signatures, explain_share=explain_share, judged=judge(effect)):
         return False, None
     odd = effect.consistency(ctx, before, trial.state)
     if odd is not None and odd.spread > proxy_spread and odd.log_p < np.log(alpha):
@@ -365,7 +376,7 @@ def _best_of(first: Step, others: list[str], tests: Mapping[str, Test[Any]], eff
         effect = effects[name]
         trial = _trial(effect, ctx, first.before, tests[name], flagged, fit=fit,
                        label=f"{label}: trial {name} (beside {first.name})", settle=settle, alpha=alpha)
-        if trial.state.chi2 < best.after.chi2 and _admitted(effect, ctx, first.before, trial,
+        if trial.state.chi2 < best.after.chi2 and _admitted(effect, ctx, first.before, trial, tests[name],
                                                             explain_share=explain_share, alpha=alpha,
                                                             proxy_spread=proxy_spread)[0]:
             best = Step(name, tests[name], first.before, trial.state,
@@ -432,8 +443,8 @@ def run(effects: Effects, ctx: Context, start: State, *, fit: Fit, alpha: float,
             # where an unidentifiable effect explains the misfit, only an effect that explains as much (within the
             # share a candidate must explain) is no proxy for it
             as_much = blind is None or (share if share is not None else 1.0) >= blind[1] - explain_share
-            admitted, odd = _admitted(effect, ctx, state, trial, explain_share=explain_share, alpha=alpha,
-                                      proxy_spread=proxy_spread)
+            admitted, odd = _admitted(effect, ctx, state, trial, tests[name], explain_share=explain_share,
+                                      alpha=alpha, proxy_spread=proxy_spread)
             if as_much and admitted:
                 # one finding of several: each one's own trial fit, for its estimate
                 others = tuple((n, _trial(effects[n], ctx, state, tests[n], flagged, fit=fit,

@@ -15,6 +15,8 @@ import numpy as np
 from scipy import stats
 
 from .. import model as M
+from ..noise import pearson, variance
+from ..observations import Observations
 from ..retrieve import Retrieval, retrieve
 from ..stats import holm, ranges
 
@@ -46,7 +48,7 @@ class Residuals:
     count_value: np.ndarray
 
 
-def locate(obs: M.Observations, params: dict[str, Any], images: M.Images, *, counts: np.ndarray,
+def locate(obs: Observations, params: dict[str, Any], images: M.Images, *, counts: np.ndarray,
            chunk: float = 5e5) -> Residuals:
     """Mean squared standardized residual per pixel, frame, lateral position, fringe phase and count.
 
@@ -66,7 +68,7 @@ def locate(obs: M.Observations, params: dict[str, Any], images: M.Images, *, cou
     phase = np.zeros((2, edges.size - 1))
     count = np.zeros((2, cedges.size - 1))
     for cols, sub, im, dsg, ibar in M.expected_by_columns(obs, params, images, samples=chunk):
-        z2 = np.where(sub.use, M.pearson(sub, ibar), np.nan)
+        z2 = np.where(sub.use, pearson(sub, ibar), np.nan)
         used = sub.use.astype(float)
         n[:, cols] = sub.segment_sum(used)
         z2_pixel[:, cols] = sub.segment_sum(np.nan_to_num(z2))
@@ -99,7 +101,7 @@ def _binned(value: np.ndarray, z2: np.ndarray, edges: np.ndarray) -> np.ndarray:
 SIGNATURE_AXES = ("frame", "row", "column", "frame_row", "phase", "count", "pixel")
 
 
-def signatures(obs: M.Observations, params: dict[str, Any], *, n_params: int, alpha: float,
+def signatures(obs: Observations, params: dict[str, Any], *, n_params: int, alpha: float,
                min_photons: float = 25.0, rec: Retrieval | None = None) -> list[dict[str, Any]]:
     """Residual signatures of a fit, each tested against noise.
 
@@ -152,14 +154,14 @@ def signatures(obs: M.Observations, params: dict[str, Any], *, n_params: int, al
     rec = retrieve(obs, params, keep_inverse=True) if rec is None else rec
     dsg = M.design(obs, params)
     images, ibar = rec.images, rec.expected
-    sel = obs.use & images.valid[obs.pixel] & (rec.weights > 0)
+    sel = obs.use & obs.gather_valid(images.valid) & (rec.weights > 0)
     w = np.where(sel, rec.weights, 0.0)
     # the fit's per-frame parameters take their share too, largest where a frame's information is
     # (edge columns for the tilt, bright modulated samples for the phase)
     h_par, info_inv, Dn = M.frame_leverage(obs, dsg, images, w, params)
     h = np.where(sel, M.leverage(obs, dsg, images, rec.weights) + h_par, 0.0)
     keep = np.where(sel, np.clip(1.0 - h, 0.0, 1.0), 0.0)
-    var = M.variance(obs, ibar)
+    var = variance(obs, ibar)
     z = np.where(sel, (obs.counts - ibar) / np.sqrt(var), 0.0)
     c = float(np.sum(z ** 2) / np.sum(keep))
     g_true = c * obs.pixel_gain()[obs.pixel]
@@ -179,7 +181,8 @@ def signatures(obs: M.Observations, params: dict[str, Any], *, n_params: int, al
     kappa_pixels *= tails
     K, C_ = obs.counts.shape
     frame = np.broadcast_to(obs.frame[:, None], (K, C_))
-    psi = M.wrap_angle(dsg.theta + images.phi[obs.pixel])
+    at = obs.gather(images.coef)
+    psi = M.wrap_angle(dsg.theta + np.arctan2(at[..., 2], at[..., 1]))
     pedges = np.linspace(-np.pi, np.pi, 17)
     cedges = np.quantile(ibar[sel], np.linspace(0, 1, 13)) if sel.any() else np.arange(13.0)
     labels = {
@@ -284,7 +287,7 @@ def _without_frame_terms(S: np.ndarray, V: np.ndarray, g: np.ndarray, frame: np.
     return out, lost
 
 
-def _describe(sig: dict[str, Any], obs: M.Observations) -> tuple[str, str]:
+def _describe(sig: dict[str, Any], obs: Observations) -> tuple[str, str]:
     """Where a signature sits (the bins that carry it) and a one-line description."""
     std, rel, value, axis = sig["bins"], sig["relative"], sig["bin_value"], sig["axis"]
     finite = np.isfinite(std)

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from . import (
+               beam_path,
                channel,
                detector_gain,
                detector_lag,
@@ -29,6 +30,7 @@ _ALL: tuple[EffectBase[Any], ...] = (
     electronic_noise.EFFECT,
     reference_offset.EFFECT,
     position_error.EFFECT,
+    beam_path.EFFECT,
     detector_lag.EFFECT,
     pixel_noise.EFFECT,
     scatter.EFFECT,

@@ -164,6 +164,11 @@ class Policy:
         Its trial changes the data or their relative weights: the trial fit starts afresh, as the first round did.
     refinements : int
         Refits after the trial, each at the estimate its test gives on the previous refit.
+    own_signature : bool
+        Its trial is judged on its own test rather than on the residual signatures: accepted where the trial's
+        chi-square falls by the share of its statistic that the rule asks (the likelihood ratio confirms the
+        score). For an effect whose correction leaves a model error of another kind on the same pixels (the
+        images' pixel grid under a moving beam path), which the signatures would still show.
     """
 
     order: int = 2
@@ -174,6 +179,7 @@ class Policy:
     first_when_unidentifiable: bool = False
     fresh_start: bool = False
     refinements: int = 0
+    own_signature: bool = False
 
 
 @dataclass(frozen=True)

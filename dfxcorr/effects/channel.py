@@ -18,7 +18,8 @@ import numpy as np
 
 from .. import identify
 from .. import model as M
-from ..catalogue import CATALOGUE, Effect
+from ..catalogue import CATALOGUE, Effect, effect, neutral_params
+from ..noise import noise_weights
 from ..observations import Observations
 from ..retrieve import retrieve
 from ..stats import frames_where
@@ -109,7 +110,7 @@ def score_tests(obs: Observations, params: Params, weights: np.ndarray, model: S
         payload the per-frame share of the statistic (per-frame effects).
     """
     names = list(model) + [c for c in candidates if c not in model]
-    full = {**M.neutral_params(names, obs.n_frames), **params}
+    full = {**neutral_params(names, obs.n_frames), **params}
     dsg = M.design(obs, full)
     images = M.solve_images(obs, dsg, weights, keep_inverse=True)
     resid = obs.counts - M.expected(obs, dsg, images)
@@ -230,7 +231,7 @@ def _heterogeneity(obs: Observations, dsg: M.Design, images: M.Images, resid: np
     if n < 2:
         return chi2_test(0.0, 0, ())
     names = list(model)
-    e = M.effect(name)
+    e = effect(name)
     total: Any = 0.0
     U_eta: Any = 0.0
     u, own, cross = np.zeros(n), np.zeros(n), []
@@ -276,7 +277,7 @@ def round_scores(state: State) -> Scores:
     """The score tests of every channel effect the fit ``state`` lacks: one Fisher information serves them all."""
     model = state.hypothesis.effects
     obs = state.fit_obs
-    weights = M.noise_weights(obs, retrieve(obs, state.params).expected)
+    weights = noise_weights(obs, retrieve(obs, state.params).expected)
     return score_tests(obs, state.params, weights, model, [n for n in CATALOGUE if n not in model],
                        dispersion=max(state.reduced_chi2, 1e-6))
 
@@ -312,7 +313,7 @@ class ChannelEffect(EffectBase[Score]):
         # frame, as a ghost of an earlier frame): the stronger of the two, Bonferroni over both
         obs, expected = state.fit_obs, state.fit_rec.expected
         axes: tuple[ConsistencyAxis, ...] = ("count", "row")
-        return heterogeneity(obs, state.params, M.noise_weights(obs, expected), state.hypothesis.effects, self.name,
+        return heterogeneity(obs, state.params, noise_weights(obs, expected), state.hypothesis.effects, self.name,
                              labels={by: strata(obs, expected, by=by) for by in axes})
 
     def accepted(self, ctx: Context, before: State, after: State, test: Test[Score]) -> Finding:

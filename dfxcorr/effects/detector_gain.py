@@ -20,7 +20,7 @@ from scipy import ndimage
 from .. import model as M
 from ..catalogue import Effect
 from ..io import Scan, frame_rows, lit_rows
-from ..noise import MIN_SIGNAL
+from ..noise import MIN_SIGNAL, variance
 from ..observations import Observations
 from ..preparation import Prepared
 from .base import (
@@ -211,7 +211,7 @@ def noise_model(obs: Observations, ibar: np.ndarray, h: np.ndarray, *, exclude: 
     r2 = ((obs.counts - ibar) ** 2 / (1 - h))[sel]
     # the photon variance per unit gain: the mean times the pixel's variance factor (pixel_noise)
     mu = (np.maximum(obs.photons(ibar), MIN_SIGNAL) * obs.pixel_gain(1.0)[obs.pixel])[sel]
-    fit = NoiseFit(r2, mu, M.variance(obs, ibar)[sel], obs.gain, obs.electronic, (obs.gain, obs.electronic))
+    fit = NoiseFit(r2, mu, variance(obs, ibar)[sel], obs.gain, obs.electronic, (obs.gain, obs.electronic))
     return replace(fit, joint=fit.regression())
 
 
@@ -220,7 +220,7 @@ def state_noise(state: State, flagged: np.ndarray) -> NoiseFit:
     (and their rim) left out."""
     obs, params, rec = state.fit_obs, state.params, state.fit_rec
     dsg = M.design(obs, params)
-    w = np.where(obs.use & rec.images.valid[obs.pixel], rec.weights, 0.0)
+    w = np.where(obs.use & obs.gather_valid(rec.images.valid), rec.weights, 0.0)
     h = M.leverage(obs, dsg, rec.images, rec.weights) + M.frame_leverage(obs, dsg, rec.images, w, params)[0]
     return noise_model(obs, rec.expected, h, exclude=obs.pixel_mask(ndimage.binary_dilation(flagged)))
 

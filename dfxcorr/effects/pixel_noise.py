@@ -16,6 +16,7 @@ from scipy import stats
 from .. import model as M
 from ..catalogue import Effect
 from ..errors import DfxcorrError
+from ..noise import pearson
 from ..observations import Observations
 from ..preparation import Correctable
 from ..stats import holm, ranges
@@ -214,9 +215,9 @@ def class_chi2(obs: Observations, ibar: np.ndarray, valid: np.ndarray, classes: 
 
     ``classes`` (H, W) int labels; returns label -> reduced chi-square (under the noise model of ``obs``).
     """
-    sel = obs.use & valid[obs.pixel]
+    sel = obs.use & obs.gather_valid(valid)
     n = obs.segment_sum(sel.astype(float))
-    X = obs.to_image(obs.segment_sum(np.where(sel, M.pearson(obs, ibar), 0.0)), fill=0.0)
+    X = obs.to_image(obs.segment_sum(np.where(sel, pearson(obs, ibar), 0.0)), fill=0.0)
     dof = obs.to_image(np.maximum(n - 3, 0.0), fill=0.0)
     return {int(k): float(X[classes == k].sum() / dof[classes == k].sum()) for k in np.unique(classes)
             if dof[classes == k].sum() > 0}

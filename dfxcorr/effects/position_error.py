@@ -14,7 +14,7 @@ import numpy as np
 
 from .. import model as M
 from ..align import read_position_errors
-from ..catalogue import Effect
+from ..catalogue import Effect, effect
 from ..observations import Observations
 from ..preparation import Correctable
 from ..retrieve import retrieve
@@ -99,8 +99,8 @@ def position_test(realigned: Realign, obs: Observations, params: dict[str, Any],
     r = obs.counts - rec.expected
     dsg = M.design(obs, params)
     D = [_shift_derivative(realigned, obs, params, images, shift, step)]
-    names = [(n, m) for n in params if M.effect(n).per_frame for m in range(M.effect(n).size)]
-    D += [F for n in params if M.effect(n).per_frame for F in M.sample_derivatives(obs, dsg, images, n)]
+    names = [(n, m) for n in params if effect(n).per_frame for m in range(effect(n).size)]
+    D += [F for n in params if effect(n).per_frame for F in M.sample_derivatives(obs, dsg, images, n)]
     G = np.stack(D, axis=-1)
     wG = w[..., None] * G
     p = G.shape[-1]

@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 from .. import model as M
+from ..noise import pearson
 from ..observations import Noise, Observations
 from ..stats import bonferroni, one_way_anova
 from .base import Consistency, Params, State
@@ -17,7 +18,7 @@ def fit_counts(state: State) -> np.ndarray:
     """The expected counts of the fit's used, solved samples in the region of interest on the columns held for the
     per-pixel tests (``state.obs``): where bins of expected count are cut from, without every column's."""
     obs, rec = state.fit_obs, state.fit_rec
-    held = obs.use & obs.in_roi & rec.images.valid[obs.pixel] & np.isin(obs.columns, state.obs.columns)[None, :]
+    held = obs.use & obs.in_roi & obs.gather_valid(rec.images.valid) & np.isin(obs.columns, state.obs.columns)[None, :]
     return rec.expected[held]
 
 
@@ -30,7 +31,7 @@ def squared_residuals(obs: Observations, params: Params, images: M.Images, exclu
         sel = sub.use & im.valid[sub.pixel]
         if exclude is not None:
             sel &= ~sub.pixel_mask(exclude)
-        yield cols, sub, ibar, sel, np.where(sel, M.pearson(sub, ibar), 0.0)
+        yield cols, sub, ibar, sel, np.where(sel, pearson(sub, ibar), 0.0)
 
 
 def pixel_chi2(obs: Observations, params: Params, images: M.Images, *, under: Noise | None = None
@@ -43,7 +44,7 @@ def pixel_chi2(obs: Observations, params: Params, images: M.Images, *, under: No
     for cols, sub, ibar, sel, z2 in squared_residuals(obs, params, images):
         X[:, cols], n[:, cols] = sub.segment_sum(z2), sub.segment_sum(sel, dtype=np.float64)
         if under is not None:
-            total += float(np.sum(M.pearson(sub.with_noise(under), ibar), where=sel))
+            total += float(np.sum(pearson(sub.with_noise(under), ibar), where=sel))
     return obs.to_image(X, fill=0.0), obs.to_image(np.maximum(n - 3, 0.0), fill=0.0), total
 
 

@@ -497,12 +497,12 @@ def score(obs: Observations, params: dict[str, Any], images: M.Images, weights: 
     cost : float
         sum w (I - Ibar)^2, the weighted least-squares cost at these images.
     """
-    w = np.where(obs.use & images.valid[obs.pixel], weights, 0.0)
+    w = np.where(obs.use & obs.gather_valid(images.valid), weights, 0.0)
     dsg = M.design(obs, params)
-    c = images.coef[obs.pixel]
+    c = obs.gather(images.coef)
     cols = [dsg.A, *M.image_columns(dsg, c[..., 1], c[..., 2])]
-    coef, _, _ = M.solve_pixels(obs, cols, field_, w)
-    perp = field_ - sum(coef[obs.pixel, :, a] * X for a, X in enumerate(cols))
+    fitted = obs.gather(M.solve_pixels(obs, cols, field_, w)[0])
+    perp = field_ - sum(fitted[..., a] * X for a, X in enumerate(cols))
     resid = obs.counts - M.expected(obs, dsg, images)
     return (float(np.sum(w * resid * perp)), float(np.sum(w * perp * perp)), float(np.sum(w * field_ * field_)),
             float(np.sum(w * resid * resid)))

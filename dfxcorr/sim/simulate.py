@@ -22,6 +22,7 @@ from .. import model as M
 from ..align import interpolate_rows, lit_blocks
 from ..config import MAX_SCATTER, ConfigError, Option, _fraction, _nonneg, _positive, _within
 from ..io import Reference, Scan, SteppingReference, write_scan
+from ..observations import Observations, lateral_coordinate
 from ..reference import stepping_observations
 
 log = logging.getLogger(__name__)
@@ -193,6 +194,8 @@ CONCEALED = {
     # a flat panel at 2000 counts with a dark of 100; the file states the dark, not the noise
     "electronic_noise": ("effects.read_noise", 25.0, [10.0, 5.0, 2.0, 1.0], FLAT_PANEL, []),
     "scatter": ("effects.scatter", 0.1, [0.05, 0.02, 0.01, 0.005], {}, []),
+    # a source that travels with the gratings: the sample seen 0.02 rows further per row of travel
+    "beam_path": ("effects.parallax", 0.02, [0.01, 0.005, 0.002, 0.001], {}, []),
 }
 
 #: Detector effects in no catalogue, in the format of :data:`CONCEALED` (the last entry: reconstruct
@@ -255,12 +258,12 @@ def flat_field(cfg: dict, A: int, W: int) -> Reference:
     """
     s = cfg["simulate"]
     u = (np.arange(A) + 0.5)[:, None]
-    x = M.lateral_coordinate(np.arange(W), W)[None, :]
+    x = lateral_coordinate(np.arange(W), W)[None, :]
     n = s["tiles"]
     tile = np.minimum((np.arange(W) * n) // W, n - 1)[None, :] if n else np.zeros((1, W), int)
     if n:
         rng = np.random.default_rng([s["seed"], 1])
-        centre = M.lateral_coordinate((np.arange(n) + 0.5) * W / n - 0.5, W)
+        centre = lateral_coordinate((np.arange(n) + 0.5) * W / n - 0.5, W)
         jitter = rng.uniform(-1, 1, (4, n))
         fringes = (s["fringes_centre"] + (s["fringes_edge"] - s["fringes_centre"]) * centre ** 2
                    + s["tile_fringes"] * jitter[0])[tile]
@@ -443,10 +446,10 @@ class Simulation:
         u = u - self.shift[j]
         phif = interpolate_rows(self._phase, u) + g["phase_step"][j]
         zeros = np.zeros((row.size, W))
-        obs = M.Observations(counts=zeros, tf=interpolate_rows(ref.transmission, u),
-                             vf=interpolate_rows(ref.visibility, u), phif=phif, dark=zeros,
-                             use=np.ones((row.size, W), bool), row=row, frame=np.full(row.size, j), columns=cols,
-                             shape=self.shape)
+        obs = Observations(counts=zeros, tf=interpolate_rows(ref.transmission, u),
+                           vf=interpolate_rows(ref.visibility, u), phif=phif, dark=zeros,
+                           use=np.ones((row.size, W), bool), row=row, frame=np.full(row.size, j), columns=cols,
+                           shape=self.shape)
         keys = ("transmission", "dark_field", "differential_phase")
         # the heart has moved from the middle frame on
         moved = self.after if self.after is not None and j >= J // 2 else None

@@ -8,6 +8,7 @@ from dfxcorr import pipeline as P
 from dfxcorr.align import AlignmentError
 from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.analysis.report import reconstruct_settings, write_report
+from dfxcorr.observations import lateral_coordinate
 from dfxcorr.sim import simulate as S
 
 from conftest import chi2_tolerance, concealed, prepare, sim_config
@@ -44,7 +45,7 @@ def test_tiles_off_reproduce_the_seamless_flat_field():
     ref = S.flat_field(cfg, A, W)
     s = cfg["simulate"]
     u = (np.arange(A) + 0.5)[:, None]
-    x = M.lateral_coordinate(np.arange(W), W)[None, :]
+    x = lateral_coordinate(np.arange(W), W)[None, :]
     fringes = s["fringes_centre"] + (s["fringes_edge"] - s["fringes_centre"]) * x ** 2
     assert np.array_equal(ref.phase, 2 * np.pi * fringes * u / A)
     assert np.array_equal(ref.transmission, np.full((A, W), s["flux"]))

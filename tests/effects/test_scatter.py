@@ -10,8 +10,9 @@ from dfxcorr import config as C
 from dfxcorr import model as M
 from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.analysis.report import reconstruct_settings
+from dfxcorr.catalogue import neutral_params
 from dfxcorr.effects import scatter as SC
-from dfxcorr.noise import MIN_SIGNAL
+from dfxcorr.noise import MIN_SIGNAL, variance
 from dfxcorr.pipeline import reconstruct
 from dfxcorr.retrieve import reduced_chi2, retrieve
 from dfxcorr.sim import simulate as S
@@ -64,7 +65,7 @@ def test_one_model_in_kernels_and_numpy_oracle():
     assert np.all(obs.dark > plain.dark) and obs.offset is not None
     # the model's additive term holds the scatter; the part without photon noise is the detector's dark alone
     np.testing.assert_allclose(obs.quiet, plain.dark, atol=1e-3)
-    params = M.neutral_params(["phase_offset", "tilt"], scan.shape[0])
+    params = neutral_params(["phase_offset", "tilt"], scan.shape[0])
     rec = retrieve(obs, params, iterations=1)
     dsg = M.design(obs, params)
     images = M.solve_images(obs, dsg, rec.weights)
@@ -76,7 +77,7 @@ def test_one_model_in_kernels_and_numpy_oracle():
     assert reduced_chi2(obs, rec.expected, rec.images.valid, n_params=n_params) == pytest.approx(rec.reduced_chi2,
                                                                                                rel=1e-6)
     # each sample's variance counts the scatter's photons (the modulated count and the scatter above the dark)
-    np.testing.assert_allclose(M.variance(obs, rec.expected),
+    np.testing.assert_allclose(variance(obs, rec.expected),
                                obs.pixel_gain()[obs.pixel] * np.maximum(rec.expected - plain.dark, MIN_SIGNAL),
                                rtol=1e-6)
     # a subset of columns keeps each sample's scatter

@@ -1,0 +1,203 @@
+"""Symmetric block-tridiagonal systems, many at once: the images' normal equations where samples read between rows.
+
+Where the beam paths move during the scan (``beam_path``) a sample's expected count mixes the images of two
+neighbouring rows, so the images of a column are no longer one small solve per pixel: their normal matrix is
+block tridiagonal along the rows (p x p blocks, p unknowns per pixel). These are its direct solve (block
+Gaussian elimination, exact) and the blocks of its inverse that the leverages and the Fisher information need,
+vectorised over the columns, and the assembly of those normal matrices from the samples
+(:class:`dfxcorr.observations.Reading`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse
+
+from .observations import Observations
+
+
+def forward(D: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """Inverses of the forward Schur complements F_q = D_q - U_{q-1}^T F_{q-1}^-1 U_{q-1}.
+
+    Parameters
+    ----------
+    D : ndarray, shape (R, C, p, p)
+        Diagonal blocks (symmetric positive definite), C independent systems.
+    U : ndarray, shape (R, C, p, p)
+        U[q] is the block coupling row q with row q + 1 (U[R - 1] is not read).
+
+    Returns
+    -------
+    Finv : ndarray, shape (R, C, p, p)
+    """
+    Finv = np.empty_like(D)
+    Finv[0] = np.linalg.inv(D[0])
+    for q in range(1, D.shape[0]):
+        Ut = np.swapaxes(U[q - 1], -1, -2)
+        Finv[q] = np.linalg.inv(D[q] - Ut @ Finv[q - 1] @ U[q - 1])
+    return Finv
+
+
+def solve(Finv: np.ndarray, U: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve the block-tridiagonal systems given their :func:`forward` factors.
+
+    Parameters
+    ----------
+    Finv, U : ndarray, shape (R, C, p, p)
+    rhs : ndarray, shape (R, C, p, m)
+        m right-hand sides per system.
+
+    Returns
+    -------
+    x : ndarray, shape (R, C, p, m)
+    """
+    R = rhs.shape[0]
+    y = np.empty_like(rhs)
+    y[0] = rhs[0]
+    for q in range(1, R):
+        y[q] = rhs[q] - np.swapaxes(U[q - 1], -1, -2) @ (Finv[q - 1] @ y[q - 1])
+    x = np.empty_like(rhs)
+    x[R - 1] = Finv[R - 1] @ y[R - 1]
+    for q in range(R - 2, -1, -1):
+        x[q] = Finv[q] @ (y[q] - U[q] @ x[q + 1])
+    return x
+
+
+def inverse_blocks(Finv: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The diagonal blocks of the inverse and those coupling each row with the next.
+
+    Sigma_{R-1} = F_{R-1}^-1; Sigma_{q,q+1} = -F_q^-1 U_q Sigma_{q+1}; Sigma_q = F_q^-1 - Sigma_{q,q+1} U_q^T F_q^-1.
+
+    Returns
+    -------
+    diagonal : ndarray, shape (R, C, p, p)
+    upper : ndarray, shape (R, C, p, p)
+        upper[q] = Sigma_{q,q+1} (zero for the last row).
+    """
+    R = Finv.shape[0]
+    diag = np.empty_like(Finv)
+    upper = np.zeros_like(Finv)
+    diag[R - 1] = Finv[R - 1]
+    for q in range(R - 2, -1, -1):
+        upper[q] = -Finv[q] @ U[q] @ diag[q + 1]
+        diag[q] = Finv[q] - upper[q] @ np.swapaxes(U[q], -1, -2) @ Finv[q]
+    return diag, upper
+
+
+@dataclass
+class ReadBetween:
+    """The images' normal matrices of every column where the samples read between rows, factored.
+
+    Scaled by the square roots of their diagonals (``scale``), rows that cannot be solved set to the identity;
+    ``Finv`` and ``U`` are the scaled system's :func:`dfxcorr.forward` factors.
+
+    Attributes
+    ----------
+    scale : ndarray, shape (R, C, p)
+    valid : ndarray of bool, shape (R, C)
+    Finv, U : ndarray, shape (R, C, p, p)
+    """
+
+    scale: np.ndarray
+    valid: np.ndarray
+    Finv: np.ndarray
+    U: np.ndarray
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """N^-1 rhs for right-hand sides (R, C, p, m); 0 on rows that cannot be solved."""
+        s = self.scale[..., None]
+        x = solve(self.Finv, self.U, np.where(self.valid[..., None, None], rhs / s, 0.0)) / s
+        x[~self.valid] = 0.0
+        return x
+
+    def inverse(self) -> tuple[np.ndarray, np.ndarray]:
+        """The inverse's diagonal blocks and those between each row and the next (zero on unsolvable rows)."""
+        diag, upper = inverse_blocks(self.Finv, self.U)
+        s = self.scale
+        diag = diag / (s[..., :, None] * s[..., None, :])
+        upper[:-1] = upper[:-1] / (s[:-1, ..., :, None] * s[1:, ..., None, :])
+        diag[~self.valid] = 0.0
+        return diag, upper
+
+
+def _read_shares(obs: Observations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each block's two image rows (positions in ``obs.rows``) and the share of the first."""
+    rd = obs.reading
+    if rd is None:
+        raise ValueError("the observations read every sample at its own row")
+    return rd.lo, np.minimum(rd.lo + 1, obs.rows.size - 1), 1.0 - rd.frac
+
+
+def _spread(index: np.ndarray, share: np.ndarray, rows: int) -> sparse.csr_matrix:
+    """The (rows, K) matrix that adds each block's ``share`` of a per-sample value to image row ``index``."""
+    return sparse.csr_matrix((share, (index, np.arange(index.size))), shape=(rows, index.size))
+
+
+def factor_read_between(obs: Observations, columns: list[np.ndarray], weights: np.ndarray) -> ReadBetween:
+    """Assemble and factor the images' normal matrices where the samples read between rows (``obs.reading``).
+
+    Sample k's model is sum_a X_a ((1 - f_k) coef[lo_k, a] + f_k coef[lo_k + 1, a]), so the normal matrix of a
+    column is block tridiagonal along the rows. Unknowns absent from every sample of a row (no fringe) are left
+    out there, as in the per-pixel solve; a row is solvable with at least p samples reading it, the first column
+    present and a well-conditioned diagonal block.
+    """
+    lo, hi, g = _read_shares(obs)
+    R, p = obs.rows.size, len(columns)
+    own, nxt, both = _spread(lo, g ** 2, R), _spread(hi, (1 - g) ** 2, R), _spread(lo, g * (1 - g), R)
+    wX = [weights * X for X in columns]
+    D = np.empty((R, weights.shape[1], p, p))
+    U = np.zeros_like(D)
+    for a in range(p):
+        for b in range(a, p):
+            prod = wX[a] * columns[b]
+            D[..., a, b] = D[..., b, a] = own @ prod + nxt @ prod
+            U[..., a, b] = U[..., b, a] = both @ prod
+    counted = (weights > 0).astype(np.float64)
+    n_used = _spread(lo, (g > 0) * 1.0, R) @ counted + _spread(hi, (g < 1) * 1.0, R) @ counted
+    diag = np.einsum("...ii->...i", D)
+    present = diag > 0
+    scale = np.sqrt(np.where(present, diag, 1.0))
+    Ds = np.where(present[..., :, None] | present[..., None, :], D / (scale[..., :, None] * scale[..., None, :]), 0.0)
+    Ds += np.eye(p) * ~present[..., None, :]
+    Us = np.zeros_like(U)
+    Us[:-1] = U[:-1] / (scale[:-1, ..., :, None] * scale[1:, ..., None, :])
+    valid = (n_used >= present.sum(axis=-1)) & present[..., 0] & (np.abs(np.linalg.det(Ds)) > 1e-10)
+    # a row that cannot be solved is held at 0, apart from its neighbours (their elimination stays finite)
+    Ds[~valid] = np.eye(p)
+    Us[~valid] = 0.0
+    Us[:-1][~valid[1:]] = 0.0
+    return ReadBetween(scale, valid, forward(Ds, Us), Us)
+
+
+def read_between_rhs(obs: Observations, values: list[np.ndarray]) -> np.ndarray:
+    """Per-sample values (p of them, each (K, C, ...)) summed onto the image rows the samples read, with their shares:
+    X^T applied to them, shape (R, C, p, ...)."""
+    lo, hi, g = _read_shares(obs)
+    R = obs.rows.size
+    first, second = _spread(lo, g, R), _spread(hi, 1 - g, R)
+    out = [(first @ v.reshape(v.shape[0], -1) + second @ v.reshape(v.shape[0], -1)).reshape((R,) + v.shape[1:])
+           for v in values]
+    return np.stack(out, axis=2)
+
+
+def solve_read_between(obs: Observations, columns: list[np.ndarray], target: np.ndarray, weights: np.ndarray, *,
+                       keep_inverse: bool = False
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """:func:`dfxcorr.model.solve_pixels` where the samples read the images between rows (``obs.reading``): an exact
+    solve of each column's block-tridiagonal normal equations (:func:`factor_read_between`).
+
+    Returns
+    -------
+    coef : ndarray, shape (R, C, p)
+    valid : ndarray of bool, shape (R, C)
+    inverse, coupling : ndarray, shape (R, C, p, p), or None
+        Diagonal blocks of the inverse normal matrix, and those between each row and the next (with
+        ``keep_inverse``).
+    """
+    fac = factor_read_between(obs, columns, weights)
+    coef = fac.solve(read_between_rhs(obs, [weights * X * target for X in columns])[..., None])[..., 0]
+    if not keep_inverse:
+        return coef, fac.valid, None, None
+    inverse, coupling = fac.inverse()
+    return coef, fac.valid, inverse, coupling

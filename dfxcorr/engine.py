@@ -1,0 +1,113 @@
+"""The model evaluated on observations: the compiled kernels, or the model's own arrays where samples read between rows.
+
+Every stage that solves images, evaluates the reduced cost or the Fisher information calls these three functions
+(never :mod:`dfxcorr.kernels` directly). Where each sample reads the images of its own pixel (the paper's geometry)
+they are the compiled loops of :mod:`dfxcorr.kernels`; where the beam paths move during the scan
+(``Observations.reading``, ``beam_path``) the images of neighbouring rows are coupled and the same quantities come
+from :mod:`dfxcorr.model`'s expressions with the block-tridiagonal solve (:func:`dfxcorr.banded.solve_read_between`).
+The signatures and returned values are the kernels'.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from . import kernels as K
+from . import model as M
+from .noise import noise_weights, variance
+from .observations import Observations
+
+
+def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = None, iterations: int = 1,
+             gain: float | None = None, keep_inverse: bool = False, keep_expected: bool = True,
+             next_weights: bool = False) -> dict:
+    """Images, expected counts, weights and Pearson chi-square: :func:`dfxcorr.kernels.retrieve`'s values.
+
+    Where ``obs.reading`` is set, ``inverse`` holds each row's diagonal block of the inverse and the result adds
+    ``coupling`` (the blocks between each row and the next).
+    """
+    if obs.reading is None:
+        K.set_threads()
+        out = K.retrieve(obs, ch, weights=weights, iterations=iterations, gain=gain, keep_inverse=keep_inverse,
+                         keep_expected=keep_expected, next_weights=next_weights)
+        out["coupling"] = None
+        return out
+    if iterations < 1:
+        raise ValueError("iterations must be at least 1")
+    noisy = obs if gain is None else replace(obs, gain=gain)
+    dsg = M.design_channels(obs, ch)
+    w = noise_weights(noisy, np.maximum(obs.counts, 1.0)) if weights is None else np.where(obs.use, weights, 0.0)
+    for it in range(iterations):
+        images = M.solve_images(obs, dsg, w, keep_inverse=keep_inverse and it == iterations - 1)
+        ibar = M.expected(obs, dsg, images)
+        if it < iterations - 1:
+            w = noise_weights(noisy, ibar)
+    sel = obs.use & obs.gather_valid(images.valid)
+    var = variance(noisy, ibar)
+    chi2 = float(np.sum(np.where(sel, (obs.counts - ibar) ** 2 / var, 0.0)))
+    w_out = noise_weights(noisy, ibar) if next_weights else w
+    keep = keep_expected or next_weights
+    empty = np.zeros((0, obs.columns.size))
+    return {"coef": images.coef, "valid": images.valid, "inverse": images.inverse if keep_inverse else None,
+            "coupling": images.coupling if keep_inverse else None, "expected": ibar if keep else empty,
+            "weights": w_out if keep else empty, "chi2": chi2, "samples": int(sel.sum())}
+
+
+def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, cos_phif: np.ndarray,
+                 sin_phif: np.ndarray, *, phase: float | None = None, square: bool = False,
+                 channels=tuple(K.CHANNEL_IDS)) -> tuple[float, tuple[np.ndarray, ...]]:
+    """Reduced cost and its channel gradients (or Gauss-Newton sums): :func:`dfxcorr.kernels.reduced_cost`'s values."""
+    if obs.reading is None:
+        return K.reduced_cost(obs, ch, weights, cos_phif, sin_phif, phase=phase, square=square, channels=channels)
+    dsg = M.design_channels(obs, ch)
+    images = M.solve_images(obs, dsg, weights, phase=phase)
+    resid = obs.counts - M.expected(obs, dsg, images)
+    cost = float(np.sum(weights * resid ** 2))
+    J, C = obs.n_frames, obs.columns.size
+    out: list[np.ndarray] = [np.zeros((J, C)), np.zeros((J, C)), np.zeros(J), np.zeros(3), np.zeros(2)]
+    g = -2.0 * weights * resid
+    for name, cid in K.CHANNEL_IDS.items():
+        if name not in channels:
+            continue
+        fields = M.channel_fields(obs, dsg, images, cid)
+        sums = [(weights * F if square else g) * F for F in fields]
+        if cid in (K.PHASE, K.VISIBILITY):
+            np.add.at(out[cid], obs.frame, sums[0])
+        elif cid == K.DOSE:
+            out[cid] = obs.frame_sum(sums[0].sum(axis=1))
+        else:
+            out[cid] = np.array([s.sum() for s in sums])
+    return cost, tuple(out)
+
+
+def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray | None,
+           table: tuple, *, profiled: bool = True, columns: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Fisher information of channel components and its profiled correction: :func:`dfxcorr.kernels.fisher`'s values.
+
+    Where ``obs.reading`` is set, a pixel's images share samples with its neighbours', so the correction
+    sum Y^T N^-1 Y runs over whole columns (N block tridiagonal, :mod:`dfxcorr.banded`), ``columns`` at a time.
+    """
+    if obs.reading is None:
+        K.set_threads()
+        return K.fisher(obs, ch, weights, coef, inverse, table, profiled=profiled)
+    channel, power, n_per_frame = table
+    J = obs.n_frames
+    dsg = M.design_channels(obs, ch)
+    images = M.Images(coef, np.ones(coef.shape[:2], bool))
+    fields = {cid: M.channel_fields(obs, dsg, images, cid) for cid in set(np.asarray(channel).tolist())}
+    comps = enumerate(zip(channel, power, strict=True))
+    F = [fields[cid][0] * obs.x[None, :] ** pw if cid in (K.PHASE, K.VISIBILITY) and q < n_per_frame
+         else fields[cid][pw if q >= n_per_frame else 0] for q, (cid, pw) in comps]
+    Pf, Pg = int(n_per_frame), len(F) - int(n_per_frame)
+    P = J * Pf + Pg
+    # column of each (sample, component) in the information: (frame, component) per frame, then the global ones
+    where = [obs.frame * Pf + q if q < Pf else np.full(obs.frame.size, J * Pf + q - Pf) for q in range(len(F))]
+    plain = np.zeros((P, P))
+    for a in range(len(F)):
+        for b in range(len(F)):
+            np.add.at(plain, (where[a], where[b]), (weights * F[a] * F[b]).sum(axis=1))
+    corr = np.zeros((P, P))
+    if not profiled:
+        return plain, corr
+    return plain, M.read_between_correction(obs, dsg, coef, weights, F, where, P, columns=columns)
