@@ -44,6 +44,9 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "step_mm": Option(2.5, "motion of the active area between exposures (mm)", _NUM, check=_positive),
         "magnification": Option(1.2, "source-detector / source-sample distance (1.8 m / 1.5 m)", _NUM,
                                 check=_positive),
+        "supersample": Option(2, "thorax: sub-pixel samples per axis averaged into a pixel's t and v (phi's average "
+                                 "along the rows is exact); a sample displaced by effects.parallax changes them in "
+                                 "steps of 1 / supersample row at its edges", int, check=_within(1, 16)),
         "steps": Option(11, "stepping geometry: number of phase steps", int, check=_within(3, 10000)),
         "steps_per_period": Option(11, "stepping geometry: steps per grating period", _NUM, check=_positive),
         "flux": Option(2e4, "flat-field counts per pixel and frame, t^f", _NUM, check=_within(1e-3, 1e9)),
@@ -284,34 +287,16 @@ def flat_field(cfg: dict, A: int, W: int) -> Reference:
 
 def sample_images(cfg: dict, H: int, W: int, *, rows: np.ndarray | None = None,
                   shift: float = 0.0) -> dict[str, np.ndarray]:
-    """t, v, phi of the configured phantom on an H x W detector, at some of its rows, the sample displaced.
-
-    Parameters
-    ----------
-    cfg : dict
-        Resolved configuration of :data:`SCHEMA` (``simulate.phantom``, ``pixel_mm``, ``magnification``).
-    H, W : int
-        Detector rows and columns.
-    rows : ndarray of int, shape (n,), optional
-        Ascending detector rows without repeats, also beyond [0, H) (default: every row).
-    shift : float
-        Displacement along the rows (detector rows): row u shows the sample that row u + shift shows
-        undisplaced. The thorax is evaluated there (:func:`~dfxcorr.sim.phantom.thorax_rows`); the slab and
-        the blank are the same everywhere.
-
-    Returns
-    -------
-    dict of str to ndarray
-        'transmission', 'dark_field', 'differential_phase' (rad), each shape (n, W) ((H, W) by default).
-    """
+    """t, v, phi (rad) of the configured phantom on an H x W detector, each (n, W), at ``rows`` (ascending
+    detector rows without repeats, also beyond [0, H); default all H), the sample displaced by ``shift`` rows:
+    row u shows what row u + shift shows undisplaced (:func:`~dfxcorr.sim.phantom.thorax`; the slab and the
+    blank are the same everywhere)."""
     from . import phantom
 
     s = cfg["simulate"]
-    if s["phantom"] == "thorax" and rows is None:
-        return phantom.thorax(shape=(H, W), shift=shift, pixel_mm=s["pixel_mm"], magnification=s["magnification"])
     if s["phantom"] == "thorax":
-        return phantom.thorax_rows(rows=np.asarray(rows), shape=(H, W), shift=shift, pixel_mm=s["pixel_mm"],
-                                   magnification=s["magnification"])
+        return phantom.thorax(shape=(H, W), rows=rows, shift=shift, pixel_mm=s["pixel_mm"],
+                              magnification=s["magnification"], supersample=s["supersample"])
     n = H if rows is None else len(rows)
     if s["phantom"] == "slab":
         return phantom.slab(shape=(n, W), pixel_mm=s["pixel_mm"], magnification=s["magnification"])
@@ -319,14 +304,10 @@ def sample_images(cfg: dict, H: int, W: int, *, rows: np.ndarray | None = None,
 
 
 def parallax_shift(cfg: dict, position: np.ndarray, A: int, H: int) -> np.ndarray:
-    """Displacement d_j of the sample seen by each frame (detector rows) under ``effects.parallax`` kappa.
-
-    d_j = kappa (c_j - c_0), with c_j = position_j + (A - 1) / 2 the centre row of frame j's active area
-    (its first row sits at ``position_j``, lit_blocks' convention) and c_0 = (H - 1) / 2 the detector's
-    centre row: the frame at the detector's centre sees the sample undisplaced. Shape (J,).
-    """
-    centre = np.asarray(position, dtype=float) + (A - 1) / 2
-    return cfg["effects"]["parallax"] * (centre - (H - 1) / 2)
+    """Displacement d_j = kappa (c_j - c_0) (rows, shape (J,)) of the sample each frame sees (``effects.parallax``):
+    c_j = position_j + (A - 1) / 2 is the centre row of frame j's active area (its first row at position_j, as in
+    lit_blocks), c_0 = (H - 1) / 2 the detector's."""
+    return cfg["effects"]["parallax"] * (np.asarray(position, dtype=float) + (A - 1) / 2 - (H - 1) / 2)
 
 
 def draw_effects(cfg: dict, J: int, rng: np.random.Generator) -> dict[str, np.ndarray]:

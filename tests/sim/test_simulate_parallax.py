@@ -9,7 +9,7 @@ from dfxcorr import config as C
 from dfxcorr.sim import phantom as P
 from dfxcorr.sim import simulate as S
 
-from conftest import cli_capped, one_error_line, sim_config
+from conftest import ROOT, cli_capped, one_error_line, sim_config
 
 EXACT = {"simulate.noise": False, "simulate.dtype": "float64"}
 # an odd height puts the detector's centre on a row, so that d_j = kappa (c_j - c_0) takes whole values
@@ -85,6 +85,16 @@ def test_rows_beyond_the_detector_see_the_phantom_where_it_continues():
     assert (seen["transmission"] < 1).any()  # the body reaches below the detector
 
 
+@pytest.mark.parametrize("supersample", [1, 2, 8])
+def test_any_rows_of_the_displaced_thorax_are_those_of_the_whole_detector(supersample):
+    H, W = 90, 102
+    whole = P.thorax(shape=(H, W), shift=-2.3, pixel_mm=5.0, supersample=supersample)
+    rows = np.array([0, 1, 2, 17, 18, 40, 41, 42, 43, 60, 89])  # strips of 16 rows at 8 x 8, of all at 2 x 2
+    some = P.thorax(shape=(H, W), rows=rows, shift=-2.3, pixel_mm=5.0, supersample=supersample)
+    for k in KEYS:
+        np.testing.assert_array_equal(some[k], whole[k][rows])
+
+
 def test_the_truth_carries_kappa_and_the_undisplaced_images():
     scan, truth = S.simulate(sim_config(**{"effects.parallax": -0.04}))
     _, plain = S.simulate(sim_config())
@@ -125,7 +135,23 @@ def test_the_parallax_setting_is_validated(value, words):
         sim_config(**{"effects.parallax": value})
 
 
+@pytest.mark.parametrize("value,words", [(0, "must lie in [1, 16]"), (17, "must lie in [1, 16]"),
+                                         (2.5, "must be int")])
+def test_the_supersample_setting_is_validated(value, words):
+    with pytest.raises(C.ConfigError, match=re.escape(f"simulate.supersample {words}")):
+        sim_config(**{"simulate.supersample": value})
+
+
 def test_simulate_refuses_a_parallax_of_a_whole_row_per_row_in_one_line(tmp_path):
     res = cli_capped("simulate", "-o", tmp_path / "s.h5", "--set", "effects.parallax=1", timeout=60)
     assert res.exit_code == 2 and one_error_line(res.stderr, "effects.parallax", "(-1, 1)"), res.stderr + res.traceback
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_parallax_configuration_is_the_shared_scans_geometry_with_kappa():
+    cfg = C.load([ROOT / "configs" / "parallax-simulation.yaml"], [], schema=S.SCHEMA)
+    g = S.geometry(cfg)
+    assert (g["H"], g["W"], g["A"], g["position"].size) == (180, 204, 30, 209)
+    assert cfg["effects"]["parallax"] == 0.02 and cfg["simulate"]["flux"] == 2e4
+    d = S.parallax_shift(cfg, g["position"], g["A"], g["H"])
+    assert d[-1] - d[-30] == pytest.approx(0.02 * 29)  # the 30 frames lighting the last row: 0.58 rows apart
