@@ -225,8 +225,8 @@ class LitStore:
     def without(self, faults: Faults, *, margin: float = 0.0) -> LitStore:
         """The same samples with the saturated ones (:func:`dfxcorr.faults.saturated`, ``margin`` counts) and
         every sample of the bad frames marked not good."""
-        good = np.ones(self.counts.shape, bool) if faults.level is None else \
-            ~saturated(self.counts, faults.level, margin=margin)
+        good = (np.ones(self.counts.shape, bool) if faults.level is None
+                else ~saturated(self.counts, faults.level, margin=margin))
         bad = tuple(sorted(faults.bad_frames))
         good[np.isin(self.frame, bad)] = False
         return replace(self, good=good, bad_frames=bad)

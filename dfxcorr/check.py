@@ -280,8 +280,8 @@ def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, prep: Prepare
             raise
         offset = cfg["fit"]["column_offset"]
         if offset is not None:
-            raise C.ConfigError(f"fit.column_offset={offset} is outside the detector's columns 0..{W - 1}") \
-                from None
+            raise C.ConfigError(
+                f"fit.column_offset={offset} is outside the detector's columns 0..{W - 1}") from None
         first = f" (its first column would be {n // 2})" if isinstance(n, int) else ""
         raise C.ConfigError(f"fit.subsample={n} leaves no column of {W}{first}; use at most {W // 4}") from None
 

@@ -548,10 +548,6 @@ def nps(scans, output_dir, methods, bins, config_files, sets, overwrite):
     click.echo(f"wrote {', '.join(str(p) for p in paths.values())}")
 
 
-if __name__ == "__main__":  # pragma: no cover
-    main()
-
-
 @main.command()
 @click.argument("scan_list", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", "output_dir", required=True, type=click.Path(file_okay=False),
@@ -593,3 +589,7 @@ def batch(scan_list, output_dir, config_files, sets, jobs, array_index):
     click.echo(B.summary(outcomes))
     if any(o.status == "failed" for o in outcomes):
         sys.exit(1)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

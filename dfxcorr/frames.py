@@ -78,8 +78,8 @@ def rescue_frames(obs: Observations, params: dict, weights: np.ndarray, frames: 
     offsets = np.linspace(-np.pi, np.pi, n_offset, endpoint=False)
     tilts = c1 + np.linspace(-4 * w1, 4 * w1, n_tilt) if "tilt" in params else np.zeros(1)
     g0, g1 = (g.ravel() for g in np.meshgrid(offsets, tilts, indexing="ij"))
-    c0, w0 = (float(np.ravel(prior["phase_offset"][0])[0]), float(np.ravel(prior["phase_offset"][1])[0])) \
-        if "phase_offset" in prior else (0.0, np.inf)
+    c0, w0 = ((float(np.ravel(prior["phase_offset"][0])[0]), float(np.ravel(prior["phase_offset"][1])[0]))
+              if "phase_offset" in prior else (0.0, np.inf))
     penalty = (np.angle(np.exp(1j * (g0 - c0))) / w0) ** 2 + ((g1 - c1) / w1) ** 2
     moved = 0
     for j in frames:
@@ -89,8 +89,8 @@ def rescue_frames(obs: Observations, params: dict, weights: np.ndarray, frames: 
         cost = frame_grid_cost(obs, ch, now["coef"], weights, sel, offsets, tilts,
                                held=now0 + (now1 if "tilt" in params else 0.0) * obs.x).ravel() + penalty
         r = obs.counts[sel] - now["expected"][sel]
-        current = float(np.sum(weights[sel] * r ** 2)) + (np.angle(np.exp(1j * (now0 - c0))) / w0) ** 2 \
-            + ((now1 - c1) / w1) ** 2
+        current = (float(np.sum(weights[sel] * r ** 2)) + (np.angle(np.exp(1j * (now0 - c0))) / w0) ** 2
+                   + ((now1 - c1) / w1) ** 2)
         best = int(np.argmin(cost))
         if cost[best] < current - 1.0:
             params.setdefault("phase_offset", np.zeros((obs.n_frames, 1)))[j, 0] = g0[best]

@@ -167,8 +167,8 @@ def _direction(cs, ss):
 @njit(cache=True, inline="always")
 def _image_columns(bc, bs, hcc, hcs, u, w):
     """dIbar/dc, dIbar/ds of one sample at images of direction (u, w) (model.image_columns)."""
-    return bc + hcc * u * (1.0 + 2.0 * w * w) - hcs * 2.0 * w * w * w, \
-        bs - hcc * w * (1.0 + 2.0 * u * u) - hcs * 2.0 * u * u * u
+    return (bc + hcc * u * (1.0 + 2.0 * w * w) - hcs * 2.0 * w * w * w,
+            bs - hcc * w * (1.0 + 2.0 * u * u) - hcs * 2.0 * u * u * u)
 
 
 @njit(cache=True, inline="always")
@@ -341,8 +341,8 @@ def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chun
                         f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs, ss, ct, st, c2, s2, e, f, tf[k, c], vf[k, c],
                                                                 amp, bc, bs, vis[j, c], hc, hs)
                         wk = w[k, c]
-                        res = counts[k, c] - dark[k, c] - off - bg[1] * x[c] - (tt * a + cs * bc + ss * bs) \
-                            - (hcc * e - hcs * f)
+                        res = (counts[k, c] - dark[k, c] - off - bg[1] * x[c] - (tt * a + cs * bc + ss * bs)
+                               - (hcc * e - hcs * f))
                         cost[t, c] += wk * res * res
                         # gradient: sum (-2 w r) F; Gauss-Newton diagonal: sum (w F) F
                         g = -2.0 * wk * res
@@ -479,8 +479,8 @@ def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds
                             Hc[b, i], Hs[b, i] = hcc, hcs
                         off[b, i] = dark[k, c] + bg[0] + bg[1] * x[c] + bg[2] * y[k]
                         if from_data:
-                            w[b, i] = 1.0 / _variance(gain[r, c], counts[k, c], quiet[k, c], electronic) \
-                                if use[k, c] else 0.0
+                            w[b, i] = (1.0 / _variance(gain[r, c], counts[k, c], quiet[k, c], electronic)
+                                       if use[k, c] else 0.0)
                         else:
                             w[b, i] = start[k, c]
                 for it in range(iterations):
@@ -491,8 +491,8 @@ def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds
                             for i in range(T):
                                 c = c0 + i
                                 m = _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn)
-                                w[b, i] = 1.0 / _variance(gain[r, c], m, quiet[k, c], electronic) if use[k, c] \
-                                    else 0.0
+                                w[b, i] = (1.0 / _variance(gain[r, c], m, quiet[k, c], electronic) if use[k, c]
+                                           else 0.0)
                     for step in range(steps):
                         N[:, :T] = 0.0
                         rhs[:, :T] = 0.0

@@ -218,8 +218,8 @@ def fit_seconds(n_columns: int, samples_per_column: int, coarse: int) -> float:
     """Predicted wall time (s) of a fit of ``n_columns`` columns whose stages run on every ``coarse``-th first."""
     if coarse <= 1:
         return FIT_SECONDS_PER_SAMPLE * n_columns * samples_per_column
-    return (FIT_SECONDS_PER_SAMPLE * -(-n_columns // coarse) + POLISH_SECONDS_PER_SAMPLE * n_columns) \
-        * samples_per_column
+    return ((FIT_SECONDS_PER_SAMPLE * -(-n_columns // coarse) + POLISH_SECONDS_PER_SAMPLE * n_columns)
+            * samples_per_column)
 
 
 def within_seconds(cfg: dict, width: int, samples_per_column: int, seconds: float) -> int:

@@ -169,8 +169,8 @@ def _plot_param(ax, p: VibrationDataset):
     sigma = None if p.sigma is None else p.sigma.reshape(values.shape)
     frames = np.arange(values.shape[0])
     e = CATALOGUE.get(p.effect)
-    names = e.components if e is not None and len(e.components) == values.shape[1] else \
-        [str(k) for k in range(values.shape[1])]
+    names = (e.components if e is not None and len(e.components) == values.shape[1]
+             else [str(k) for k in range(values.shape[1])])
     span = np.nanmax(values) - np.nanmin(values) if np.isfinite(values).any() else 0.0
     cap = span if span > 0 else 1.0
     lo, hi = [], []

@@ -226,8 +226,8 @@ def targets(folder: Path) -> None:
                      f"iterations, {d.get('evaluations')} evaluations", ratio <= 1.1))
     summary, ref = base.get("summary", {}), base.get("reference")
     if "defaults" in summary and "fit.subsample=20" in summary:
-        mine, theirs = summary["defaults"]["median_seconds"]["this checkout"], \
-            summary["fit.subsample=20"]["median_seconds"][ref]
+        mine, theirs = (summary["defaults"]["median_seconds"]["this checkout"],
+                        summary["fit.subsample=20"]["median_seconds"][ref])
         current = base.get("commit") == head_commit()
         rows.append((f"paper study at defaults in <= 0.4 x the time of {ref} at fit.subsample=20 (alternated runs)",
                      f"{mine} / {theirs} s, ratio {mine / theirs:.2f}"

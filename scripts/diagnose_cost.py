@@ -106,8 +106,8 @@ def main():
             for name, seconds in diag["timings"].items():
                 # 'test <effect>' keys stay as they are: each effect's share of the rounds' tests (already counted
                 # in 'tests': the stages do not add up to the whole)
-                kind = "tests" if name.endswith(": tests") else name.split(": fit")[0].split(": ")[-1] \
-                    if ": fit" in name else name
+                kind = ("tests" if name.endswith(": tests") else name.split(": fit")[0].split(": ")[-1]
+                        if ": fit" in name else name)
                 kind = "trial fits" if kind.startswith("trial") else ("fits" if kind.startswith("round") else kind)
                 stages[kind] = stages.get(kind, 0.0) + seconds
             rows["cases"][case] = {"reconstruct_s": rec["seconds"], "diagnose_s": diag["seconds"],

@@ -43,9 +43,9 @@ SCENARIOS = S.CONCEALED
 
 #: The clean scans: (phantom, flat-field settings, stated gain); seeds 100, 101, ...
 TILED = {"simulate.tiles": 8, "simulate.flat_nonlinearity": 1.0}
-CLEAN = [(phantom, flat, gain) for flat in ({}, TILED) for phantom, gain in
-         (("thorax", 1.0), ("slab", 1.0), ("thorax", 3.0), ("slab", 3.0), ("thorax", 1.0))] + \
-    [(phantom, S.FLAT_PANEL, 1.0) for phantom in ("thorax", "slab")]
+CLEAN = ([(phantom, flat, gain) for flat in ({}, TILED) for phantom, gain in
+          (("thorax", 1.0), ("slab", 1.0), ("thorax", 3.0), ("slab", 3.0), ("thorax", 1.0))]
+         + [(phantom, S.FLAT_PANEL, 1.0) for phantom in ("thorax", "slab")])
 
 #: Two effects concealed at once (mean with mean, noise with mean, alignment with mean, counts with mean), and three
 #: (noise with two means).

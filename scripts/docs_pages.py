@@ -52,8 +52,8 @@ def load_text(load: list | float | None) -> str:
 
 
 def table(head: list[str], rows: list[list[Any]]) -> list[str]:
-    return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + \
-        ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return (["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+            + ["| " + " | ".join(str(c) for c in row) + " |" for row in rows])
 
 
 def fmt_estimate(r: dict) -> str:
@@ -423,9 +423,9 @@ def diagnosis_section(study: dict) -> list[str]:
     rows = []
     for effect, runs in by_effect.items():
         top, limit = runs[0], study["limits"].get(effect)
-        found = f"{top['amplitude']:.6g}: {', '.join(top['found']) or 'nothing'}, " \
-                f"{top['initial_chi2']:.4f} -> {top['final_chi2']:.4f}" + \
-                (f", unexplained ({axes(top)})" if top["unexplained"] else "")
+        found = (f"{top['amplitude']:.6g}: {', '.join(top['found']) or 'nothing'}, "
+                 f"{top['initial_chi2']:.4f} -> {top['final_chi2']:.4f}"
+                 + (f", unexplained ({axes(top)})" if top["unexplained"] else ""))
         rows.append([effect, found, fmt_estimate(top), fmt_images(top),
                      "not found" if limit is None else f"{limit:g}", next_smaller(runs, limit)])
     clean = study["clean"]

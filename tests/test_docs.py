@@ -36,8 +36,8 @@ README = ROOT / "README.md"
 #: Issue numbers, branch names and rounds of the team's work: none in what users and reviewers read.
 HISTORY = re.compile(r"\bissues? #?\d+\b|\bh-[a-z]+\b|\bround (?:one|two|three|four|five)\b", re.IGNORECASE)
 #: Code whose comments, docstrings and help texts are held to that: every module of the package.
-CODE = sorted((ROOT / "dfxcorr").rglob("*.py")) + sorted((ROOT / "scripts").glob("*.py")) + \
-    sorted((ROOT / "scripts").glob("*.sh"))
+CODE = (sorted((ROOT / "dfxcorr").rglob("*.py")) + sorted((ROOT / "scripts").glob("*.py"))
+        + sorted((ROOT / "scripts").glob("*.sh")))
 PROSE = [README, ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").rglob("*.md")),
          *sorted((ROOT / "configs").glob("*.yaml"))]
 #: Tests, but this file: its own examples name what the pattern must catch.

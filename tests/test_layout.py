@@ -17,8 +17,8 @@ def modules() -> dict[str, ast.Module]:
 
 def imported(name: str, tree: ast.Module, known: set[str]) -> set[str]:
     """The package's modules that ``name`` imports anywhere in its text (type-only and deferred imports too)."""
-    package = name if (PACKAGE / "/".join(name.split(".")[1:]) / "__init__.py").exists() or name == "dfxcorr" \
-        else name.rsplit(".", 1)[0]
+    package = (name if (PACKAGE / "/".join(name.split(".")[1:]) / "__init__.py").exists() or name == "dfxcorr"
+               else name.rsplit(".", 1)[0])
     found = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):

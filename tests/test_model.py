@@ -61,8 +61,8 @@ def test_image_columns_are_the_derivatives_of_the_model(rng):
         up, down = truth.coef.copy(), truth.coef.copy()
         up[..., a] += h
         down[..., a] -= h
-        fd = (M.expected(obs, dsg, M.Images(up, truth.valid)) - M.expected(obs, dsg, M.Images(down, truth.valid))) \
-            / (2 * h)
+        fd = ((M.expected(obs, dsg, M.Images(up, truth.valid)) - M.expected(obs, dsg, M.Images(down, truth.valid)))
+              / (2 * h))
         np.testing.assert_allclose(col, fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
     modulated = M.expected(obs, dsg, truth) - dsg.offset - c[..., 0] * dsg.A
     np.testing.assert_allclose(c[..., 1] * columns[0] + c[..., 2] * columns[1], modulated, rtol=1e-9,

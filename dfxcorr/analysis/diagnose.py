@@ -261,8 +261,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = No
     require_residuals(np.bincount(prep.store.row))
     session = Session(prep, cfg, timings, registry)
     J, H, W = prep.shape
-    model = list(resolve_effects(cfg, prep.scan, prep.reference, session.fit_base)) \
-        if base == "configured" else []
+    model = list(resolve_effects(cfg, prep.scan, prep.reference, session.fit_base)) if base == "configured" else []
     start = Hypothesis(tuple(model), prep.noise, np.zeros((H, W), bool), np.zeros(J))
     first = session.fit(start, {}, "round 0")
     located: dict[int, Residuals] = {}

@@ -193,8 +193,8 @@ def signatures(obs: Observations, params: dict[str, Any], *, n_params: int, alph
         "phase": (np.clip(np.digitize(psi, pedges) - 1, 0, 15), 0.5 * (pedges[1:] + pedges[:-1])),
         "count": (np.clip(np.digitize(ibar, cedges[1:-1]), 0, 11), np.sqrt(np.abs(cedges[1:] * cedges[:-1]))),
     }
-    kinds = [(a, "variance") for a in ("frame", "row", "column", "phase", "count")] + \
-        [(a, "mean") for a in ("frame", "frame_row")]
+    kinds = ([(a, "variance") for a in ("frame", "row", "column", "phase", "count")]
+             + [(a, "mean") for a in ("frame", "frame_row")])
     out = []
     for axis, kind in kinds:
         lab, value = labels[axis]
@@ -313,9 +313,9 @@ def _describe(sig: dict[str, Any], obs: Observations) -> tuple[str, str]:
         where = (f"{idx.size} (frame, row) blocks in frames {frames.min()}-{frames.max()}, "
                  f"rows {rows.min()}-{rows.max()}")
     elif axis == "phase":
-        where = "all frames; fringe phase " + ", ".join(f"{v:+.2f}" for v in value[idx][:6]) + " rad" \
-            + (" (near the fringe maximum)" if np.all(np.abs(value[idx]) < np.pi / 2) else
-               " (near the fringe minimum)" if np.all(np.abs(value[idx]) > np.pi / 2) else "")
+        where = ("all frames; fringe phase " + ", ".join(f"{v:+.2f}" for v in value[idx][:6]) + " rad"
+                 + (" (near the fringe maximum)" if np.all(np.abs(value[idx]) < np.pi / 2) else
+                    " (near the fringe minimum)" if np.all(np.abs(value[idx]) > np.pi / 2) else ""))
     else:
         where = f"expected counts near {', '.join(f'{v:.3g}' for v in value[idx][:6])}"
     parts = []

@@ -172,8 +172,8 @@ class _Walker:
         if declared == 0:
             return
         if dset.chunks is not None:
-            expected = math.prod(-(-n // c) for n, c in zip(dset.shape, dset.chunks, strict=True)) if lit is None \
-                else _lit_chunks(dset.shape, dset.chunks, *lit)
+            expected = (math.prod(-(-n // c) for n, c in zip(dset.shape, dset.chunks, strict=True)) if lit is None
+                        else _lit_chunks(dset.shape, dset.chunks, *lit))
             stored = dset.id.get_num_chunks()
             if stored < expected:
                 raise ScanFormatError(f"/{path} declares {dset.shape} in {expected} chunks of {dset.chunks} but "

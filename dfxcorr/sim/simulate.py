@@ -316,8 +316,8 @@ def draw_effects(cfg: dict, J: int, rng: np.random.Generator) -> dict[str, np.nd
     p = {"phase_offset": rng.normal(0, e["phase_offset"], (J, 1)), "tilt": rng.normal(0, e["tilt"], (J, 1))}
     if s["geometry"] == "stepping":
         p["tilt"][:] = rng.normal(0, e["tilt"], (J, 1)) if e["tilt"] else 0.0
-    p["visibility_loss"] = np.abs(1 - np.abs(rng.normal(0, e["visibility_loss"], (J, 1)))) if e["visibility_loss"] \
-        else np.ones((J, 1))
+    p["visibility_loss"] = (np.abs(1 - np.abs(rng.normal(0, e["visibility_loss"], (J, 1)))) if e["visibility_loss"]
+                            else np.ones((J, 1)))
     if e["curvature"]:
         p["curvature"] = rng.normal(0, e["curvature"], (J, 1))
     if e["visibility_tilt"]:
@@ -426,13 +426,13 @@ class Simulation:
         self._streams = np.random.SeedSequence(s["seed"]).spawn(J)
         self.dtype = np.dtype(s["dtype"])
         # a stream of its own: switching the position errors on leaves every other draw as it was
-        self.jitter = np.random.default_rng([s["seed"], 2]).normal(0, e["position_error"], J) \
-            if e["position_error"] else np.zeros(J)
+        self.jitter = (np.random.default_rng([s["seed"], 2]).normal(0, e["position_error"], J)
+                       if e["position_error"] else np.zeros(J))
         #: Rows by which frame j reads the flat-field maps off its nominal local rows (maps at u - shift[j]).
         self.shift = e["reference_offset"] + self.jitter
         #: Line noise: the offset of each (frame, detector row), shape (J, H), from a stream of its own.
-        self.line_offset = np.random.default_rng([s["seed"], 3]).normal(0, e["line_noise"], (J, H)) \
-            if e["line_noise"] else np.zeros((J, H))
+        self.line_offset = (np.random.default_rng([s["seed"], 3]).normal(0, e["line_noise"], (J, H))
+                            if e["line_noise"] else np.zeros((J, H)))
 
     def frame_counts(self, j: int) -> tuple[int, np.ndarray]:
         """Detected counts (float64, before storage) of frame j's lit rows: (r0, array (n, W))."""
@@ -656,8 +656,8 @@ def _heart_step(img: dict, cfg: dict) -> dict[str, np.ndarray]:
     shift = e["heart_step_mm"] / p
     x0, y0, _, a, b, _ = _HEART
     r, c = np.mgrid[:H, :W]
-    region = (((c + 0.5 - W / 2) * p - x0) / (a + e["heart_step_mm"])) ** 2 \
-        + (((r + 0.5 - H / 2) * p - y0) / (b + e["heart_step_mm"])) ** 2 < 1
+    region = ((((c + 0.5 - W / 2) * p - x0) / (a + e["heart_step_mm"])) ** 2
+              + (((r + 0.5 - H / 2) * p - y0) / (b + e["heart_step_mm"])) ** 2 < 1)
     out = {k: np.where(region, ndimage.shift(v, (shift, 0), order=1, mode="nearest"), v) for k, v in img.items()}
     out["region"] = region
     return out

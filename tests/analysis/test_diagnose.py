@@ -134,8 +134,7 @@ def test_detector_nonlinearity_is_located_not_explained_away(tmp_path):
                                                                   "description"}
     assert "| count |" in (tmp_path / "report.md").read_text()
     # compressed counts: the variance falls below photon noise at the highest counts
-    assert any(u.axis == "count" and "below noise" in u.description for u in diag.unexplained), \
-        diag.unexplained
+    assert any(u.axis == "count" and "below noise" in u.description for u in diag.unexplained), diag.unexplained
     assert all(u.p_value < 0.01 for u in diag.unexplained)
     tried = {e.name: e for e in diag.effects}
     assert tried["harmonic"].verdict in ("rejected", "raised chi-square")  # significant, tried, refused

@@ -1,4 +1,5 @@
 """The command line end to end: CliRunner for the commands, a subprocess for the installed entry point."""
+import os
 import shutil
 import subprocess
 import sys
@@ -11,6 +12,8 @@ from click.testing import CliRunner
 
 from dfxcorr.cli import main
 from dfxcorr.export import read_result_h5
+
+from conftest import ROOT
 
 SMALL = ["--set", "simulate.pixel_mm=5", "--set", "simulate.step_mm=5", "--set", "simulate.seed=3"]
 
@@ -136,3 +139,16 @@ def test_installed_entry_point_runs_in_a_subprocess(scan_file, tmp_path):
     assert "\r" not in proc.stderr and "vibration fit: done" in proc.stderr
     proc = subprocess.run([*cmd, "reconstruct", str(scan_file), "-o", str(out)], capture_output=True, text=True)
     assert proc.returncode == 2 and proc.stderr.strip().startswith("error:") and "Traceback" not in proc.stderr
+
+
+def test_module_entry_point_knows_every_command():
+    # python -m runs the module's guard: a command registered below it would be unknown there
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    listing = subprocess.run([sys.executable, "-m", "dfxcorr.cli", "--help"], capture_output=True, text=True,
+                             env=env, timeout=120)
+    assert listing.returncode == 0, listing.stderr
+    commands = [ln.split()[0] for ln in listing.stdout.split("Commands:")[1].splitlines() if ln.strip()]
+    assert set(main.commands) <= set(commands), (sorted(main.commands), listing.stdout)
+    proc = subprocess.run([sys.executable, "-m", "dfxcorr.cli", "batch", "--help"], capture_output=True, text=True,
+                          env=env, timeout=120)
+    assert proc.returncode == 0 and "--array-index" in proc.stdout, proc.stderr

@@ -389,8 +389,8 @@ def test_a_compressed_dark_map_that_expands_to_gigabytes_is_refused_within_the_c
             f.create_dataset(f"entry/reference/{m}", data=np.full((3, W), value))
     assert path.stat().st_size < 20e6
     res = cli_capped("check", path, "-o", tmp_path / "r.h5")
-    assert res.exit_code == 2 and one_error_line(res.stderr, "/entry/instrument/detector/dark", "expands"), \
-        res.stderr + res.traceback
+    assert res.exit_code == 2 and one_error_line(res.stderr, "/entry/instrument/detector/dark", "expands"), (
+        res.stderr + res.traceback)
 
 
 def test_disk_full_ends_in_one_line_and_keeps_the_old_result(scan_file, tmp_path):
@@ -628,7 +628,7 @@ def test_check_and_reconstruct_judge_a_run_alike(tmp_path, case):
     assert checked.exit_code == done.exit_code, (checked.output, done.output)
     if done.exit_code == 2:
         refused(checked, "not identifiable")
-        assert [ln for ln in checked.stderr.splitlines() if ln.startswith("error:")] == \
-               [ln for ln in done.stderr.splitlines() if ln.startswith("error:")]
+        assert ([ln for ln in checked.stderr.splitlines() if ln.startswith("error:")]
+                == [ln for ln in done.stderr.splitlines() if ln.startswith("error:")])
     else:
         assert done.exit_code == 0 and "ok: reconstruct would run" in checked.stdout, done.output

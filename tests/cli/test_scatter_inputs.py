@@ -53,8 +53,8 @@ def test_a_scatter_above_the_primary_changes_the_reconstruction(tmp_path):
 @pytest.mark.parametrize("command", ["reconstruct", "simulate"])
 def test_a_scatter_beyond_any_sample_is_refused_in_one_line(scan_file, tmp_path, command):
     # a field scaled by 1e300 underflows to zero: the correction would vanish while the log says it is applied
-    args = ("simulate", "-o", tmp_path / "s.h5", "--set", "effects.scatter=1e300") if command == "simulate" else \
-        ("reconstruct", scan_file, "-o", tmp_path / "r.h5", "--set", "load.scatter=1e300")
+    args = (("simulate", "-o", tmp_path / "s.h5", "--set", "effects.scatter=1e300") if command == "simulate"
+            else ("reconstruct", scan_file, "-o", tmp_path / "r.h5", "--set", "load.scatter=1e300"))
     res = cli_capped(*args, timeout=60)
     assert res.exit_code == 2 and one_error_line(res.stderr, "scatter", "[0, 100]"), (res.exit_code, res.stderr)
     assert not (tmp_path / "r.h5").exists() and not (tmp_path / "s.h5").exists()

@@ -94,8 +94,8 @@ def test_pixel_noise_is_named_alone_with_the_classes_of_the_truth(tmp_path):
     assert np.all((diag.pixel_noise != 1)[lit] == boundary[lit])
     # each class's factor: noise of its reduced chi-square (kurtosis of scaled Poisson noise negligible at these
     # counts) plus what the fitted parameters' noise adds to every pixel alike (chi2_tolerance's first term)
-    allowance = cfg["diagnose"]["subsample"] * sum(np.size(p) for p in diag.params.values()) / \
-        (diag.rounds[-1]["chi2_before"] / diag.rounds[-1]["reduced_chi2_before"])
+    allowance = (cfg["diagnose"]["subsample"] * sum(np.size(p) for p in diag.params.values())
+                 / (diag.rounds[-1]["chi2_before"] / diag.rounds[-1]["reduced_chi2_before"]))
     for c in diag.effects[0].values["classes"]:
         assert c["factor"] == pytest.approx(1 / 3, abs=5 * np.sqrt(2 / c["dof"]) / 3 + allowance), c
     assert diag.final_chi2 == pytest.approx(1.0, abs=chi2_tolerance(diag, cfg))

@@ -139,8 +139,8 @@ def test_the_kernel_width_is_found_with_s(width):
     assert [e.name for e in diag.effects if e.detected] == ["scatter"]
     extra = diag.effects[0].values
     # measured (seed 11): s = 0.0989 at 25.0 mm, 0.1019 at 100 mm (se 0.0014, 0.0013)
-    assert extra["width_mm"] == pytest.approx(width, rel=0.07) and abs(extra["s"] - truth["scatter"]) \
-        < 4 * extra["s_se"], extra
+    assert (extra["width_mm"] == pytest.approx(width, rel=0.07)
+            and abs(extra["s"] - truth["scatter"]) < 4 * extra["s_se"]), extra
 
 
 def test_clean_scan_and_phase_stepping_do_not_name_it():
