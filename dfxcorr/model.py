@@ -195,8 +195,8 @@ def _channel_id(name: str) -> int:
 def fisher_index(names: Sequence[str], n_frames: int) -> list[tuple[str, int, int]]:
     """(name, frame, component) of each axis entry of the Fisher matrix; frame is -1 for global effects."""
     _, _, n_per_frame, comps = component_table(names)
-    return [(n, j, m) for j in range(n_frames) for n, m in comps[:n_per_frame]] + \
-        [(n, -1, m) for n, m in comps[n_per_frame:]]
+    return ([(n, j, m) for j in range(n_frames) for n, m in comps[:n_per_frame]]
+            + [(n, -1, m) for n, m in comps[n_per_frame:]])
 
 
 @dataclass
@@ -241,8 +241,8 @@ def design_channels(obs: Observations, ch: Channels) -> Design:
     """:func:`design` from channel values (:func:`channels`) rather than effect parameters."""
     dose = ch.dose[obs.frame][:, None]
     vis = ch.vis[obs.frame]
-    background = sum(ch.background[m] * b for m, b in enumerate(background_basis(obs))) if np.any(ch.background) \
-        else np.zeros(obs.counts.shape)
+    background = (sum(ch.background[m] * b for m, b in enumerate(background_basis(obs))) if np.any(ch.background)
+                  else np.zeros(obs.counts.shape))
     hc, hs = float(ch.harmonic[0]), float(ch.harmonic[1])
     theta = obs.phif + ch.phase[obs.frame]
     amp = dose * obs.tf
