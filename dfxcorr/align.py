@@ -2,8 +2,11 @@
 
 Pixel (r, c) sees the interferometer at local row u = r + 0.5 - position[j] and is lit iff 0 <= u < A
 (``spec/scan-format.md``). Reference maps are sampled at u = k + 0.5 and interpolated linearly between
-centres, extrapolated linearly over the outer half rows. The phase is unwrapped along u first: linear
-interpolation of wrapped values would put a wrong phase into every sample near a wrap.
+centres, extrapolated linearly over the outer half rows. The phase is interpolated as its unit phasor,
+renormalised (the second way the format allows): no unwrapping, and equal to the linear interpolation of
+the unwrapped phase to third order in the phase step between rows (scripts/fringe_interpolation.py). Each
+sample's fringe is held as its quadratures t^f v^f (cos phi^f, sin phi^f) (:func:`fringe_rows`), so that
+the model's loops turn it by the phase channel with products alone: no trigonometric call per sample.
 """
 from __future__ import annotations
 
@@ -39,24 +42,53 @@ def no_lit_rows(min_frames: int) -> AlignmentError:
                           f"(dataset /entry/scan/position)")
 
 
+@njit(cache=True, inline="always")
+def _between(u: float, A: int) -> tuple[int, int, float]:
+    """Lower reference row k0 and weight a of local row u: the value is (1 - a) m[k0] + a m[k0 + 1] (one row:
+    k0 = k0 + 1 = 0)."""
+    f = u - 0.5
+    if A == 1:
+        return 0, 0, 0.0
+    k0 = min(max(int(np.floor(f)), 0), A - 2)
+    return k0, k0 + 1, f - k0
+
+
 @njit(cache=True, parallel=True)
-def _interpolate_rows(maps: np.ndarray, cols: np.ndarray, u: np.ndarray, add: np.ndarray, wrap: bool,
-                      out: np.ndarray) -> None:
+def _interpolate_rows(maps: np.ndarray, cols: np.ndarray, u: np.ndarray, out: np.ndarray) -> None:
     A = maps.shape[0]
     for k in prange(u.size):
-        f = u[k] - 0.5
-        k0 = min(max(int(np.floor(f)), 0), A - 2)
-        a = f - k0
+        k0, k1, a = _between(u[k], A)
         for i in range(cols.size):
             c = cols[i]
-            v = (1.0 - a) * maps[k0, c] + a * maps[k0 + 1, c] + add[k]
-            if wrap:
-                v -= 2.0 * np.pi * np.floor(v / (2.0 * np.pi) + 0.5)
-            out[k, i] = v
+            out[k, i] = (1.0 - a) * maps[k0, c] + a * maps[k1, c]
+
+
+@njit(cache=True, parallel=True)
+def _fringe_rows(tmap: np.ndarray, vmap: np.ndarray, cmap: np.ndarray, smap: np.ndarray, cols: np.ndarray,
+                 u: np.ndarray, cos_step: np.ndarray, sin_step: np.ndarray, tf: np.ndarray, fc: np.ndarray,
+                 fs: np.ndarray) -> None:
+    A = tmap.shape[0]
+    for k in prange(u.size):
+        k0, k1, a = _between(u[k], A)
+        cp, sp = cos_step[k], sin_step[k]
+        for i in range(cols.size):
+            c = cols[i]
+            t = (1.0 - a) * tmap[k0, c] + a * tmap[k1, c]
+            amp = t * ((1.0 - a) * vmap[k0, c] + a * vmap[k1, c])
+            zc = (1.0 - a) * cmap[k0, c] + a * cmap[k1, c]
+            zs = (1.0 - a) * smap[k0, c] + a * smap[k1, c]
+            m = np.sqrt(zc * zc + zs * zs)
+            if m == 0.0:
+                # opposite phasors half-way: the nearer row's (a degenerate reference, a phase step of pi per row)
+                near = k0 if a < 0.5 else k1
+                zc, zs, m = cmap[near, c], smap[near, c], 1.0
+            tf[k, i] = t
+            fc[k, i] = amp * (zc * cp - zs * sp) / m
+            fs[k, i] = amp * (zs * cp + zc * sp) / m
 
 
 def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | None = None,
-                     dtype: DTypeLike = np.float64, add: np.ndarray | None = None, wrap: bool = False) -> np.ndarray:
+                     dtype: DTypeLike = np.float64) -> np.ndarray:
     """Linear interpolation of row-sampled maps at continuous local rows.
 
     With f = u - 0.5 and k0 = floor(f) clipped to [0, A - 2], the value is
@@ -75,29 +107,74 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
         Only these columns of the maps (default all).
     dtype : numpy dtype
         Of the result (computed in float64).
-    add : ndarray, shape (K,), optional
-        Added to each sample row's values (e.g. the phase step of its frame).
-    wrap : bool
-        Wrap the values (rad) to [-pi, pi) before the cast to ``dtype``.
 
     Returns
     -------
     ndarray, shape (K, C)
     """
-    if maps.shape[0] == 1:
-        picked = np.asarray(maps if columns is None else maps[:, columns], dtype=np.float64)
-        out = np.repeat(picked, np.size(u), axis=0)
-        if add is not None:
-            out += np.asarray(add, dtype=np.float64)[:, None]
-        if wrap:
-            out -= 2.0 * np.pi * np.floor(out / (2.0 * np.pi) + 0.5)
-        return out.astype(dtype, copy=False)
     K.set_threads()
     cols = np.arange(maps.shape[1]) if columns is None else np.asarray(columns, dtype=np.int64)
     out = np.empty((np.size(u), cols.size), dtype=dtype)
-    shift = np.zeros(np.size(u)) if add is None else np.asarray(add, dtype=np.float64)
-    _interpolate_rows(np.ascontiguousarray(maps, np.float64), cols, np.asarray(u, np.float64), shift, bool(wrap), out)
+    _interpolate_rows(np.ascontiguousarray(maps, np.float64), cols, np.asarray(u, np.float64), out)
     return out
+
+
+@dataclass(frozen=True)
+class FringeMaps:
+    """A reference as its samples are interpolated: transmission, visibility and the phase's unit phasor.
+
+    Attributes
+    ----------
+    transmission, visibility : ndarray, shape (A, W)
+        t^f (counts), v^f.
+    cos, sin : ndarray, shape (A, W)
+        cos phi^f, sin phi^f.
+    """
+
+    transmission: np.ndarray
+    visibility: np.ndarray
+    cos: np.ndarray
+    sin: np.ndarray
+
+
+def fringe_maps(reference: Reference) -> FringeMaps:
+    """The :class:`FringeMaps` of a reference (float64; the phase may be wrapped)."""
+    return FringeMaps(*(np.ascontiguousarray(m, np.float64) for m in (
+        reference.transmission, reference.visibility, np.cos(reference.phase), np.sin(reference.phase))))
+
+
+def fringe_rows(maps: FringeMaps, u: np.ndarray, *, columns: np.ndarray | None = None,
+                step: np.ndarray | None = None, dtype: DTypeLike = np.float64
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The flat field of samples at continuous local rows: t^f and the fringe's quadratures.
+
+    With k0, a as in :func:`interpolate_rows`, t^f and v^f are (1 - a) m[k0] + a m[k0 + 1] of their maps, and the
+    phase's unit phasor is that of (1 - a) exp(i P[k0]) + a exp(i P[k0 + 1]) (``spec/scan-format.md``), turned by
+    ``step``. Computed in float64, written in ``dtype``.
+
+    Parameters
+    ----------
+    maps : FringeMaps
+    u : ndarray, shape (K,)
+        Local rows.
+    columns : ndarray of int, shape (C,), optional
+        Only these columns (default all).
+    step : ndarray, shape (K,), optional
+        Phase added to each sample row's fringe (rad; e.g. the nominal phase step of its frame).
+    dtype : numpy dtype
+
+    Returns
+    -------
+    tf, fc, fs : ndarray, shape (K, C)
+        t^f, t^f v^f cos phi^f, t^f v^f sin phi^f (counts).
+    """
+    K.set_threads()
+    cols = np.arange(maps.transmission.shape[1]) if columns is None else np.asarray(columns, dtype=np.int64)
+    shift = np.zeros(np.size(u)) if step is None else np.asarray(step, dtype=np.float64)
+    tf, fc, fs = (np.empty((np.size(u), cols.size), dtype=dtype) for _ in range(3))
+    _fringe_rows(maps.transmission, maps.visibility, maps.cos, maps.sin, cols, np.asarray(u, np.float64),
+                 np.cos(shift), np.sin(shift), tf, fc, fs)
+    return tf, fc, fs
 
 
 def pixel_mm(scan: Scan) -> tuple[float, float] | None:
@@ -279,13 +356,13 @@ class LitStore:
     def observations(self, reference: Reference, *, columns: np.ndarray | None = None,
                      rows: tuple[int, int] | None = None, pixel_mask: np.ndarray | None = None,
                      gain: float | None = None, electronic: float = 0.0, noise: np.ndarray | None = None,
-                     dtype: DTypeLike = np.float64, phase_unwrapped: bool = False) -> Observations:
+                     dtype: DTypeLike = np.float64, maps: FringeMaps | None = None) -> Observations:
         """Align the flat field to the held samples of some columns and rows.
 
         Parameters
         ----------
         reference : Reference
-            Flat-field maps (A, W); the phase may be wrapped.
+            Flat-field maps (A, W); the phase may be wrapped (:func:`fringe_rows`).
         columns : ndarray of int, optional
             Detector columns (default all).
         rows : (int, int), optional
@@ -300,10 +377,9 @@ class LitStore:
             Variance factor of each detector pixel (``pixel_noise``; default 1).
         dtype : numpy dtype
             Of the sample arrays: float64, or float32 to halve them (counts up to 2^24 stay exact;
-            the flat field is interpolated in float64 first, its phase then wrapped to [-pi, pi)).
-        phase_unwrapped : bool
-            The reference's phase is already unwrapped along the scan (axis 0), so it is not done again
-            (a caller aligning block after block unwraps once).
+            the flat field is interpolated in float64 first).
+        maps : FringeMaps, optional
+            :func:`fringe_maps` of ``reference``, made once by a caller aligning block after block.
 
         Returns
         -------
@@ -313,12 +389,8 @@ class LitStore:
         cols = np.arange(W) if columns is None else np.asarray(columns, dtype=np.int64)
         lo, hi = (0, self.row.size) if rows is None else np.searchsorted(self.row, rows)
         row, frame, u = self.row[lo:hi], self.frame[lo:hi], self.u[lo:hi]
-        phase = reference.phase if phase_unwrapped else np.unwrap(reference.phase, axis=0)
-        tf = interpolate_rows(reference.transmission, u, columns=cols, dtype=dtype)
-        vf = interpolate_rows(reference.visibility, u, columns=cols, dtype=dtype)
-        # the model takes only cos and sin of it: wrapped to [-pi, pi), float32 keeps it to 2e-7 rad (unwrapped
-        # across a clinical detector's many fringes it would keep it only to |phi^f| 6e-8)
-        phif = interpolate_rows(phase, u, columns=cols, dtype=dtype, add=self.phase_step[frame], wrap=True)
+        tf, fc, fs = fringe_rows(fringe_maps(reference) if maps is None else maps, u, columns=cols,
+                                 step=self.phase_step[frame], dtype=dtype)
         # C order whatever the store's: the kernels walk a sample row at a time (a Fortran-ordered copy made
         # every cost evaluation about 1.7x slower)
         counts = (self.counts[lo:hi] if columns is None else self.counts[lo:hi, cols]).astype(dtype, order="C")
@@ -340,7 +412,7 @@ class LitStore:
             shift = self.parallax / (1.0 + self.parallax) * self.centred()[lo:hi]
             reading, inside = displaced_reading(row, np.unique(row), shift)
             use &= inside[:, None]
-        return Observations(counts=counts, tf=tf, vf=vf, phif=phif, dark=dark, use=use,
+        return Observations(counts=counts, tf=tf, fc=fc, fs=fs, dark=dark, use=use,
                             row=row, frame=frame, columns=cols, shape=(J, H, W),
                             gain=self.gain if gain is None else gain, electronic=electronic,
                             noise=None if noise is None else noise[held],
@@ -434,8 +506,7 @@ def realign(store: LitStore, reference: Reference, like: Observations, shift: np
     rows = (int(like.row[0]), int(like.row[-1]) + 1)
     obs = store.shifted(shift).observations(reference, columns=like.columns, rows=rows, gain=like.gain,
                                             electronic=like.electronic, dtype=like.counts.dtype)
-    return replace(obs, noise=like.noise, vf=np.where(like.in_roi, obs.vf, 0).astype(obs.vf.dtype, copy=False),
-                   use=like.use, roi=like.roi)
+    return replace(obs.fringe_within(like.in_roi), noise=like.noise, use=like.use, roi=like.roi)
 
 
 def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray | None = None,
@@ -473,7 +544,8 @@ def tilt_alias_period(width: int, n: int) -> float:
     return np.pi * width / n
 
 
-__all__ = ["AlignmentError", "LitStore", "build_observations", "collect_lit_rows", "interpolate_rows", "lit_blocks",
+__all__ = ["AlignmentError", "FringeMaps", "LitStore", "build_observations", "collect_lit_rows", "fringe_maps",
+           "fringe_rows", "interpolate_rows", "lit_blocks",
            "no_lit_rows", "read_position_errors",
            "subsample_columns", "tilt_alias_period", "lateral_coordinate"]
 

@@ -54,12 +54,11 @@ def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = 
             "weights": w_out if keep else empty, "chi2": chi2, "samples": int(sel.sum())}
 
 
-def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, cos_phif: np.ndarray,
-                 sin_phif: np.ndarray, *, phase: float | None = None, square: bool = False,
-                 channels=tuple(K.CHANNEL_IDS)) -> tuple[float, tuple[np.ndarray, ...]]:
+def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, *, phase: float | None = None,
+                 square: bool = False, channels=tuple(K.CHANNEL_IDS)) -> tuple[float, tuple[np.ndarray, ...]]:
     """Reduced cost and its channel gradients (or Gauss-Newton sums): :func:`dfxcorr.kernels.reduced_cost`'s values."""
     if obs.reading is None:
-        return K.reduced_cost(obs, ch, weights, cos_phif, sin_phif, phase=phase, square=square, channels=channels)
+        return K.reduced_cost(obs, ch, weights, phase=phase, square=square, channels=channels)
     dsg = M.design_channels(obs, ch)
     images = M.solve_images(obs, dsg, weights, phase=phase)
     resid = obs.counts - M.expected(obs, dsg, images)

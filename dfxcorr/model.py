@@ -16,6 +16,10 @@ For detector pixel i (row r, column c) in frame j the expected count is
     Ibar = D_j tf t_i (1 + vf V_ij v_i (cos psi + a2 cos(2 psi + beta))) + b(x_i, y_i) + dark_i
     psi = θ + phi_i,   θ = phi^f + phase_step_j + Φ_ij
 
+where the flat field's fringe is held as its quadratures, fc + i fs = tf vf exp(i (phi^f + phase_step_j))
+(``Observations``; :func:`dfxcorr.align.fringe_rows`), so that tf vf exp(i θ) = (fc + i fs) exp(i Φ) is a
+product of a per-sample and a per-(frame, column) factor: no trigonometry per sample.
+
 with the *channels*
 
     Φ_ij = sum over phase effects of   p_j(e) * x_i^k   (phase_offset k=0, tilt k=1, curvature k=2)
@@ -30,8 +34,8 @@ the product of all visibilities, like the first (``spec/diagnosis.md`` version 2
 Written in the per-pixel unknowns (t, c, s) = (t, t v cos phi, t v sin phi) (paper eq. 8), m = sqrt(c^2 + s^2),
 
     Ibar = t A + c Bc + s Bs + Hc (c^2 - s^2) / m - Hs 2 c s / m + offset,
-    A = D tf,  Bc = D tf vf V cos θ,  Bs = -D tf vf V sin θ,
-    Hc = D tf vf V (hc cos 2θ - hs sin 2θ),  Hs = D tf vf V (hc sin 2θ + hs cos 2θ),  offset = b + dark.
+    A = D tf,  Bc = D V Fc,  Bs = -D V Fs,  (Fc, Fs) = tf vf (cos θ, sin θ),
+    Hc = D V (hc C2 - hs S2),  Hs = D V (hc S2 + hs C2),  (C2, S2) = tf vf (cos 2θ, sin 2θ),  offset = b + dark.
 
 Without the harmonic the model is linear in (t, c, s) and the images follow in closed form (weighted
 linear least squares, eq. 9) for given per-frame parameters; v = sqrt(c^2 + s^2) / t, phi = atan2(s, c)
@@ -54,8 +58,9 @@ from .catalogue import effect
 from .observations import Observations
 
 __all__ = ["Channels", "channels", "channel_adjoint", "component_table", "fisher_index", "Design", "design",
-           "design_channels", "channel_fields", "read_between_correction", "background_basis", "harmonic_factors",
-           "image_columns", "Images", "solve_pixels", "solve_images", "harmonic_term", "expected", "circular_mean",
+           "design_channels", "channel_fields", "read_between_correction", "double_angle", "background_basis",
+           "harmonic_factors", "image_columns", "Images", "solve_pixels", "solve_images", "harmonic_term", "expected",
+           "circular_mean",
            "sample_derivatives", "reduce_component", "gradient", "leverage", "frame_leverage", "fisher_matrix"]
 
 # --------------------------------------------------------------------------------------------------
@@ -204,8 +209,9 @@ class Design:
     """Per-sample coefficients of the per-pixel model Ibar = t A + c Bc + s Bs + Hc e - Hs f + offset.
 
     e = (c^2 - s^2) / m, f = 2 c s / m (:func:`harmonic_factors`). All arrays have shape (K, C)
-    (``dose`` (K, 1)); ``theta`` is the fringe phase without the sample; ``Hc``, ``Hs`` are zero without
-    the harmonic. ``channels`` holds the channel values they were made from.
+    (``dose`` (K, 1)); ``Fc``, ``Fs`` are the flat field's fringe turned by the phase channel,
+    tf vf (cos θ, sin θ) (counts); ``Hc``, ``Hs`` are zero without the harmonic. ``channels`` holds the
+    channel values they were made from.
     """
 
     A: np.ndarray
@@ -214,11 +220,17 @@ class Design:
     Hc: np.ndarray
     Hs: np.ndarray
     offset: np.ndarray
-    theta: np.ndarray
+    Fc: np.ndarray
+    Fs: np.ndarray
     dose: np.ndarray
     vis: np.ndarray
     harmonic: tuple[float, float]
     channels: Channels
+
+    @property
+    def theta(self) -> np.ndarray:
+        """The fringe phase without the sample, θ (rad, in (-pi, pi]), shape (K, C)."""
+        return np.arctan2(self.Fs, self.Fc)
 
 
 def design(obs: Observations, params: dict[str, np.ndarray]) -> Design:
@@ -244,15 +256,22 @@ def design_channels(obs: Observations, ch: Channels) -> Design:
     background = (sum(ch.background[m] * b for m, b in enumerate(background_basis(obs))) if np.any(ch.background)
                   else np.zeros(obs.counts.shape))
     hc, hs = float(ch.harmonic[0]), float(ch.harmonic[1])
-    theta = obs.phif + ch.phase[obs.frame]
-    amp = dose * obs.tf
-    Bv = amp * obs.vf * vis
-    Hc, Hs = np.zeros_like(theta), np.zeros_like(theta)
+    cp, sp = np.cos(ch.phase)[obs.frame], np.sin(ch.phase)[obs.frame]
+    Fc, Fs = obs.fc * cp - obs.fs * sp, obs.fs * cp + obs.fc * sp
+    dv = dose * vis
+    Hc, Hs = np.zeros_like(Fc), np.zeros_like(Fc)
     if hc or hs:
-        c2, s2 = np.cos(2 * theta), np.sin(2 * theta)
-        Hc, Hs = Bv * (hc * c2 - hs * s2), Bv * (hc * s2 + hs * c2)
-    return Design(A=amp * np.ones_like(theta), Bc=Bv * np.cos(theta), Bs=-Bv * np.sin(theta), Hc=Hc, Hs=Hs,
-                  offset=background + obs.dark, theta=theta, dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
+        c2, s2 = double_angle(Fc, Fs)
+        Hc, Hs = dv * (hc * c2 - hs * s2), dv * (hc * s2 + hs * c2)
+    return Design(A=dose * obs.tf, Bc=dv * Fc, Bs=-dv * Fs, Hc=Hc, Hs=Hs, offset=background + obs.dark, Fc=Fc, Fs=Fs,
+                  dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
+
+
+def double_angle(fc: np.ndarray, fs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """m (cos 2θ, sin 2θ) of a fringe m (cos θ, sin θ): ((fc^2 - fs^2) / m, 2 fc fs / m), 0 where m = 0 (any shape)."""
+    m = np.hypot(fc, fs)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(m > 0, (fc * fc - fs * fs) / m, 0.0), np.where(m > 0, 2 * fc * fs / m, 0.0)
 
 
 def background_basis(obs: Observations) -> list[np.ndarray]:
@@ -564,32 +583,31 @@ def channel_fields(obs: Observations, dsg: Design, images: Images, cid: int) -> 
     c = obs.gather(images.coef)
     t, cc, ss = c[..., 0], c[..., 1], c[..., 2]
     hc, hs = dsg.harmonic
-    amp = dsg.dose * obs.tf
-    bv = amp * obs.vf * dsg.vis
-    # m cos(2 psi), m sin(2 psi) of the sample (psi = θ + phi), and the harmonic's a2 m cos, a2 m sin (2 psi + beta)
+    dv = dsg.dose * dsg.vis
+    # the sample's m (cos 2 psi, sin 2 psi) times tf vf (G, Kk), and the harmonic's a2 of them (p2, q2)
     ef: np.ndarray | float
     ff: np.ndarray | float
-    g: np.ndarray | float
-    k: np.ndarray | float
+    G: np.ndarray | float
+    Kk: np.ndarray | float
     p2: np.ndarray | float
     q2: np.ndarray | float
-    ef = ff = g = k = p2 = q2 = 0.0
+    ef = ff = G = Kk = p2 = q2 = 0.0
     # the harmonic's own derivatives need its factors even where it is absent (hc = hs = 0: a score test)
     if hc or hs or cid == kernels.HARMONIC:
         _, _, ef, ff = harmonic_factors(cc, ss)
-        c2, s2 = np.cos(2 * dsg.theta), np.sin(2 * dsg.theta)
-        g, k = c2 * ef - s2 * ff, s2 * ef + c2 * ff
-        p2, q2 = hc * g - hs * k, hc * k + hs * g
-    q = cc * np.cos(dsg.theta) - ss * np.sin(dsg.theta)
+        c2, s2 = double_angle(dsg.Fc, dsg.Fs)
+        G, Kk = c2 * ef - s2 * ff, s2 * ef + c2 * ff
+        p2, q2 = hc * G - hs * Kk, hc * Kk + hs * G
+    q = cc * dsg.Fc - ss * dsg.Fs
     if cid == kernels.PHASE:
-        return [cc * dsg.Bs - ss * dsg.Bc - 2 * bv * q2]
+        return [cc * dsg.Bs - ss * dsg.Bc - 2 * dv * q2]
     if cid == kernels.VISIBILITY:
-        return [amp * obs.vf * (q + p2)]
+        return [dsg.dose * (q + p2)]
     if cid == kernels.DOSE:
         return [(t * dsg.A + cc * dsg.Bc + ss * dsg.Bs + (dsg.Hc * ef - dsg.Hs * ff)) / dsg.dose]
     if cid == kernels.BACKGROUND:
         return background_basis(obs)
-    return [bv * g, -bv * k]
+    return [dv * G, -dv * Kk]
 
 
 def reduce_component(obs: Observations, name: str, F: np.ndarray) -> np.ndarray:

@@ -101,10 +101,14 @@ class Observations:
     ----------
     counts : ndarray, shape (K, C)
         Measured counts (detector units).
-    tf, vf, phif : ndarray, shape (K, C)
-        Flat-field transmission (counts), visibility and phase (rad, the nominal phase step included)
-        at each sample, aligned to the frame's position. v^f is 0 where the flat field carries no fringe
-        (outside the region of interest): there the model has no modulation.
+    tf : ndarray, shape (K, C)
+        Flat-field transmission at each sample, aligned to the frame's position (counts).
+    fc, fs : ndarray, shape (K, C)
+        The flat field's fringe at each sample, t^f v^f (cos phi^f, sin phi^f) with the nominal phase step in
+        phi^f (counts; :func:`dfxcorr.align.fringe_rows`): the model turns them by its phase channel with products
+        alone (no trigonometric call per sample). Zero where the flat field carries no fringe
+        (outside the region of interest): there the model has no modulation. :attr:`vf` and :attr:`phif` are
+        its visibility and phase.
     dark : ndarray, shape (K, C)
         The additive term of each sample, unmodulated by the gratings (counts): the detector's dark signal,
         plus any known unmodulated photons the preparation put there (``offset``); the model adds it to the
@@ -137,8 +141,8 @@ class Observations:
 
     counts: np.ndarray
     tf: np.ndarray
-    vf: np.ndarray
-    phif: np.ndarray
+    fc: np.ndarray
+    fs: np.ndarray
     dark: np.ndarray
     use: np.ndarray
     row: np.ndarray
@@ -177,6 +181,23 @@ class Observations:
     @property
     def n_frames(self) -> int:
         return self.shape[0]
+
+    @property
+    def vf(self) -> np.ndarray:
+        """Flat-field visibility v^f at each sample, |fc + i fs| / tf, shape (K, C) (0 where tf is 0)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.tf != 0, np.hypot(self.fc, self.fs) / self.tf, 0.0).astype(self.tf.dtype, copy=False)
+
+    @property
+    def phif(self) -> np.ndarray:
+        """Flat-field fringe phase phi^f at each sample, the nominal phase step included (rad), shape (K, C)."""
+        return np.arctan2(self.fs, self.fc)
+
+    def fringe_within(self, keep: np.ndarray) -> Observations:
+        """The same samples with the flat field's fringe set to zero where ``keep`` (K, C) is False (no modulation
+        there: such samples yield no images, but still monitor dose and background)."""
+        return replace(self, fc=np.where(keep, self.fc, 0).astype(self.fc.dtype, copy=False),
+                       fs=np.where(keep, self.fs, 0).astype(self.fs.dtype, copy=False))
 
     @property
     def in_roi(self) -> np.ndarray:
@@ -240,7 +261,7 @@ class Observations:
         def cut(a: np.ndarray) -> np.ndarray:
             return a[:, idx[0]:idx[0] + idx.size] if run else np.ascontiguousarray(a[:, idx])
 
-        return Observations(cut(self.counts), cut(self.tf), cut(self.vf), cut(self.phif), cut(self.dark), cut(self.use),
+        return Observations(cut(self.counts), cut(self.tf), cut(self.fc), cut(self.fs), cut(self.dark), cut(self.use),
                             self.row, self.frame, self.columns[idx], self.shape, self.gain, self.electronic,
                             None if self.noise is None else cut(self.noise),
                             None if self.roi is None else cut(self.roi),

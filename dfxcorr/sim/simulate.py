@@ -19,7 +19,7 @@ import numpy as np
 from scipy import signal
 
 from .. import model as M
-from ..align import interpolate_rows, lit_blocks
+from ..align import fringe_maps, fringe_rows, lit_blocks
 from ..config import MAX_SCATTER, ConfigError, Option, _fraction, _nonneg, _positive, _within
 from ..io import Reference, Scan, SteppingReference, write_scan
 from ..observations import Observations, lateral_coordinate
@@ -408,7 +408,7 @@ class Simulation:
         H, W, A, J = g["H"], g["W"], g["A"], g["position"].size
         self.shape = (J, H, W)
         self.flat = flat_field(cfg, A, W)
-        self._phase = np.unwrap(self.flat.phase, axis=0)
+        self._maps = fringe_maps(self.flat)
         self.images = sample_images(cfg, H, W)
         #: Rows by which frame j sees the sample displaced (``effects.parallax``), shape (J,).
         self.displacement = parallax_shift(cfg, g["position"], A, H)
@@ -442,12 +442,10 @@ class Simulation:
         if row.size == 0:
             return 0, np.zeros((0, W))
         cols = np.arange(W)
-        ref = self.flat
         u = u - self.shift[j]
-        phif = interpolate_rows(self._phase, u) + g["phase_step"][j]
+        tf, fc, fs = fringe_rows(self._maps, u, step=np.full(row.size, g["phase_step"][j]))
         zeros = np.zeros((row.size, W))
-        obs = Observations(counts=zeros, tf=interpolate_rows(ref.transmission, u),
-                           vf=interpolate_rows(ref.visibility, u), phif=phif, dark=zeros,
+        obs = Observations(counts=zeros, tf=tf, fc=fc, fs=fs, dark=zeros,
                            use=np.ones((row.size, W), bool), row=row, frame=np.full(row.size, j), columns=cols,
                            shape=self.shape)
         keys = ("transmission", "dark_field", "differential_phase")

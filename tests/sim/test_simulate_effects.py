@@ -21,7 +21,7 @@ PINNED = {
     "detector options": ({"effects.read_noise": 25.0, "effects.detector_lag": 0.03, "effects.detector_gain": 2.0,
                           "effects.pixel_noise": 0.5, "effects.position_error": 0.3, "effects.dose": 0.02,
                           "effects.background": 0.05, "simulate.reference_steps": 5, "simulate.tiles": 4},
-                         "60b6cdc591adf30faa506a8899c6b86d743e352cf658bab225464e8c984c7513"),
+                         "f51cf946fc46f3525677eee043bbabc4dc71b0579050d8dc9bea3e3023c6b8bf"),
     "stepping": ({"simulate.geometry": "stepping", "simulate.steps": 5, "simulate.steps_per_period": 5,
                   "effects.read_noise": 25.0, "simulate.flux": 2000.0},
                  "5ea67bd999f193e0612031f029ef503bf827fc1a68bab8eb0c510fe3ebafcd51"),
