@@ -27,6 +27,7 @@ import numpy as np
 from dfxcorr import config as C
 from dfxcorr.align import fringe_maps, fringe_rows, interpolate_rows, lit_blocks
 from dfxcorr.sim import simulate as S
+from dfxcorr.sim.flat import flat_field
 
 ROOT = Path(__file__).resolve().parents[1]
 SCANS = {"paper study": "paper-simulation.yaml", "clinical binned": "clinical-binned.yaml",
@@ -38,7 +39,7 @@ def departures(config: Path, every: int) -> dict:
     cfg = C.load([config], [], schema=S.SCHEMA)
     g = S.geometry(cfg)
     A, W, H = g["A"], g["W"], g["H"]
-    ref = S.flat_field(cfg, A, W)
+    ref = flat_field(cfg, A, W)
     _, _, u = lit_blocks(g["position"], A, H)
     cols = np.arange(every // 2, W, every)
     tf = interpolate_rows(ref.transmission, u, columns=cols)

@@ -10,6 +10,7 @@ from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.analysis.report import reconstruct_settings, write_report
 from dfxcorr.observations import lateral_coordinate
 from dfxcorr.sim import simulate as S
+from dfxcorr.sim.flat import MAX_SUBSTEP, flat_field
 
 from conftest import chi2_tolerance, concealed, prepare, sim_config
 
@@ -39,22 +40,26 @@ def phase_error(result, truth) -> float:
 
 
 def test_tiles_off_reproduce_the_seamless_flat_field():
-    # the tile options do nothing without tiles: the flat field of paper Sec. III-A, exactly
+    # the tile options do nothing without tiles: the flat field of paper Sec. III-A as pixels record it, the
+    # fringe's intensity averaged over each row (visibility times sinc of half the phase step per row)
     cfg = sim_config(**{"simulate.tile_fringes": 0.5, "simulate.tile_contrast": 0.2})
     A, W = 15, 102
-    ref = S.flat_field(cfg, A, W)
+    ref = flat_field(cfg, A, W)
     s = cfg["simulate"]
     u = (np.arange(A) + 0.5)[:, None]
     x = lateral_coordinate(np.arange(W), W)[None, :]
     fringes = s["fringes_centre"] + (s["fringes_edge"] - s["fringes_centre"]) * x ** 2
-    assert np.array_equal(ref.phase, 2 * np.pi * fringes * u / A)
-    assert np.array_equal(ref.transmission, np.full((A, W), s["flux"]))
-    assert np.array_equal(ref.visibility, np.full((A, W), s["visibility"]))
+    np.testing.assert_allclose(ref.phase, 2 * np.pi * fringes * u / A, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(ref.transmission, np.full((A, W), s["flux"]), rtol=1e-14)
+    half = np.pi * fringes / A
+    # the midpoint rule's sum of the pixel's mean, to MAX_SUBSTEP^2 / 24
+    np.testing.assert_allclose(ref.visibility, np.broadcast_to(s["visibility"] * np.sin(half) / half, (A, W)),
+                               rtol=MAX_SUBSTEP ** 2 / 24)
 
 
 def test_tiles_make_the_phase_gradient_piecewise_constant():
     cfg = sim_config(**{"simulate.tiles": 8})
-    ref = S.flat_field(cfg, 15, 102)
+    ref = flat_field(cfg, 15, 102)
     k = np.diff(ref.phase, axis=0)
     assert np.allclose(k, k[:1])  # linear along the scan without flat_nonlinearity
     jumps = np.flatnonzero(np.abs(np.diff(k[0])) > 1e-12)
@@ -62,7 +67,7 @@ def test_tiles_make_the_phase_gradient_piecewise_constant():
     fringes = k[0, jumps[0]] * 15 / (2 * np.pi)
     assert abs(fringes - 2.0) <= 0.3 + 0.5 * 0.5 ** 2  # the centre's count, the edge growth, +- 0.3
     assert np.count_nonzero(np.diff(ref.transmission[0])) == 7
-    curved = S.flat_field(sim_config(**TILED), 15, 102)
+    curved = flat_field(sim_config(**TILED), 15, 102)
     assert np.ptp(np.diff(curved.phase, n=2, axis=0)) > 0 and np.ptp(curved.transmission[:, 0]) > 0
 
 
@@ -78,7 +83,8 @@ def test_zero_offsets_change_nothing_and_other_draws_stay():
 
 def test_the_preparation_reads_the_flat_field_where_the_scan_was_made(tmp_path):
     # noiseless: aligned with the true offsets (align.reference_offset, align.position_errors) the model
-    # reproduces the counts; aligned as recorded it does not
+    # reproduces the counts within the photon noise of one (its interpolation between reference rows against
+    # the pixels' own means of the flat field); aligned as recorded it does not
     cfg = sim_config(**TILED, **{"simulate.noise": False, "simulate.dtype": "float64",
                                  "effects.reference_offset": 0.3, "effects.position_error": 0.3})
     scan, truth = S.simulate(cfg)
@@ -95,8 +101,9 @@ def test_the_preparation_reads_the_flat_field_where_the_scan_was_made(tmp_path):
         images = M.Images(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], axis=-1), np.ones(t.shape, bool))
         return np.max(np.abs(M.expected(obs, M.design(obs, params), images) - obs.counts) / cfg["simulate"]["flux"])
 
-    assert misfit(["align.reference_offset=0.3", f"align.position_errors={deltas}"]) < 1e-9
-    assert misfit([]) > 1e-3
+    noise = 1 / np.sqrt(cfg["simulate"]["flux"])
+    assert misfit(["align.reference_offset=0.3", f"align.position_errors={deltas}"]) < noise / 2
+    assert misfit([]) > 5 * noise
 
 
 def test_a_bad_position_error_file_is_refused_naming_it(tmp_path, small_scan):
