@@ -2,11 +2,11 @@
 
 Pixel (r, c) sees the interferometer at local row u = r + 0.5 - position[j] and is lit iff 0 <= u < A
 (``spec/scan-format.md``). Reference maps are sampled at u = k + 0.5 and interpolated linearly between
-centres, extrapolated linearly over the outer half rows. The phase is interpolated as its unit phasor,
-renormalised (the second way the format allows): no unwrapping, and equal to the linear interpolation of
-the unwrapped phase to third order in the phase step between rows (scripts/fringe_interpolation.py). Each
-sample's fringe is held as its quadratures t^f v^f (cos phi^f, sin phi^f) (:func:`fringe_rows`), so that
-the model's loops turn it by the phase channel with products alone: no trigonometric call per sample.
+centres, extrapolated linearly over the outer half rows. The phase is interpolated linearly between rows along
+the shorter way round (the unwrapped phase's interpolation, without unwrapping), its unit phasor made from the
+rows' by a series rather than by trigonometric calls (:func:`fringe_rows`). Each sample's fringe is held as its
+quadratures t^f v^f (cos phi^f, sin phi^f), so that the model's loops turn it by the phase channel with products
+alone: no trigonometric call per sample.
 """
 from __future__ import annotations
 
