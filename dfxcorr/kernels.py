@@ -1,13 +1,13 @@
 """Compiled per-sample loops of the fit and the retrieval (numba).
 
-The forward model of :mod:`dfxcorr.model` is evaluated here from its *channel values* on the (frame, column) grid:
-the phase Φ (J, C), the visibility factor V (J, C), the dose D (J,), the background coefficients of (1, x, y) (3,)
-and the harmonic (hc, hs) (2,). The samples' flat field is their transmission and the fringe's quadratures
-(``obs.tf``, ``obs.fc``, ``obs.fs``), turned by the phase channel with the cos and sin of Φ tabulated per
-(frame, column): no sample needs a trigonometric call. Every catalogue effect enters through one of these channels
-(:func:`dfxcorr.model.channels` maps effect parameters to them, :func:`dfxcorr.model.channel_adjoint` maps channel
-gradients back), so a new effect that enters through an existing channel needs no change here. The numpy expressions
-of :mod:`dfxcorr.model` are the definition; the tests hold these kernels to them.
+The forward model of :mod:`dfxcorr.model` is evaluated here from its *channel values* on the (frame, column) grid: the
+phase Φ (J, C), the visibility factor V (J, C), the dose D (J,), the background coefficients of (1, x, y) (3,) and the
+harmonic (hc, hs) (2,). The samples' flat field is their transmission and the fringe's quadratures (``obs.tf``,
+``obs.fc``, ``obs.fs``), turned by the phase channel with the cos and sin of Φ tabulated per (frame, column): no sample
+needs a trigonometric call. Every catalogue effect enters through one of these channels (:func:`dfxcorr.model.channels`
+maps effect parameters to them, :func:`dfxcorr.model.channel_adjoint` maps channel gradients back), so a new effect that
+enters through an existing channel needs no change here. The numpy expressions of :mod:`dfxcorr.model` are the
+definition; the tests hold these kernels to them.
 
 The second harmonic follows the sample (its term is m cos(2 psi + beta), not linear in the images): where it is
 non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton steps, each a solve with the columns
@@ -15,9 +15,9 @@ non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton 
 
 Layout: a pixel is (row, column); its samples are the blocks ``starts[r]:starts[r + 1]`` of one row
 (:class:`dfxcorr.observations.Observations`). The kernels run over chunks of rows in parallel; every chunk owns its
-accumulators (summed afterwards), so no two threads write the same memory. Within a row the columns are handled in
-tiles (:data:`TILE`, :data:`FIT_TILE`) so that the second pass over a tile finds what the first left in cache. Sums
-are accumulated in float64 whatever the sample dtype.
+accumulators (summed afterwards), so no two threads write the same memory. Within a row the columns are handled in tiles
+(:data:`TILE`, :data:`FIT_TILE`) so that the second pass over a tile finds what the first left in cache. Sums are
+accumulated in float64 whatever the sample dtype.
 """
 from __future__ import annotations
 
@@ -33,16 +33,14 @@ from threadpoolctl import threadpool_limits
 PHASE, VISIBILITY, DOSE, BACKGROUND, HARMONIC = range(5)
 CHANNEL_IDS = {"phase": PHASE, "visibility": VISIBILITY, "dose": DOSE, "background": BACKGROUND, "harmonic": HARMONIC}
 
-#: Columns per tile of the retrieval: a tile's design arrays of one row (up to a few hundred frames) stay in
-#: the L2 cache.
+#: Columns per tile of the retrieval: a tile's design arrays of one row (a few hundred frames) stay in the L2 cache.
 TILE = 64
 #: Columns per tile of the fit's cost, which keeps only a few numbers per column between its passes: wider tiles mean
 #: fewer passes over a row's blocks (cost+gradient 18.0 -> 15.5 ns CPU per sample on the paper study at every column)
 FIT_TILE = 512
 
-#: Gauss-Newton steps of the per-pixel solve after the first (harmonic-free) one when the second harmonic
-#: is in the model (its term is not linear in the images; tests/test_model.py holds these steps to a
-#: converged solve).
+#: Gauss-Newton steps of the per-pixel solve after the first (harmonic-free) one when the second harmonic is in the
+#: model (its term is not linear in the images; tests/test_model.py holds these steps to a converged solve).
 HARMONIC_STEPS = 3
 
 
@@ -129,9 +127,7 @@ def _bounds(obs) -> np.ndarray:
     return np.append(obs.starts, obs.frame.size).astype(np.int64)
 
 
-# --------------------------------------------------------------------------------------------------
 # Per-sample helpers (inlined into the kernels)
-# --------------------------------------------------------------------------------------------------
 
 
 @njit(cache=True, inline="always")
@@ -237,9 +233,7 @@ def _solve(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used, out, inv):
     return True
 
 
-# --------------------------------------------------------------------------------------------------
 # The fit: reduced cost and its gradient (or the Gauss-Newton diagonal) in one pass per pixel
-# --------------------------------------------------------------------------------------------------
 
 
 @njit(cache=True, inline="always")
@@ -420,9 +414,7 @@ def reduced_cost(obs, ch, weights: np.ndarray, *, phase: float | None = None, sq
     return float(cost.sum()), (g_phase, g_vis, g_dose.sum(axis=1), g_bg.sum(axis=1), g_harm.sum(axis=1))
 
 
-# --------------------------------------------------------------------------------------------------
 # The retrieval: images, expected counts, noise weights and Pearson chi-square
-# --------------------------------------------------------------------------------------------------
 
 
 @njit(cache=True, inline="always")
@@ -598,9 +590,7 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
 
 
-# --------------------------------------------------------------------------------------------------
 # Fisher information: plain and the profiled correction, driven by a component table
-# --------------------------------------------------------------------------------------------------
 
 
 @njit(cache=True, parallel=True)
