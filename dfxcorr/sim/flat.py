@@ -1,9 +1,8 @@
-"""The simulator's flat field: analytic along the scan, recorded as a pixel records it.
+"""The simulator's flat field: analytic along the scan, read where each pixel is.
 
-A detector pixel integrates the fringe's intensity over its height, so both the reference and every frame's
-samples are the mean of the analytic field t^f (1 + v^f cos phi^f) over sub-row points of the pixel (where the
-active area sits on the detector): the reference at its row centres, a frame wherever its pixels fall, a fraction
-of a row off when its position is. The reconstruction never sees the analytic field, only the reference's rows.
+The reference holds the field at its row centres; a frame's pixels see it where they are, a fraction of a row off
+when the frame's position is (``reference_offset``, ``position_error``): the analytic field is evaluated there, by
+the simulator's own means, never by the alignment's interpolation of the reference rows that the model uses.
 """
 from __future__ import annotations
 
@@ -12,14 +11,10 @@ import numpy as np
 from ..io import Reference
 from ..observations import lateral_coordinate
 
-__all__ = ["NONLINEARITY", "MAX_SUBSTEP", "flat_field", "pixel_fringe"]
+__all__ = ["NONLINEARITY", "flat_field", "pixel_fringe"]
 
 #: Relative variation of t^f and v^f along the scan, and phase departure / 2 pi, of ``flat_nonlinearity: 1``.
 NONLINEARITY = 0.02
-
-#: Largest fringe phase (rad) between the sub-row points of a pixel: the midpoint rule then leaves the mean fringe's
-#: amplitude within 0.1^2 / 24 = 4e-4 of its own, far below the photon noise of any simulated count.
-MAX_SUBSTEP = 0.1
 
 
 def _analytic(cfg: dict, u: np.ndarray, A: int, W: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -52,46 +47,23 @@ def _analytic(cfg: dict, u: np.ndarray, A: int, W: int) -> tuple[np.ndarray, np.
     return flux * tf_tile, vis * vf_tile, phase
 
 
-def _subrows(cfg: dict, A: int, W: int) -> int:
-    """Sub-row points per pixel: the fringe phase between them at most :data:`MAX_SUBSTEP` anywhere."""
-    phase = _analytic(cfg, np.arange(A + 1, dtype=float)[:, None], A, W)[2]
-    return max(1, int(np.ceil(np.abs(np.diff(phase, axis=0)).max(initial=0.0) / MAX_SUBSTEP)))
-
-
-def _pixel_mean(cfg: dict, u: np.ndarray, A: int, W: int, step: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mean over each pixel's height of t^f and of the fringe t^f v^f exp(i (phi^f + step)), (K, W) each."""
-    n = _subrows(cfg, A, W)
-    tf, fringe = np.zeros((u.size, W)), np.zeros((u.size, W), complex)
-    for o in (np.arange(n) + 0.5) / n - 0.5:
-        t, v, p = _analytic(cfg, np.asarray(u, float)[:, None] + o, A, W)
-        tf += t
-        fringe += t * v * np.exp(1j * (p + step))
-    return tf / n, fringe / n
-
-
 def flat_field(cfg: dict, A: int, W: int) -> Reference:
-    """Flat field with a fringe count growing from the centre to the edges (paper Sec. III-A), as recorded.
+    """Flat field with a fringe count growing from the centre to the edges (paper Sec. III-A), at the row centres.
 
     With ``simulate.tiles`` the gratings are tiled across the width: each tile has its own fringe count
     (the value at its centre, varied by up to +- ``tile_fringes``), phase at u = 0, t^f and v^f, so the
     phase gradient along the scan is piecewise constant across the width. ``flat_nonlinearity`` adds the
     departures from linearity along u that real flat fields have: phase curvature, and t^f and v^f
     varying along u (differently in each tile). The tiles draw from their own stream of the seed, so the
-    other random draws of a scan do not change. Each row holds the pixel's mean of the field (module
-    docstring): the visibility of a fringe of phase step d per row is v^f sin(d / 2) / (d / 2) of the
-    field's (the midpoint rule's sum), its phase that at the row centre where the phase is linear.
+    other random draws of a scan do not change.
     """
-    centres = np.arange(A) + 0.5
-    tf, fringe = _pixel_mean(cfg, centres, A, W, 0.0)
-    point = _analytic(cfg, centres[:, None], A, W)[2]
-    # the point phase plus the mean's small departure from it: unwrapped along the scan like the field
-    phase = point + np.angle(fringe * np.exp(-1j * point))
-    return Reference(transmission=tf, visibility=np.abs(fringe) / tf, phase=phase)
+    tf, vf, phase = _analytic(cfg, (np.arange(A) + 0.5)[:, None], A, W)
+    return Reference(transmission=tf, visibility=vf, phase=phase)
 
 
 def pixel_fringe(cfg: dict, u: np.ndarray, A: int, W: int, *, step: float = 0.0
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The flat field that pixels centred at local rows ``u`` record (the reference's own rows at u = k + 0.5).
+    """The flat field that pixels centred at local rows ``u`` see (the reference's own rows at u = k + 0.5).
 
     Parameters
     ----------
@@ -107,7 +79,7 @@ def pixel_fringe(cfg: dict, u: np.ndarray, A: int, W: int, *, step: float = 0.0
     Returns
     -------
     tf, fc, fs : ndarray, shape (K, W)
-        Mean t^f and the mean fringe's quadratures t^f v^f (cos, sin)(phi^f + step) (counts).
+        t^f and the fringe's quadratures t^f v^f (cos, sin)(phi^f + step) (counts).
     """
-    tf, fringe = _pixel_mean(cfg, u, A, W, step)
-    return tf, fringe.real, fringe.imag
+    tf, vf, phase = _analytic(cfg, np.asarray(u, float)[:, None], A, W)
+    return tf, tf * vf * np.cos(phase + step), tf * vf * np.sin(phase + step)
