@@ -2,11 +2,8 @@
 
 Pixel (r, c) sees the interferometer at local row u = r + 0.5 - position[j] and is lit iff 0 <= u < A
 (``spec/scan-format.md``). Reference maps are sampled at u = k + 0.5 and interpolated linearly between
-centres, extrapolated linearly over the outer half rows. The phase is interpolated linearly between rows along
-the shorter way round (the unwrapped phase's interpolation, without unwrapping), its unit phasor made from the
-rows' by a series rather than by trigonometric calls (:func:`fringe_rows`). Each sample's fringe is held as its
-quadratures t^f v^f (cos phi^f, sin phi^f), so that the model's loops turn it by the phase channel with products
-alone: no trigonometric call per sample.
+centres, extrapolated linearly over the outer half rows. The phase is unwrapped along u first: linear
+interpolation of wrapped values would put a wrong phase into every sample near a wrap.
 """
 from __future__ import annotations
 
@@ -25,7 +22,7 @@ from . import kernels as K
 from .errors import DfxcorrError
 from .faults import Faults, saturated
 from .io import Reference, Scan, frame_rows, lit_rows
-from .observations import Observations, displaced_reading, lateral_coordinate
+from .observations import Observations, displaced_reading
 from .stats import ranges
 
 log = logging.getLogger(__name__)
@@ -42,64 +39,24 @@ def no_lit_rows(min_frames: int) -> AlignmentError:
                           f"(dataset /entry/scan/position)")
 
 
-@njit(cache=True, inline="always")
-def _between(u: float, A: int) -> tuple[int, int, float]:
-    """Lower reference row k0 and weight a of local row u: the value is (1 - a) m[k0] + a m[k0 + 1] (one row:
-    k0 = k0 + 1 = 0)."""
-    f = u - 0.5
-    if A == 1:
-        return 0, 0, 0.0
-    k0 = min(max(int(np.floor(f)), 0), A - 2)
-    return k0, k0 + 1, f - k0
-
-
 @njit(cache=True, parallel=True)
-def _interpolate_rows(maps: np.ndarray, cols: np.ndarray, u: np.ndarray, out: np.ndarray) -> None:
+def _interpolate_rows(maps: np.ndarray, cols: np.ndarray, u: np.ndarray, add: np.ndarray, wrap: bool,
+                      out: np.ndarray) -> None:
     A = maps.shape[0]
     for k in prange(u.size):
-        k0, k1, a = _between(u[k], A)
+        f = u[k] - 0.5
+        k0 = min(max(int(np.floor(f)), 0), A - 2)
+        a = f - k0
         for i in range(cols.size):
             c = cols[i]
-            out[k, i] = (1.0 - a) * maps[k0, c] + a * maps[k1, c]
-
-
-@njit(cache=True, inline="always")
-def _sinc_sqrt(y: float) -> float:
-    """sin(sqrt(y)) / sqrt(y) by its series to y^5, no trigonometric call: the phase of :func:`_fringe_rows` is then
-    within 2e-8 rad of the linear interpolation for phase steps up to 1 rad per row, 4e-6 up to 1.5 and 2e-4 up to 2
-    (half a row beyond the outer rows included)."""
-    return 1.0 - y / 6.0 * (1.0 - y / 20.0 * (1.0 - y / 42.0 * (1.0 - y / 72.0 * (1.0 - y / 110.0))))
-
-
-@njit(cache=True, parallel=True)
-def _fringe_rows(tmap: np.ndarray, vmap: np.ndarray, cmap: np.ndarray, smap: np.ndarray, dmap: np.ndarray,
-                 cols: np.ndarray, u: np.ndarray, cos_step: np.ndarray, sin_step: np.ndarray, tf: np.ndarray,
-                 fc: np.ndarray, fs: np.ndarray) -> None:
-    A = tmap.shape[0]
-    for k in prange(u.size):
-        k0, k1, a = _between(u[k], A)
-        cp, sp = cos_step[k], sin_step[k]
-        for i in range(cols.size):
-            c = cols[i]
-            t = (1.0 - a) * tmap[k0, c] + a * tmap[k1, c]
-            amp = t * ((1.0 - a) * vmap[k0, c] + a * vmap[k1, c])
-            # the phase linear between the rows: exp(i P0) sin((1 - a) d) + exp(i P1) sin(a d), over its norm
-            d2 = dmap[k0, c] * dmap[k0, c]
-            w0, w1 = (1.0 - a) * _sinc_sqrt((1.0 - a) * (1.0 - a) * d2), a * _sinc_sqrt(a * a * d2)
-            zc = w0 * cmap[k0, c] + w1 * cmap[k1, c]
-            zs = w0 * smap[k0, c] + w1 * smap[k1, c]
-            m = np.sqrt(zc * zc + zs * zs)
-            if m == 0.0:
-                # a phase step of pi per row half-way: the nearer row's (a degenerate reference)
-                near = k0 if a < 0.5 else k1
-                zc, zs, m = cmap[near, c], smap[near, c], 1.0
-            tf[k, i] = t
-            fc[k, i] = amp * (zc * cp - zs * sp) / m
-            fs[k, i] = amp * (zs * cp + zc * sp) / m
+            v = (1.0 - a) * maps[k0, c] + a * maps[k0 + 1, c] + add[k]
+            if wrap:
+                v -= 2.0 * np.pi * np.floor(v / (2.0 * np.pi) + 0.5)
+            out[k, i] = v
 
 
 def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | None = None,
-                     dtype: DTypeLike = np.float64) -> np.ndarray:
+                     dtype: DTypeLike = np.float64, add: np.ndarray | None = None, wrap: bool = False) -> np.ndarray:
     """Linear interpolation of row-sampled maps at continuous local rows.
 
     With f = u - 0.5 and k0 = floor(f) clipped to [0, A - 2], the value is
@@ -118,83 +75,29 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
         Only these columns of the maps (default all).
     dtype : numpy dtype
         Of the result (computed in float64).
+    add : ndarray, shape (K,), optional
+        Added to each sample row's values (e.g. the phase step of its frame).
+    wrap : bool
+        Wrap the values (rad) to [-pi, pi) before the cast to ``dtype``.
 
     Returns
     -------
     ndarray, shape (K, C)
     """
+    if maps.shape[0] == 1:
+        picked = np.asarray(maps if columns is None else maps[:, columns], dtype=np.float64)
+        out = np.repeat(picked, np.size(u), axis=0)
+        if add is not None:
+            out += np.asarray(add, dtype=np.float64)[:, None]
+        if wrap:
+            out -= 2.0 * np.pi * np.floor(out / (2.0 * np.pi) + 0.5)
+        return out.astype(dtype, copy=False)
     K.set_threads()
     cols = np.arange(maps.shape[1]) if columns is None else np.asarray(columns, dtype=np.int64)
     out = np.empty((np.size(u), cols.size), dtype=dtype)
-    _interpolate_rows(np.ascontiguousarray(maps, np.float64), cols, np.asarray(u, np.float64), out)
+    shift = np.zeros(np.size(u)) if add is None else np.asarray(add, dtype=np.float64)
+    _interpolate_rows(np.ascontiguousarray(maps, np.float64), cols, np.asarray(u, np.float64), shift, bool(wrap), out)
     return out
-
-
-@dataclass(frozen=True)
-class FringeMaps:
-    """A reference as its samples are interpolated: transmission, visibility, the phase's unit phasor and its step.
-
-    Attributes
-    ----------
-    transmission, visibility : ndarray, shape (A, W)
-        t^f (counts), v^f.
-    cos, sin : ndarray, shape (A, W)
-        cos phi^f, sin phi^f.
-    step : ndarray, shape (A, W)
-        phi^f of row k + 1 less that of row k, wrapped to [-pi, pi] (rad; 0 on the last row).
-    """
-
-    transmission: np.ndarray
-    visibility: np.ndarray
-    cos: np.ndarray
-    sin: np.ndarray
-    step: np.ndarray
-
-
-def fringe_maps(reference: Reference) -> FringeMaps:
-    """The :class:`FringeMaps` of a reference (float64; the phase may be wrapped)."""
-    phase = np.asarray(reference.phase, np.float64)
-    step = np.zeros(phase.shape)
-    step[:-1] = np.angle(np.exp(1j * np.diff(phase, axis=0)))
-    return FringeMaps(*(np.ascontiguousarray(m, np.float64) for m in (
-        reference.transmission, reference.visibility, np.cos(phase), np.sin(phase), step)))
-
-
-def fringe_rows(maps: FringeMaps, u: np.ndarray, *, columns: np.ndarray | None = None,
-                step: np.ndarray | None = None, dtype: DTypeLike = np.float64
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The flat field of samples at continuous local rows: t^f and the fringe's quadratures.
-
-    With k0, a as in :func:`interpolate_rows`, t^f, v^f and the phase (unwrapped between the rows) are
-    (1 - a) m[k0] + a m[k0 + 1] of their maps (``spec/scan-format.md``), the phase turned by ``step``: what a pixel
-    records a fraction of a row off a fringe whose phase is linear along the scan (the complex fringe's own
-    interpolation would dip in amplitude half-way, by cos(d / 2) for a step d per row). The phase's unit phasor
-    comes from those of the rows by a series (:func:`_sinc_sqrt`), without trigonometric calls per sample.
-    Computed in float64, written in ``dtype``.
-
-    Parameters
-    ----------
-    maps : FringeMaps
-    u : ndarray, shape (K,)
-        Local rows.
-    columns : ndarray of int, shape (C,), optional
-        Only these columns (default all).
-    step : ndarray, shape (K,), optional
-        Phase added to each sample row's fringe (rad; e.g. the nominal phase step of its frame).
-    dtype : numpy dtype
-
-    Returns
-    -------
-    tf, fc, fs : ndarray, shape (K, C)
-        t^f, t^f v^f cos phi^f, t^f v^f sin phi^f (counts).
-    """
-    K.set_threads()
-    cols = np.arange(maps.transmission.shape[1]) if columns is None else np.asarray(columns, dtype=np.int64)
-    shift = np.zeros(np.size(u)) if step is None else np.asarray(step, dtype=np.float64)
-    tf, fc, fs = (np.empty((np.size(u), cols.size), dtype=dtype) for _ in range(3))
-    _fringe_rows(maps.transmission, maps.visibility, maps.cos, maps.sin, maps.step, cols, np.asarray(u, np.float64),
-                 np.cos(shift), np.sin(shift), tf, fc, fs)
-    return tf, fc, fs
 
 
 def pixel_mm(scan: Scan) -> tuple[float, float] | None:
@@ -376,13 +279,13 @@ class LitStore:
     def observations(self, reference: Reference, *, columns: np.ndarray | None = None,
                      rows: tuple[int, int] | None = None, pixel_mask: np.ndarray | None = None,
                      gain: float | None = None, electronic: float = 0.0, noise: np.ndarray | None = None,
-                     dtype: DTypeLike = np.float64, maps: FringeMaps | None = None) -> Observations:
+                     dtype: DTypeLike = np.float64, phase_unwrapped: bool = False) -> Observations:
         """Align the flat field to the held samples of some columns and rows.
 
         Parameters
         ----------
         reference : Reference
-            Flat-field maps (A, W); the phase may be wrapped (:func:`fringe_rows`).
+            Flat-field maps (A, W); the phase may be wrapped.
         columns : ndarray of int, optional
             Detector columns (default all).
         rows : (int, int), optional
@@ -397,9 +300,10 @@ class LitStore:
             Variance factor of each detector pixel (``pixel_noise``; default 1).
         dtype : numpy dtype
             Of the sample arrays: float64, or float32 to halve them (counts up to 2^24 stay exact;
-            the flat field is interpolated in float64 first).
-        maps : FringeMaps, optional
-            :func:`fringe_maps` of ``reference``, made once by a caller aligning block after block.
+            the flat field is interpolated in float64 first, its phase then wrapped to [-pi, pi)).
+        phase_unwrapped : bool
+            The reference's phase is already unwrapped along the scan (axis 0), so it is not done again
+            (a caller aligning block after block unwraps once).
 
         Returns
         -------
@@ -409,8 +313,12 @@ class LitStore:
         cols = np.arange(W) if columns is None else np.asarray(columns, dtype=np.int64)
         lo, hi = (0, self.row.size) if rows is None else np.searchsorted(self.row, rows)
         row, frame, u = self.row[lo:hi], self.frame[lo:hi], self.u[lo:hi]
-        tf, fc, fs = fringe_rows(fringe_maps(reference) if maps is None else maps, u, columns=cols,
-                                 step=self.phase_step[frame], dtype=dtype)
+        phase = reference.phase if phase_unwrapped else np.unwrap(reference.phase, axis=0)
+        tf = interpolate_rows(reference.transmission, u, columns=cols, dtype=dtype)
+        vf = interpolate_rows(reference.visibility, u, columns=cols, dtype=dtype)
+        # the model takes only cos and sin of it: wrapped to [-pi, pi), float32 keeps it to 2e-7 rad (unwrapped
+        # across a clinical detector's many fringes it would keep it only to |phi^f| 6e-8)
+        phif = interpolate_rows(phase, u, columns=cols, dtype=dtype, add=self.phase_step[frame], wrap=True)
         # C order whatever the store's: the kernels walk a sample row at a time (a Fortran-ordered copy made
         # every cost evaluation about 1.7x slower)
         counts = (self.counts[lo:hi] if columns is None else self.counts[lo:hi, cols]).astype(dtype, order="C")
@@ -431,8 +339,9 @@ class LitStore:
         if self.parallax:
             shift = self.parallax / (1.0 + self.parallax) * self.centred()[lo:hi]
             reading, inside = displaced_reading(row, np.unique(row), shift)
+            reading = replace(reading, kappa=self.parallax)
             use &= inside[:, None]
-        return Observations(counts=counts, tf=tf, fc=fc, fs=fs, dark=dark, use=use,
+        return Observations(counts=counts, tf=tf, vf=vf, phif=phif, dark=dark, use=use,
                             row=row, frame=frame, columns=cols, shape=(J, H, W),
                             gain=self.gain if gain is None else gain, electronic=electronic,
                             noise=None if noise is None else noise[held],
@@ -526,7 +435,8 @@ def realign(store: LitStore, reference: Reference, like: Observations, shift: np
     rows = (int(like.row[0]), int(like.row[-1]) + 1)
     obs = store.shifted(shift).observations(reference, columns=like.columns, rows=rows, gain=like.gain,
                                             electronic=like.electronic, dtype=like.counts.dtype)
-    return replace(obs.fringe_within(like.in_roi), noise=like.noise, use=like.use, roi=like.roi)
+    return replace(obs, noise=like.noise, vf=np.where(like.in_roi, obs.vf, 0).astype(obs.vf.dtype, copy=False),
+                   use=like.use, roi=like.roi)
 
 
 def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray | None = None,
@@ -564,10 +474,8 @@ def tilt_alias_period(width: int, n: int) -> float:
     return np.pi * width / n
 
 
-__all__ = ["AlignmentError", "FringeMaps", "LitStore", "build_observations", "collect_lit_rows", "fringe_maps",
-           "fringe_rows", "interpolate_rows", "lit_blocks",
-           "no_lit_rows", "read_position_errors",
-           "subsample_columns", "tilt_alias_period", "lateral_coordinate"]
+__all__ = ["AlignmentError", "LitStore", "build_observations", "collect_lit_rows", "interpolate_rows", "lit_blocks",
+           "no_lit_rows", "read_position_errors", "subsample_columns", "tilt_alias_period"]
 
 
 def to_detector_rows(images: np.ndarray, kappa: float) -> np.ndarray:

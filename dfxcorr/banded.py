@@ -123,10 +123,10 @@ class ReadBetween:
 
 def _read_shares(obs: Observations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each block's two image rows (positions in ``obs.rows``) and the share of the first."""
-    rd = obs.reading
-    if rd is None:
+    if obs.reading is None:
         raise ValueError("the observations read every sample at its own row")
-    return rd.lo, np.minimum(rd.lo + 1, obs.rows.size - 1), 1.0 - rd.frac
+    lo, hi, frac = obs.read_rows()
+    return lo, hi, 1.0 - frac
 
 
 def _spread(index: np.ndarray, share: np.ndarray, rows: int) -> sparse.csr_matrix:

@@ -31,8 +31,8 @@ if TYPE_CHECKING:  # the planning (numba kernels) is imported only where a check
 NAME_MAX = 255
 #: Memory model of a streamed reconstruction: the store of lit rows (counts as stored), the images
 #: (corrected and uncorrected t, v, phi in float64: 48 bytes per pixel), the retrieval's row blocks
-#: (``retrieve.block_mb``) and the fit's samples (float32 observations and weights, the solves' outputs
-#: and the pilot's temporaries: FIT_BYTES each). Against the peak resident set
+#: (``retrieve.block_mb``) and the fit's samples (float32 observations, their fringe's quadratures and
+#: weights, the solves' outputs and the pilot's temporaries: FIT_BYTES each). Against the peak resident set
 #: (/usr/bin/time -v, 2 cores) it errs high: 1.50 GB for 1.35 GB measured at 195 x 2880 x 2880,
 #: 0.84 GB for 0.72 GB at 195 x 1440 x 1440 (fit.max_samples 2e6).
 IMAGE_BYTES = 48
@@ -262,7 +262,7 @@ def memory_estimate(shape, *, itemsize: int, lit_samples: int, fit_samples: int,
 
 
 def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, prep: Prepared | None) -> ColumnPlan:
-    from .planning import ColumnPlan, coarse_step, column_step, fit_columns, fit_seconds, plan_columns
+    from .planning import ColumnPlan, coarse_step, column_step, fit_columns, fit_seconds, plan_columns, slowdown
 
     W = scan.shape[2]
     n = cfg["fit"]["subsample"]
@@ -274,7 +274,8 @@ def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, prep: Prepare
         coarse = coarse_step(cfg, cols.size, samples_per_column, step=step, width=W)
         return ColumnPlan(columns=cols, why="fit.subsample" if n != "auto" else
                           "at most; auto chooses at run time from a pilot, which dfxcorr check runs",
-                          seconds=fit_seconds(cols.size, samples_per_column, coarse), coarse=coarse)
+                          seconds=fit_seconds(cols.size, samples_per_column, coarse, slowdown=slowdown(cfg)),
+                          coarse=coarse)
     except ValueError as exc:
         if isinstance(exc, DfxcorrError):
             raise

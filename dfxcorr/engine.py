@@ -9,9 +9,11 @@ The signatures and returned values are the kernels'.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
+from scipy import sparse
 
 from . import kernels as K
 from . import model as M
@@ -61,18 +63,21 @@ def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, *, phas
         return K.reduced_cost(obs, ch, weights, phase=phase, square=square, channels=channels)
     dsg = M.design_channels(obs, ch)
     images = M.solve_images(obs, dsg, weights, phase=phase)
-    resid = obs.counts - M.expected(obs, dsg, images)
+    at = obs.gather(images.coef)
+    resid = obs.counts - M.expected(obs, dsg, images, at=at)
     cost = float(np.sum(weights * resid ** 2))
     J, C = obs.n_frames, obs.columns.size
     out: list[np.ndarray] = [np.zeros((J, C)), np.zeros((J, C)), np.zeros(J), np.zeros(3), np.zeros(2)]
     g = -2.0 * weights * resid
+    by_frame = sparse.csr_matrix((np.ones(obs.frame.size), (obs.frame, np.arange(obs.frame.size))),
+                                 shape=(J, obs.frame.size))
     for name, cid in K.CHANNEL_IDS.items():
         if name not in channels:
             continue
-        fields = M.channel_fields(obs, dsg, images, cid)
+        fields = M.channel_fields(obs, dsg, images, cid, at=at)
         sums = [(weights * F if square else g) * F for F in fields]
         if cid in (K.PHASE, K.VISIBILITY):
-            np.add.at(out[cid], obs.frame, sums[0])
+            out[cid] = by_frame @ sums[0]
         elif cid == K.DOSE:
             out[cid] = obs.frame_sum(sums[0].sum(axis=1))
         else:
@@ -81,32 +86,16 @@ def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, *, phas
 
 
 def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray | None,
-           table: tuple, *, profiled: bool = True, columns: int = 16) -> tuple[np.ndarray, np.ndarray]:
-    """Fisher information of channel components and its profiled correction: :func:`dfxcorr.kernels.fisher`'s values.
+           names: Sequence[str], *, profiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Fisher information of the parameters of ``names`` and its profiled correction, in
+    :func:`dfxcorr.model.fisher_index`'s order: :func:`dfxcorr.kernels.fisher`'s values.
 
-    Where ``obs.reading`` is set, a pixel's images share samples with its neighbours', so the correction
-    sum Y^T N^-1 Y runs over whole columns (N block tridiagonal, :mod:`dfxcorr.banded`), ``columns`` at a time.
+    Where ``obs.reading`` is set, :func:`dfxcorr.model.fisher_parts` (a pixel's images share samples with its
+    neighbours', so the correction runs over whole columns).
     """
     if obs.reading is None:
         K.set_threads()
-        return K.fisher(obs, ch, weights, coef, inverse, table, profiled=profiled)
-    channel, power, n_per_frame = table
-    J = obs.n_frames
-    dsg = M.design_channels(obs, ch)
-    images = M.Images(coef, np.ones(coef.shape[:2], bool))
-    fields = {cid: M.channel_fields(obs, dsg, images, cid) for cid in set(np.asarray(channel).tolist())}
-    comps = enumerate(zip(channel, power, strict=True))
-    F = [fields[cid][0] * obs.x[None, :] ** pw if cid in (K.PHASE, K.VISIBILITY) and q < n_per_frame
-         else fields[cid][pw if q >= n_per_frame else 0] for q, (cid, pw) in comps]
-    Pf, Pg = int(n_per_frame), len(F) - int(n_per_frame)
-    P = J * Pf + Pg
-    # column of each (sample, component) in the information: (frame, component) per frame, then the global ones
-    where = [obs.frame * Pf + q if q < Pf else np.full(obs.frame.size, J * Pf + q - Pf) for q in range(len(F))]
-    plain = np.zeros((P, P))
-    for a in range(len(F)):
-        for b in range(len(F)):
-            np.add.at(plain, (where[a], where[b]), (weights * F[a] * F[b]).sum(axis=1))
-    corr = np.zeros((P, P))
-    if not profiled:
-        return plain, corr
-    return plain, M.read_between_correction(obs, dsg, coef, weights, F, where, P, columns=columns)
+        return K.fisher(obs, ch, weights, coef, inverse, M.component_table(names)[:3], profiled=profiled)
+    images = M.Images(coef, np.ones(coef.shape[:2], bool), inverse)
+    plain, corr, _ = M.fisher_parts(obs, M.design_channels(obs, ch), images, weights, names, profiled=profiled)
+    return plain, corr

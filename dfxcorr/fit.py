@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -187,11 +187,14 @@ class _Problem:
         if columns is None:
             columns = max(FACTOR_MIN_COLUMNS, FACTOR_PIXELS // max(self.obs.rows.size, 1))
         if columns not in self._spread:
-            self._spread[columns] = spread_columns(self.obs, self.weights, most=columns)
+            obs, weights = spread_columns(self.obs, self.weights, most=columns)
+            # the steps need a Hessian close to the reduced cost's, not its exact value (the gradient decides
+            # where they end): where samples read between rows (a fraction of a row off their own), that of the
+            # images solved per pixel, by the compiled kernels, rather than the block-tridiagonal solve's
+            self._spread[columns] = (replace(obs, reading=None), weights)
         obs, weights = self._spread[columns]
         images = _solve(obs, params, weights, keep_inverse=True)
-        plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
-                               M.component_table(self.names)[:3])
+        plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse, self.names)
         offsets = np.cumsum([0] + [int(np.prod(shp)) for shp in self.shapes])
         where = {n: (o, shp) for n, o, shp in zip(self.names, offsets[:-1], self.shapes, strict=True)}
         order = np.array([where[n][0] + (np.ravel_multi_index((j, m), where[n][1]) if j >= 0 else m)
@@ -701,8 +704,7 @@ def uncertainty(obs: Observations, params: dict, weights: np.ndarray) -> dict[st
         return out
     K.set_threads()
     images = _solve(obs, params, weights, keep_inverse=True)
-    plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse,
-                           M.component_table(names)[:3])
+    plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse, names)
     info, index = plain - corr, M.fisher_index(names, obs.n_frames)
     d = np.diag(info).copy()
     has = d > 1e-12 * max(d.max(), 1e-300)

@@ -90,8 +90,7 @@ def information(obs: Observations, ch: M.Channels, images: M.Images, weights: np
     by the tests): the plain information and the profiled correction in one pass.
     """
     K.set_threads()
-    plain_matrix, corr = E.fisher(obs, ch, weights, images.coef, images.inverse,
-                                  M.component_table(names)[:3])
+    plain_matrix, corr = E.fisher(obs, ch, weights, images.coef, images.inverse, names)
     info, index = plain_matrix - corr, M.fisher_index(names, obs.n_frames)
     plain = np.diag(plain_matrix)
     used = np.bincount(obs.frame, weights=obs.use.sum(axis=1), minlength=obs.n_frames) > 0

@@ -2,11 +2,11 @@
 
 The forward model of :mod:`dfxcorr.model` is evaluated here from its *channel values* on the (frame, column) grid: the
 phase Φ (J, C), the visibility factor V (J, C), the dose D (J,), the background coefficients of (1, x, y) (3,) and the
-harmonic (hc, hs) (2,). The samples' flat field is their transmission and the fringe's quadratures (``obs.tf``,
-``obs.fc``, ``obs.fs``), turned by the phase channel with the cos and sin of Φ tabulated per (frame, column): no sample
-needs a trigonometric call. Every catalogue effect enters through one of these channels (:func:`dfxcorr.model.channels`
-maps effect parameters to them, :func:`dfxcorr.model.channel_adjoint` maps channel gradients back), so a new effect that
-enters through an existing channel needs no change here. The numpy expressions of :mod:`dfxcorr.model` are the
+harmonic (hc, hs) (2,). The samples' flat field is read as its transmission and fringe quadratures (``obs.tf``,
+``obs.fringe``), turned by the phase channel with the cos and sin of Φ tabulated per (frame, column): no sample needs a
+trigonometric call here. Every catalogue effect enters through one of these channels (:func:`dfxcorr.model.channels`
+maps effect parameters to them, :func:`dfxcorr.model.channel_adjoint` maps channel gradients back), so a new effect
+that enters through an existing channel needs no change here. The numpy expressions of :mod:`dfxcorr.model` are the
 definition; the tests hold these kernels to them.
 
 The second harmonic follows the sample (its term is m cos(2 psi + beta), not linear in the images): where it is
@@ -406,7 +406,8 @@ def reduced_cost(obs, ch, weights: np.ndarray, *, phase: float | None = None, sq
     need = np.isin(list(CHANNEL_IDS), list(channels))
     bounds = _bounds(obs)
     weights = _c(weights, weights_dtype(obs))
-    out = _reduced_cost(_c(obs.counts), _c(obs.tf), _c(obs.fc), _c(obs.fs), _c(obs.dark), weights, obs.frame,
+    fc, fs = obs.fringe
+    out = _reduced_cost(_c(obs.counts), _c(obs.tf), fc, fs, _c(obs.dark), weights, obs.frame,
                         obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase),
                         np.sin(ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, hold, square,
                         need, FIT_TILE)
@@ -573,19 +574,18 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         raise ValueError("iterations must be at least 1")
     g = obs.pixel_gain(gain)
     bounds = _bounds(obs)
-    # weights in the samples' dtype whatever the caller's: one compiled specialisation per dtype (about 6 s of a
-    # first run each)
+    # weights in the samples' dtype whatever the caller's: one compiled specialisation per dtype (~6 s each)
     start = np.zeros((0, 0), obs.tf.dtype) if weights is None else _c(weights, obs.tf.dtype)
     # without known photons in it the dark is its own quiet part: one array (not a second copy of a strided one)
     dark = _c(obs.dark)
     quiet = dark if obs.offset is None else _c(obs.quiet)
+    fc, fs = obs.fringe
     coef, valid, inverse, ibar, w, chi2, n_sel = _retrieve(
-        _c(obs.counts), _c(obs.tf), _c(obs.fc), _c(obs.fs), dark, quiet, _c(obs.use), start,
+        _c(obs.counts), _c(obs.tf), fc, fs, dark, quiet, _c(obs.use), start,
         obs.frame, obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase),
         np.sin(ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, _c(g, np.float64),
-        float(obs.electronic),
-        int(iterations), weights is None, keep_inverse, keep_expected, keep_expected or next_weights, next_weights,
-        TILE)
+        float(obs.electronic), int(iterations), weights is None, keep_inverse, keep_expected,
+        keep_expected or next_weights, next_weights, TILE)
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
 
@@ -741,9 +741,10 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray |
     inv = np.zeros((0, 0, 3, 3)) if inverse is None else inverse
     # one chunk per thread: the accumulators are (P, P) each
     weights = _c(weights, np.float64)  # one compiled specialisation whatever the caller's dtype
-    plain, corr = _fisher(_c(obs.tf), _c(obs.fc), _c(obs.fs), weights, obs.frame, obs.y, obs.x, bounds,
+    fc, fs = obs.fringe
+    plain, corr = _fisher(_c(obs.tf), fc, fs, weights, obs.frame, obs.y, obs.x, bounds,
                    row_chunks(bounds[:-1], obs.frame.size, per_thread=1), np.cos(ch.phase), np.sin(ch.phase),
-                   _c(ch.vis, np.float64), ch.dose, ch.harmonic,
-                   coef, inv, np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64),
+                   _c(ch.vis, np.float64), ch.dose, ch.harmonic, coef, inv, np.asarray(channel, dtype=np.int64),
+                   np.asarray(power, dtype=np.int64),
                    int(n_per_frame), int(obs.n_frames), bool(profiled and inverse is not None))
     return plain.sum(axis=0), corr.sum(axis=0)

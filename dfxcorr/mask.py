@@ -13,6 +13,7 @@ q_i that sensitivity and gamma fitted robustly over all pixels, for what the pil
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import replace
 
 import numpy as np
 from scipy import ndimage, special
@@ -61,7 +62,7 @@ def motion_statistics(obs: Observations, params: dict) -> tuple[np.ndarray, np.n
     weights, ibar = solved["weights"], solved["expected"]
     n = obs.segment_sum((weights > 0).astype(float))
     # the fringe's amplitude per unit image modulation, |(Bc, Bs)| = D tf vf V of model.design
-    fringe_amp = ch.dose[obs.frame][:, None] * np.hypot(obs.fc, obs.fs) * ch.vis[obs.frame]
+    fringe_amp = ch.dose[obs.frame][:, None] * obs.tf * obs.vf * ch.vis[obs.frame]
     with np.errstate(divide="ignore", invalid="ignore"):
         eps = obs.segment_sum(np.where(weights > 0, deviance(obs, ibar), 0.0)) / (n - 3)
         amp = obs.gather(np.hypot(solved["coef"][..., 1], solved["coef"][..., 2]))
@@ -130,7 +131,6 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
     names = PAPER_MODEL
     K.set_threads()
     sub = obs.subset(np.arange(0, obs.columns.size, every))
-    table = M.component_table(names)[:3]
     index = M.fisher_index(names, sub.n_frames)
     params = neutral_params(names, obs.n_frames)
     weights = noise_weights(sub, np.maximum(sub.counts, 1.0))
@@ -142,8 +142,11 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
         # no pixel seen in more frames than its images' unknowns: nothing to compare with
         outlier = z2 > (4.0 * np.median(z2[solved["valid"]]) if solved["valid"].any() else np.inf)
         w = np.where(outlier | ~solved["valid"], 0.0, 1.0)[sub.pixel] * weights
-        held = E.retrieve(sub, ch, weights=w, keep_inverse=True)
-        plain, corr = E.fisher(sub, ch, w, held["coef"], held["inverse"], table)
+        # the step's matrix need only be close (the gradient decides where the steps end): where samples read
+        # between rows, that of the images solved per pixel by the compiled kernels
+        flat = replace(sub, reading=None)
+        held = E.retrieve(flat, ch, weights=w, keep_inverse=True)
+        plain, corr = E.fisher(flat, ch, w, held["coef"], held["inverse"], names)
         # the reduced cost's gradient is that at the images solved with w (envelope theorem)
         grad = M.channel_adjoint(names, M.Channels(*E.reduced_cost(sub, ch, w,
                                                                     channels=("phase", "visibility"))[1]), x=sub.x)

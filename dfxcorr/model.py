@@ -16,10 +16,6 @@ For detector pixel i (row r, column c) in frame j the expected count is
     Ibar = D_j tf t_i (1 + vf V_ij v_i (cos psi + a2 cos(2 psi + beta))) + b(x_i, y_i) + dark_i
     psi = θ + phi_i,   θ = phi^f + phase_step_j + Φ_ij
 
-where the flat field's fringe is held as its quadratures, fc + i fs = tf vf exp(i (phi^f + phase_step_j))
-(``Observations``; :func:`dfxcorr.align.fringe_rows`), so that tf vf exp(i θ) = (fc + i fs) exp(i Φ) is a
-product of a per-sample and a per-(frame, column) factor: no trigonometry per sample.
-
 with the *channels*
 
     Φ_ij = sum over phase effects of   p_j(e) * x_i^k   (phase_offset k=0, tilt k=1, curvature k=2)
@@ -34,8 +30,8 @@ the product of all visibilities, like the first (``spec/diagnosis.md`` version 2
 Written in the per-pixel unknowns (t, c, s) = (t, t v cos phi, t v sin phi) (paper eq. 8), m = sqrt(c^2 + s^2),
 
     Ibar = t A + c Bc + s Bs + Hc (c^2 - s^2) / m - Hs 2 c s / m + offset,
-    A = D tf,  Bc = D V Fc,  Bs = -D V Fs,  (Fc, Fs) = tf vf (cos θ, sin θ),
-    Hc = D V (hc C2 - hs S2),  Hs = D V (hc S2 + hs C2),  (C2, S2) = tf vf (cos 2θ, sin 2θ),  offset = b + dark.
+    A = D tf,  Bc = D tf vf V cos θ,  Bs = -D tf vf V sin θ,
+    Hc = D tf vf V (hc cos 2θ - hs sin 2θ),  Hs = D tf vf V (hc sin 2θ + hs cos 2θ),  offset = b + dark.
 
 Without the harmonic the model is linear in (t, c, s) and the images follow in closed form (weighted
 linear least squares, eq. 9) for given per-frame parameters; v = sqrt(c^2 + s^2) / t, phi = atan2(s, c)
@@ -58,9 +54,8 @@ from .catalogue import effect
 from .observations import Observations
 
 __all__ = ["Channels", "channels", "channel_adjoint", "component_table", "fisher_index", "Design", "design",
-           "design_channels", "channel_fields", "read_between_correction", "double_angle", "background_basis",
-           "harmonic_factors", "image_columns", "Images", "solve_pixels", "solve_images", "harmonic_term", "expected",
-           "circular_mean",
+           "design_channels", "channel_fields", "read_between_correction", "background_basis", "harmonic_factors",
+           "image_columns", "Images", "solve_pixels", "solve_images", "harmonic_term", "expected", "circular_mean",
            "sample_derivatives", "reduce_component", "gradient", "leverage", "frame_leverage", "fisher_matrix"]
 
 # --------------------------------------------------------------------------------------------------
@@ -209,9 +204,8 @@ class Design:
     """Per-sample coefficients of the per-pixel model Ibar = t A + c Bc + s Bs + Hc e - Hs f + offset.
 
     e = (c^2 - s^2) / m, f = 2 c s / m (:func:`harmonic_factors`). All arrays have shape (K, C)
-    (``dose`` (K, 1)); ``Fc``, ``Fs`` are the flat field's fringe turned by the phase channel,
-    tf vf (cos θ, sin θ) (counts); ``Hc``, ``Hs`` are zero without the harmonic. ``channels`` holds the
-    channel values they were made from.
+    (``dose`` (K, 1)); ``theta`` is the fringe phase without the sample; ``Hc``, ``Hs`` are zero without
+    the harmonic. ``channels`` holds the channel values they were made from.
     """
 
     A: np.ndarray
@@ -220,17 +214,11 @@ class Design:
     Hc: np.ndarray
     Hs: np.ndarray
     offset: np.ndarray
-    Fc: np.ndarray
-    Fs: np.ndarray
+    theta: np.ndarray
     dose: np.ndarray
     vis: np.ndarray
     harmonic: tuple[float, float]
     channels: Channels
-
-    @property
-    def theta(self) -> np.ndarray:
-        """The fringe phase without the sample, θ (rad, in (-pi, pi]), shape (K, C)."""
-        return np.arctan2(self.Fs, self.Fc)
 
 
 def design(obs: Observations, params: dict[str, np.ndarray]) -> Design:
@@ -256,22 +244,15 @@ def design_channels(obs: Observations, ch: Channels) -> Design:
     background = (sum(ch.background[m] * b for m, b in enumerate(background_basis(obs))) if np.any(ch.background)
                   else np.zeros(obs.counts.shape))
     hc, hs = float(ch.harmonic[0]), float(ch.harmonic[1])
-    cp, sp = np.cos(ch.phase)[obs.frame], np.sin(ch.phase)[obs.frame]
-    Fc, Fs = obs.fc * cp - obs.fs * sp, obs.fs * cp + obs.fc * sp
-    dv = dose * vis
-    Hc, Hs = np.zeros_like(Fc), np.zeros_like(Fc)
+    theta = obs.phif + ch.phase[obs.frame]
+    amp = dose * obs.tf
+    Bv = amp * obs.vf * vis
+    Hc, Hs = np.zeros_like(theta), np.zeros_like(theta)
     if hc or hs:
-        c2, s2 = double_angle(Fc, Fs)
-        Hc, Hs = dv * (hc * c2 - hs * s2), dv * (hc * s2 + hs * c2)
-    return Design(A=dose * obs.tf, Bc=dv * Fc, Bs=-dv * Fs, Hc=Hc, Hs=Hs, offset=background + obs.dark, Fc=Fc, Fs=Fs,
-                  dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
-
-
-def double_angle(fc: np.ndarray, fs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """m (cos 2θ, sin 2θ) of a fringe m (cos θ, sin θ): ((fc^2 - fs^2) / m, 2 fc fs / m), 0 where m = 0 (any shape)."""
-    m = np.hypot(fc, fs)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(m > 0, (fc * fc - fs * fs) / m, 0.0), np.where(m > 0, 2 * fc * fs / m, 0.0)
+        c2, s2 = np.cos(2 * theta), np.sin(2 * theta)
+        Hc, Hs = Bv * (hc * c2 - hs * s2), Bv * (hc * s2 + hs * c2)
+    return Design(A=amp * np.ones_like(theta), Bc=Bv * np.cos(theta), Bs=-Bv * np.sin(theta), Hc=Hc, Hs=Hs,
+                  offset=background + obs.dark, theta=theta, dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
 
 
 def background_basis(obs: Observations) -> list[np.ndarray]:
@@ -444,12 +425,10 @@ def read_between_correction(obs: Observations, dsg: Design, coef: np.ndarray, we
     -------
     ndarray, shape (P, P)
     """
-    rd = obs.reading
-    assert rd is not None
     at = obs.gather(coef)
     X = [dsg.A, *image_columns(dsg, at[..., 1], at[..., 2])]
     R, K = obs.rows.size, obs.frame.size
-    hi = np.minimum(rd.lo + 1, R - 1)
+    lo, hi, frac = obs.read_rows()
     owners = [np.unique(wq, return_inverse=True) for wq in where]
     corr = np.zeros((n_params, n_params))
     for start in range(0, obs.columns.size, columns):
@@ -463,7 +442,7 @@ def read_between_correction(obs: Observations, dsg: Design, coef: np.ndarray, we
             # sums over the samples of each (image row, parameter) pair, with what each sample reads of the row
             spread = sum(sparse.csr_matrix((share, (rows * params.size + owner, np.arange(K))),
                                            shape=(R * params.size, K))
-                         for rows, share in ((rd.lo, 1.0 - rd.frac), (hi, rd.frac)))
+                         for rows, share in ((lo, 1.0 - frac), (hi, frac)))
             for a, Xa in enumerate(Xs):
                 Y[:, :, a, params] += np.moveaxis((spread @ (w * Xa * Fq[:, cols])).reshape(R, params.size, cols.size),
                                                   1, 2)
@@ -498,9 +477,10 @@ def solve_images(obs: Observations, dsg: Design, weights: np.ndarray, *, phase: 
     steps = 1 + (kernels.HARMONIC_STEPS if any(dsg.harmonic) else 0)
     coef = np.zeros((obs.rows.size, obs.columns.size, 3))
     coupling = None
-    for _ in range(steps):
-        at = obs.gather(coef)
-        Xc, Xs = image_columns(dsg, at[..., 1], at[..., 2])
+    for step in range(steps):
+        # the first solve leaves the harmonic out: its columns need no images
+        at = obs.gather(coef) if step else coef[:0]
+        Xc, Xs = image_columns(dsg, at[..., 1], at[..., 2]) if step else (dsg.Bc, dsg.Bs)
         if phase is None and obs.reading is not None:
             coef, valid, inv, coupling = solve_read_between(obs, [dsg.A, Xc, Xs], target, weights,
                                                             keep_inverse=keep_inverse)
@@ -514,18 +494,19 @@ def solve_images(obs: Observations, dsg: Design, weights: np.ndarray, *, phase: 
     return Images(coef, valid, inv, coupling)
 
 
-def harmonic_term(obs: Observations, dsg: Design, images: Images) -> np.ndarray:
-    """The second harmonic's share of the expected counts, Hc e - Hs f, shape (K, C)."""
-    c = obs.gather(images.coef)
+def harmonic_term(obs: Observations, dsg: Design, images: Images, *, at: np.ndarray | None = None) -> np.ndarray:
+    """The second harmonic's share of the expected counts, Hc e - Hs f, shape (K, C) (``at``: the images at every
+    sample, where the caller has them)."""
+    c = obs.gather(images.coef) if at is None else at
     _, _, e, f = harmonic_factors(c[..., 1], c[..., 2])
     return dsg.Hc * e - dsg.Hs * f
 
 
-def expected(obs: Observations, dsg: Design, images: Images) -> np.ndarray:
-    """Expected counts Ibar, shape (K, C)."""
-    c = obs.gather(images.coef)
+def expected(obs: Observations, dsg: Design, images: Images, *, at: np.ndarray | None = None) -> np.ndarray:
+    """Expected counts Ibar, shape (K, C) (``at``: the images at every sample, where the caller has them)."""
+    c = obs.gather(images.coef) if at is None else at
     linear = c[..., 0] * dsg.A + c[..., 1] * dsg.Bc + c[..., 2] * dsg.Bs + dsg.offset
-    return linear + harmonic_term(obs, dsg, images) if any(dsg.harmonic) else linear
+    return linear + harmonic_term(obs, dsg, images, at=c) if any(dsg.harmonic) else linear
 
 
 def expected_by_columns(obs: Observations, params: dict, images: Images, *, samples: float = 1e6
@@ -576,38 +557,41 @@ def sample_derivatives(obs: Observations, dsg: Design, images: Images, name: str
     return fields
 
 
-def channel_fields(obs: Observations, dsg: Design, images: Images, cid: int) -> list[np.ndarray]:
+def channel_fields(obs: Observations, dsg: Design, images: Images, cid: int, *, at: np.ndarray | None = None
+                   ) -> list[np.ndarray]:
     """dIbar/d(channel value) at every sample, each (K, C): [dIbar/dΦ], [dIbar/dV], [dIbar/dD], the three
     background basis fields, or the two of the harmonic (hc, hs); the channel ``cid`` of
-    :data:`dfxcorr.kernels.CHANNEL_IDS`. :func:`sample_derivatives` multiplies them by the powers of x."""
-    c = obs.gather(images.coef)
+    :data:`dfxcorr.kernels.CHANNEL_IDS`. :func:`sample_derivatives` multiplies them by the powers of x. ``at``: the
+    images at every sample (``obs.gather(images.coef)``), where the caller has them."""
+    c = obs.gather(images.coef) if at is None else at
     t, cc, ss = c[..., 0], c[..., 1], c[..., 2]
     hc, hs = dsg.harmonic
-    dv = dsg.dose * dsg.vis
-    # the sample's m (cos 2 psi, sin 2 psi) times tf vf (G, Kk), and the harmonic's a2 of them (p2, q2)
+    amp = dsg.dose * obs.tf
+    bv = amp * obs.vf * dsg.vis
+    # m cos(2 psi), m sin(2 psi) of the sample (psi = θ + phi), and the harmonic's a2 m cos, a2 m sin (2 psi + beta)
     ef: np.ndarray | float
     ff: np.ndarray | float
-    G: np.ndarray | float
-    Kk: np.ndarray | float
+    g: np.ndarray | float
+    k: np.ndarray | float
     p2: np.ndarray | float
     q2: np.ndarray | float
-    ef = ff = G = Kk = p2 = q2 = 0.0
+    ef = ff = g = k = p2 = q2 = 0.0
     # the harmonic's own derivatives need its factors even where it is absent (hc = hs = 0: a score test)
     if hc or hs or cid == kernels.HARMONIC:
         _, _, ef, ff = harmonic_factors(cc, ss)
-        c2, s2 = double_angle(dsg.Fc, dsg.Fs)
-        G, Kk = c2 * ef - s2 * ff, s2 * ef + c2 * ff
-        p2, q2 = hc * G - hs * Kk, hc * Kk + hs * G
-    q = cc * dsg.Fc - ss * dsg.Fs
+        c2, s2 = np.cos(2 * dsg.theta), np.sin(2 * dsg.theta)
+        g, k = c2 * ef - s2 * ff, s2 * ef + c2 * ff
+        p2, q2 = hc * g - hs * k, hc * k + hs * g
+    q = cc * np.cos(dsg.theta) - ss * np.sin(dsg.theta)
     if cid == kernels.PHASE:
-        return [cc * dsg.Bs - ss * dsg.Bc - 2 * dv * q2]
+        return [cc * dsg.Bs - ss * dsg.Bc - 2 * bv * q2]
     if cid == kernels.VISIBILITY:
-        return [dsg.dose * (q + p2)]
+        return [amp * obs.vf * (q + p2)]
     if cid == kernels.DOSE:
         return [(t * dsg.A + cc * dsg.Bc + ss * dsg.Bs + (dsg.Hc * ef - dsg.Hs * ff)) / dsg.dose]
     if cid == kernels.BACKGROUND:
         return background_basis(obs)
-    return [dv * G, -dv * Kk]
+    return [bv * g, -bv * k]
 
 
 def reduce_component(obs: Observations, name: str, F: np.ndarray) -> np.ndarray:
@@ -648,9 +632,8 @@ def leverage(obs: Observations, dsg: Design, images: Images, weights: np.ndarray
     if images.coupling is None:
         raise ValueError("leverage of samples read between rows needs the inverse's coupling blocks")
     # the sample's design on both rows it reads: (1 - f) x on row lo, f x on row lo + 1
-    lo, f = obs.reading.lo, obs.reading.frac[:, None, None]
-    hi = np.minimum(lo + 1, images.inverse.shape[0] - 1)
-    a, b = (1.0 - f) * X, f * X
+    lo, hi, f = obs.read_rows()
+    a, b = (1.0 - f[:, None, None]) * X, f[:, None, None] * X
     return weights * (np.einsum("kca,kcab,kcb->kc", a, images.inverse[lo], a)
                       + 2 * np.einsum("kca,kcab,kcb->kc", a, images.coupling[lo], b)
                       + np.einsum("kca,kcab,kcb->kc", b, images.inverse[hi], b))
@@ -684,6 +667,14 @@ def frame_leverage(obs: Observations, dsg: Design, images: Images, weights: np.n
 
 def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, names: Sequence[str],
                   *, profiled: bool = True) -> tuple[np.ndarray, list[tuple[str, int, int]]]:
+    """Fisher information of all effect parameters, with the images profiled out: :func:`fisher_parts`'s plain
+    information less its correction, and the meaning of each axis entry."""
+    plain, corr, index = fisher_parts(obs, dsg, images, weights, names, profiled=profiled)
+    return plain - corr, index
+
+
+def fisher_parts(obs: Observations, dsg: Design, images: Images, weights: np.ndarray, names: Sequence[str],
+                 *, profiled: bool = True) -> tuple[np.ndarray, np.ndarray, list[tuple[str, int, int]]]:
     """Fisher information of all effect parameters, with the images profiled out.
 
     The images are estimated from the same data, so the information of the effect parameters is
@@ -707,8 +698,10 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
 
     Returns
     -------
-    info : ndarray, shape (P, P)
-        For the log-likelihood -sum w r^2 / 2.
+    plain : ndarray, shape (P, P)
+        The information at known images, for the log-likelihood -sum w r^2 / 2.
+    correction : ndarray, shape (P, P)
+        The share the profiled images take (zero without ``profiled``): the information is plain - correction.
     index : list of (name, frame, component)
         Meaning of each axis entry; frame is -1 for global effects.
     """
@@ -734,12 +727,12 @@ def fisher_matrix(obs: Observations, dsg: Design, images: Images, weights: np.nd
     info[J * Pf:, J * Pf:] += np.einsum("kca,kcb->ab", wFg, Fg)
     info[J * Pf:, :J * Pf] = info[:J * Pf, J * Pf:].T
     if not profiled:
-        return info, index
+        return info, np.zeros_like(info), index
     # the correction sum_i Y_i^T N_i^-1 Y_i (Y = X^T W D per pixel) couples the frames of each row
     if obs.reading is not None:
         where = ([obs.frame * Pf + q for q in range(Pf)] + [np.full(obs.frame.size, J * Pf + g) for g in range(Pg)])
         F = [F for *_, F in per_frame] + [F for *_, F in glob]
-        return info - read_between_correction(obs, dsg, images.coef, weights, F, where, J * Pf + Pg), index
+        return info, read_between_correction(obs, dsg, images.coef, weights, F, where, J * Pf + Pg), index
     kernels.set_threads()
     _, corr = kernels.fisher(obs, dsg.channels, weights, images.coef, images.inverse, component_table(names)[:3])
-    return info - corr, index
+    return info, corr, index

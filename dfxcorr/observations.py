@@ -10,6 +10,7 @@ sharing the arrays that stay the same.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -55,10 +56,15 @@ class Reading:
         Position in :attr:`Observations.rows` of the image row below the read position.
     frac : ndarray, shape (K,)
         Fraction of the way to the next held row, in [0, 1); 0 at the last held row.
+    kappa : float
+        The parallax that places the reads (``beam_path``): the images are those each pixel sees with the active
+        area centred on it (:func:`dfxcorr.align.to_detector_rows` gives them as the detector-centred frame sees
+        them).
     """
 
     lo: np.ndarray
     frac: np.ndarray
+    kappa: float = 0.0
 
 
 def displaced_reading(row: np.ndarray, rows: np.ndarray, shift: np.ndarray) -> tuple[Reading, np.ndarray]:
@@ -101,14 +107,10 @@ class Observations:
     ----------
     counts : ndarray, shape (K, C)
         Measured counts (detector units).
-    tf : ndarray, shape (K, C)
-        Flat-field transmission at each sample, aligned to the frame's position (counts).
-    fc, fs : ndarray, shape (K, C)
-        The flat field's fringe at each sample, t^f v^f (cos phi^f, sin phi^f) with the nominal phase step in
-        phi^f (counts; :func:`dfxcorr.align.fringe_rows`): the model turns them by its phase channel with products
-        alone (no trigonometric call per sample). Zero where the flat field carries no fringe
-        (outside the region of interest): there the model has no modulation. :attr:`vf` and :attr:`phif` are
-        its visibility and phase.
+    tf, vf, phif : ndarray, shape (K, C)
+        Flat-field transmission (counts), visibility and phase (rad, the nominal phase step included)
+        at each sample, aligned to the frame's position. v^f is 0 where the flat field carries no fringe
+        (outside the region of interest): there the model has no modulation.
     dark : ndarray, shape (K, C)
         The additive term of each sample, unmodulated by the gratings (counts): the detector's dark signal,
         plus any known unmodulated photons the preparation put there (``offset``); the model adds it to the
@@ -141,8 +143,8 @@ class Observations:
 
     counts: np.ndarray
     tf: np.ndarray
-    fc: np.ndarray
-    fs: np.ndarray
+    vf: np.ndarray
+    phif: np.ndarray
     dark: np.ndarray
     use: np.ndarray
     row: np.ndarray
@@ -182,43 +184,43 @@ class Observations:
     def n_frames(self) -> int:
         return self.shape[0]
 
-    @property
-    def vf(self) -> np.ndarray:
-        """Flat-field visibility v^f at each sample, |fc + i fs| / tf, shape (K, C) (0 where tf is 0)."""
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(self.tf != 0, np.hypot(self.fc, self.fs) / self.tf, 0.0).astype(self.tf.dtype, copy=False)
-
-    @property
-    def phif(self) -> np.ndarray:
-        """Flat-field fringe phase phi^f at each sample, the nominal phase step included (rad), shape (K, C)."""
-        return np.arctan2(self.fs, self.fc)
-
-    def fringe_within(self, keep: np.ndarray) -> Observations:
-        """The same samples with the flat field's fringe set to zero where ``keep`` (K, C) is False (no modulation
-        there: such samples yield no images, but still monitor dose and background)."""
-        return replace(self, fc=np.where(keep, self.fc, 0).astype(self.fc.dtype, copy=False),
-                       fs=np.where(keep, self.fs, 0).astype(self.fs.dtype, copy=False))
+    @functools.cached_property
+    def fringe(self) -> tuple[np.ndarray, np.ndarray]:
+        """The flat field's fringe at each sample as its quadratures, t^f v^f (cos phi^f, sin phi^f) (counts), each
+        (K, C) in the samples' dtype: the compiled loops turn it by the phase channel with products alone, so no
+        sample needs a trigonometric call there. Made once per observations (the fit evaluates them many times)."""
+        amp = self.tf * self.vf
+        return ((amp * np.cos(self.phif)).astype(self.tf.dtype, copy=False),
+                (amp * np.sin(self.phif)).astype(self.tf.dtype, copy=False))
 
     @property
     def in_roi(self) -> np.ndarray:
         """The region of interest as an array, shape (K, C)."""
         return np.ones(self.counts.shape, bool) if self.roi is None else self.roi
 
+    def read_rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The two image rows each block reads (positions in :attr:`rows`, each (K,)) and the fraction of the way to
+        the second: its own row twice and 0 without a :attr:`reading`."""
+        if self.reading is None:
+            return self.pixel, self.pixel, np.zeros(self.pixel.size)
+        lo = self.reading.lo
+        return lo, np.minimum(lo + 1, self.rows.size - 1), self.reading.frac
+
     def gather(self, a: np.ndarray, blocks: np.ndarray | slice = slice(None)) -> np.ndarray:
         """Per-pixel values (R, C, ...) at every sample (K, C, ...), or at those of some ``blocks``: the pixel's own, or
         where :attr:`reading` says."""
         if self.reading is None:
             return a[self.pixel[blocks]]
-        lo, f = self.reading.lo[blocks], self.reading.frac[blocks]
+        lo, hi, f = (v[blocks] for v in self.read_rows())
         f = f.reshape(f.shape + (1,) * (a.ndim - 1))
-        return (1.0 - f) * a[lo] + f * a[np.minimum(lo + 1, a.shape[0] - 1)]
+        return (1.0 - f) * a[lo] + f * a[hi]
 
     def gather_valid(self, valid: np.ndarray) -> np.ndarray:
         """Per-pixel flags (R, C) at every sample (K, C): true where every image row the sample reads is flagged."""
         if self.reading is None:
             return valid[self.pixel]
-        lo, f = self.reading.lo, self.reading.frac
-        return valid[lo] & (valid[np.minimum(lo + 1, valid.shape[0] - 1)] | (f == 0)[:, None])
+        lo, hi, f = self.read_rows()
+        return valid[lo] & (valid[hi] | (f == 0)[:, None])
 
     def segment_sum(self, a: np.ndarray, dtype: DTypeLike | None = None) -> np.ndarray:
         """Sum over the blocks of each row: (K, ...) -> (R, ...), R = number of rows held (in ``dtype``, e.g. to count
@@ -261,7 +263,7 @@ class Observations:
         def cut(a: np.ndarray) -> np.ndarray:
             return a[:, idx[0]:idx[0] + idx.size] if run else np.ascontiguousarray(a[:, idx])
 
-        return Observations(cut(self.counts), cut(self.tf), cut(self.fc), cut(self.fs), cut(self.dark), cut(self.use),
+        return Observations(cut(self.counts), cut(self.tf), cut(self.vf), cut(self.phif), cut(self.dark), cut(self.use),
                             self.row, self.frame, self.columns[idx], self.shape, self.gain, self.electronic,
                             None if self.noise is None else cut(self.noise),
                             None if self.roi is None else cut(self.roi),

@@ -24,7 +24,7 @@ import numpy as np
 
 from . import __version__
 from . import config as C
-from .align import tilt_alias_period, to_detector_rows
+from .align import tilt_alias_period
 from .catalogue import effect
 from .effects import REGISTRY
 from .estimators import ESTIMATORS
@@ -37,7 +37,7 @@ from .planning import ColumnPlan, pilot_estimate, plan_columns, resolve_effects,
 from .preparation import Prepared, prepare
 from .progress import Progress, stage
 from .result import Result, chi2_limits, paper_params
-from .retrieve import image_values, per_dof, retrieve
+from .retrieve import detector_rows, image_values, per_dof, retrieve
 
 log = logging.getLogger(__name__)
 
@@ -160,16 +160,6 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
                  "of the images", left_out, prep.min_visibility)
     return [(m, per_dof(c, int(n), int(px), k, 3), max(int(n) - 3 * int(px) - k, 0))
             for m, (c, n, px), k in zip(maps, sums, n_params, strict=True)]
-
-
-def detector_rows(maps: dict[str, np.ndarray], kappa: float) -> dict[str, np.ndarray]:
-    """Images each pixel sees with the active area centred on it, as a frame centred on the detector sees them
-    (:func:`dfxcorr.align.to_detector_rows`): t, v, phi maps (H, W) in, the same out."""
-    t, v, phi = maps["transmission"], maps["dark_field"], maps["differential_phase"]
-    tcs = to_detector_rows(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], axis=-1), kappa)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return {"transmission": tcs[..., 0], "dark_field": np.hypot(tcs[..., 1], tcs[..., 2]) / tcs[..., 0],
-                "differential_phase": np.arctan2(tcs[..., 2], tcs[..., 1])}
 
 
 def retrieval_parts(prep: Prepared, blocks: list[tuple[int, int]]) -> Iterator[Observations]:

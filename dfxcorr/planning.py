@@ -162,6 +162,10 @@ COARSE_MIN_COLUMNS = 16
 #: adds :data:`FIT_SECONDS_PER_SAMPLE` per sample of the coarse pass): 0.53 us on the paper study at every column
 #: with both cores free (fit 5.7 s, its coarse pass on every 7th column about 2 s).
 POLISH_SECONDS_PER_SAMPLE = 0.5e-6
+#: How much slower the fit runs where the samples read between rows (``geometry.parallax``: the model's numpy
+#: arrays and the block-tridiagonal solve instead of the compiled kernels): 32.9 s against 3.4 s on the 5 mm
+#: parallax scan, both under load 8.
+READ_BETWEEN_SLOWDOWN = 10.0
 
 
 @dataclass(frozen=True)
@@ -210,12 +214,19 @@ def coarse_step(cfg: dict, n_columns: int, samples_per_column: int, *, step: int
     return max(1, min(int(c), max(width // 4, 1) // max(step, 1)))
 
 
-def fit_seconds(n_columns: int, samples_per_column: int, coarse: int) -> float:
-    """Predicted wall time (s) of a fit of ``n_columns`` columns whose stages run on every ``coarse``-th first."""
+def fit_seconds(n_columns: int, samples_per_column: int, coarse: int, *, slowdown: float = 1.0) -> float:
+    """Predicted wall time (s) of a fit of ``n_columns`` columns whose stages run on every ``coarse``-th first,
+    ``slowdown`` times that of the compiled kernels (:func:`slowdown`)."""
     if coarse <= 1:
-        return FIT_SECONDS_PER_SAMPLE * n_columns * samples_per_column
-    return ((FIT_SECONDS_PER_SAMPLE * -(-n_columns // coarse) + POLISH_SECONDS_PER_SAMPLE * n_columns)
+        return slowdown * FIT_SECONDS_PER_SAMPLE * n_columns * samples_per_column
+    return (slowdown * (FIT_SECONDS_PER_SAMPLE * -(-n_columns // coarse) + POLISH_SECONDS_PER_SAMPLE * n_columns)
             * samples_per_column)
+
+
+def slowdown(cfg: dict) -> float:
+    """How much slower than the compiled kernels the configured fit runs: :data:`READ_BETWEEN_SLOWDOWN` where the
+    samples read between rows (``geometry.parallax``), else 1."""
+    return READ_BETWEEN_SLOWDOWN if cfg["geometry"]["parallax"] else 1.0
 
 
 def within_seconds(cfg: dict, width: int, samples_per_column: int, seconds: float) -> int:
@@ -223,7 +234,7 @@ def within_seconds(cfg: dict, width: int, samples_per_column: int, seconds: floa
     for n in range(1, max(width // 4, 1) + 1):
         cols = subsample_columns(width, n, offset=cfg["fit"]["column_offset"]).size
         coarse = coarse_step(cfg, cols, samples_per_column, step=n, width=width)
-        if fit_seconds(cols, samples_per_column, coarse) <= seconds:
+        if fit_seconds(cols, samples_per_column, coarse, slowdown=slowdown(cfg)) <= seconds:
             return n
     return max(width // 4, 1)
 
@@ -297,7 +308,8 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
     cols = fit_columns(W, cfg, n)
     coarse = coarse_step(cfg, cols.size, per_column, step=n, width=W)
     out = ColumnPlan(columns=cols, why=why, uncertainty=sigma * np.sqrt(size / cols.size),
-                     seconds=fit_seconds(cols.size, per_column, coarse), pilot=pilot, coarse=coarse)
+                     seconds=fit_seconds(cols.size, per_column, coarse, slowdown=slowdown(cfg)), pilot=pilot,
+                     coarse=coarse)
     if report:
         log.info("vibration fit columns: %s", out.summary())
     return out

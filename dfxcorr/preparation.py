@@ -20,7 +20,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from . import config as C
-from .align import FringeMaps, LitStore, collect_lit_rows, fringe_maps, pixel_mm
+from .align import LitStore, collect_lit_rows, pixel_mm
 from .faults import find_faults, saturation_level
 from .io import Reference, Scan, read_scan
 from .observations import Noise, Observations
@@ -108,9 +108,9 @@ class Prepared:
         return self.scan.shape
 
     @functools.cached_property
-    def _fringe_maps(self) -> FringeMaps:
-        """The reference's maps as the alignment reads them, made once (not again for every block of rows)."""
-        return fringe_maps(self.reference)
+    def _unwrapped_reference(self) -> Reference:
+        """The reference with its phase unwrapped along the scan, once (not again for every block of rows)."""
+        return replace(self.reference, phase=np.unwrap(self.reference.phase, axis=0))
 
     def corrected(self, corrections: Iterable[tuple[Correction, Any]], *, report: bool = False) -> Prepared:
         """This preparation with the corrections applied in order (the one fold of every caller).
@@ -134,11 +134,11 @@ class Prepared:
         no images, but in the fit they still monitor dose and background. ``use`` is False for the detector
         faults only (saturated samples, bad frames: :mod:`dfxcorr.faults`).
         """
-        obs = self.store.observations(self.reference, columns=columns, rows=rows, gain=self.noise.gain,
+        obs = self.store.observations(self._unwrapped_reference, columns=columns, rows=rows, gain=self.noise.gain,
                                       electronic=self.noise.electronic, noise=self.noise.factors, dtype=dtype,
-                                      maps=self._fringe_maps)
+                                      phase_unwrapped=True)
         roi = obs.vf >= self.min_visibility
-        return replace(obs.fringe_within(roi), roi=roi)
+        return replace(obs, vf=np.where(roi, obs.vf, 0).astype(obs.vf.dtype, copy=False), roi=roi)
 
 
 def prepare(scan: Scan | str | Path, cfg: dict[str, Any], *, effects: Iterable[Correction],

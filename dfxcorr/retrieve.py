@@ -13,6 +13,7 @@ import numpy as np
 from . import engine as E
 from . import kernels as K
 from . import model as M
+from .align import to_detector_rows
 from .noise import pearson
 from .observations import Observations
 
@@ -115,5 +116,18 @@ def image_values(images: M.Images) -> dict[str, np.ndarray]:
 
 
 def image_maps(obs: Observations, images: M.Images) -> dict[str, np.ndarray]:
-    """Detector images t, v, phi (H, W), NaN where a pixel was not lit or not solvable."""
-    return {k: obs.to_image(v) for k, v in image_values(images).items()}
+    """Detector images t, v, phi (H, W), NaN where a pixel was not lit or not solvable; where the samples read the
+    images between rows (``beam_path``), as the detector-centred frame sees them (:func:`detector_rows`)."""
+    maps = {k: obs.to_image(v) for k, v in image_values(images).items()}
+    return detector_rows(maps, obs.reading.kappa) if obs.reading is not None and obs.reading.kappa else maps
+
+
+def detector_rows(maps: dict[str, np.ndarray], kappa: float) -> dict[str, np.ndarray]:
+    """Images each pixel sees with the active area centred on it, as a frame centred on the detector sees them
+    (:func:`dfxcorr.align.to_detector_rows`): t, v, phi maps (H, W) in, the same out."""
+    t, v, phi = maps["transmission"], maps["dark_field"], maps["differential_phase"]
+    tcs = to_detector_rows(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], axis=-1), kappa)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return {"transmission": tcs[..., 0], "dark_field": np.hypot(tcs[..., 1], tcs[..., 2]) / tcs[..., 0],
+                "differential_phase": np.arctan2(tcs[..., 2], tcs[..., 1])}
+

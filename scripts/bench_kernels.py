@@ -8,8 +8,9 @@ synthetic samples), both in float32 as a reconstruction holds them:
   one retrieval pass as the pipeline's blocked retrieval runs it (two solves, the second with the model's
   weights, and the Pearson chi-square; no expected counts written), wall time and process CPU time
   (the CPU time is what counts on cores shared with other work),
-- the floor of each pass: the bytes it must stream / the np.copyto bandwidth measured here (the samples'
-  flat field is their transmission and complex fringe: no pass evaluates a trigonometric function per sample),
+- the floor of each pass: the bytes it must stream / the np.copyto bandwidth measured here (the passes read the
+  samples' fringe as its quadratures, Observations.fringe: no pass evaluates a trigonometric function per sample),
+- the cost of making those quadratures once per observations (numpy's cos and sin in the samples' dtype),
 then the wall time of the whole vibration fit stage of ``reconstruct`` on the paper study with
 ``fit.subsample=1`` and the default (auto), and the first-call compile cost of the kernels (fresh
 numba cache, in a subprocess) against a cached start. Writes docs/bench-kernels.json.
@@ -26,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numba
@@ -85,8 +87,7 @@ def clinical_observations(rng, *, frames: int = 195, height: int = 2880, width: 
     phif = 2 * np.pi * 2.0 * (row[:, None] / active + columns[None, :] / width) + frame[:, None] * 0.3
     counts = rng.poisson(tf * (1 + 0.8 * vf * np.cos(phif)))
     f32 = np.float32
-    return Observations(counts.astype(f32), tf.astype(f32), (tf * vf * np.cos(phif)).astype(f32),
-                        (tf * vf * np.sin(phif)).astype(f32),
+    return Observations(counts.astype(f32), tf.astype(f32), vf.astype(f32), phif.astype(f32),
                         np.zeros((Kb, Cc), f32), np.ones((Kb, Cc), bool), row, frame, columns,
                         (frames, height, width))
 
@@ -111,12 +112,14 @@ def pass_numbers(obs: Observations, bandwidth: float, *, repeat: int) -> dict:
     def retrieval():
         return K.retrieve(obs, ch, iterations=2, keep_expected=False)
 
+    fringe, fringe_cpu = _timed(lambda: replace(obs).fringe, repeat)
     retrieval()
     cost, cost_cpu = _timed(lambda: K.reduced_cost(obs, ch, weights, channels=("phase", "visibility")), repeat)
     ret, ret_cpu = _timed(retrieval, repeat)
     # bytes each pass must stream once: the samples it reads (the blocked retrieval writes none)
-    read_cost = sum(a.itemsize for a in (obs.counts, obs.tf, obs.fc, obs.fs, obs.dark, weights))
-    read_ret = sum(a.itemsize for a in (obs.counts, obs.tf, obs.fc, obs.fs, obs.dark, obs.use))
+    fc, fs = obs.fringe
+    read_cost = sum(a.itemsize for a in (obs.counts, obs.tf, fc, fs, obs.dark, weights))
+    read_ret = sum(a.itemsize for a in (obs.counts, obs.tf, fc, fs, obs.dark, obs.use))
     return {"samples": int(n), "blocks": int(obs.frame.size), "columns": int(obs.columns.size),
             "frames": int(obs.n_frames), "rows": int(obs.rows.size),
             "cost_gradient": {"ns_per_sample": round(cost / n * 1e9, 2), "seconds": round(cost, 4),
@@ -126,7 +129,9 @@ def pass_numbers(obs: Observations, bandwidth: float, *, repeat: int) -> dict:
             "retrieval": {"ns_per_sample": round(ret / n * 1e9, 2), "seconds": round(ret, 4),
                           "cpu_ns_per_sample": round(ret_cpu / n * 1e9, 2),
                           "bytes_per_sample": read_ret,
-                          "floor_ns_per_sample": round(read_ret / bandwidth * 1e9, 2)}}
+                          "floor_ns_per_sample": round(read_ret / bandwidth * 1e9, 2)},
+            "fringe": {"ns_per_sample": round(fringe / n * 1e9, 2),
+                       "cpu_ns_per_sample": round(fringe_cpu / n * 1e9, 2)}}
 
 
 def fit_times(scan) -> dict:
@@ -153,7 +158,7 @@ rng = np.random.default_rng(0)
 row = np.repeat(np.arange(8), 4); frame = np.tile(np.arange(4), 8); shape = (8, 4, 6)
 a = lambda lo, hi: rng.uniform(lo, hi, (32, 6))
 f = lambda v: np.asarray(v, np.float32)  # a reconstruction's observations are float32
-obs = Observations(f(a(500, 900)), f(a(900, 1100)), f(a(-300, 300)), f(a(-300, 300)), f(np.zeros((32, 6))),
+obs = Observations(f(a(500, 900)), f(a(900, 1100)), f(a(0.2, 0.4)), f(a(-3, 3)), f(np.zeros((32, 6))),
                    np.ones((32, 6), bool), row, frame, np.arange(6), (4, 8, 6))
 K.set_threads()
 ch = M.channels({}, x=obs.x, n_frames=4)

@@ -1,13 +1,12 @@
 #!/usr/bin/env python3
 """How the fringe's interpolation between reference rows departs from the unwrapped phase's, on the project's scans.
 
-The alignment (dfxcorr.align.fringe_rows) interpolates t^f, v^f and the phase linearly, the phase's unit phasor by a
-series; the fringe of every sample is then held as its quadratures, so that the model needs no trigonometric call
-per sample. For the flat field and scan geometry of the paper study and the clinical scanner (binned and full
-resolution), on every lit (row, frame) pair of every ``--every``-th column, this prints and writes
-(docs/fringe-interpolation.json) the departure from the linear interpolation of the unwrapped phase
-(``spec/scan-format.md`` allows both):
-- of what dfxcorr does (the series): phase difference (rad), max and RMS;
+The alignment (dfxcorr.align.LitStore.observations) interpolates t^f, v^f and the unwrapped phase linearly; the
+compiled loops read each sample's fringe as its quadratures, made once (dfxcorr.observations.Observations.fringe),
+so that they need no trigonometric call per sample. For the flat field and scan geometry of the paper study and
+the clinical scanner (binned and full resolution), on every lit (row, frame) pair of every ``--every``-th column,
+this prints and writes (docs/fringe-interpolation.json) the departure from the linear interpolation of the
+unwrapped phase (``spec/scan-format.md`` allows both):
 - of the unit phasor interpolated linearly and renormalised: phase difference, max and RMS;
 - of the complex fringe t^f v^f exp(i phi^f) interpolated linearly (what a pixel straddling two reference rows
   integrates): phase difference, and the fringe amplitude's relative difference (second order in the phase step
@@ -26,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from dfxcorr import config as C
-from dfxcorr.align import fringe_maps, fringe_rows, interpolate_rows, lit_blocks
+from dfxcorr.align import interpolate_rows, lit_blocks
 from dfxcorr.sim import simulate as S
 from dfxcorr.sim.flat import flat_field
 
@@ -46,7 +45,6 @@ def departures(config: Path, every: int) -> dict:
     tf = interpolate_rows(ref.transmission, u, columns=cols)
     vf = interpolate_rows(ref.visibility, u, columns=cols)
     linear = tf * vf * np.exp(1j * interpolate_rows(np.unwrap(ref.phase, axis=0), u, columns=cols))
-    _, fc, fs = fringe_rows(fringe_maps(ref), u, columns=cols)
     unit = np.exp(1j * ref.phase)
     phasor = interpolate_rows(unit.real, u, columns=cols) + 1j * interpolate_rows(unit.imag, u, columns=cols)
     z = ref.transmission * ref.visibility * np.exp(1j * ref.phase)
@@ -66,7 +64,6 @@ def departures(config: Path, every: int) -> dict:
     return {"shape": [int(g["position"].size), int(H), int(W)], "active_rows": int(A), "columns": int(cols.size),
             "samples": int(u.size * cols.size), "phase_step_per_row_max_rad": float(step.max()),
             "phase_step_per_row_rms_rad": float(np.sqrt(np.mean(step ** 2))),
-            "dfxcorr": summary(fc + 1j * fs, amplitude=False),
             "renormalised_phasor": summary(tf * vf * phasor / np.abs(phasor), amplitude=False),
             "complex_fringe": summary(complex_, amplitude=True)}
 

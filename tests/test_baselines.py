@@ -67,7 +67,7 @@ def test_alternating_updates_global_effects_as_one_block(small_scan):
     np.testing.assert_allclose(alt.params["harmonic"], truth["harmonic"], atol=4 * ml.uncertainty["harmonic"].max())
 
 
-@pytest.mark.parametrize("curvature", [0.0, 0.2])
+@pytest.mark.parametrize("curvature", [0.0, pytest.param(0.2, marks=pytest.mark.slow)])
 def test_correlation_is_exact_for_constant_attenuation_without_noise(small_scan, curvature):
     scan, truth = small_scan(**{"simulate.phantom": "slab", "simulate.noise": False, "simulate.dtype": "float64",
                                 "effects.curvature": curvature})
@@ -84,6 +84,7 @@ def test_correlation_is_exact_for_constant_attenuation_without_noise(small_scan,
         assert np.all(res.uncertainty[name][good] < 1e-4)
 
 
+@pytest.mark.slow
 def test_correlation_fails_on_the_thorax_where_ml_does_not(small_scan):
     # paper Sec. III-D.2: no visibility loss simulated, no quadratic term fitted
     scan, truth = small_scan(**{"effects.visibility_loss": 0.0})

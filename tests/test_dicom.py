@@ -250,6 +250,7 @@ def test_an_existing_output_is_refused_before_any_computation(sim_scan, tmp_path
     assert res.exit_code == 2 and one_error_line(res.stderr, "--dicom-sidecar", "--dicom")
 
 
+@pytest.mark.slow
 def test_reconstruct_round_trips_the_three_images(sim_scan, tmp_path):
     side = tmp_path / "patient.json"
     side.write_text('{"PatientName": "Doe^John", "PatientID": "P7"}')
@@ -271,6 +272,7 @@ def test_reconstruct_round_trips_the_three_images(sim_scan, tmp_path):
     assert uid_set(D.dicom_paths(tmp_path / "again", "r")) == uid_set(D.dicom_paths(tmp_path / "dcm", "r"))
 
 
+@pytest.mark.slow
 def test_the_package_imports_without_pydicom():
     code = "import sys; sys.modules['pydicom'] = None; import dfxcorr.cli, dfxcorr.dicom"
     assert subprocess.run([sys.executable, "-c", code], capture_output=True).returncode == 0

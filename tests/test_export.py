@@ -318,7 +318,7 @@ def _assert_png(path):
     assert len(data) > 1000
 
 
-@pytest.mark.parametrize("uncorrected", [True, False])
+@pytest.mark.parametrize("uncorrected", [pytest.param(True, marks=pytest.mark.slow), False])
 def test_preview(tmp_path, uncorrected):
     result = make_result(uncorrected=uncorrected)
     if not uncorrected:
@@ -331,6 +331,7 @@ def test_preview(tmp_path, uncorrected):
         write_preview(path, result)
 
 
+@pytest.mark.slow
 def test_fit_plot(tmp_path):
     result = make_result(estimate_visibility=False)
     result.params["visibility_tilt"] = np.zeros((J, 2))
@@ -342,6 +343,7 @@ def test_fit_plot(tmp_path):
         write_fit_plot(path, result)
 
 
+@pytest.mark.slow
 def test_import_is_cheap():
     import subprocess
     import sys

@@ -51,6 +51,7 @@ def clipped(scan):
     return replace(scan, data=np.minimum(data, level).astype(data.dtype)), level
 
 
+@pytest.mark.slow
 def test_saturation_is_left_out_within_noise_of_the_twin(twin, caplog):
     scan, truth, cfg, base = twin
     sat, level = clipped(scan)
@@ -65,7 +66,7 @@ def test_saturation_is_left_out_within_noise_of_the_twin(twin, caplog):
     assert blind.reduced_chi2 > 3
 
 
-@pytest.mark.parametrize("kind", ["zeros", "dark", "read twice"])
+@pytest.mark.parametrize("kind", ["zeros", *(pytest.param(k, marks=pytest.mark.slow) for k in ("dark", "read twice"))])
 def test_a_bad_frame_is_left_out_within_noise_of_the_twin(twin, caplog, kind):
     scan, truth, cfg, base = twin
     data = np.array(scan.data)
@@ -79,6 +80,7 @@ def test_a_bad_frame_is_left_out_within_noise_of_the_twin(twin, caplog, kind):
     assert result.reduced_chi2 == pytest.approx(1.0, abs=0.03)
 
 
+@pytest.mark.slow
 def test_half_the_detector_saturated_leaves_the_other_half_fitted(twin):
     scan, truth, cfg, base = twin
     data = np.array(scan.data)
@@ -99,6 +101,7 @@ def test_the_dtype_maximum_is_saturation_by_default(rng):
     assert saturation_level(np.dtype(np.float32), None) is None
 
 
+@pytest.mark.slow
 def test_check_reports_the_faults(twin, tmp_path):
     scan, *_ = twin
     data = np.array(scan.data)
@@ -114,6 +117,7 @@ def test_check_reports_the_faults(twin, tmp_path):
     assert "saturated" not in clean.stdout.split("detector faults")[1].split("\n")[0].replace("no saturated", "")
 
 
+@pytest.mark.slow
 def test_diagnose_names_no_effect_for_saturation(twin):
     from dfxcorr.analysis.diagnose import diagnose
 
@@ -124,6 +128,7 @@ def test_diagnose_names_no_effect_for_saturation(twin):
     assert diag.final_chi2 == pytest.approx(1.0, abs=0.05)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["zeros", "read twice"])
 def test_diagnose_names_no_effect_for_a_bad_frame(twin, kind):
     from dfxcorr.analysis.diagnose import diagnose

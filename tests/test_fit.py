@@ -69,6 +69,7 @@ def test_edge_frames_stay_within_the_range_of_the_others(small_scan):
         assert np.abs(z[name][~good] - np.mean(z[name][good])).max() < 5.0, name
 
 
+@pytest.mark.slow
 def test_switching_off_visibility_keeps_it_neutral(small_scan):
     scan, _ = small_scan(**{"effects.visibility_loss": 0.0})
     result = pipeline.reconstruct(scan, C.load([], ["fit.subsample=3", "vibration.visibility=false"]))
@@ -154,6 +155,7 @@ def test_optimizers_and_preconditioners_reach_the_same_minimum(small_scan, monke
     assert lbfgs.iterations < diagonal.iterations
 
 
+@pytest.mark.slow
 def test_a_bound_the_whitened_fit_crosses_is_kept(small_scan, monkeypatch, caplog):
     """Whitened variables have no box bounds: a stage ending below a lower bound is finished under the
     diagonal scaling, which keeps it."""
@@ -196,6 +198,7 @@ def test_whitening_factor_is_the_profiled_fisher_information(rng):
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-9 * np.abs(expected).max())
 
 
+@pytest.mark.slow
 def test_a_coarse_first_pass_reaches_the_same_minimum(small_scan):
     """Every stage on every 4th column first, then the last ones on all columns from there (fit.coarse), ends
     at the minimum of the fit of all columns from the start (0.01 sigma; the weights given, so that both
@@ -211,6 +214,7 @@ def test_a_coarse_first_pass_reaches_the_same_minimum(small_scan):
         assert np.abs(z[np.isfinite(z)]).max() < 0.01, name
 
 
+@pytest.mark.slow
 def test_loose_intermediate_stages_end_at_the_same_estimates(small_scan, monkeypatch):
     """Every stage but the last stops at a whitened gradient of fit.STAGE_GTOL: what it hands on (the next stage's
     start, the reweighting's weights, the empirical prior) hardly depends on its last standard deviation. With the
@@ -228,6 +232,7 @@ def test_loose_intermediate_stages_end_at_the_same_estimates(small_scan, monkeyp
     assert loose.evaluations < tight.evaluations
 
 
+@pytest.mark.slow
 def test_frames_left_out_as_faults_do_not_pull_the_kept_ones(small_scan):
     scan, truth = small_scan()
     data = np.asarray(scan.data).copy()

@@ -20,18 +20,24 @@ def prepared(rng, *, masked=False, dtype=np.float64):
     """Observations with optional masked samples, a pixel without fringe and a pixel without used samples."""
     obs = tiny_obs(rng)
     if masked:
-        use, fringe = rng.uniform(size=obs.use.shape) > 0.2, np.ones(obs.use.shape, bool)
-        fringe[obs.starts[1]:obs.starts[2], 2] = False  # no fringe: only t is an unknown there
+        use, vf = rng.uniform(size=obs.use.shape) > 0.2, obs.vf.copy()
+        vf[obs.starts[1]:obs.starts[2], 2] = 0.0  # no fringe: only t is an unknown there
         use[obs.starts[2]:obs.starts[3], 3] = False  # nothing to solve for
-        obs = replace(obs.fringe_within(fringe), use=use)
-    return replace(obs, **{name: getattr(obs, name).astype(dtype) for name in ("counts", "tf", "fc", "fs", "dark")})
+        obs = replace(obs, use=use, vf=vf)
+    return replace(obs, **{name: getattr(obs, name).astype(dtype) for name in ("counts", "tf", "vf", "phif", "dark")})
 
 
 def as_float64(obs):
     """The same samples in float64 (the oracle computes in float64)."""
-    return Observations(*(np.asarray(a, dtype=np.float64) for a in (obs.counts, obs.tf, obs.fc, obs.fs,
+    return Observations(*(np.asarray(a, dtype=np.float64) for a in (obs.counts, obs.tf, obs.vf, obs.phif,
                                                                      obs.dark)), obs.use, obs.row, obs.frame,
                         obs.columns, obs.shape, obs.gain, obs.electronic)
+
+
+#: Agreement of float32 samples with the same samples in float64: the fringe's quadratures are made in the samples'
+#: dtype (Observations.fringe; single-precision cos and sin, within 1e-7 of their amplitude), which moves the cost
+#: and the images by about 1e-8 of their range.
+FRINGE32 = 1e-6
 
 
 def close(actual, desired, rtol=1e-9):
@@ -75,11 +81,11 @@ def test_float32_samples_give_the_float64_result(rng):
     w = noise_weights(ref, ref.counts).astype(np.float32)
     cost, grad = kernel_cost(obs, params, w, ALL)
     cost64, grad64 = kernel_cost(ref, params, w.astype(np.float64), ALL)
-    assert cost == pytest.approx(cost64, rel=1e-10)
+    assert cost == pytest.approx(cost64, rel=FRINGE32)
     for n in ALL:
-        close(grad[n], grad64[n])
+        close(grad[n], grad64[n], rtol=FRINGE32)
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
-    close(K.retrieve(obs, ch, iterations=2)["coef"], K.retrieve(ref, ch, iterations=2)["coef"])
+    close(K.retrieve(obs, ch, iterations=2)["coef"], K.retrieve(ref, ch, iterations=2)["coef"], rtol=FRINGE32)
 
 
 @pytest.mark.parametrize("masked", [False, True], ids=["all", "masked"])

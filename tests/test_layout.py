@@ -1,11 +1,13 @@
 """The package's structure: no import circle, no re-exported names, each module says its one job."""
 import ast
+import functools
 
 from conftest import ROOT
 
 PACKAGE = ROOT / "dfxcorr"
 
 
+@functools.cache
 def modules() -> dict[str, ast.Module]:
     out = {}
     for path in sorted(PACKAGE.rglob("*.py")):
@@ -78,3 +80,23 @@ def test_the_circle_finder_finds_a_circle():
 def test_every_module_says_its_job():
     missing = [name for name, tree in modules().items() if not ast.get_docstring(tree)]
     assert not missing, missing
+
+
+def test_no_module_re_exports_an_imported_name():
+    # a package's __init__ assembles it from its submodules; any other module lists only what it defines
+    found = {}
+    for name, tree in modules().items():
+        if (PACKAGE / "/".join(name.split(".")[1:]) / "__init__.py").exists():
+            continue
+        defined, listed = set(), []
+        for node in tree.body:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                defined.add(node.name)
+            elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                defined |= {n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)}
+                if any(isinstance(t, ast.Name) and t.id == "__all__" for t in targets):
+                    listed = [e.value for e in node.value.elts]
+        if foreign := [n for n in listed if n not in defined]:
+            found[name] = foreign
+    assert not found, found

@@ -1,5 +1,6 @@
 """Motion-pixel masking (paper Sec. II-E) on a region that moves during the scan."""
 import numpy as np
+import pytest
 
 from dfxcorr import config as C
 from dfxcorr import pipeline, planning
@@ -30,6 +31,7 @@ def test_clean_scan_masks_almost_nothing(small_scan):
     assert moving.mean() < 0.05  # the dilation grows each isolated false alarm to up to 5 pixels
 
 
+@pytest.mark.slow
 def test_mask_keeps_moving_pixels_out_of_the_fit_only(small_scan):
     scan, truth = small_scan(**{"effects.sample_motion": 0.3})
     result = pipeline.reconstruct(scan, C.load([], ["fit.subsample=3"]))
@@ -39,6 +41,7 @@ def test_mask_keeps_moving_pixels_out_of_the_fit_only(small_scan):
     assert result.motion_mask[region].mean() > 0.8
 
 
+@pytest.mark.slow
 def test_a_heart_that_moves_half_way_is_masked_where_its_data_disagree(small_scan):
     # the heart shifts 8 mm from the middle frame on: only pixels lit both before and after saw two samples
     scan, truth = small_scan(**{"effects.heart_step_mm": 8.0, "simulate.seed": 5})
@@ -66,6 +69,7 @@ def test_chi2_tail_matches_scipy_stats():
     np.testing.assert_allclose(_chi2_logsf(x, k), stats.chi2.logsf(x, k), rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_row_blocks_give_the_mask_of_one_pass(small_scan):
     scan, _ = small_scan(**{"effects.sample_motion": 0.3})
     prep = prepare(scan, C.defaults())

@@ -107,6 +107,7 @@ def test_subsample_auto_takes_more_columns_for_a_tighter_target(planned, caplog)
                                  report=False).uncertainty == pytest.approx(plan.uncertainty)
 
 
+@pytest.mark.slow
 def test_subsample_auto_reaches_the_target_uncertainty_it_predicts(planned):
     """The pilot's prediction is what the fit on the chosen columns then reports (within 25 %, and not optimistic
     by more than 10 %)."""

@@ -114,7 +114,7 @@ def test_observations_are_c_ordered_whatever_the_store(prepared_scan):
     prep.store.counts = np.asfortranarray(prep.store.counts)
     for columns in (None, np.arange(0, scan.shape[2], 3)):
         obs = prep.observations(columns=columns, dtype=np.float32)
-        assert all(getattr(obs, n).flags["C_CONTIGUOUS"] for n in ("counts", "tf", "fc", "fs", "dark", "use"))
+        assert all(getattr(obs, n).flags["C_CONTIGUOUS"] for n in ("counts", "tf", "vf", "phif", "dark", "use"))
 
 
 def test_row_blocks_follow_the_memory_budget(prepared_scan):
@@ -144,6 +144,7 @@ def test_float32_fit_agrees_with_float64_within_its_uncertainty(prepared_scan):
         assert diff.max() < 0.1 * np.median(fits[np.float64].uncertainty[name][good])
 
 
+@pytest.mark.slow
 def test_diagnose_and_reconstruct_see_the_same_data(monkeypatch):
     # a reference stepping series with non-default reference options and region of interest
     scan, _ = S.simulate(sim_config(**{"simulate.reference_steps": 5, "simulate.reference_step_errors": 0.05,
@@ -163,7 +164,7 @@ def test_diagnose_and_reconstruct_see_the_same_data(monkeypatch):
     D.diagnose(scan, cfg)
     assert len(seen) == 2
     a, b = (p.observations() for p in seen)
-    for name in ("counts", "tf", "fc", "fs", "dark", "row", "frame", "columns"):
+    for name in ("counts", "tf", "vf", "phif", "dark", "row", "frame", "columns"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     np.testing.assert_array_equal(a.roi, b.roi)
     assert a.gain == b.gain and a.electronic == b.electronic

@@ -64,7 +64,7 @@ import numpy as np
 from scipy import signal
 
 from .. import model as M
-from ..align import LitStore, fringe_maps, interpolate_rows, pixel_mm, realign
+from ..align import LitStore, interpolate_rows, pixel_mm, realign
 from ..catalogue import Effect
 from ..errors import DfxcorrError
 from ..fit import fit_vibrations
@@ -320,9 +320,9 @@ def retrieved(store: LitStore, reference: Reference, *, step: int = 1) -> np.nda
     J, H, W = store.shape
     cols = np.arange(min(step // 2, W - 1), W, step) if step > 1 else None
     held = np.zeros((H, W if cols is None else cols.size))
-    maps = fringe_maps(reference)
+    ref = replace(reference, phase=np.unwrap(reference.phase, axis=0))
     for r0, r1 in store.row_runs(BLOCK_SAMPLES * step):
-        obs = store.observations(reference, columns=cols, rows=(r0, r1), maps=maps)
+        obs = store.observations(ref, columns=cols, rows=(r0, r1), phase_unwrapped=True)
         rec = retrieve(obs, {}, keep_expected=False)
         rows = obs.rows
         held[rows] = np.where(rec.images.valid, rec.images.t, 0.0)

@@ -78,8 +78,8 @@ def pixel_fringe(cfg: dict, u: np.ndarray, A: int, W: int, *, step: float = 0.0
 
     Returns
     -------
-    tf, fc, fs : ndarray, shape (K, W)
-        t^f and the fringe's quadratures t^f v^f (cos, sin)(phi^f + step) (counts).
+    tf, vf, phif : ndarray, shape (K, W)
+        t^f (counts), v^f and phi^f + step (rad).
     """
     tf, vf, phase = _analytic(cfg, np.asarray(u, float)[:, None], A, W)
-    return tf, tf * vf * np.cos(phase + step), tf * vf * np.sin(phase + step)
+    return tf, vf, phase + step

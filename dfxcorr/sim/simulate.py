@@ -195,8 +195,9 @@ CONCEALED = {
     # a flat panel at 2000 counts with a dark of 100; the file states the dark, not the noise
     "electronic_noise": ("effects.read_noise", 25.0, [10.0, 5.0, 2.0, 1.0], FLAT_PANEL, []),
     "scatter": ("effects.scatter", 0.1, [0.05, 0.02, 0.01, 0.005], {}, []),
-    # a source that travels with the gratings: the sample seen 0.02 rows further per row of travel
-    "beam_path": ("effects.parallax", 0.02, [0.01, 0.005, 0.002, 0.001], {}, []),
+    # a source that travels with the gratings: the sample seen 0.02 rows further per row of travel; edges averaged
+    # over 8 x 8 points move in eighths of a row (at 2 x 2 their half-row steps are most of the misfit)
+    "beam_path": ("effects.parallax", 0.02, [0.01, 0.005, 0.002, 0.001], {"simulate.supersample": 8}, []),
 }
 
 #: Detector effects in no catalogue, in the format of :data:`CONCEALED` (the last entry: reconstruct
@@ -400,10 +401,10 @@ class Simulation:
             return 0, np.zeros((0, W))
         cols = np.arange(W)
         u = u - self.shift[j]
-        # what each displaced pixel integrates, not an interpolation of the reference's rows
-        tf, fc, fs = pixel_fringe(self.cfg, u, g["A"], W, step=g["phase_step"][j])
+        # the analytic field at each displaced pixel's centre, not an interpolation of the reference's rows
+        tf, vf, phif = pixel_fringe(self.cfg, u, g["A"], W, step=g["phase_step"][j])
         zeros = np.zeros((row.size, W))
-        obs = Observations(counts=zeros, tf=tf, fc=fc, fs=fs, dark=zeros,
+        obs = Observations(counts=zeros, tf=tf, vf=vf, phif=phif, dark=zeros,
                            use=np.ones((row.size, W), bool), row=row, frame=np.full(row.size, j), columns=cols,
                            shape=self.shape)
         keys = ("transmission", "dark_field", "differential_phase")

@@ -19,13 +19,22 @@ def run(*args):
 
 
 @pytest.fixture(scope="module")
-def scans(tmp_path_factory):
+def thorax(tmp_path_factory):
+    """A folder holding thorax.h5."""
     d = tmp_path_factory.mktemp("scans")
-    for name, extra in (("thorax", []), ("blank1", ["--set", "simulate.phantom=blank", "--set", "simulate.seed=11"]),
-                        ("blank2", ["--set", "simulate.phantom=blank", "--set", "simulate.seed=12"])):
-        res = run("simulate", "-o", d / f"{name}.h5", *SMALL, *extra)
-        assert res.exit_code == 0, res.output
+    res = run("simulate", "-o", d / "thorax.h5", *SMALL)
+    assert res.exit_code == 0, res.output
     return d
+
+
+@pytest.fixture(scope="module")
+def scans(thorax):
+    """The folder of ``thorax`` with two blank scans beside it, blank1.h5 and blank2.h5."""
+    for name, seed in (("blank1", 11), ("blank2", 12)):
+        res = run("simulate", "-o", thorax / f"{name}.h5", *SMALL, "--set", "simulate.phantom=blank",
+                  "--set", f"simulate.seed={seed}")
+        assert res.exit_code == 0, res.output
+    return thorax
 
 
 @pytest.mark.slow
@@ -54,12 +63,12 @@ def test_compare_writes_results_pictures_and_table(scans, tmp_path):
     assert again.exit_code == 2 and "exists" in again.output
 
 
-def test_compare_refuses_a_truth_that_does_not_fit_and_unknown_methods(scans, tmp_path):
+def test_compare_refuses_a_truth_that_does_not_fit_and_unknown_methods(thorax, tmp_path):
     np.savez(tmp_path / "bad.npz", image_transmission=np.ones((3, 3)))
-    res = run("compare", scans / "thorax.h5", "-o", tmp_path / "b", "--truth", tmp_path / "bad.npz", "--methods",
+    res = run("compare", thorax / "thorax.h5", "-o", tmp_path / "b", "--truth", tmp_path / "bad.npz", "--methods",
               "none")
     assert res.exit_code == 2 and "image_transmission has shape (3, 3)" in res.output
-    res = run("compare", scans / "thorax.h5", "-o", tmp_path / "c", "--methods", "none,magic")
+    res = run("compare", thorax / "thorax.h5", "-o", tmp_path / "c", "--methods", "none,magic")
     assert res.exit_code == 2 and "magic" in res.output
 
 

@@ -24,9 +24,10 @@ def _found(diag) -> dict[str, tuple[str, ...]]:
 
 
 @pytest.mark.parametrize(("effects", "named"), [
-    ({"effects.dose": 0.02, "effects.phase_offset": 0.0}, {"dose": ()}),
-    ({"effects.dose": 0.0, "effects.phase_offset": 0.05}, {"phase_offset": ()}),
-    ({"effects.dose": 0.02, "effects.phase_offset": 0.05}, {"dose": (), "phase_offset": ()}),
+    pytest.param({"effects.dose": 0.02, "effects.phase_offset": 0.0}, {"dose": ()}, marks=pytest.mark.slow),
+    pytest.param({"effects.dose": 0.0, "effects.phase_offset": 0.05}, {"phase_offset": ()}, marks=pytest.mark.slow),
+    pytest.param({"effects.dose": 0.02, "effects.phase_offset": 0.05}, {"dose": (), "phase_offset": ()},
+                 marks=pytest.mark.slow),
 ])
 def test_dose_and_phase_errors_are_told_apart_where_the_data_do(effects, named):
     scan, _ = S.simulate(sim_config(**{**STEPPING, **effects}))
@@ -39,6 +40,7 @@ def test_dose_and_phase_errors_are_told_apart_where_the_data_do(effects, named):
     assert not [u for u in diag.unexplained if u.axis in ("frame", "phase")], diag.unexplained
 
 
+@pytest.mark.slow
 def test_a_dose_the_phase_errors_explain_as_well_is_named_with_them():
     """A dose that follows the first harmonic of the step phase is what phase errors would do: one finding,
     'phase errors or dose', each with its estimate; neither named alone."""

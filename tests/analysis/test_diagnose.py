@@ -13,9 +13,10 @@ from dfxcorr.sim import simulate as S
 from conftest import chi2_tolerance, concealed, prepare, real_ipp_scan, sim_config
 
 
-# one concealed effect stays in the fast tier; the rest take 2-8 s each
+# one concealed effect stays in the fast tier; the rest take 2-8 s each. beam_path has its own test
+# (tests/effects/test_beam_path.py): images on the pixel grid cannot bring it back to the noise
 @pytest.mark.parametrize("effect", [e if e == "phase_offset" else pytest.param(e, marks=pytest.mark.slow)
-                                    for e in S.CONCEALED])
+                                    for e in S.CONCEALED if e != "beam_path"])
 def test_concealed_effect_is_named_first_and_the_fit_recovers(effect):
     scan, truth, cfg = concealed(effect)
     diag = diagnose(scan, cfg)
@@ -58,14 +59,14 @@ def test_reconstruct_with_the_harmonic_lowers_the_image_error():
     assert with_.reduced_chi2 < without.reduced_chi2
 
 
-def test_clean_scans_raise_no_alarm():
-    # seeds of the frame-by-frame simulator (each frame draws its noise from its own stream)
-    for seed in (22, 23):
-        scan, _ = S.simulate(sim_config(**{"simulate.seed": seed}))
-        diag = diagnose(scan, C.defaults())
-        assert not any(e.detected for e in diag.effects), [(e.name, e.p_value) for e in diag.effects]
-        assert diag.unexplained == [], diag.unexplained
-        assert diag.final_chi2 == pytest.approx(1.0, abs=0.03)
+# seeds of the frame-by-frame simulator (each frame draws its noise from its own stream)
+@pytest.mark.parametrize("seed", [22, pytest.param(23, marks=pytest.mark.slow)])
+def test_clean_scans_raise_no_alarm(seed):
+    scan, _ = S.simulate(sim_config(**{"simulate.seed": seed}))
+    diag = diagnose(scan, C.defaults())
+    assert not any(e.detected for e in diag.effects), [(e.name, e.p_value) for e in diag.effects]
+    assert diag.unexplained == [], diag.unexplained
+    assert diag.final_chi2 == pytest.approx(1.0, abs=0.03)
 
 
 @pytest.mark.slow
@@ -181,6 +182,7 @@ def test_unidentifiable_effects_are_never_detected():
     assert not any(e.detected for e in diag.effects)
 
 
+@pytest.mark.slow
 def test_report_files_follow_the_contract(tmp_path):
     scan, _, cfg = concealed("dose")
     diag = diagnose(scan, cfg)
@@ -251,6 +253,7 @@ def test_unidentifiable_effect_that_explains_the_misfit_stops_the_naming():
     assert diag.unexplained
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("order", ["mean-first", "noise-first"])
 def test_a_flat_panel_in_detector_units_with_step_errors_names_the_steps_and_the_noise_model_only(order):
     """5 phase steps, gain 0.5 and read noise 25 unstated, per-step phase errors, --base none: the step errors and
@@ -267,6 +270,7 @@ def test_a_flat_panel_in_detector_units_with_step_errors_names_the_steps_and_the
     assert diag.unexplained == []
 
 
+@pytest.mark.slow
 def test_a_detector_artefact_in_no_catalogue_is_located_not_named():
     """Line noise of a flat panel (one offset per frame and row, its read noise stated): no catalogue effect
     explains it; the report locates it along the (frame, row) blocks."""
@@ -326,6 +330,7 @@ def test_a_scan_larger_than_the_held_samples_is_tested_on_a_band_and_fitted_over
     assert not tested[:band[0]].any() and not tested[band[-1] + 1:].any() and tested[band].mean() > 0.5
 
 
+@pytest.mark.slow
 def test_a_gross_misfit_of_the_mean_is_not_absorbed_by_the_noise_model():
     """Frames in reversed order: the mean model is off everywhere (reduced chi-square ~1e5, the standardized
     residuals' kurtosis 37). Any misfit is matched by a variance large enough, so no noise-model effect may be

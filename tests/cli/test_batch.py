@@ -55,6 +55,7 @@ def test_a_failed_scan_does_not_stop_the_others_and_a_rerun_resumes(scans, tmp_p
     assert again.stdout.splitlines()[-1] == "3 scans: 0 done, 2 skipped, 1 failed"
 
 
+@pytest.mark.slow
 def test_one_task_of_a_job_array_processes_its_line_only(scans, tmp_path):
     d, listing = scans
     out = tmp_path / "array"

@@ -38,11 +38,18 @@ def test_simulate_writes_scan_and_truth(scan_file):
     assert truth["vib_phase_offset"].shape == (104,)
 
 
-def test_reconstruct_writes_the_contract(scan_file, tmp_path):
-    out = tmp_path / "r.h5"
-    res = run("reconstruct", scan_file, "-o", out, "--set", "fit.subsample=3", "--tiff", tmp_path / "tif", "--preview")
+@pytest.fixture(scope="module")
+def reconstructed(scan_file, tmp_path_factory):
+    """A reconstruction of ``scan_file`` with TIFF images and a preview: the folder and the command's outcome."""
+    d = tmp_path_factory.mktemp("reconstructed")
+    res = run("reconstruct", scan_file, "-o", d / "r.h5", "--set", "fit.subsample=3", "--tiff", d / "tif", "--preview")
+    return d, res
+
+
+def test_reconstruct_writes_the_contract(reconstructed):
+    tmp_path, res = reconstructed
     assert res.exit_code == 0, res.output
-    r = read_result_h5(out)
+    r = read_result_h5(tmp_path / "r.h5")
     assert r["transmission"].shape == (90, 102) and r["transmission"].dtype == np.float32
     assert r["configuration"]["fit"]["subsample"] == 3
     assert 0.9 < r["reduced_chi2"] < 1.1
@@ -52,9 +59,9 @@ def test_reconstruct_writes_the_contract(scan_file, tmp_path):
     assert (tmp_path / "r_preview.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_resolved_configuration_reproduces_the_run(scan_file, tmp_path):
-    first = tmp_path / "a.h5"
-    assert run("reconstruct", scan_file, "-o", first, "--set", "fit.subsample=4").exit_code == 0
+def test_resolved_configuration_reproduces_the_run(scan_file, reconstructed, tmp_path):
+    first = reconstructed[0] / "r.h5"
+    assert reconstructed[1].exit_code == 0, reconstructed[1].output
     cfg = tmp_path / "resolved.yaml"
     with h5py.File(first) as f:
         cfg.write_text(f["entry/dfxcorr/configuration"][()].decode())

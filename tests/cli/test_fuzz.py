@@ -196,7 +196,7 @@ scan_mutations = given(mutations=mutations, seed=st.integers(0, 2 ** 16),
 
 
 # a few examples in the fast tier, many in the slow one (80 ms each)
-@settings(max_examples=12, **SETTINGS)
+@settings(max_examples=4, **SETTINGS)
 @scan_mutations
 def test_a_few_mutated_scans_end_cleanly(template, mutations, seed, method):
     mutated_scan_ends_cleanly(template, mutations, seed, method)
@@ -323,7 +323,7 @@ alike_cases = given(mutations=st.lists(st.tuples(st.sampled_from(["fault", "valu
                     seed=st.integers(0, 2 ** 16), twist=st.sampled_from(TWISTS))
 
 
-@settings(max_examples=10, **SETTINGS)
+@settings(max_examples=3, **SETTINGS)
 @alike_cases
 def test_check_and_reconstruct_judge_a_few_mutated_scans_alike(template, mutations, seed, twist):
     judged_alike(template, mutations, seed, twist)

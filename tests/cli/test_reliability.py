@@ -393,6 +393,7 @@ def test_a_compressed_dark_map_that_expands_to_gigabytes_is_refused_within_the_c
         res.stderr + res.traceback)
 
 
+@pytest.mark.slow
 def test_disk_full_ends_in_one_line_and_keeps_the_old_result(scan_file, tmp_path):
     out = tmp_path / "r.h5"
     # the write is what fails: no vibration fit is needed before it
@@ -506,7 +507,8 @@ def _misfit(path) -> bool:
     return read_result_h5(path)["misfit"]
 
 
-@pytest.mark.parametrize("fault", ["two positions swapped", "gain stated 1e4 times too high"])
+@pytest.mark.parametrize("fault", [pytest.param("two positions swapped", marks=pytest.mark.slow),
+                                   "gain stated 1e4 times too high"])
 def test_reconstruct_warns_of_and_marks_a_fit_noise_cannot_explain(tmp_path, scan_file, fault):
     from dataclasses import replace
 
@@ -560,6 +562,7 @@ def test_diagnose_refuses_the_working_directory_as_its_folder(tmp_path, scan_fil
     refused(run("diagnose", scan_file, "-o", tmp_path.parent), "working directory")
 
 
+@pytest.mark.slow
 def test_an_overwrite_diagnosis_leaves_no_file_of_the_previous_run(tmp_path, scan_file):
     out = tmp_path / "diag"
     out.mkdir()
@@ -618,7 +621,8 @@ def _identifiability_cases():
             "diagnose.subsample=1000": (scan, ["diagnose.subsample=1000"])}
 
 
-@pytest.mark.parametrize("case", list(_identifiability_cases()))
+@pytest.mark.parametrize("case", [pytest.param(c, marks=pytest.mark.slow) if "=" in c else c
+                                  for c in _identifiability_cases()])
 def test_check_and_reconstruct_judge_a_run_alike(tmp_path, case):
     make, sets = _identifiability_cases()[case]
     write_scan(tmp_path / "s.h5", make())

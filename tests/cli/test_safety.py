@@ -153,6 +153,7 @@ def test_with_overwrite_the_last_complete_run_wins(tmp_path):
     assert out.read_text() == "A" and leftovers(tmp_path) == []
 
 
+@pytest.mark.slow
 def test_sigterm_while_writing_leaves_nothing(tmp_path):
     # the CLI's own handler, a real SIGTERM while the scan's temporary file is open
     script = textwrap.dedent("""

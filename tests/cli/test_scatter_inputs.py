@@ -21,7 +21,8 @@ def scan_file(tmp_path_factory):
     return scatter_scan(tmp_path_factory.mktemp("scatter"), 0.1)
 
 
-@pytest.mark.parametrize("command", ["check", "reconstruct", pytest.param("diagnose", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("command", ["check"] + [pytest.param(c, marks=pytest.mark.slow)
+                                                 for c in ("reconstruct", "diagnose")])
 def test_a_kernel_wider_than_the_detector_runs_in_bounded_memory(scan_file, tmp_path, command):
     # 1e9 mm: 2e8 pixels of std. A band padded to whole blocks of sigma / 32 pixels would be 284 TiB; the block
     # sums hold only the band's blocks (one), the field is the constant it is
@@ -31,6 +32,7 @@ def test_a_kernel_wider_than_the_detector_runs_in_bounded_memory(scan_file, tmp_
     assert res.traceback == "" and res.exit_code == 0, (res.exit_code, res.stderr[-2000:], res.traceback)
 
 
+@pytest.mark.slow
 def test_a_scatter_above_the_primary_changes_the_reconstruction(tmp_path):
     # s >= 1 (thick samples) is applied: the images differ from those without
     import h5py

@@ -6,14 +6,16 @@ import pytest
 
 from dfxcorr import config as C
 from dfxcorr import model as M
+from dfxcorr import pipeline as P
 from dfxcorr.align import collect_lit_rows, to_detector_rows
+from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.effects import REGISTRY
 from dfxcorr.effects.beam_path import kappa_field, read_moves
 from dfxcorr.observations import Noise
 from dfxcorr.preparation import Correctable
 from dfxcorr.sim import simulate as S
 
-from conftest import random_images, random_params, sim_config
+from conftest import concealed, random_images, random_params, sim_config
 
 NAMES = ("phase_offset", "tilt", "visibility_loss")
 
@@ -94,3 +96,28 @@ def test_detector_rows_undo_the_centred_registration(rng):
     assert ok.sum() >= H - 4
     np.testing.assert_allclose(back[ok], sample(y)[ok], rtol=1e-12)
     np.testing.assert_array_equal(to_detector_rows(centred, 0.0), centred)
+
+
+@pytest.mark.slow
+def test_concealed_parallax_is_named_first_and_its_correction_recovers_the_images():
+    """A source that travels with the gratings (kappa 0.02): beam_path is named first, kappa found, and the
+    reconstruction with the recommended setting brings the transmission closer to the truth.
+
+    The images live on the pixel grid while the sample's edges move across the pixels by fractions of a row: what
+    a pixel sees between two rows is not the interpolation of their images (at 2e4 counts a rib's edge moved by
+    0.3 rows differs from it by about 1.7 standard deviations). That model error biases kappa low, beyond its
+    standard error: the estimate is held to a fifth of the truth, and the fit does not return to the noise."""
+    scan, truth, cfg = concealed("beam_path")
+    diag = diagnose(scan, cfg)
+    found = [e for e in diag.effects if e.detected]
+    assert found[0].name == "beam_path", [(e.name, e.statistic) for e in diag.effects]
+    kappa = found[0].values["value"]
+    assert kappa == pytest.approx(truth["beam_path"], rel=0.2)
+    assert diag.final_chi2 < diag.initial_chi2
+    plain = P.reconstruct(scan, cfg)
+    fixed = P.reconstruct(scan, C.merge(cfg, {"geometry": {"parallax": kappa}}))
+    ok = truth["image_transmission"] > 0.05
+    err = [float(np.sqrt(np.nanmean((r.transmission - truth["image_transmission"])[ok] ** 2))) for r in (plain, fixed)]
+    # measured 0.0044 -> 0.0028 (seed 11): what the pixel grid lets a correction recover of a 0.02 parallax
+    assert err[1] < 0.8 * err[0], err
+    assert fixed.reduced_chi2 < plain.reduced_chi2

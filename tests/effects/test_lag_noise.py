@@ -44,7 +44,8 @@ def test_lag_free_counts_are_the_lag_free_frames():
     assert measured_lag(b)[0] == 0.0 and np.all(b.left_counts == 0)
 
 
-@pytest.mark.parametrize("amplitude", [0.03, pytest.param(0.001, marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("amplitude", [0.03, 0.001])
 def test_lag_is_named_alone_and_the_fit_recovers(amplitude):
     scan, truth = S.simulate(sim_config(**{"effects.detector_lag": amplitude, "simulate.seed": 11}))
     cfg = C.defaults()
@@ -154,7 +155,7 @@ def test_real_recording_pixel_classes_come_to_one(tmp_path):
         assert near_one == expect_one, per_class
 
 
-@pytest.mark.parametrize("read_noise", [25.0, 1.0])
+@pytest.mark.parametrize("read_noise", [25.0, pytest.param(1.0, marks=pytest.mark.slow)])
 def test_the_readout_of_unlit_rows_measures_the_read_noise(read_noise):
     """A flat panel's unlit rows hold dark + read noise: their variance (row means out) is sigma_e^2 plus the
     integer counts' rounding (1/12), as on every sample, within the sampling error of a variance (sd sqrt(2 / N)

@@ -46,6 +46,7 @@ def dark_field_error(result, truth) -> tuple[float, float]:
     return float(np.sqrt(np.mean((d - np.median(d)) ** 2))), float(np.median(v[ok] / vt[ok]))
 
 
+@pytest.mark.slow
 def test_configured_scatter_is_the_simulators_to_a_fraction_of_a_percent():
     scan, _ = S.simulate(sim_config(**SCATTER))
     store = prepare(scan, C.load([], CORRECTED)).store
@@ -143,6 +144,7 @@ def test_the_kernel_width_is_found_with_s(width):
             and abs(extra["s"] - truth["scatter"]) < 4 * extra["s_se"]), extra
 
 
+@pytest.mark.slow
 def test_clean_scan_and_phase_stepping_do_not_name_it():
     clean, _ = S.simulate(sim_config(**{"simulate.seed": 23}))
     verdict = {e.name: e for e in diagnose(clean, C.defaults()).effects}
@@ -184,6 +186,7 @@ def test_a_narrow_band_under_a_wide_kernel_gets_little_scatter():
         SC.kernel_pixels(50.0, None)
 
 
+@pytest.mark.slow
 def test_a_scatter_above_the_primary_is_applied():
     # s = 1.5 (thick samples): plain fixed-point updates of t diverge, t falls to 0 and the field with it
     sets = {**SCATTER, "effects.scatter": 1.5}
@@ -239,6 +242,7 @@ def test_the_scatter_blur_is_the_gaussian_filter_with_zeros_beyond_the_edges(sig
                            rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_a_field_without_information_leaves_s_at_zero():
     # a transmission of 0 behind the primary (what diverging updates of t make at s = 1.5) has no field: the fit's
     # s is 0, not a division by its zero information
