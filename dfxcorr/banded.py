@@ -4,8 +4,9 @@ Where the beam paths move during the scan (``beam_path``) a sample's expected co
 neighbouring rows, so the images of a column are no longer one small solve per pixel: their normal matrix is
 block tridiagonal along the rows (p x p blocks, p unknowns per pixel). These are its direct solve (block
 Gaussian elimination, exact) and the blocks of its inverse that the leverages and the Fisher information need,
-vectorised over the columns, and the assembly of those normal matrices from the samples
-(:class:`dfxcorr.observations.Reading`).
+vectorised over the columns, the assembly of those normal matrices from the samples
+(:class:`dfxcorr.observations.Reading`), and the profiled images' share of the Fisher information from them
+(:func:`profiled_correction`; block diagonal where each sample reads its own row).
 """
 from __future__ import annotations
 
@@ -122,9 +123,8 @@ class ReadBetween:
 
 
 def _read_shares(obs: Observations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each block's two image rows (positions in ``obs.rows``) and the share of the first."""
-    if obs.reading is None:
-        raise ValueError("the observations read every sample at its own row")
+    """Each block's two image rows (positions in ``obs.rows``) and the share of the first (its own row, whole,
+    without a reading)."""
     lo, hi, frac = obs.read_rows()
     return lo, hi, 1.0 - frac
 
@@ -201,3 +201,55 @@ def solve_read_between(obs: Observations, columns: list[np.ndarray], target: np.
         return coef, fac.valid, None, None
     inverse, coupling = fac.inverse()
     return coef, fac.valid, inverse, coupling
+
+
+def profiled_correction(obs: Observations, columns: list[np.ndarray], weights: np.ndarray, F: list[np.ndarray],
+                        where: list[np.ndarray], n_params: int, *, chunk: int = 16) -> np.ndarray:
+    """The profiled images' share of the Fisher information, from the model's arrays.
+
+    sum over columns of Y^T N^-1 Y, Y = X^T W F. Where the samples read between rows a pixel's images share samples
+    with its neighbours', so N is the column's block-tridiagonal normal matrix (:func:`factor_read_between`; block
+    diagonal where each sample reads its own row), solved ``chunk`` columns at a time. The compiled
+    :func:`dfxcorr.kernels.fisher` computes the same where every sample reads its own row and every component is a
+    power of x.
+
+    Parameters
+    ----------
+    obs : Observations
+    columns : list of p ndarray, each (K, C)
+        The images' design columns X_a at every sample (:func:`dfxcorr.model.image_columns`).
+    weights : ndarray, shape (K, C)
+    F : list of ndarray, each (K, C)
+        dIbar/d(component) of each parameter component at every sample.
+    where : list of ndarray of int, each (K,)
+        The parameter (axis of the information) that component q of block k belongs to: its frame's for per-frame
+        components, one index for a global one.
+    n_params : int
+        P.
+
+    Returns
+    -------
+    ndarray, shape (P, P)
+    """
+    X = columns
+    R, K = obs.rows.size, obs.frame.size
+    lo, hi, frac = obs.read_rows()
+    owners = [np.unique(wq, return_inverse=True) for wq in where]
+    corr = np.zeros((n_params, n_params))
+    for start in range(0, obs.columns.size, chunk):
+        cols = np.arange(start, min(start + chunk, obs.columns.size))
+        sub = obs.subset(cols, copy=False)
+        Xs, w = [x[:, cols] for x in X], weights[:, cols]
+        fac = factor_read_between(sub, Xs, w)
+        # Y of each column: (image row, column, unknown, parameter)
+        Y = np.zeros((R, cols.size, len(X), n_params))
+        for (params, owner), Fq in zip(owners, F, strict=True):
+            # sums over the samples of each (image row, parameter) pair, with what each sample reads of the row
+            spread = sum(sparse.csr_matrix((share, (rows * params.size + owner, np.arange(K))),
+                                           shape=(R * params.size, K))
+                         for rows, share in ((lo, 1.0 - frac), (hi, frac)))
+            for a, Xa in enumerate(Xs):
+                Y[:, :, a, params] += np.moveaxis((spread @ (w * Xa * Fq[:, cols])).reshape(R, params.size, cols.size),
+                                                  1, 2)
+        corr += np.einsum("rcap,rcaq->pq", Y, fac.solve(Y), optimize=True)
+    return corr

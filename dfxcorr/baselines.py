@@ -300,7 +300,8 @@ def fit_correlation(obs: Observations, *, effects=PAPER_MODEL, grid: int = 360, 
     ConfigError
         If ``effects`` holds no phase effect.
     """
-    phase = [n for n in effects if effect(n).channel == "phase"]
+    # the method fits each frame's column positions with powers of x: a term along the rows is not one of them
+    phase = [n for n in effects if effect(n).channel == "phase" and not any(effect(n).row_powers)]
     if not phase:
         raise ConfigError("fit.method=correlation estimates grating positions only: enable vibration.phase_offset, "
                           "vibration.tilt or vibration.curvature")

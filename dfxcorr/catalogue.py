@@ -35,7 +35,8 @@ class Effect:
         One parameter set per frame (shape (J, n)) or one global set (shape (n,)).
     components : tuple of str
         Names of the n parameter components; for per-frame channel effects 'x^k' gives the power of the
-        lateral coordinate that multiplies the parameter.
+        lateral coordinate that multiplies the parameter, and 'x^k y^m' (phase and visibility channels) also
+        the power of the detector-row coordinate: a term that depends on where on the detector the sample is.
     neutral : float
         Value at which the effect is absent.
     gauge : str
@@ -71,14 +72,28 @@ class Effect:
     gauge_dims: int = 0
     unit: str = ""
 
+    def __post_init__(self) -> None:
+        if any(self.row_powers) and self.channel not in ("phase", "visibility"):
+            raise ValueError(f"effect {self.name!r}: only the phase and visibility channels take powers of y")
+
     @property
     def powers(self) -> tuple[int, ...]:
-        """Powers of x for per-frame components ('x^k')."""
-        return tuple(int(c.split("^")[1]) for c in self.components)
+        """Powers of x for per-frame components ('x^k' or 'x^k y^m')."""
+        return tuple(_power(c, "x") for c in self.components)
+
+    @property
+    def row_powers(self) -> tuple[int, ...]:
+        """Powers of the row coordinate y for per-frame components (0 where a component names none)."""
+        return tuple(_power(c, "y") for c in self.components) if self.per_frame else (0,) * self.size
 
     @property
     def size(self) -> int:
         return len(self.components)
+
+
+def _power(component: str, axis: str) -> int:
+    """The power of ``axis`` in a per-frame component such as 'x^1' or 'x^0 y^2' (0 where it is absent)."""
+    return sum(int(f.split("^")[1]) for f in component.split() if f.split("^")[0] == axis)
 
 
 CATALOGUE: dict[str, Effect] = {e.name: e for e in (

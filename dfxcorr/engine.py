@@ -1,15 +1,16 @@
-"""The model evaluated on observations: the compiled kernels, or the model's own arrays where samples read between rows.
+"""The model evaluated on observations: the compiled kernels, or the model's own arrays beyond what they take.
 
 Every stage that solves images, evaluates the reduced cost or the Fisher information calls these three functions
 (never :mod:`dfxcorr.kernels` directly). Where each sample reads the images of its own pixel (the paper's geometry)
-they are the compiled loops of :mod:`dfxcorr.kernels`; where the beam paths move during the scan
-(``Observations.reading``, ``beam_path``) the images of neighbouring rows are coupled and the same quantities come
-from :mod:`dfxcorr.model`'s expressions with the block-tridiagonal solve (:func:`dfxcorr.banded.solve_read_between`).
-The signatures and returned values are the kernels'.
+and every channel is a function of the frame and x, they are the compiled loops of :mod:`dfxcorr.kernels`. Where the
+beam paths move during the scan (``Observations.reading``, ``beam_path``) the images of neighbouring rows are coupled
+(the block-tridiagonal solve, :func:`dfxcorr.banded.solve_read_between`), and where a channel term depends on the
+detector row (``Channels.rows``, catalogue components 'x^k y^m') the channels vary within a column: the same
+quantities then come from :mod:`dfxcorr.model`'s expressions. The signatures and returned values are the kernels'.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -17,8 +18,14 @@ from scipy import sparse
 
 from . import kernels as K
 from . import model as M
+from .catalogue import effect
 from .noise import noise_weights, variance
 from .observations import Observations
+
+
+def compiled(obs: Observations, ch: M.Channels, names: Sequence[str] = ()) -> bool:
+    """Whether the compiled kernels take these observations, channels and effects (see the module's docstring)."""
+    return obs.reading is None and not ch.rows and not any(r for n in names for r in effect(n).row_powers)
 
 
 def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = None, iterations: int = 1,
@@ -26,10 +33,10 @@ def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = 
              next_weights: bool = False) -> dict:
     """Images, expected counts, weights and Pearson chi-square: :func:`dfxcorr.kernels.retrieve`'s values.
 
-    Where ``obs.reading`` is set, ``inverse`` holds each row's diagonal block of the inverse and the result adds
-    ``coupling`` (the blocks between each row and the next).
+    Where ``obs.reading`` is set, ``inverse`` holds each row's diagonal block of the inverse and ``coupling`` the
+    blocks between each row and the next (None otherwise).
     """
-    if obs.reading is None:
+    if compiled(obs, ch):
         K.set_threads()
         out = K.retrieve(obs, ch, weights=weights, iterations=iterations, gain=gain, keep_inverse=keep_inverse,
                          keep_expected=keep_expected, next_weights=next_weights)
@@ -57,10 +64,12 @@ def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = 
 
 
 def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, *, phase: float | None = None,
-                 square: bool = False, channels=tuple(K.CHANNEL_IDS)) -> tuple[float, tuple[np.ndarray, ...]]:
-    """Reduced cost and its channel gradients (or Gauss-Newton sums): :func:`dfxcorr.kernels.reduced_cost`'s values."""
-    if obs.reading is None:
-        return K.reduced_cost(obs, ch, weights, phase=phase, square=square, channels=channels)
+                 square: bool = False, channels: Collection[str] = tuple(K.CHANNEL_IDS)) -> tuple[float, M.Channels]:
+    """Reduced cost and its channel gradients (or Gauss-Newton sums): :func:`dfxcorr.kernels.reduced_cost`'s values,
+    as a :class:`~dfxcorr.model.Channels` whose ``rows`` holds those of the coefficients of powers of y."""
+    if compiled(obs, ch):
+        cost, grads = K.reduced_cost(obs, ch, weights, phase=phase, square=square, channels=channels)
+        return cost, M.Channels(grads[0], grads[1], grads[2], grads[3], grads[4])
     dsg = M.design_channels(obs, ch)
     images = M.solve_images(obs, dsg, weights, phase=phase)
     at = obs.gather(images.coef)
@@ -68,6 +77,7 @@ def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, *, phas
     cost = float(np.sum(weights * resid ** 2))
     J, C = obs.n_frames, obs.columns.size
     out: list[np.ndarray] = [np.zeros((J, C)), np.zeros((J, C)), np.zeros(J), np.zeros(3), np.zeros(2)]
+    rows: dict[tuple[int, int], np.ndarray] = {}
     g = -2.0 * weights * resid
     by_frame = sparse.csr_matrix((np.ones(obs.frame.size), (obs.frame, np.arange(obs.frame.size))),
                                  shape=(J, obs.frame.size))
@@ -78,11 +88,15 @@ def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, *, phas
         sums = [(weights * F if square else g) * F for F in fields]
         if cid in (K.PHASE, K.VISIBILITY):
             out[cid] = by_frame @ sums[0]
+            # the coefficient of y^m moves the channel by y^m: its sums carry y^m (y^2m for Gauss-Newton sums)
+            for c, m in ch.rows:
+                if c == cid:
+                    rows[(c, m)] = by_frame @ (sums[0] * obs.y[:, None] ** (2 * m if square else m))
         elif cid == K.DOSE:
             out[cid] = obs.frame_sum(sums[0].sum(axis=1))
         else:
             out[cid] = np.array([s.sum() for s in sums])
-    return cost, tuple(out)
+    return cost, M.Channels(out[0], out[1], out[2], out[3], out[4], rows)
 
 
 def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray | None,
@@ -90,10 +104,9 @@ def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndar
     """Fisher information of the parameters of ``names`` and its profiled correction, in
     :func:`dfxcorr.model.fisher_index`'s order: :func:`dfxcorr.kernels.fisher`'s values.
 
-    Where ``obs.reading`` is set, :func:`dfxcorr.model.fisher_parts` (a pixel's images share samples with its
-    neighbours', so the correction runs over whole columns).
+    Beyond the kernels (see :func:`compiled`), :func:`dfxcorr.model.fisher_parts`.
     """
-    if obs.reading is None:
+    if compiled(obs, ch, names):
         K.set_threads()
         return K.fisher(obs, ch, weights, coef, inverse, M.component_table(names)[:3], profiled=profiled)
     images = M.Images(coef, np.ones(coef.shape[:2], bool), inverse)

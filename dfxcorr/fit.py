@@ -241,8 +241,8 @@ class _Problem:
         self.evaluations += 1
         cost, g = E.reduced_cost(self.obs, _channels(self.obs, params), self.weights, phase=self.phase,
                                  square=square,
-                                 channels={effect(n).channel for n in self.names})
-        sums = M.channel_adjoint(self.names, M.Channels(*g), x=self.obs.x, square=square)
+                                 channels={c for n in self.names if (c := effect(n).channel) is not None})
+        sums = M.channel_adjoint(self.names, g, x=self.obs.x, square=square)
         return cost, np.concatenate([sums[n].ravel() for n in self.names])
 
     def _curvature(self, params: dict[str, np.ndarray]) -> np.ndarray:

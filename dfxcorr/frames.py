@@ -132,12 +132,13 @@ def frame_grid_cost(obs: Observations, ch: M.Channels, coef: np.ndarray, weights
     j = obs.frame[blocks[0]]
     x = obs.x
     cf = obs.gather(coef, blocks)
-    theta = obs.phif[blocks] + ch.phase[j] - held
+    theta = obs.phif[blocks] + ch.phase_at(obs, blocks) - held
     amp = ch.dose[j] * obs.tf[blocks]
-    P = amp * obs.vf[blocks] * ch.vis[j] * (cf[..., 1] + 1j * cf[..., 2]) * np.exp(1j * theta)
+    vis = ch.vis_at(obs, blocks)
+    P = amp * obs.vf[blocks] * vis * (cf[..., 1] + 1j * cf[..., 2]) * np.exp(1j * theta)
     # the harmonic follows the sample: m exp(2i phi) = e + i f of the images
     _, _, e, f = M.harmonic_factors(cf[..., 1], cf[..., 2])
-    Q = amp * obs.vf[blocks] * ch.vis[j] * (e + 1j * f) * (ch.harmonic[0] + 1j * ch.harmonic[1]) * np.exp(2j * theta)
+    Q = amp * obs.vf[blocks] * vis * (e + 1j * f) * (ch.harmonic[0] + 1j * ch.harmonic[1]) * np.exp(2j * theta)
     background = ch.background[0] + ch.background[1] * x[None, :] + ch.background[2] * obs.y[blocks, None]
     y = obs.counts[blocks] - obs.dark[blocks] - background - cf[..., 0] * amp
     w = weights[blocks]

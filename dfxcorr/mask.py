@@ -62,7 +62,7 @@ def motion_statistics(obs: Observations, params: dict) -> tuple[np.ndarray, np.n
     weights, ibar = solved["weights"], solved["expected"]
     n = obs.segment_sum((weights > 0).astype(float))
     # the fringe's amplitude per unit image modulation, |(Bc, Bs)| = D tf vf V of model.design
-    fringe_amp = ch.dose[obs.frame][:, None] * obs.tf * obs.vf * ch.vis[obs.frame]
+    fringe_amp = ch.dose[obs.frame][:, None] * obs.tf * obs.vf * ch.vis_at(obs)
     with np.errstate(divide="ignore", invalid="ignore"):
         eps = obs.segment_sum(np.where(weights > 0, deviance(obs, ibar), 0.0)) / (n - 3)
         amp = obs.gather(np.hypot(solved["coef"][..., 1], solved["coef"][..., 2]))
@@ -148,8 +148,8 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
         held = E.retrieve(flat, ch, weights=w, keep_inverse=True)
         plain, corr = E.fisher(flat, ch, w, held["coef"], held["inverse"], names)
         # the reduced cost's gradient is that at the images solved with w (envelope theorem)
-        grad = M.channel_adjoint(names, M.Channels(*E.reduced_cost(sub, ch, w,
-                                                                    channels=("phase", "visibility"))[1]), x=sub.x)
+        grad = M.channel_adjoint(names, E.reduced_cost(sub, ch, w, channels=("phase", "visibility"))[1],
+                                 x=sub.x)
         rhs = -0.5 * np.array([grad[n][j, m] for n, j, m in index])
         step = np.linalg.lstsq(plain - corr, rhs, rcond=1e-8)[0]
         for (n, j, m), d in zip(index, step, strict=True):

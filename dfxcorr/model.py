@@ -43,18 +43,17 @@ has no constant term), so the solution is the least-squares optimum and the enve
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import sparse
 
 from . import kernels
-from .banded import factor_read_between, solve_read_between
+from .banded import profiled_correction, solve_read_between
 from .catalogue import effect
 from .observations import Observations
 
 __all__ = ["Channels", "channels", "channel_adjoint", "component_table", "fisher_index", "Design", "design",
-           "design_channels", "channel_fields", "read_between_correction", "background_basis", "harmonic_factors",
+           "design_channels", "channel_fields", "background_basis", "harmonic_factors",
            "image_columns", "Images", "solve_pixels", "solve_images", "harmonic_term", "expected", "circular_mean",
            "sample_derivatives", "reduce_component", "gradient", "leverage", "frame_leverage", "fisher_matrix"]
 
@@ -79,6 +78,12 @@ class Channels:
         Coefficients of (1, x, y) of the additive background (counts).
     harmonic : ndarray, shape (2,)
         (hc, hs) of the stepping curve's second harmonic.
+    rows : dict
+        (channel id, m) -> ndarray (J, C): the coefficients of y^m (m >= 1, y the detector-row coordinate of
+        :attr:`Observations.y <dfxcorr.observations.Observations.y>`) of the phase and visibility channels, whose
+        value at a sample of frame j, column c and row coordinate y is phase[j, c] + sum_m rows[(PHASE, m)][j, c]
+        y^m (:meth:`phase_at`). Empty where every term is a function of the frame and x alone (what the compiled
+        kernels take); for channel gradients, the gradients of these coefficients.
     """
 
     phase: np.ndarray
@@ -86,6 +91,23 @@ class Channels:
     dose: np.ndarray
     background: np.ndarray
     harmonic: np.ndarray
+    rows: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
+
+    def phase_at(self, obs: Observations, blocks: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """Φ at every sample of ``blocks``, shape (K', C)."""
+        return self._at(kernels.PHASE, self.phase, obs, blocks)
+
+    def vis_at(self, obs: Observations, blocks: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """V at every sample of ``blocks``, shape (K', C)."""
+        return self._at(kernels.VISIBILITY, self.vis, obs, blocks)
+
+    def _at(self, cid: int, base: np.ndarray, obs: Observations, blocks: np.ndarray | slice) -> np.ndarray:
+        frame, y = obs.frame[blocks], obs.y[blocks]
+        out = base[frame]
+        for (c, m), coef in self.rows.items():
+            if c == cid:
+                out = out + coef[frame] * y[:, None] ** m
+        return out
 
 
 def channels(params: dict[str, np.ndarray], *, x: np.ndarray, n_frames: int) -> Channels:
@@ -106,7 +128,8 @@ def channels(params: dict[str, np.ndarray], *, x: np.ndarray, n_frames: int) -> 
         Φ = sum of p_j x^k over phase effects; V = 1 + sum over visibility effects of (their field -
         their neutral value), so visibility_loss replaces the 1 and visibility_tilt adds x-dependent
         terms; D likewise (1 + sum of p_j - neutral over dose effects); background and harmonic are
-        their parameters. Every channel is linear in the parameters.
+        their parameters. Components with a power of y go to the coefficients of that power
+        (:attr:`Channels.rows`). Every channel is linear in the parameters.
     """
     C = x.size
     out = Channels(np.zeros((n_frames, C)), np.ones((n_frames, C)), np.ones(n_frames), np.zeros(3), np.zeros(2))
@@ -114,11 +137,16 @@ def channels(params: dict[str, np.ndarray], *, x: np.ndarray, n_frames: int) -> 
         e = effect(name)
         cid = _channel_id(name)
         if cid in (kernels.PHASE, kernels.VISIBILITY):
-            field_ = sum(p[:, m, None] * x[None, :] ** k for m, k in enumerate(e.powers))
-            if cid == kernels.PHASE:
-                out.phase = out.phase + field_
-            else:
-                out.vis = out.vis + field_ - e.neutral
+            for q, (k, m) in enumerate(zip(e.powers, e.row_powers, strict=True)):
+                term = p[:, q, None] * x[None, :] ** k
+                if m:
+                    out.rows[(cid, m)] = out.rows.get((cid, m), 0.0) + term
+                elif cid == kernels.PHASE:
+                    out.phase = out.phase + term
+                else:
+                    out.vis = out.vis + term
+            if cid == kernels.VISIBILITY:
+                out.vis = out.vis - e.neutral
         elif cid == kernels.DOSE:
             out.dose = out.dose + p[:, 0] - e.neutral
         elif cid == kernels.BACKGROUND:
@@ -137,7 +165,7 @@ def channel_adjoint(names: Sequence[str], grad: Channels, *, x: np.ndarray, squa
     names : sequence of str
         Effects whose gradients are wanted.
     grad : Channels
-        d(cost)/d(channel value) for every channel value.
+        d(cost)/d(channel value) for every channel value (and coefficient of a power of y).
     x : ndarray, shape (C,)
     square : bool
         ``grad`` holds Gauss-Newton sums sum w F^2 per channel value: apply the squared Jacobian,
@@ -146,7 +174,8 @@ def channel_adjoint(names: Sequence[str], grad: Channels, *, x: np.ndarray, squa
     Returns
     -------
     dict
-        name -> array shaped like that effect's parameters, e.g. dcost/dp_{j,k} = sum_c gΦ[j, c] x_c^k.
+        name -> array shaped like that effect's parameters, e.g. dcost/dp_{j,k} = sum_c gΦ[j, c] x_c^k (for a
+        component x^k y^m, the gradient of the coefficient of y^m in place of gΦ).
     """
     power = 2 if square else 1
     out = {}
@@ -155,7 +184,8 @@ def channel_adjoint(names: Sequence[str], grad: Channels, *, x: np.ndarray, squa
         cid = _channel_id(name)
         if cid in (kernels.PHASE, kernels.VISIBILITY):
             g = grad.phase if cid == kernels.PHASE else grad.vis
-            out[name] = np.stack([g @ x ** (power * k) for k in e.powers], axis=-1)
+            out[name] = np.stack([(grad.rows[(cid, m)] if m else g) @ x ** (power * k)
+                                  for k, m in zip(e.powers, e.row_powers, strict=True)], axis=-1)
         elif cid == kernels.DOSE:
             out[name] = np.asarray(grad.dose, dtype=np.float64)[:, None].copy()
         elif cid == kernels.BACKGROUND:
@@ -240,11 +270,11 @@ def design(obs: Observations, params: dict[str, np.ndarray]) -> Design:
 def design_channels(obs: Observations, ch: Channels) -> Design:
     """:func:`design` from channel values (:func:`channels`) rather than effect parameters."""
     dose = ch.dose[obs.frame][:, None]
-    vis = ch.vis[obs.frame]
+    vis = ch.vis_at(obs)
     background = (sum(ch.background[m] * b for m, b in enumerate(background_basis(obs))) if np.any(ch.background)
                   else np.zeros(obs.counts.shape))
     hc, hs = float(ch.harmonic[0]), float(ch.harmonic[1])
-    theta = obs.phif + ch.phase[obs.frame]
+    theta = obs.phif + ch.phase_at(obs)
     amp = dose * obs.tf
     Bv = amp * obs.vf * vis
     Hc, Hs = np.zeros_like(theta), np.zeros_like(theta)
@@ -397,59 +427,6 @@ def solve_pixels(obs: Observations, columns: list[np.ndarray], target: np.ndarra
     return coef, valid, inverse
 
 
-def read_between_correction(obs: Observations, dsg: Design, coef: np.ndarray, weights: np.ndarray,
-                            F: list[np.ndarray], where: list[np.ndarray], n_params: int, *, columns: int = 16
-                            ) -> np.ndarray:
-    """The profiled images' share of the Fisher information where the samples read between rows.
-
-    sum over columns of Y^T N^-1 Y, Y = X^T W F: a pixel's images share samples with its neighbours', so N is the
-    column's block-tridiagonal normal matrix (:func:`factor_read_between`), solved ``columns`` columns at a time.
-
-    Parameters
-    ----------
-    obs : Observations
-        With ``reading``.
-    dsg : Design
-    coef : ndarray, shape (R, C, 3)
-        The images (the harmonic's image columns are taken at them).
-    weights : ndarray, shape (K, C)
-    F : list of ndarray, each (K, C)
-        dIbar/d(component) of each parameter component at every sample.
-    where : list of ndarray of int, each (K,)
-        The parameter (axis of the information) that component q of block k belongs to: its frame's for per-frame
-        components, one index for a global one.
-    n_params : int
-        P.
-
-    Returns
-    -------
-    ndarray, shape (P, P)
-    """
-    at = obs.gather(coef)
-    X = [dsg.A, *image_columns(dsg, at[..., 1], at[..., 2])]
-    R, K = obs.rows.size, obs.frame.size
-    lo, hi, frac = obs.read_rows()
-    owners = [np.unique(wq, return_inverse=True) for wq in where]
-    corr = np.zeros((n_params, n_params))
-    for start in range(0, obs.columns.size, columns):
-        cols = np.arange(start, min(start + columns, obs.columns.size))
-        sub = obs.subset(cols, copy=False)
-        Xs, w = [x[:, cols] for x in X], weights[:, cols]
-        fac = factor_read_between(sub, Xs, w)
-        # Y of each column: (image row, column, unknown, parameter)
-        Y = np.zeros((R, cols.size, len(X), n_params))
-        for (params, owner), Fq in zip(owners, F, strict=True):
-            # sums over the samples of each (image row, parameter) pair, with what each sample reads of the row
-            spread = sum(sparse.csr_matrix((share, (rows * params.size + owner, np.arange(K))),
-                                           shape=(R * params.size, K))
-                         for rows, share in ((lo, 1.0 - frac), (hi, frac)))
-            for a, Xa in enumerate(Xs):
-                Y[:, :, a, params] += np.moveaxis((spread @ (w * Xa * Fq[:, cols])).reshape(R, params.size, cols.size),
-                                                  1, 2)
-        corr += np.einsum("rcap,rcaq->pq", Y, fac.solve(Y), optimize=True)
-    return corr
-
-
 def solve_images(obs: Observations, dsg: Design, weights: np.ndarray, *, phase: float | None = None,
                  keep_inverse: bool = False) -> Images:
     """Least-squares images for fixed per-frame parameters (paper eqs. 8-9).
@@ -553,7 +530,8 @@ def sample_derivatives(obs: Observations, dsg: Design, images: Images, name: str
     e = effect(name)
     fields = channel_fields(obs, dsg, images, _channel_id(name))
     if e.channel in ("phase", "visibility"):
-        return [fields[0] * obs.x[None, :] ** k_ for k_ in e.powers]
+        return [fields[0] * obs.x[None, :] ** k_ * obs.y[:, None] ** m for k_, m in zip(e.powers, e.row_powers,
+                                                                                          strict=True)]
     return fields
 
 
@@ -729,10 +707,12 @@ def fisher_parts(obs: Observations, dsg: Design, images: Images, weights: np.nda
     if not profiled:
         return info, np.zeros_like(info), index
     # the correction sum_i Y_i^T N_i^-1 Y_i (Y = X^T W D per pixel) couples the frames of each row
-    if obs.reading is not None:
+    if obs.reading is not None or any(r for n in names for r in effect(n).row_powers):
         where = ([obs.frame * Pf + q for q in range(Pf)] + [np.full(obs.frame.size, J * Pf + g) for g in range(Pg)])
         F = [F for *_, F in per_frame] + [F for *_, F in glob]
-        return info, read_between_correction(obs, dsg, images.coef, weights, F, where, J * Pf + Pg), index
+        at = obs.gather(images.coef)
+        X = [dsg.A, *image_columns(dsg, at[..., 1], at[..., 2])]
+        return info, profiled_correction(obs, X, weights, F, where, J * Pf + Pg), index
     kernels.set_threads()
     _, corr = kernels.fisher(obs, dsg.channels, weights, images.coef, images.inverse, component_table(names)[:3])
     return info, corr, index

@@ -29,6 +29,7 @@ import numpy as np
 from dfxcorr import config as C
 from dfxcorr.analysis.compare import machine
 from dfxcorr.analysis.diagnose import diagnose
+from dfxcorr.analysis.evaluate import frames_lighting, vibration_pulls, vibration_rmse
 from dfxcorr.pipeline import reconstruct
 from dfxcorr.sim import phantom
 from dfxcorr.sim import simulate as S
@@ -60,7 +61,11 @@ def errors(result, truth: dict) -> dict[str, float]:
 def timed_reconstruct(scan, cfg, truth) -> dict:
     t0 = time.perf_counter()
     r = reconstruct(scan, cfg)
-    return {"seconds": time.perf_counter() - t0, "reduced_chi2": float(r.reduced_chi2), "errors": errors(r, truth)}
+    seconds = time.perf_counter() - t0
+    good = frames_lighting(scan.position, scan.active_rows, scan.shape[1])
+    return {"seconds": seconds, "reduced_chi2": float(r.reduced_chi2), "errors": errors(r, truth),
+            "vibration_rmse": vibration_rmse(r.params, truth, good),
+            "vibration_pulls": vibration_pulls(r.params, r.uncertainty, truth, good)}
 
 
 def interpolation_floor(cfg: dict, shape: tuple[int, int]) -> dict[str, float]:

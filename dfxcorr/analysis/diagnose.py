@@ -164,7 +164,7 @@ class Session:
             # need every column's expected counts make them a run of columns at a time)
             rec = retrieve(obs, params, n_frame_params=n_par, keep_expected=False)
             fit_rec = retrieve(fit_obs, params, keep_inverse=True)
-            sigs = signatures(fit_obs, params, n_params=n_par, alpha=self.cfg["diagnose"]["alpha"], rec=fit_rec)
+            sigs = signatures(fit_obs, params, alpha=self.cfg["diagnose"]["alpha"], rec=fit_rec)
         return Fitted(hypothesis, params, unc, rec.chi2_sum, rec.reduced_chi2, rec, sigs, obs, fit_obs, fit_rec)
 
 

@@ -38,6 +38,23 @@ def vibration_rmse(params: dict[str, Any], truth: dict[str, Any], good: np.ndarr
     return out
 
 
+def vibration_pulls(params: dict[str, Any], uncertainty: dict[str, Any], truth: dict[str, Any], good: np.ndarray
+                    ) -> dict[str, float]:
+    """RMS of (estimate - truth) / reported standard error of each per-frame effect over ``good`` frames, both in the
+    median gauge (1 where the reported errors are right)."""
+    out = {}
+    for name, key in TRUTH_KEYS.items():
+        if name not in params or name not in uncertainty or key not in truth:
+            continue
+        scale = effect(name).gauge == "scale"
+        est = gauge_median(np.asarray(params[name])[:, 0], good, scale=scale)
+        tru = gauge_median(np.asarray(truth[key], dtype=float), good, scale=scale)
+        se = np.asarray(uncertainty[name])[:, 0]
+        ok = good & np.isfinite(se) & (se > 0)
+        out[name] = float(np.sqrt(np.mean(((est - tru)[ok] / se[ok]) ** 2)))
+    return out
+
+
 def image_rmse(images: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:
     """RMSE of t, v and phi (phase wrapped to (-pi, pi]) against the truth over finite pixels."""
     out = {}

@@ -101,7 +101,7 @@ def _binned(value: np.ndarray, z2: np.ndarray, edges: np.ndarray) -> np.ndarray:
 SIGNATURE_AXES = ("frame", "row", "column", "frame_row", "phase", "count", "pixel")
 
 
-def signatures(obs: Observations, params: dict[str, Any], *, n_params: int, alpha: float,
+def signatures(obs: Observations, params: dict[str, Any], *, alpha: float,
                min_photons: float = 25.0, rec: Retrieval | None = None) -> list[dict[str, Any]]:
     """Residual signatures of a fit, each tested against noise.
 
@@ -133,8 +133,6 @@ def signatures(obs: Observations, params: dict[str, Any], *, n_params: int, alph
         The fit's samples.
     params : dict
         The fitted effect parameters.
-    n_params : int
-        Number of fitted per-frame and global parameters.
     alpha : float
         Family-wise false-alarm probability: each signature's ``significant`` is Holm's verdict over
         all of them.

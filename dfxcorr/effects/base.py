@@ -188,8 +188,6 @@ class Pair:
 
     Attributes
     ----------
-    joint : (float, int)
-        Their statistic together and its dof.
     beyond : mapping
         Each one's name -> its share of the joint statistic beyond the other's test alone, and that share's dof.
     shared : int
@@ -197,7 +195,6 @@ class Pair:
         determines them; together the data cannot tell which of the two they belong to).
     """
 
-    joint: tuple[float, int]
     beyond: Mapping[str, tuple[float, int]]
     shared: int
 

@@ -82,8 +82,8 @@ class Scores:
         """Two candidates together: each one's share of their joint statistic beyond the other's test alone."""
         joint, dof = self.together((a, b))
         ta, tb = self.tests[a], self.tests[b]
-        return Pair((joint, dof), {a: (max(joint - tb.statistic, 0.0), dof - tb.dof),
-                                   b: (max(joint - ta.statistic, 0.0), dof - ta.dof)}, ta.dof + tb.dof - dof)
+        beyond = {a: (max(joint - tb.statistic, 0.0), dof - tb.dof), b: (max(joint - ta.statistic, 0.0), dof - ta.dof)}
+        return Pair(beyond, ta.dof + tb.dof - dof)
 
 
 def score_tests(obs: Observations, params: Params, weights: np.ndarray, model: Sequence[str],

@@ -44,7 +44,7 @@ def one(sigs, axis, kind):
 
 
 def test_data_drawn_from_the_model_raise_no_signature(model_scan):
-    sigs = signatures(drawn(model_scan, 2), {}, n_params=0, alpha=0.01)
+    sigs = signatures(drawn(model_scan, 2), {}, alpha=0.01)
     assert {(s["axis"], s["kind"]) for s in sigs} == {
         ("frame", "variance"), ("row", "variance"), ("column", "variance"), ("phase", "variance"),
         ("count", "variance"), ("frame", "mean"), ("frame_row", "mean"), ("count", "level")}
@@ -59,7 +59,7 @@ def test_holm_holds_the_family_wise_rate_on_data_drawn_from_the_model(model_scan
     alpha, n = 0.2, 40
     alarms = uncorrected = 0
     for seed in range(100, 100 + n):
-        sigs = signatures(drawn(model_scan, seed), {}, n_params=0, alpha=alpha)
+        sigs = signatures(drawn(model_scan, seed), {}, alpha=alpha)
         alarms += bool(significant(sigs))
         uncorrected += any(s["p_value"] < alpha for s in sigs)
     bound = stats.binom.ppf(0.999, n, alpha)
@@ -70,7 +70,7 @@ def test_a_mean_offset_in_two_frames_is_the_frame_signature_there(model_scan):
     obs = drawn(model_scan, 3)
     # 25 counts (about one standard deviation per sample) added to every sample of frames 20 and 21
     counts = obs.counts + 25.0 * np.isin(obs.frame, [20, 21])[:, None]
-    sigs = signatures(replace(obs, counts=counts), {}, n_params=0, alpha=0.01)
+    sigs = signatures(replace(obs, counts=counts), {}, alpha=0.01)
     assert significant(sigs) == {("frame", "mean"), ("frame_row", "mean")}
     sig = one(sigs, "frame", "mean")
     np.testing.assert_array_equal(np.flatnonzero(sig["bins"] > 3), [20, 21])
@@ -85,7 +85,7 @@ def test_a_variance_excess_in_one_row_is_the_row_signature_there(model_scan):
     _, ibar = model_scan
     # detector row 7 gets 1.44 times the Poisson variance on top
     extra = np.where((obs.row == 7)[:, None], 1.2 * np.sqrt(ibar) * rng.normal(size=ibar.shape), 0.0)
-    sigs = signatures(replace(obs, counts=obs.counts + extra), {}, n_params=0, alpha=0.01)
+    sigs = signatures(replace(obs, counts=obs.counts + extra), {}, alpha=0.01)
     # the level may read it too: the whole recording's variance is above the stated noise model
     assert ("row", "variance") in significant(sigs) <= {("row", "variance"), ("count", "level")}
     sig = one(sigs, "row", "variance")

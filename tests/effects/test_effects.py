@@ -446,7 +446,7 @@ class Shares(Joinable):
 
     def __init__(self, name, statistic, *, beyond, other, shared=2):
         super().__init__(name, statistic)
-        self.pair = Pair((statistic, 4), {name: beyond[0], other: beyond[1]}, shared)
+        self.pair = Pair({name: beyond[0], other: beyond[1]}, shared)
 
     def beside(self, ctx, state, other):
         return self.pair if other in self.pair.beyond else None
