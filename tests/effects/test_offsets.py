@@ -27,16 +27,17 @@ def image_errors(result, truth) -> np.ndarray:
     return np.array(out)
 
 
-def phase_error(result, truth) -> float:
-    """RMS differential-phase error (rad) against the truth where the sample transmits.
+def phase_rms(dphi: np.ndarray, where: np.ndarray) -> float:
+    """RMS (rad) of a phase difference image ``where`` (H, W), up to a constant: the phase image's constant is the
+    gauge of phase_offset (median zero), which a common shift of the frames moves."""
+    d = np.exp(1j * dphi)
+    ok = np.isfinite(d) & where
+    return float(np.sqrt(np.mean(np.angle(d[ok] * np.exp(-1j * np.angle(np.mean(d[ok])))) ** 2)))
 
-    Up to a constant: the phase image's constant is the gauge of phase_offset (median zero), which a
-    common shift of the frames moves.
-    """
-    d = np.exp(1j * (result.differential_phase - truth["image_differential_phase"]))
-    ok = np.isfinite(d) & (truth["image_transmission"] > 0.05)
-    d = np.angle(d[ok] * np.exp(-1j * np.angle(np.mean(d[ok]))))
-    return float(np.sqrt(np.mean(d ** 2)))
+
+def phase_error(result, truth) -> float:
+    """RMS differential-phase error (rad) against the truth where the sample transmits (:func:`phase_rms`)."""
+    return phase_rms(result.differential_phase - truth["image_differential_phase"], truth["image_transmission"] > 0.05)
 
 
 def test_tiles_off_reproduce_the_seamless_flat_field():
@@ -157,8 +158,18 @@ def test_position_error_is_named_estimated_and_corrected(tmp_path):
     assert tmp_path / "diag" / "position_errors.txt" in written
     sets = reconstruct_settings(diag, out_dir=tmp_path / "diag")
     assert f"align.position_errors={tmp_path / 'diag' / 'position_errors.txt'}" in sets
-    # the frames' phase offsets absorb most of what position errors do to the phase image; the transmission
-    # and dark field keep it (measured with the true errors: 12 % and 8 % lower)
-    before = image_errors(P.reconstruct(scan, cfg), truth)
-    after = image_errors(P.reconstruct(scan, C.load([], sets)), truth)
-    assert np.all(after[1:] < 0.96 * before[1:]) and after[0] < before[0], (before, after)
+    # the transmission and dark field keep what position errors do (measured with the true errors: 12 % and 8 %
+    # lower after the correction)
+    plain, fixed = P.reconstruct(scan, cfg), P.reconstruct(scan, C.load([], sets))
+    before, after = image_errors(plain, truth), image_errors(fixed, truth)
+    assert np.all(after[1:] < 0.96 * before[1:]), (before, after)
+    # the frames' phase offsets absorb most of it in the phase image, whose error against the truth is the photon
+    # noise's (0.050 rad) give or take what the vibration fit's own noise moves with the alignment (0.0017 rad
+    # between the true and the estimated errors, either way round on other seeds): the phase image is judged
+    # against the same data reconstructed with the true errors, where that noise is common (measured 0.021 rad
+    # before, 0.005 after on this seed; 0.021 and 0.007 on seed 5)
+    np.savetxt(tmp_path / "true.txt", truth["vib_position_jitter"])
+    exact = P.reconstruct(scan, C.load([], [f"align.position_errors={tmp_path / 'true.txt'}"]))
+    ok = truth["image_transmission"] > 0.05
+    gaps = [phase_rms(r.differential_phase - exact.differential_phase, ok) for r in (plain, fixed)]
+    assert gaps[1] < 0.5 * gaps[0], (before, after, gaps)
