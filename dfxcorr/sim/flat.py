@@ -11,7 +11,7 @@ import numpy as np
 from ..io import Reference
 from ..observations import lateral_coordinate
 
-__all__ = ["NONLINEARITY", "flat_field", "pixel_fringe"]
+__all__ = ["NONLINEARITY", "flat_field", "pixel_flat_field"]
 
 #: Relative variation of t^f and v^f along the scan, and phase departure / 2 pi, of ``flat_nonlinearity: 1``.
 NONLINEARITY = 0.02
@@ -61,7 +61,7 @@ def flat_field(cfg: dict, A: int, W: int) -> Reference:
     return Reference(transmission=tf, visibility=vf, phase=phase)
 
 
-def pixel_fringe(cfg: dict, u: np.ndarray, A: int, W: int, *, step: float = 0.0
+def pixel_flat_field(cfg: dict, u: np.ndarray, A: int, W: int, *, step: float = 0.0
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The flat field that pixels centred at local rows ``u`` see (the reference's own rows at u = k + 0.5).
 

@@ -24,7 +24,7 @@ from ..config import MAX_SCATTER, ConfigError, Option, _fraction, _nonneg, _posi
 from ..io import Reference, Scan, SteppingReference, write_scan
 from ..observations import Observations
 from ..reference import stepping_observations
-from .flat import flat_field, pixel_fringe
+from .flat import flat_field, pixel_flat_field
 
 log = logging.getLogger(__name__)
 
@@ -402,7 +402,7 @@ class Simulation:
         cols = np.arange(W)
         u = u - self.shift[j]
         # the analytic field at each displaced pixel's centre, not an interpolation of the reference's rows
-        tf, vf, phif = pixel_fringe(self.cfg, u, g["A"], W, step=g["phase_step"][j])
+        tf, vf, phif = pixel_flat_field(self.cfg, u, g["A"], W, step=g["phase_step"][j])
         zeros = np.zeros((row.size, W))
         obs = Observations(counts=zeros, tf=tf, vf=vf, phif=phif, dark=zeros,
                            use=np.ones((row.size, W), bool), row=row, frame=np.full(row.size, j), columns=cols,
