@@ -162,6 +162,10 @@ COARSE_MIN_COLUMNS = 16
 #: adds :data:`FIT_SECONDS_PER_SAMPLE` per sample of the coarse pass): 0.53 us on the paper study at every column
 #: with both cores free (fit 5.7 s, its coarse pass on every 7th column about 2 s).
 POLISH_SECONDS_PER_SAMPLE = 0.5e-6
+#: Wall seconds of a reconstruction's other stages (alignment, motion mask, retrieval of every pixel) per lit sample
+#: of the scan: what ``fit.time_floor`` leaves to the fit (0.076 us on the binned and 0.077 on the full-resolution
+#: clinical scan, 0.11 on the paper study; docs/benchmark.json, load 3.4-4.1).
+REST_SECONDS_PER_SAMPLE = 0.08e-6
 #: How much slower the fit runs where the samples read between rows (``geometry.parallax``: the model's numpy
 #: arrays and the block-tridiagonal solve instead of the compiled kernels): 32.9 s against 3.4 s on the 5 mm
 #: parallax scan, both under load 8.
@@ -273,8 +277,10 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
     evenly spread columns at the vibrations ``pilot`` (default :func:`pilot_estimate`) by
     :func:`dfxcorr.fit.pilot_uncertainty`; columns add information independently, so n columns give
     sigma_pilot sqrt(pilot columns / n). It takes the fewest evenly spaced columns predicted to reach
-    ``fit.target_uncertainty`` (a run ends when that precision is reached, however small the scan), or with
-    ``fit.time_budget`` the most predicted to fit in that time (:func:`fit_seconds`); never more than
+    ``fit.target_uncertainty``, or more where the whole run is predicted to take at most ``fit.time_floor``
+    seconds with them if one is set (the fit's :func:`fit_seconds` and the other stages'
+    :data:`REST_SECONDS_PER_SAMPLE` per sample of the scan), or with ``fit.time_budget`` the most predicted to fit
+    in that time (:func:`fit_seconds`); never more than
     ``fit.max_samples`` samples (memory) nor a spacing beyond the alias limit W / 4. Logged when ``report``.
     """
     f = cfg["fit"]
@@ -301,6 +307,11 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
             while n > 1 and subsample_columns(W, n, offset=f["column_offset"]).size < need:
                 n -= 1
             why = f"fit.target_uncertainty={f['target_uncertainty']:g} rad"
+            rest = REST_SECONDS_PER_SAMPLE * per_column * W
+            floor = W if f["time_floor"] is None else within_seconds(cfg, W, per_column, f["time_floor"] - rest)
+            if floor < n:
+                n, why = floor, (f"the most columns within fit.time_floor={f['time_floor']:g} s for the whole run, "
+                                 f"its other stages predicted {rest:.1f} s")
             n = max(n, cap)
         why += f"; pilot of {size} columns {sigma:.2g} rad"
         if n == cap and cap > 1:

@@ -88,7 +88,7 @@ def planned():
     scan, _ = S.simulate(sim_config())
     prep = prepare(scan, C.defaults())
     pilot = planning.pilot_estimate(prep)
-    plan = planning.plan_columns(prep, fit_cfg(target_uncertainty=0.007), pilot=pilot)
+    plan = planning.plan_columns(prep, fit_cfg(target_uncertainty=0.007, time_floor="null"), pilot=pilot)
     return prep, pilot, plan
 
 
@@ -96,14 +96,14 @@ def test_subsample_auto_takes_more_columns_for_a_tighter_target(planned, caplog)
     prep, pilot, plan = planned
     W = prep.shape[2]
     with caplog.at_level("INFO", logger="dfxcorr"):
-        looser = planning.plan_columns(prep, fit_cfg(target_uncertainty=0.012), pilot=pilot)
+        looser = planning.plan_columns(prep, fit_cfg(target_uncertainty=0.012, time_floor="null"), pilot=pilot)
     assert looser.columns.size < plan.columns.size < W
     assert plan.uncertainty <= 0.007 and looser.uncertainty <= 0.012
     # the log names the columns, the predicted uncertainty and time
     assert f"vibration fit columns: {looser.columns.size} columns" in caplog.text
     assert "predicted phi0/phi1 uncertainty" in caplog.text and "predicted fit time" in caplog.text
     # the prediction with the default pilot is this one
-    assert planning.plan_columns(prep, fit_cfg(target_uncertainty=0.007),
+    assert planning.plan_columns(prep, fit_cfg(target_uncertainty=0.007, time_floor="null"),
                                  report=False).uncertainty == pytest.approx(plan.uncertainty)
 
 
@@ -134,10 +134,25 @@ def test_time_budget_bounds_the_predicted_seconds_and_the_uncertainty_scales_as_
         assert short.uncertainty == pytest.approx(plan.uncertainty * np.sqrt(plan.columns.size / short.columns.size))
 
 
+def test_time_floor_is_the_whole_runs_and_takes_every_column_of_a_small_scan(planned):
+    prep, pilot, plan = planned
+    W = prep.shape[2]
+    # the floor is the whole run's: the fit's predicted seconds and the other stages' for every sample of the scan
+    rest = planning.REST_SECONDS_PER_SAMPLE * prep.store.samples_per_column() * W
+    floor = planning.plan_columns(prep, fit_cfg(target_uncertainty=0.012, time_floor=plan.seconds + rest),
+                                  pilot=pilot)
+    assert floor.columns.size >= plan.columns.size and floor.seconds <= plan.seconds
+    every = planning.plan_columns(prep, fit_cfg(target_uncertainty=0.012, time_floor=7.0), pilot=pilot)
+    assert every.columns.size == W and every.seconds + rest <= 7.0
+    # without a floor (the default) the fit ends at the target
+    default = planning.plan_columns(prep, fit_cfg(target_uncertainty=0.007), pilot=pilot)
+    assert np.array_equal(default.columns, plan.columns)
+
+
 def test_max_samples_holds_the_columns_of_auto(planned):
     prep, pilot, plan = planned
     per_column = prep.store.samples_per_column()
-    held = planning.plan_columns(prep, fit_cfg(target_uncertainty=0.001,
+    held = planning.plan_columns(prep, fit_cfg(target_uncertainty=0.001, time_floor="null",
                                                max_samples=per_column * plan.columns.size // 2), pilot=pilot)
     assert held.columns.size * per_column <= per_column * plan.columns.size // 2
     assert "held at fit.max_samples" in held.why
