@@ -704,7 +704,8 @@ def readme_table(docs: Path) -> str:
     for name, c in bench.get("clinical", {}).get("cases", {}).items():
         size = " x ".join(str(s) for s in c["size"])
         rows.append([f"clinical {'full resolution' if name == 'full' else name}, {size}, defaults",
-                     f"RMSE {rmse3(c['rmse'])}", f"{c['seconds']:g} s, {c['peak_rss_mb']} MB",
+                     f"RMSE {rmse3(c['rmse'])}",
+                     f"{c['seconds']:g} s, {c['peak_rss_mb']} MB (load {load_text(c.get('load_average'))})",
                      "`benchmark.py clinical`"])
     if real:
         diag = real.get("diagnosis", {})
