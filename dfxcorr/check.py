@@ -31,8 +31,8 @@ if TYPE_CHECKING:  # the planning (numba kernels) is imported only where a check
 NAME_MAX = 255
 #: Memory model of a streamed reconstruction: the store of lit rows (counts as stored), the images
 #: (corrected and uncorrected t, v, phi in float64: 48 bytes per pixel), the retrieval's row blocks
-#: (``retrieve.block_mb``) and the fit's samples (float32 observations, weights, cos/sin of the
-#: flat-field phase and the pilot's temporaries: FIT_BYTES each). Against the peak resident set
+#: (``retrieve.block_mb``) and the fit's samples (float32 observations, their fringe's quadratures and
+#: weights, the solves' outputs and the pilot's temporaries: FIT_BYTES each). Against the peak resident set
 #: (/usr/bin/time -v, 2 cores) it errs high: 1.50 GB for 1.35 GB measured at 195 x 2880 x 2880,
 #: 0.84 GB for 0.72 GB at 195 x 1440 x 1440 (fit.max_samples 2e6).
 IMAGE_BYTES = 48

@@ -63,14 +63,12 @@ def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = 
             "weights": w_out if keep else empty, "chi2": chi2, "samples": int(sel.sum())}
 
 
-def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, cos_phif: np.ndarray,
-                 sin_phif: np.ndarray, *, phase: float | None = None, square: bool = False,
-                 channels: Collection[str] = tuple(K.CHANNEL_IDS)) -> tuple[float, M.Channels]:
+def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, *, phase: float | None = None,
+                 square: bool = False, channels: Collection[str] = tuple(K.CHANNEL_IDS)) -> tuple[float, M.Channels]:
     """Reduced cost and its channel gradients (or Gauss-Newton sums): :func:`dfxcorr.kernels.reduced_cost`'s values,
     as a :class:`~dfxcorr.model.Channels` whose ``rows`` holds those of the coefficients of powers of y."""
     if compiled(obs, ch):
-        cost, grads = K.reduced_cost(obs, ch, weights, cos_phif, sin_phif, phase=phase, square=square,
-                                     channels=channels)
+        cost, grads = K.reduced_cost(obs, ch, weights, phase=phase, square=square, channels=channels)
         return cost, M.Channels(grads[0], grads[1], grads[2], grads[3], grads[4])
     dsg = M.design_channels(obs, ch)
     images = M.solve_images(obs, dsg, weights, phase=phase)

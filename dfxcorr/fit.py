@@ -37,7 +37,6 @@ from .frames import (
     well_determined,
     wrap_phases,
 )
-from .noise import noise_weights
 from .observations import Observations
 
 log = logging.getLogger(__name__)
@@ -133,12 +132,12 @@ class _Problem:
 
     def __init__(self, obs: Observations, names: Iterable[str], params: dict[str, np.ndarray], weights: np.ndarray,
                  *, phase: float | None = None, precondition: bool = True, preconditioner: str = "profiled",
-                 prior: dict | None = None, fringe: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 prior: dict | None = None) -> None:
         if preconditioner not in PRECONDITIONERS:
             raise ValueError(f"preconditioner must be one of {', '.join(PRECONDITIONERS)}, got {preconditioner!r}")
-        self.obs, self.names, self.weights, self.phase = obs, list(names), weights, phase
-        # cos and sin of the flat-field phase: fixed for the fit, so the kernels need no trigonometry per sample
-        self.fringe = K.fringe(obs) if fringe is None else fringe
+        # the weights in the samples' dtype once, not converted at every evaluation (kernels.reduced_cost)
+        self.obs, self.names, self.phase = obs, list(names), phase
+        self.weights = weights.astype(K.weights_dtype(obs), copy=False)
         self.fixed = {k: v for k, v in params.items() if k not in self.names}
         self.shapes = [params[n].shape for n in self.names]
         self.theta0 = np.concatenate([params[n].ravel() for n in self.names])
@@ -240,7 +239,7 @@ class _Problem:
     def _channel_sums(self, params: dict[str, np.ndarray], *, square: bool) -> tuple[float, np.ndarray]:
         """Reduced cost and the per-parameter sums of the kernel (gradient, or sum w F^2 if ``square``)."""
         self.evaluations += 1
-        cost, g = E.reduced_cost(self.obs, _channels(self.obs, params), self.weights, *self.fringe, phase=self.phase,
+        cost, g = E.reduced_cost(self.obs, _channels(self.obs, params), self.weights, phase=self.phase,
                                  square=square,
                                  channels={c for n in self.names if (c := effect(n).channel) is not None})
         sums = M.channel_adjoint(self.names, g, x=self.obs.x, square=square)
@@ -381,8 +380,7 @@ OPTIMIZERS = ("gauss-newton", "lbfgs")
 def minimise(obs: Observations, names: Sequence[str], params: dict[str, np.ndarray], weights: np.ndarray, *,
              phase: float | None = None, maxiter: int = 200, gtol: float = 1e-3, precondition: bool = True,
              preconditioner: str = "profiled", optimizer: str = "gauss-newton", prior: dict | None = None,
-             on_iteration: Callable[[float], None] | None = None,
-             fringe: tuple[np.ndarray, np.ndarray] | None = None
+             on_iteration: Callable[[float], None] | None = None
              ) -> tuple[dict[str, np.ndarray], list[float], str, bool, int]:
     """Minimise the reduced cost over the parameters of ``names``, the others held fixed.
 
@@ -422,8 +420,6 @@ def minimise(obs: Observations, names: Sequence[str], params: dict[str, np.ndarr
         broadcastable to the parameters (see :func:`catalogue_prior`, :func:`empirical_prior`).
     on_iteration : callable, optional
         Called with the cost after every iteration (accepted step).
-    fringe : tuple of ndarray, optional
-        :func:`dfxcorr.kernels.fringe` of ``obs`` (computed here if not given).
 
     Returns
     -------
@@ -447,7 +443,7 @@ def minimise(obs: Observations, names: Sequence[str], params: dict[str, np.ndarr
 
     size = sum(int(np.size(params[n])) for n in names)
     if optimizer == "gauss-newton" and phase is None and precondition and size <= FACTOR_MAX_PARAMETERS:
-        gn = _Problem(obs, names, params, weights, precondition=False, prior=prior, fringe=fringe)
+        gn = _Problem(obs, names, params, weights, precondition=False, prior=prior)
         theta, message, ok = gauss_newton(gn, maxiter=min(maxiter, GAUSS_NEWTON_STEPS), gtol=gtol,
                                           on_step=step)
         evaluations += gn.evaluations
@@ -466,7 +462,7 @@ def minimise(obs: Observations, names: Sequence[str], params: dict[str, np.ndarr
         step(float(intermediate_result.fun))
 
     prob = _Problem(obs, names, params, weights, phase=phase, precondition=precondition,
-                    preconditioner=preconditioner, prior=prior, fringe=fringe)
+                    preconditioner=preconditioner, prior=prior)
     lower = prob.lower()
     if np.all(prob.theta0 >= lower):
         feasible.append(prob.theta0)
@@ -480,7 +476,7 @@ def minimise(obs: Observations, names: Sequence[str], params: dict[str, np.ndarr
         log.debug("%d parameters below their bounds: diagonal preconditioning from there", int(np.sum(theta < lower)))
         start = prob.unpack(feasible[-1] if feasible else np.maximum(theta, lower))
         prob = _Problem(obs, names, {**params, **start}, weights, phase=phase, precondition=precondition,
-                        preconditioner="diagonal", prior=prior, fringe=fringe)
+                        preconditioner="diagonal", prior=prior)
         res = minimize(prob.evaluate, prob.to_z(prob.theta0), jac=True, method="L-BFGS-B", bounds=prob.bounds(),
                        callback=callback, options={"maxiter": max(maxiter - len(costs), 1), "maxcor": 20,
                                                    "ftol": 1e-15, "gtol": gtol})
@@ -567,7 +563,6 @@ def fit_vibrations(obs: Observations, *, effects: Sequence[str] = PAPER_MODEL, s
         # given weights stay; otherwise those of the coarse estimate's model, as a reweighting
         start, staged = first.params, False
     K.set_threads()
-    fringe = K.fringe(obs)
     params = neutral_params(names, J)
     if start:
         params.update({k: np.array(v, dtype=np.float64) for k, v in start.items() if k in params})
@@ -601,7 +596,7 @@ def fit_vibrations(obs: Observations, *, effects: Sequence[str] = PAPER_MODEL, s
         tol = max(gtol, STAGE_GTOL) if i + 1 < len(stages) or refine else gtol
         params, c, msg, ok, n_eval = minimise(obs, free, params, weights, phase=phase, maxiter=iters, gtol=tol,
                                               precondition=precondition, preconditioner=preconditioner,
-                                              optimizer=optimizer, prior=wide, on_iteration=cb, fringe=fringe)
+                                              optimizer=optimizer, prior=wide, on_iteration=cb)
         log.debug("stage %s: %d iterations, %d evaluations, %s", label, len(c), n_eval, msg)
         evaluations += n_eval
         costs += c
@@ -618,7 +613,7 @@ def fit_vibrations(obs: Observations, *, effects: Sequence[str] = PAPER_MODEL, s
         cb = None if on_iteration is None else (lambda c: on_iteration("prior", c))
         params, c, msg, ok, n_eval = minimise(obs, names, params, weights, maxiter=maxiter, gtol=gtol,
                                               precondition=precondition, preconditioner=preconditioner,
-                                              optimizer=optimizer, prior=narrow, on_iteration=cb, fringe=fringe)
+                                              optimizer=optimizer, prior=narrow, on_iteration=cb)
         log.debug("stage prior: %d iterations, %d evaluations, %s", len(c), n_eval, msg)
         evaluations += n_eval
         costs += c
@@ -676,9 +671,9 @@ def spread_columns(obs: Observations, weights: np.ndarray, *, most: int) -> tupl
 
 
 def initial_weights(obs: Observations, params: dict) -> np.ndarray:
-    """Inverse shot-noise variances from the model at ``params`` after one data-weighted solve (eq. 6)."""
-    K.set_threads()
-    return _model_weights(obs, params, noise_weights(obs, np.maximum(obs.counts, 1.0)))
+    """Inverse shot-noise variances from the model at ``params`` after one data-weighted solve (eq. 6), in the
+    samples' dtype (the first solve is weighted from the data itself: no weights of the samples' size)."""
+    return E.retrieve(obs, _channels(obs, params), keep_expected=False, next_weights=True)["weights"]
 
 
 def _channels(obs: Observations, params: dict) -> M.Channels:
@@ -688,12 +683,12 @@ def _channels(obs: Observations, params: dict) -> M.Channels:
 
 def _model_weights(obs: Observations, params: dict, weights: np.ndarray) -> np.ndarray:
     """Inverse noise variances of the model solved with ``weights`` (the weights of a second solve)."""
-    return E.retrieve(obs, _channels(obs, params), weights=weights, next_weights=True)["weights"]
+    return E.retrieve(obs, _channels(obs, params), weights=weights, keep_expected=False, next_weights=True)["weights"]
 
 
 def _solve(obs: Observations, params: dict, weights: np.ndarray, *, keep_inverse: bool = False) -> M.Images:
     """Closed-form images for fixed parameters and weights."""
-    out = E.retrieve(obs, _channels(obs, params), weights=weights, keep_inverse=keep_inverse)
+    out = E.retrieve(obs, _channels(obs, params), weights=weights, keep_inverse=keep_inverse, keep_expected=False)
     return M.Images(out["coef"], out["valid"], out["inverse"], out["coupling"])
 
 

@@ -1,11 +1,13 @@
 """Compiled per-sample loops of the fit and the retrieval (numba).
 
-The forward model of :mod:`dfxcorr.model` is evaluated here from its *channel values* on the (frame, column) grid:
-the phase Φ (J, C), the visibility factor V (J, C), the dose D (J,), the background coefficients of (1, x, y) (3,)
-and the harmonic (hc, hs) (2,). Every catalogue effect enters through one of these channels
-(:func:`dfxcorr.model.channels` maps effect parameters to them, :func:`dfxcorr.model.channel_adjoint` maps channel
-gradients back), so a new effect that enters through an existing channel needs no change here. The numpy expressions
-of :mod:`dfxcorr.model` are the definition; the tests hold these kernels to them.
+The forward model of :mod:`dfxcorr.model` is evaluated here from its *channel values* on the (frame, column) grid: the
+phase Φ (J, C), the visibility factor V (J, C), the dose D (J,), the background coefficients of (1, x, y) (3,) and the
+harmonic (hc, hs) (2,). The samples' flat field is read as its transmission and fringe quadratures (``obs.tf``,
+``obs.fringe``), turned by the phase channel with the cos and sin of Φ tabulated per (frame, column): no sample needs a
+trigonometric call here. Every catalogue effect enters through one of these channels (:func:`dfxcorr.model.channels`
+maps effect parameters to them, :func:`dfxcorr.model.channel_adjoint` maps channel gradients back), so a new effect
+that enters through an existing channel needs no change here. The numpy expressions of :mod:`dfxcorr.model` are the
+definition; the tests hold these kernels to them.
 
 The second harmonic follows the sample (its term is m cos(2 psi + beta), not linear in the images): where it is
 non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton steps, each a solve with the columns
@@ -13,9 +15,9 @@ non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton 
 
 Layout: a pixel is (row, column); its samples are the blocks ``starts[r]:starts[r + 1]`` of one row
 (:class:`dfxcorr.observations.Observations`). The kernels run over chunks of rows in parallel; every chunk owns its
-accumulators (summed afterwards), so no two threads write the same memory. Within a row the columns are handled in
-tiles (:data:`TILE`, :data:`FIT_TILE`) so that the second pass over a tile finds what the first left in cache. Sums
-are accumulated in float64 whatever the sample dtype.
+accumulators (summed afterwards), so no two threads write the same memory. Within a row the columns are handled in tiles
+(:data:`TILE`, :data:`FIT_TILE`) so that the second pass over a tile finds what the first left in cache. Sums are
+accumulated in float64 whatever the sample dtype.
 """
 from __future__ import annotations
 
@@ -31,17 +33,14 @@ from threadpoolctl import threadpool_limits
 PHASE, VISIBILITY, DOSE, BACKGROUND, HARMONIC = range(5)
 CHANNEL_IDS = {"phase": PHASE, "visibility": VISIBILITY, "dose": DOSE, "background": BACKGROUND, "harmonic": HARMONIC}
 
-#: Columns per tile of the retrieval: a tile's design arrays of one row (up to a few hundred frames) stay in
-#: the L2 cache.
+#: Columns per tile of the retrieval: a tile's design arrays of one row (a few hundred frames) stay in the L2 cache.
 TILE = 64
-#: Columns per tile of the fit's cost, which keeps only a few numbers per column between its passes: wider
-#: tiles mean fewer passes over a row's blocks (cost+gradient 18.0 -> 15.5 ns CPU per sample on the paper
-#: study at every column, scripts/bench_kernels.py, medians of three alternations; results unchanged)
+#: Columns per tile of the fit's cost, which keeps only a few numbers per column between its passes: wider tiles mean
+#: fewer passes over a row's blocks (cost+gradient 18.0 -> 15.5 ns CPU per sample on the paper study at every column)
 FIT_TILE = 512
 
-#: Gauss-Newton steps of the per-pixel solve after the first (harmonic-free) one when the second harmonic
-#: is in the model (its term is not linear in the images; tests/test_model.py holds these steps to a
-#: converged solve).
+#: Gauss-Newton steps of the per-pixel solve after the first (harmonic-free) one when the second harmonic is in the
+#: model (its term is not linear in the images; tests/test_model.py holds these steps to a converged solve).
 HARMONIC_STEPS = 3
 
 
@@ -128,30 +127,25 @@ def _bounds(obs) -> np.ndarray:
     return np.append(obs.starts, obs.frame.size).astype(np.int64)
 
 
-# --------------------------------------------------------------------------------------------------
 # Per-sample helpers (inlined into the kernels)
-# --------------------------------------------------------------------------------------------------
 
 
 @njit(cache=True, inline="always")
-def _cos_sin32(theta):
-    """cos and sin of an angle (rad) in single precision after reducing it to [-pi, pi] in double.
-
-    The float32 functions are several times cheaper per sample than the float64 ones, which dominated the retrieval
-    (synthetic clinical fit columns: 27.6 -> 16.8 ns wall per sample); the error is below 2e-7 absolute (1.6e-7 on
-    the paper study, bench_kernels.py), a fringe error under 2e-7 of its amplitude (a sample's photon noise is above
-    1e-3 of it). Not where the retrieval keeps the inverse normal matrices for the Fisher information.
-    """
-    r = np.float32(theta - 2.0 * np.pi * np.floor(theta / (2.0 * np.pi) + 0.5))
-    return np.float64(np.cos(r)), np.float64(np.sin(r))
+def _turned(fc, fs, cp, sp):
+    """The sample's fringe turned by the phase channel: tf vf (cos θ, sin θ) from fc, fs and cos Φ, sin Φ."""
+    return fc * cp - fs * sp, fs * cp + fc * sp
 
 
 @njit(cache=True, inline="always")
-def _design(ct, st, amp, bv, hc, hs):
-    """cos 2θ, sin 2θ, the design columns A, Bc, Bs and the harmonic's columns Hc, Hs of one sample."""
-    c2 = ct * ct - st * st
-    s2 = 2.0 * st * ct
-    return c2, s2, amp, bv * ct, -bv * st, bv * (hc * c2 - hs * s2), bv * (hc * s2 + hs * c2)
+def _design(Fc, Fs, amp, dv, hc, hs, harm):
+    """tf vf (cos 2θ, sin 2θ) (model.double_angle; zeros unless ``harm``), the design columns A, Bc, Bs and the
+    harmonic's columns Hc, Hs of one sample with turned fringe (Fc, Fs), amp = D tf and dv = D V."""
+    c2, s2 = 0.0, 0.0
+    if harm:
+        m = np.sqrt(Fc * Fc + Fs * Fs)
+        if m > 0.0:
+            c2, s2 = (Fc * Fc - Fs * Fs) / m, 2.0 * Fc * Fs / m
+    return c2, s2, amp, dv * Fc, -dv * Fs, dv * (hc * c2 - hs * s2), dv * (hc * s2 + hs * c2)
 
 
 @njit(cache=True, inline="always")
@@ -172,15 +166,16 @@ def _image_columns(bc, bs, hcc, hcs, u, w):
 
 
 @njit(cache=True, inline="always")
-def _derivatives(tt, cs, ss, ct, st, c2, s2, e, f, tf, vf, amp, bc, bs, vis, hc, hs):
-    """dIbar/d(channel) of one sample at images (t, c, s), harmonic factors (e, f): phase, visibility, dose, hc, hs."""
-    q = cs * ct - ss * st
+def _derivatives(tt, cs, ss, Fc, Fs, c2, s2, e, f, tf, dose, vis, hc, hs):
+    """dIbar/d(channel) of one sample at images (t, c, s), harmonic factors (e, f), turned fringe (Fc, Fs) and its
+    double angle (c2, s2): phase, visibility, dose, hc, hs (model.sample_derivatives)."""
+    q = cs * Fc - ss * Fs
     g = c2 * e - s2 * f
     k = s2 * e + c2 * f
     p2 = hc * g - hs * k
-    bv = amp * vf * vis
-    f_phase = cs * bs - ss * bc - 2.0 * bv * (hc * k + hs * g)
-    return f_phase, amp * vf * (q + p2), tf * (tt + vf * vis * (q + p2)), bv * g, -bv * k
+    dv = dose * vis
+    f_phase = -dv * (cs * Fs + ss * Fc + 2.0 * (hc * k + hs * g))
+    return f_phase, dose * (q + p2), tf * tt + vis * (q + p2), dv * g, -dv * k
 
 
 @njit(cache=True, inline="always")
@@ -238,41 +233,31 @@ def _solve(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used, out, inv):
     return True
 
 
-# --------------------------------------------------------------------------------------------------
 # The fit: reduced cost and its gradient (or the Gauss-Newton diagonal) in one pass per pixel
-# --------------------------------------------------------------------------------------------------
 
 
 @njit(cache=True, inline="always")
-def _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis, dose, k, c, j, hc, hs):
-    """Fringe phase by angle addition (no trigonometric call per sample), then :func:`_design`.
-
-    Returns (cos θ, sin θ, D tf, cos 2θ, sin 2θ, A, Bc, Bs, Hc, Hs) of sample (k, c) in frame j.
-    """
-    ct = cphi[k, c] * cos_p[j, c] - sphi[k, c] * sin_p[j, c]
-    st = sphi[k, c] * cos_p[j, c] + cphi[k, c] * sin_p[j, c]
-    amp = dose[j] * tf[k, c]
-    c2, s2, a, bc, bs, hcc, hcs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
-    return ct, st, amp, c2, s2, a, bc, bs, hcc, hcs
+def _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, ww, a, x1, x2, target):
+    """Add one sample of weight ww, design (a, x1, x2) and target to column i of a tile's normal equations."""
+    wa, w1, w2 = ww * a, ww * x1, ww * x2
+    n00[i], n01[i], n02[i] = n00[i] + wa * a, n01[i] + wa * x1, n02[i] + wa * x2
+    n11[i], n12[i], n22[i] = n11[i] + w1 * x1, n12[i] + w1 * x2, n22[i] + w2 * x2
+    r0[i], r1[i], r2[i] = r0[i] + wa * target, r1[i] + w1 * target, r2[i] + w2 * target
+    used[i] += 1.0 if ww > 0 else 0.0
 
 
 @njit(cache=True, inline="always")
-def _accumulate(N, rhs, used, i, wk, a, x1, x2, target):
-    """Add one sample to column i of the tile's normal equations."""
-    N[0, i] += wk * a * a
-    N[1, i] += wk * a * x1
-    N[2, i] += wk * a * x2
-    N[3, i] += wk * x1 * x1
-    N[4, i] += wk * x1 * x2
-    N[5, i] += wk * x2 * x2
-    rhs[0, i] += wk * a * target
-    rhs[1, i] += wk * x1 * target
-    rhs[2, i] += wk * x2 * target
-    used[i] += 1.0 if wk > 0 else 0.0
+def _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb, f_p, f_v, f_d, x, y):
+    """Add one sample to column i of the phase, visibility, dose and background sums: gradient sum (-2 w r) F with
+    g = -2 w r, or Gauss-Newton diagonal sum (w F) F with g = w (``square``). Every sum is taken, times 0 (np_, ...)
+    where not asked for: a store under a condition would keep the loop from being vectorised."""
+    gp[i], gv[i] = gp[i] + np_ * g * (f_p * f_p if square else f_p), gv[i] + nv * g * (f_v * f_v if square else f_v)
+    gd[i], gb0[i] = gd[i] + nd * g * (f_d * f_d if square else f_d), gb0[i] + nb * g
+    gb1[i], gb2[i] = gb1[i] + nb * g * (x * x if square else x), gb2[i] + nb * g * (y * y if square else y)
 
 
 @njit(cache=True, parallel=True)
-def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose,
+def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose,
                   bg, harm, hold, square, need, tile):
     C = counts.shape[1]
     J = vis.shape[0]
@@ -286,7 +271,12 @@ def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chun
     g_harm = np.empty((n, 2, C))
     hc, hs = harm[0], harm[1]
     steps = 1 + (HARMONIC_STEPS if (hc != 0.0 or hs != 0.0) else 0)
+    # the double angle where the harmonic is in the model or its derivatives are asked for
+    double = steps > 1 or need[4]
     m00, m01, m10, m11 = hold[0, 0], hold[0, 1], hold[1, 0], hold[1, 1]
+    b0, b1, b2 = bg[0], bg[1], bg[2]
+    np_, nv, nd = 1.0 if need[0] else 0.0, 1.0 if need[1] else 0.0, 1.0 if need[2] else 0.0
+    nb, nh = 1.0 if need[3] else 0.0, 1.0 if need[4] else 0.0
     for t in prange(n):
         cost[t, :] = 0.0
         g_phase[t, :, :] = 0.0
@@ -294,81 +284,99 @@ def _reduced_cost(counts, tf, vf, cphi, sphi, dark, w, frame, y, x, bounds, chun
         g_dose[t, :, :] = 0.0
         g_bg[t, :, :] = 0.0
         g_harm[t, :, :] = 0.0
-        N = np.empty((6, tile))
-        rhs = np.empty((3, tile))
-        used = np.empty(tile)
-        coef = np.empty((3, tile))
-        dirn = np.empty((4, tile))  # u, w, e, f of each column's images (_direction)
+        # one 1-d array per accumulator, each sample row's operands as 1-d slices: the column loops below are
+        # elementwise over contiguous memory, which the compiler vectorises (a 2-d accumulator indexed [q, i] and
+        # the samples indexed [k, c] were about eight times slower per sample)
+        n00, n01, n02, n11, n12, n22 = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
+            np.empty(tile), np.empty(tile)
+        r0, r1, r2, used, ct, cc, cs = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
+            np.empty(tile), np.empty(tile), np.empty(tile)
+        du, dw, de, df = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile)
         u = np.empty(3)
         inv = np.empty((3, 3))
         for r in range(chunks[t], chunks[t + 1]):
             lo, hi = bounds[r], bounds[r + 1]
             for c0 in range(0, C, tile):
-                T = min(tile, C - c0)
+                c1 = min(c0 + tile, C)
+                T, xs = c1 - c0, x[c0:c1]
                 for step in range(steps):
-                    N[:, :T] = 0.0
-                    rhs[:, :T] = 0.0
-                    used[:T] = 0.0
+                    n00[:T], n01[:T], n02[:T], n11[:T], n12[:T], n22[:T] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+                    r0[:T], r1[:T], r2[:T], used[:T] = 0.0, 0.0, 0.0, 0.0
                     for k in range(lo, hi):
                         j = frame[k]
-                        off = bg[0] + bg[2] * y[k]
-                        for i in range(T):
-                            c = c0 + i
-                            _, _, _, _, _, a, bc, bs, hcc, hcs = _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis,
-                                                                               dose, k, c, j, hc, hs)
-                            if step > 0:
+                        dj, off = dose[j], b0 + b2 * y[k]
+                        cnt, tfk, fck, fsk = counts[k, c0:c1], tf[k, c0:c1], fc[k, c0:c1], fs[k, c0:c1]
+                        dk, wk = dark[k, c0:c1], w[k, c0:c1]
+                        cp, sp, vv = cos_p[j, c0:c1], sin_p[j, c0:c1], vis[j, c0:c1]
+                        # the first solve in a loop of its own: a branch on the step kept it from being vectorised
+                        if step == 0:
+                            for i in range(T):
+                                Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
+                                dv = dj * vv[i]
+                                _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), dj * tfk[i],
+                                     dv * (m00 * Fc - m01 * Fs), dv * (m10 * Fc - m11 * Fs),
+                                     cnt[i] - dk[i] - off - b1 * xs[i])
+                        else:
+                            for i in range(T):
+                                Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
+                                _, _, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
                                 # Gauss-Newton step of the harmonic: the columns at the current images
-                                bc, bs = _image_columns(bc, bs, hcc, hcs, dirn[0, i], dirn[1, i])
-                            _accumulate(N, rhs, used, i, w[k, c], a, m00 * bc + m01 * bs, m10 * bc + m11 * bs,
-                                        counts[k, c] - dark[k, c] - off - bg[1] * x[c])
+                                bc, bs = _image_columns(bc, bs, hcc, hcs, du[i], dw[i])
+                                _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), a,
+                                     m00 * bc + m01 * bs, m10 * bc + m11 * bs, cnt[i] - dk[i] - off - b1 * xs[i])
                     for i in range(T):
-                        _solve(N[0, i], N[1, i], N[2, i], N[3, i], N[4, i], N[5, i], rhs[0, i], rhs[1, i],
-                               rhs[2, i], used[i], u, inv)
+                        _solve(n00[i], n01[i], n02[i], n11[i], n12[i], n22[i], r0[i], r1[i], r2[i], used[i], u, inv)
                         # back from the solved columns (x1, x2) to (t, c, s)
-                        coef[0, i] = u[0]
-                        coef[1, i] = m00 * u[1] + m10 * u[2]
-                        coef[2, i] = m01 * u[1] + m11 * u[2]
-                        dirn[0, i], dirn[1, i], dirn[2, i], dirn[3, i] = _direction(coef[1, i], coef[2, i])
+                        ct[i] = u[0]
+                        cc[i] = m00 * u[1] + m10 * u[2]
+                        cs[i] = m01 * u[1] + m11 * u[2]
+                        du[i], dw[i], de[i], df[i] = _direction(cc[i], cs[i])
+                costs, gh0, gh1 = cost[t, c0:c1], g_harm[t, 0, c0:c1], g_harm[t, 1, c0:c1]
+                gb0, gb1, gb2 = g_bg[t, 0, c0:c1], g_bg[t, 1, c0:c1], g_bg[t, 2, c0:c1]
                 for k in range(lo, hi):
-                    j = frame[k]
-                    off = bg[0] + bg[2] * y[k]
+                    j, yk = frame[k], y[k]
+                    dj, off = dose[j], b0 + b2 * yk
+                    cnt, tfk, fck, fsk = counts[k, c0:c1], tf[k, c0:c1], fc[k, c0:c1], fs[k, c0:c1]
+                    dk, wk = dark[k, c0:c1], w[k, c0:c1]
+                    cp, sp, vv = cos_p[j, c0:c1], sin_p[j, c0:c1], vis[j, c0:c1]
+                    gp, gv, gd = g_phase[t, j, c0:c1], g_vis[t, j, c0:c1], g_dose[t, j, c0:c1]
+                    if not double:
+                        # without the harmonic in a loop of its own: _design and _derivatives at hc = hs = 0
+                        for i in range(T):
+                            Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
+                            dv = dj * vv[i]
+                            tt, cs_, ss = ct[i], cc[i], cs[i]
+                            q = cs_ * Fc - ss * Fs
+                            ww = np.float64(wk[i])
+                            res = cnt[i] - dk[i] - off - b1 * xs[i] - (tt * dj * tfk[i] + dv * q)
+                            costs[i] += ww * res * res
+                            g = ww if square else -2.0 * ww * res
+                            _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb,
+                                      -dv * (cs_ * Fs + ss * Fc), dj * q, tfk[i] * tt + vv[i] * q, xs[i], yk)
+                        continue
                     for i in range(T):
-                        c = c0 + i
-                        ct, st, amp, c2, s2, a, bc, bs, hcc, hcs = _angle_design(cphi, sphi, cos_p, sin_p, tf, vf,
-                                                                                 vis, dose, k, c, j, hc, hs)
-                        tt, cs, ss = coef[0, i], coef[1, i], coef[2, i]
-                        e, f = dirn[2, i], dirn[3, i]
-                        f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs, ss, ct, st, c2, s2, e, f, tf[k, c], vf[k, c],
-                                                                amp, bc, bs, vis[j, c], hc, hs)
-                        wk = w[k, c]
-                        res = (counts[k, c] - dark[k, c] - off - bg[1] * x[c] - (tt * a + cs * bc + ss * bs)
-                               - (hcc * e - hcs * f))
-                        cost[t, c] += wk * res * res
-                        # gradient: sum (-2 w r) F; Gauss-Newton diagonal: sum (w F) F
-                        g = -2.0 * wk * res
-                        if need[0]:
-                            g_phase[t, j, c] += (wk * f_p if square else g) * f_p
-                        if need[1]:
-                            g_vis[t, j, c] += (wk * f_v if square else g) * f_v
-                        if need[2]:
-                            g_dose[t, j, c] += (wk * f_d if square else g) * f_d
-                        if need[3]:
-                            g_bg[t, 0, c] += wk if square else g
-                            g_bg[t, 1, c] += (wk * x[c] if square else g) * x[c]
-                            g_bg[t, 2, c] += (wk * y[k] if square else g) * y[k]
-                        if need[4]:
-                            g_harm[t, 0, c] += (wk * f_c if square else g) * f_c
-                            g_harm[t, 1, c] += (wk * f_s if square else g) * f_s
+                        Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
+                        c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
+                        tt, cs_, ss, e, f = ct[i], cc[i], cs[i], de[i], df[i]
+                        f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs_, ss, Fc, Fs, c2, s2, e, f, tfk[i], dj, vv[i],
+                                                                hc, hs)
+                        ww = np.float64(wk[i])
+                        res = cnt[i] - dk[i] - off - b1 * xs[i] - (tt * a + cs_ * bc + ss * bs) - (hcc * e - hcs * f)
+                        costs[i] += ww * res * res
+                        g = ww if square else -2.0 * ww * res
+                        _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb, f_p, f_v, f_d, xs[i], yk)
+                        gh0[i] += nh * g * (f_c * f_c if square else f_c)
+                        gh1[i] += nh * g * (f_s * f_s if square else f_s)
     return cost, g_phase, g_vis, g_dose, g_bg, g_harm
 
 
-def fringe(obs, *, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
-    """cos and sin of the flat-field phase of every sample (fixed during the fit), each (K, C)."""
-    return np.cos(obs.phif, dtype=dtype), np.sin(obs.phif, dtype=dtype)
+def weights_dtype(obs) -> np.dtype:
+    """The dtype of the weights the fit's cost reads: single precision unless the samples are double (rounding 6e-8
+    relative, far below any noise; one compiled specialisation per dtype, 4 bytes per sample less)."""
+    return np.result_type(obs.counts.dtype, np.float32)
 
 
-def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: np.ndarray, *,
-                 phase: float | None = None, square: bool = False,
+def reduced_cost(obs, ch, weights: np.ndarray, *, phase: float | None = None, square: bool = False,
                  channels=tuple(CHANNEL_IDS)) -> tuple[float, tuple[np.ndarray, ...]]:
     """Reduced cost sum w (I - Ibar)^2 at the closed-form images and its channel gradients.
 
@@ -378,15 +386,13 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
     ch : Channels
         Channel values (:func:`dfxcorr.model.channels`).
     weights : ndarray, shape (K, C)
-    cos_phif, sin_phif : ndarray, shape (K, C)
-        :func:`fringe` of the observations.
     phase : float, optional
         Hold the phase image at this constant (the circular-mean stage): 2 unknowns per pixel.
     square : bool
         Instead of the gradient sum -2 w r F, return the Gauss-Newton sums sum w F^2 (the Fisher
         diagonal, per channel value).
     channels : sequence of str
-        Channels whose sums are wanted (the others are returned as zeros, at no cost per sample).
+        Channels whose sums are wanted (the others are returned as zeros).
 
     Returns
     -------
@@ -399,9 +405,9 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
     hold = np.eye(2) if phase is None else np.array([[np.cos(phase), np.sin(phase)], [0.0, 0.0]])
     need = np.isin(list(CHANNEL_IDS), list(channels))
     bounds = _bounds(obs)
-    # the weights and fringe in float64 whatever the caller's dtype: fewer compiled specialisations
-    weights, cos_phif, sin_phif = (_c(a, np.float64) for a in (weights, cos_phif, sin_phif))
-    out = _reduced_cost(_c(obs.counts), _c(obs.tf), _c(obs.vf), cos_phif, sin_phif, _c(obs.dark), weights, obs.frame,
+    weights = _c(weights, weights_dtype(obs))
+    fc, fs = obs.fringe
+    out = _reduced_cost(_c(obs.counts), _c(obs.tf), fc, fs, _c(obs.dark), weights, obs.frame,
                         obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase),
                         np.sin(ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, hold, square,
                         need, FIT_TILE)
@@ -409,9 +415,7 @@ def reduced_cost(obs, ch, weights: np.ndarray, cos_phif: np.ndarray, sin_phif: n
     return float(cost.sum()), (g_phase, g_vis, g_dose.sum(axis=1), g_bg.sum(axis=1), g_harm.sum(axis=1))
 
 
-# --------------------------------------------------------------------------------------------------
 # The retrieval: images, expected counts, noise weights and Pearson chi-square
-# --------------------------------------------------------------------------------------------------
 
 
 @njit(cache=True, inline="always")
@@ -425,8 +429,9 @@ def _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn):
 
 
 @njit(cache=True, parallel=True)
-def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds, chunks, phase, vis, dose, bg, harm,
-              gain, electronic, iterations, from_data, keep_inverse, keep_expected, next_weights, tile):
+def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose, bg,
+              harm, gain, electronic, iterations, from_data, keep_inverse, keep_expected, keep_weights, next_weights,
+              tile):
     K, C = counts.shape
     R = bounds.size - 1
     n = chunks.size - 1
@@ -434,8 +439,9 @@ def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds
     coef = np.empty((R, C, 3))
     valid = np.empty((R, C), dtype=np.bool_)
     inverse = np.empty((R if keep_inverse else 0, C, 3, 3))
-    ibar = np.empty((K if keep_expected else 0, C))
-    w_out = np.empty((K if keep_expected else 0, C))
+    # per-sample outputs in the samples' dtype: float32 samples need no float64 copies of their size
+    ibar = np.empty((K if keep_expected else 0, C), tf.dtype)
+    w_out = np.empty((K if keep_weights else 0, C), tf.dtype)
     chi2 = np.empty(n)
     n_sel = np.empty(n)
     hc, hs = harm[0], harm[1]
@@ -445,6 +451,7 @@ def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds
         n_sel[t] = 0.0
         N = np.empty((6, tile))
         rhs = np.empty((3, tile))
+        N0, N1, N2, N3, N4, N5, R0, R1, R2 = N[0], N[1], N[2], N[3], N[4], N[5], rhs[0], rhs[1], rhs[2]
         used = np.empty(tile)
         dirn = np.empty((4, tile))  # u, w, e, f of each column's images (_direction)
         u = np.empty(3)
@@ -452,7 +459,7 @@ def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds
         for r in range(chunks[t], chunks[t + 1]):
             lo, hi = bounds[r], bounds[r + 1]
             nb = hi - lo
-            # the tile's design, offsets and weights, computed once (one sin/cos per sample)
+            # the tile's design, offsets and weights, computed once
             A = np.empty((nb, tile))
             Bc = np.empty((nb, tile))
             Bs = np.empty((nb, tile))
@@ -468,12 +475,9 @@ def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds
                     j = frame[k]
                     for i in range(T):
                         c = c0 + i
-                        th = phif[k, c] + phase[j, c]
-                        # the inverse normal matrices feed the profiled Fisher information, which subtracts large
-                        # near-equal sums: they must invert exactly the float64 design of _fisher
-                        ct, st = (np.cos(th), np.sin(th)) if keep_inverse else _cos_sin32(th)
-                        amp = dose[j] * tf[k, c]
-                        _, _, a, bc, bs, hcc, hcs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
+                        Fc, Fs = _turned(fc[k, c], fs[k, c], cos_p[j, c], sin_p[j, c])
+                        _, _, a, bc, bs, hcc, hcs = _design(Fc, Fs, dose[j] * tf[k, c], dose[j] * vis[j, c], hc, hs,
+                                                            steps > 1)
                         A[b, i], Bc[b, i], Bs[b, i] = a, bc, bs
                         if steps > 1:
                             Hc[b, i], Hs[b, i] = hcc, hcs
@@ -504,7 +508,8 @@ def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds
                                 if step > 0:
                                     # Gauss-Newton step of the harmonic: the columns at the current images
                                     bc, bs = _image_columns(bc, bs, Hc[b, i], Hs[b, i], dirn[0, i], dirn[1, i])
-                                _accumulate(N, rhs, used, i, w[b, i], A[b, i], bc, bs, counts[k, c0 + i] - off[b, i])
+                                _add(N0, N1, N2, N3, N4, N5, R0, R1, R2, used, i, w[b, i], A[b, i], bc, bs,
+                                     counts[k, c0 + i] - off[b, i])
                         for i in range(T):
                             c = c0 + i
                             valid[r, c] = _solve(N[0, i], N[1, i], N[2, i], N[3, i], N[4, i], N[5, i], rhs[0, i],
@@ -520,6 +525,7 @@ def _retrieve(counts, tf, vf, phif, dark, quiet, use, start, frame, y, x, bounds
                         m = _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn)
                         if keep_expected:
                             ibar[k, c] = m
+                        if keep_weights:
                             # the weights of this solve, or those of its model (what a further solve would use)
                             w_out[k, c] = (1.0 / _variance(gain[r, c], m, quiet[k, c], electronic) if use[k, c]
                                            else 0.0) if next_weights else w[b, i]
@@ -552,42 +558,43 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         Return the expected counts and the weights (a retrieval for the images alone writes nothing per sample).
     next_weights : bool
         Return as 'weights' the inverse noise variances of the last solve's model (the weights of a further solve,
-        as ``iterations + 1`` would use them, without that solve) instead of those of the last solve.
+        as ``iterations + 1`` would use them, without that solve) instead of those of the last solve, whatever
+        ``keep_expected`` says.
 
     Returns
     -------
     dict
-        'coef' (R, C, 3), 'valid' (R, C), 'inverse' (R, C, 3, 3) or None, 'expected' (K, C) counts,
-        'weights' (K, C) of the last solve or with ``next_weights`` of its model (both (0, C) without
-        ``keep_expected`` or ``next_weights``), 'chi2' (Pearson chi-square
-        over the used samples of valid pixels), 'samples' (their number).
+        'coef' (R, C, 3), 'valid' (R, C), 'inverse' (R, C, 3, 3) or None, 'expected' (K, C) counts ((0, C)
+        without ``keep_expected``), 'weights' (K, C) of the last solve or with ``next_weights`` of its model
+        ((0, C) without ``keep_expected`` or ``next_weights``), both in the samples' dtype (``obs.tf``'s),
+        'chi2' (Pearson chi-square over the used samples of valid pixels), 'samples' (their number).
     """
     _per_pixel(obs)
     if iterations < 1:
         raise ValueError("iterations must be at least 1")
     g = obs.pixel_gain(gain)
     bounds = _bounds(obs)
-    # weights in float64 whatever the caller's dtype: one compiled specialisation fewer (about 6 s of a first run)
-    start = np.zeros((0, 0)) if weights is None else _c(weights, np.float64)
+    # weights in the samples' dtype whatever the caller's: one compiled specialisation per dtype (~6 s each)
+    start = np.zeros((0, 0), obs.tf.dtype) if weights is None else _c(weights, obs.tf.dtype)
     # without known photons in it the dark is its own quiet part: one array (not a second copy of a strided one)
     dark = _c(obs.dark)
     quiet = dark if obs.offset is None else _c(obs.quiet)
+    fc, fs = obs.fringe
     coef, valid, inverse, ibar, w, chi2, n_sel = _retrieve(
-        _c(obs.counts), _c(obs.tf), _c(obs.vf), _c(obs.phif), dark, quiet, _c(obs.use), start,
-        obs.frame, obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), _c(ch.phase, np.float64),
-        _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, _c(g, np.float64), float(obs.electronic),
-        int(iterations), weights is None, keep_inverse, keep_expected or next_weights, next_weights, TILE)
+        _c(obs.counts), _c(obs.tf), fc, fs, dark, quiet, _c(obs.use), start,
+        obs.frame, obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase),
+        np.sin(ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, _c(g, np.float64),
+        float(obs.electronic), int(iterations), weights is None, keep_inverse, keep_expected,
+        keep_expected or next_weights, next_weights, TILE)
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
 
 
-# --------------------------------------------------------------------------------------------------
 # Fisher information: plain and the profiled correction, driven by a component table
-# --------------------------------------------------------------------------------------------------
 
 
 @njit(cache=True, parallel=True)
-def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm, coef, inverse, channel, power,
+def _fisher(tf, fc, fs, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose, harm, coef, inverse, channel, power,
             n_per_frame, n_frames, profiled):
     C = tf.shape[1]
     Q = channel.size
@@ -597,6 +604,10 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
     plain = np.empty((n, P, P))
     corr = np.empty((n, P, P))
     hc, hs = harm[0], harm[1]
+    # the double angle where the harmonic is in the model or among the components
+    double = hc != 0.0 or hs != 0.0
+    for q in range(Q):
+        double = double or channel[q] == 4
     # the column factor of each component: x^power (phase, visibility), the basis (background), else 1
     xq = np.ones((Q, C))
     for q in range(Q):
@@ -637,12 +648,11 @@ def _fisher(tf, vf, phif, w, frame, y, x, bounds, chunks, phase, vis, dose, harm
                         continue
                     tt, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
                     du, dw, e, f = dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c]
-                    th = phif[k, c] + phase[j, c]
-                    ct, st = np.cos(th), np.sin(th)
-                    amp = dose[j] * tf[k, c]
-                    c2, s2, a, bc, bs, hcc, hcs = _design(ct, st, amp, amp * vf[k, c] * vis[j, c], hc, hs)
+                    Fc, Fs = _turned(fc[k, c], fs[k, c], cos_p[j, c], sin_p[j, c])
+                    c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dose[j] * tf[k, c], dose[j] * vis[j, c], hc, hs,
+                                                          double)
                     basis[0], basis[1], basis[2], basis[3], basis[4] = _derivatives(
-                        tt, cs, ss, ct, st, c2, s2, e, f, tf[k, c], vf[k, c], amp, bc, bs, vis[j, c], hc, hs)
+                        tt, cs, ss, Fc, Fs, c2, s2, e, f, tf[k, c], dose[j], vis[j, c], hc, hs)
                     # the images' columns of the profiled correction: their derivatives at the images
                     xc, xs = _image_columns(bc, bs, hcc, hcs, du, dw)
                     for q in range(Q):
@@ -731,9 +741,10 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray |
     inv = np.zeros((0, 0, 3, 3)) if inverse is None else inverse
     # one chunk per thread: the accumulators are (P, P) each
     weights = _c(weights, np.float64)  # one compiled specialisation whatever the caller's dtype
-    plain, corr = _fisher(_c(obs.tf), _c(obs.vf), _c(obs.phif), weights, obs.frame, obs.y, obs.x, bounds,
-                   row_chunks(bounds[:-1], obs.frame.size, per_thread=1), _c(ch.phase, np.float64),
-                   _c(ch.vis, np.float64), ch.dose, ch.harmonic,
-                   coef, inv, np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64),
+    fc, fs = obs.fringe
+    plain, corr = _fisher(_c(obs.tf), fc, fs, weights, obs.frame, obs.y, obs.x, bounds,
+                   row_chunks(bounds[:-1], obs.frame.size, per_thread=1), np.cos(ch.phase), np.sin(ch.phase),
+                   _c(ch.vis, np.float64), ch.dose, ch.harmonic, coef, inv, np.asarray(channel, dtype=np.int64),
+                   np.asarray(power, dtype=np.int64),
                    int(n_per_frame), int(obs.n_frames), bool(profiled and inverse is not None))
     return plain.sum(axis=0), corr.sum(axis=0)

@@ -131,7 +131,6 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
     names = PAPER_MODEL
     K.set_threads()
     sub = obs.subset(np.arange(0, obs.columns.size, every))
-    fringe = K.fringe(sub)
     index = M.fisher_index(names, sub.n_frames)
     params = neutral_params(names, obs.n_frames)
     weights = noise_weights(sub, np.maximum(sub.counts, 1.0))
@@ -149,7 +148,7 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
         held = E.retrieve(flat, ch, weights=w, keep_inverse=True)
         plain, corr = E.fisher(flat, ch, w, held["coef"], held["inverse"], names)
         # the reduced cost's gradient is that at the images solved with w (envelope theorem)
-        grad = M.channel_adjoint(names, E.reduced_cost(sub, ch, w, *fringe, channels=("phase", "visibility"))[1],
+        grad = M.channel_adjoint(names, E.reduced_cost(sub, ch, w, channels=("phase", "visibility"))[1],
                                  x=sub.x)
         rhs = -0.5 * np.array([grad[n][j, m] for n, j, m in index])
         step = np.linalg.lstsq(plain - corr, rhs, rcond=1e-8)[0]

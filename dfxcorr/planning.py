@@ -270,29 +270,32 @@ def pilot_estimate(prep: Prepared) -> dict:
 
 
 def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report: bool = True) -> ColumnPlan:
-    """Columns entering the vibration fit: ``fit.subsample``, or for ``auto`` those a target precision needs.
+    """Columns entering the vibration fit: ``fit.subsample``, or for ``auto`` those a target precision needs, with the
+    uncertainty and time predicted for them.
 
-    ``auto`` predicts the uncertainty from a pilot: the profiled Fisher information of :data:`PILOT_COLUMNS`
+    The uncertainty is predicted from a pilot: the profiled Fisher information of :data:`PILOT_COLUMNS`
     evenly spread columns at the vibrations ``pilot`` (default :func:`pilot_estimate`) by
     :func:`dfxcorr.fit.pilot_uncertainty`; columns add information independently, so n columns give
     sigma_pilot sqrt(pilot columns / n). It takes the fewest evenly spaced columns predicted to reach
     ``fit.target_uncertainty``, or more where the whole run is predicted to take at most ``fit.time_floor``
-    seconds with them (the fit's :func:`fit_seconds` and the other stages' :data:`REST_SECONDS_PER_SAMPLE` per
-    sample of the scan: a small scan's run is short, and its fit takes every column, the paper study's too), or
-    with ``fit.time_budget`` the most predicted to fit in that time (:func:`fit_seconds`); never more than
+    seconds with them if one is set (the fit's :func:`fit_seconds` and the other stages'
+    :data:`REST_SECONDS_PER_SAMPLE` per sample of the scan), or with ``fit.time_budget`` the most predicted to fit
+    in that time (:func:`fit_seconds`); never more than
     ``fit.max_samples`` samples (memory) nor a spacing beyond the alias limit W / 4. Logged when ``report``.
     """
     f = cfg["fit"]
     W = prep.shape[2]
     per_column = prep.store.samples_per_column()
     n, why = f["subsample"], "fit.subsample"
-    sigma, size = float("nan"), 0
+    if n != "auto":
+        fit_columns(W, cfg, n)  # a setting beyond the detector is refused before the pilot runs
+    # the pilot's prediction at every setting: the log states what the chosen columns are expected to give
+    spread = subsample_columns(W, max(W // PILOT_COLUMNS, 1))
+    size = spread.size
+    pilot = pilot_estimate(prep) if pilot is None else pilot
+    sigma = pilot_uncertainty(prep.observations(columns=spread, dtype=np.float32), params=pilot,
+                              gauge_fraction=f["gauge_fraction"])
     if n == "auto":
-        spread = subsample_columns(W, max(W // PILOT_COLUMNS, 1))
-        size = spread.size
-        pilot = pilot_estimate(prep) if pilot is None else pilot
-        sigma = pilot_uncertainty(prep.observations(columns=spread, dtype=np.float32), params=pilot,
-                                  gauge_fraction=f["gauge_fraction"])
         cap = column_step(W, per_column, most=f["max_samples"])
         if f["time_budget"] is not None:
             n = max(within_seconds(cfg, W, per_column, f["time_budget"]), cap)
@@ -315,8 +318,7 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
             why += f"; held at fit.max_samples={f['max_samples']:g}"
     cols = fit_columns(W, cfg, n)
     coarse = coarse_step(cfg, cols.size, per_column, step=n, width=W)
-    out = ColumnPlan(columns=cols, why=why,
-                     uncertainty=sigma * np.sqrt(size / cols.size) if size else float("nan"),
+    out = ColumnPlan(columns=cols, why=why, uncertainty=sigma * np.sqrt(size / cols.size),
                      seconds=fit_seconds(cols.size, per_column, coarse, slowdown=slowdown(cfg)), pilot=pilot,
                      coarse=coarse)
     if report:

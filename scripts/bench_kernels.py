@@ -8,9 +8,9 @@ synthetic samples), both in float32 as a reconstruction holds them:
   one retrieval pass as the pipeline's blocked retrieval runs it (two solves, the second with the model's
   weights, and the Pearson chi-square; no expected counts written), wall time and process CPU time
   (the CPU time is what counts on cores shared with other work),
-- the floor of each pass: the bytes it must stream / the np.copyto bandwidth measured here,
-- the retrieval's trigonometric floor: the same samples' cos and sin alone, as the retrieval computes them
-  (kernels._cos_sin32, one pair per sample), with the error of that single-precision pair,
+- the floor of each pass: the bytes it must stream / the np.copyto bandwidth measured here (the passes read the
+  samples' fringe as its quadratures, Observations.fringe: no pass evaluates a trigonometric function per sample),
+- the cost of making those quadratures once per observations (numpy's cos and sin in the samples' dtype),
 then the wall time of the whole vibration fit stage of ``reconstruct`` on the paper study with
 ``fit.subsample=1`` and the default (auto), and the first-call compile cost of the kernels (fresh
 numba cache, in a subprocess) against a cached start. Writes docs/bench-kernels.json.
@@ -27,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numba
@@ -103,28 +104,22 @@ def pass_numbers(obs: Observations, bandwidth: float, *, repeat: int) -> dict:
     rng = np.random.default_rng(0)
     params["phase_offset"] += rng.normal(0, 0.1, params["phase_offset"].shape)
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
-    # float64 as the fit's weights (kernels.retrieve returns them so): no conversion inside the timed calls
-    weights = np.asarray(noise_weights(obs, obs.counts), dtype=np.float64)
-    fringe = K.fringe(obs)
+    # in the samples' dtype, as the fit holds them (fit._Problem)
+    weights = np.asarray(noise_weights(obs, obs.counts), dtype=obs.counts.dtype)
     n = obs.counts.size
-    K.reduced_cost(obs, ch, weights, *fringe)
+    K.reduced_cost(obs, ch, weights)
 
     def retrieval():
         return K.retrieve(obs, ch, iterations=2, keep_expected=False)
 
+    fringe, fringe_cpu = _timed(lambda: replace(obs).fringe, repeat)
     retrieval()
-    cost, cost_cpu = _timed(lambda: K.reduced_cost(obs, ch, weights, *fringe, channels=("phase", "visibility")),
-                            repeat)
+    cost, cost_cpu = _timed(lambda: K.reduced_cost(obs, ch, weights, channels=("phase", "visibility")), repeat)
     ret, ret_cpu = _timed(retrieval, repeat)
-    theta = (obs.phif + ch.phase[obs.frame]).astype(np.float64)
-    _trig(theta)
-    trig, trig_cpu = _timed(lambda: _trig(theta), repeat)
-    r = theta - 2.0 * np.pi * np.floor(theta / (2.0 * np.pi) + 0.5)
-    c32, s32 = np.cos(r.astype(np.float32)), np.sin(r.astype(np.float32))
-    trig_error = float(max(np.abs(c32 - np.cos(theta)).max(), np.abs(s32 - np.sin(theta)).max()))
     # bytes each pass must stream once: the samples it reads (the blocked retrieval writes none)
-    read_cost = sum(a.itemsize for a in (obs.counts, obs.tf, obs.vf, fringe[0], fringe[1], obs.dark, weights))
-    read_ret = sum(a.itemsize for a in (obs.counts, obs.tf, obs.vf, obs.phif, obs.dark, obs.use))
+    fc, fs = obs.fringe
+    read_cost = sum(a.itemsize for a in (obs.counts, obs.tf, fc, fs, obs.dark, weights))
+    read_ret = sum(a.itemsize for a in (obs.counts, obs.tf, fc, fs, obs.dark, obs.use))
     return {"samples": int(n), "blocks": int(obs.frame.size), "columns": int(obs.columns.size),
             "frames": int(obs.n_frames), "rows": int(obs.rows.size),
             "cost_gradient": {"ns_per_sample": round(cost / n * 1e9, 2), "seconds": round(cost, 4),
@@ -134,27 +129,9 @@ def pass_numbers(obs: Observations, bandwidth: float, *, repeat: int) -> dict:
             "retrieval": {"ns_per_sample": round(ret / n * 1e9, 2), "seconds": round(ret, 4),
                           "cpu_ns_per_sample": round(ret_cpu / n * 1e9, 2),
                           "bytes_per_sample": read_ret,
-                          "floor_ns_per_sample": round(read_ret / bandwidth * 1e9, 2),
-                          "trig_ns_per_sample": round(trig / n * 1e9, 2),
-                          "trig_cpu_ns_per_sample": round(trig_cpu / n * 1e9, 2),
-                          "trig_max_error": trig_error}}
-
-
-@numba.njit(parallel=True)
-def _trig_sum(theta):
-    total = np.zeros(theta.shape[0])
-    for k in numba.prange(theta.shape[0]):
-        acc = 0.0
-        for c in range(theta.shape[1]):
-            ct, st = K._cos_sin32(theta[k, c])
-            acc += ct + st
-        total[k] = acc
-    return total
-
-
-def _trig(theta: np.ndarray) -> float:
-    """Sum of cos + sin of every angle as the retrieval evaluates them (the sum keeps the work from being dropped)."""
-    return float(_trig_sum(theta).sum())
+                          "floor_ns_per_sample": round(read_ret / bandwidth * 1e9, 2)},
+            "fringe": {"ns_per_sample": round(fringe / n * 1e9, 2),
+                       "cpu_ns_per_sample": round(fringe_cpu / n * 1e9, 2)}}
 
 
 def fit_times(scan) -> dict:
@@ -186,7 +163,7 @@ obs = Observations(f(a(500, 900)), f(a(900, 1100)), f(a(0.2, 0.4)), f(a(-3, 3)),
 K.set_threads()
 ch = M.channels({}, x=obs.x, n_frames=4)
 w = noise_weights(obs, obs.counts)
-K.reduced_cost(obs, ch, w, *K.fringe(obs))
+K.reduced_cost(obs, ch, np.asarray(w, np.float32))
 r = K.retrieve(obs, ch, weights=w, keep_inverse=True)
 K.fisher(obs, ch, w, r["coef"], r["inverse"], M.component_table(PAPER_MODEL)[:3])
 print(time.perf_counter() - t0)

@@ -14,18 +14,30 @@ def test_linear_maps_are_reproduced_exactly_including_outer_half_rows():
     np.testing.assert_allclose(interpolate_rows(maps, query), 2.0 + 0.7 * query[:, None] + np.arange(W), rtol=1e-12)
 
 
-def test_wrapped_phase_is_unwrapped_before_interpolation():
+def test_the_fringe_is_interpolated_as_the_format_says_and_a_wrapped_phase_gives_the_same(rng):
+    """tf, vf and the unwrapped phase linearly (spec/scan-format.md), the phase turned by the phase step: a wrapped
+    reference phase gives the fringe of the unwrapped one, with a step of 1.3 rad between rows."""
     A, W, H = 10, 2, 30
     u = np.arange(A) + 0.5
     true_phase = 1.3 * u[:, None] * np.ones((1, W))  # crosses several multiples of 2 pi
-    wrapped = np.angle(np.exp(1j * true_phase))
-    ref = Reference(np.ones((A, W)), np.full((A, W), 0.5), wrapped)
+    t, v = rng.uniform(1e3, 2e3, (A, W)), rng.uniform(0.1, 0.4, (A, W))
     position = np.array([-3.25, 0.4, 7.8, 21.6])
-    scan = Scan(data=np.ones((4, H, W)), position=position, reference=ref)
-    obs = build_observations(scan, ref, min_frames=1)
-    ulocal = obs.row + 0.5 - position[obs.frame]
-    expected = 1.3 * ulocal[:, None] * np.ones((1, W))
-    np.testing.assert_allclose(np.angle(np.exp(1j * (obs.phif - expected))), 0.0, atol=1e-12)
+    step = np.array([0.0, 1.0, -2.0, 0.5])
+    obs = {}
+    for name, phase in (("unwrapped", true_phase), ("wrapped", np.angle(np.exp(1j * true_phase)))):
+        ref = Reference(t, v, phase)
+        obs[name] = build_observations(Scan(data=np.ones((4, H, W)), position=position, reference=ref,
+                                            phase_step=step), ref, min_frames=1)
+    o = obs["wrapped"]
+    f = o.row + 0.5 - position[o.frame] - 0.5
+    k0 = np.clip(np.floor(f).astype(int), 0, A - 2)
+    a = (f - k0)[:, None]
+    lerp = lambda m: (1 - a) * m[k0] + a * m[k0 + 1]  # noqa: E731
+    linear = lerp(true_phase) + step[o.frame][:, None]
+    np.testing.assert_allclose(o.tf, lerp(t), rtol=1e-12)
+    np.testing.assert_allclose(o.vf, lerp(v), rtol=1e-12)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (o.phif - linear))), 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (o.phif - obs["unwrapped"].phif))), 0.0, atol=1e-12)
 
 
 def test_lit_blocks_follow_the_geometry():
@@ -45,7 +57,6 @@ def test_reference_maps_from_a_noise_free_stepping_series(rng):
     steps = 2 * np.pi * np.arange(S) / S + 0.1
     data = t * (1 + v * np.cos(phi + steps[:, None, None]))
     ref = fit_reference(SteppingReference(data=data, phase_step=steps), effects=()).reference
-    # to the retrieval's single-precision fringe (kernels._cos_sin32, error below 1e-7)
     np.testing.assert_allclose(ref.transmission, t, rtol=1e-7)
     np.testing.assert_allclose(ref.visibility, v, rtol=1e-6)
     np.testing.assert_allclose(np.angle(np.exp(1j * (ref.phase - phi))), 0, atol=1e-6)

@@ -169,7 +169,7 @@ class PositionError(EffectBase[Steps]):
     entry = Effect("position_error", None, True, ("delta",), 0.0, "shift",
                    "the recorded position of frame j is off by delta_j rows: its flat field is read at u - delta_j",
                    unit="rows")
-    policy = Policy(astray_check=True)
+    policy = Policy(astray_check=True, fresh_start=True)
     files = ("position_errors.txt",)
 
     def configured(self, cfg: dict[str, Any], *, n_frames: int, detector: tuple[int, int]) -> Any:

@@ -19,11 +19,12 @@ import numpy as np
 from scipy import signal
 
 from .. import model as M
-from ..align import interpolate_rows, lit_blocks
+from ..align import lit_blocks
 from ..config import MAX_SCATTER, ConfigError, Option, _fraction, _nonneg, _positive, _within
 from ..io import Reference, Scan, SteppingReference, write_scan
-from ..observations import Observations, lateral_coordinate
+from ..observations import Observations
 from ..reference import stepping_observations
+from .flat import flat_field, pixel_flat_field
 
 log = logging.getLogger(__name__)
 
@@ -243,49 +244,6 @@ def _check_size(H: float, W: float, A: float, J: float) -> None:
                           f"{W:.3g} pixels, more than {MAX_SAMPLES:.0e} samples")
 
 
-#: Relative variation of t^f and v^f along the scan, and phase departure / 2 pi, of ``flat_nonlinearity: 1``.
-NONLINEARITY = 0.02
-
-
-def flat_field(cfg: dict, A: int, W: int) -> Reference:
-    """Flat field with a fringe count growing from the centre to the edges (paper Sec. III-A).
-
-    With ``simulate.tiles`` the gratings are tiled across the width: each tile has its own fringe count
-    (the value at its centre, varied by up to +- ``tile_fringes``), phase at u = 0, t^f and v^f, so the
-    phase gradient along the scan is piecewise constant across the width. ``flat_nonlinearity`` adds the
-    departures from linearity along u that real flat fields have: phase curvature, and t^f and v^f
-    varying along u (differently in each tile). The tiles draw from their own stream of the seed, so the
-    other random draws of a scan do not change.
-    """
-    s = cfg["simulate"]
-    u = (np.arange(A) + 0.5)[:, None]
-    x = lateral_coordinate(np.arange(W), W)[None, :]
-    n = s["tiles"]
-    tile = np.minimum((np.arange(W) * n) // W, n - 1)[None, :] if n else np.zeros((1, W), int)
-    if n:
-        rng = np.random.default_rng([s["seed"], 1])
-        centre = lateral_coordinate((np.arange(n) + 0.5) * W / n - 0.5, W)
-        jitter = rng.uniform(-1, 1, (4, n))
-        fringes = (s["fringes_centre"] + (s["fringes_edge"] - s["fringes_centre"]) * centre ** 2
-                   + s["tile_fringes"] * jitter[0])[tile]
-        phase0 = (np.pi * jitter[1])[tile]
-        tf_tile, vf_tile = (1 + s["tile_contrast"] * jitter[2])[tile], (1 + s["tile_contrast"] * jitter[3])[tile]
-    else:
-        fringes = s["fringes_centre"] + (s["fringes_edge"] - s["fringes_centre"]) * x ** 2
-        phase0, tf_tile, vf_tile = 0.0, 1.0, 1.0
-    flux = s["flux"] * (1 + s["flat_gradient"] * (u / A - 0.5)) * np.ones((1, W))
-    vis = np.full((A, W), float(s["visibility"]))
-    phase = 2 * np.pi * fringes * u / A + phase0
-    a = NONLINEARITY * s["flat_nonlinearity"]
-    if a:
-        # one period of variation over the active area, shifted from tile to tile
-        wave = 2 * np.pi * u / A + tile
-        flux = flux * (1 + a * np.sin(wave))
-        vis = vis * (1 + a * np.cos(wave))
-        phase = phase + 2 * np.pi * a * 4 * (u / A - 0.5) ** 2
-    return Reference(transmission=flux * tf_tile, visibility=vis * vf_tile, phase=phase)
-
-
 def sample_images(cfg: dict, H: int, W: int, *, rows: np.ndarray | None = None,
                   shift: float = 0.0) -> dict[str, np.ndarray]:
     """t, v, phi (rad) of the configured phantom on an H x W detector, each (n, W), at ``rows`` (ascending
@@ -409,7 +367,6 @@ class Simulation:
         H, W, A, J = g["H"], g["W"], g["A"], g["position"].size
         self.shape = (J, H, W)
         self.flat = flat_field(cfg, A, W)
-        self._phase = np.unwrap(self.flat.phase, axis=0)
         self.images = sample_images(cfg, H, W)
         #: Rows by which frame j sees the sample displaced (``effects.parallax``), shape (J,).
         self.displacement = parallax_shift(cfg, g["position"], A, H)
@@ -443,12 +400,11 @@ class Simulation:
         if row.size == 0:
             return 0, np.zeros((0, W))
         cols = np.arange(W)
-        ref = self.flat
         u = u - self.shift[j]
-        phif = interpolate_rows(self._phase, u) + g["phase_step"][j]
+        # the analytic field at each displaced pixel's centre, not an interpolation of the reference's rows
+        tf, vf, phif = pixel_flat_field(self.cfg, u, g["A"], W, step=g["phase_step"][j])
         zeros = np.zeros((row.size, W))
-        obs = Observations(counts=zeros, tf=interpolate_rows(ref.transmission, u),
-                           vf=interpolate_rows(ref.visibility, u), phif=phif, dark=zeros,
+        obs = Observations(counts=zeros, tf=tf, vf=vf, phif=phif, dark=zeros,
                            use=np.ones((row.size, W), bool), row=row, frame=np.full(row.size, j), columns=cols,
                            shape=self.shape)
         keys = ("transmission", "dark_field", "differential_phase")

@@ -10,6 +10,7 @@ from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.analysis.report import reconstruct_settings, write_report
 from dfxcorr.observations import lateral_coordinate
 from dfxcorr.sim import simulate as S
+from dfxcorr.sim.flat import flat_field
 
 from conftest import chi2_tolerance, concealed, prepare, sim_config
 
@@ -26,23 +27,24 @@ def image_errors(result, truth) -> np.ndarray:
     return np.array(out)
 
 
-def phase_error(result, truth) -> float:
-    """RMS differential-phase error (rad) against the truth where the sample transmits.
+def phase_rms(dphi: np.ndarray, where: np.ndarray) -> float:
+    """RMS (rad) of a phase difference image ``where`` (H, W), up to a constant: the phase image's constant is the
+    gauge of phase_offset (median zero), which a common shift of the frames moves."""
+    d = np.exp(1j * dphi)
+    ok = np.isfinite(d) & where
+    return float(np.sqrt(np.mean(np.angle(d[ok] * np.exp(-1j * np.angle(np.mean(d[ok])))) ** 2)))
 
-    Up to a constant: the phase image's constant is the gauge of phase_offset (median zero), which a
-    common shift of the frames moves.
-    """
-    d = np.exp(1j * (result.differential_phase - truth["image_differential_phase"]))
-    ok = np.isfinite(d) & (truth["image_transmission"] > 0.05)
-    d = np.angle(d[ok] * np.exp(-1j * np.angle(np.mean(d[ok]))))
-    return float(np.sqrt(np.mean(d ** 2)))
+
+def phase_error(result, truth) -> float:
+    """RMS differential-phase error (rad) against the truth where the sample transmits (:func:`phase_rms`)."""
+    return phase_rms(result.differential_phase - truth["image_differential_phase"], truth["image_transmission"] > 0.05)
 
 
 def test_tiles_off_reproduce_the_seamless_flat_field():
     # the tile options do nothing without tiles: the flat field of paper Sec. III-A, exactly
     cfg = sim_config(**{"simulate.tile_fringes": 0.5, "simulate.tile_contrast": 0.2})
     A, W = 15, 102
-    ref = S.flat_field(cfg, A, W)
+    ref = flat_field(cfg, A, W)
     s = cfg["simulate"]
     u = (np.arange(A) + 0.5)[:, None]
     x = lateral_coordinate(np.arange(W), W)[None, :]
@@ -54,7 +56,7 @@ def test_tiles_off_reproduce_the_seamless_flat_field():
 
 def test_tiles_make_the_phase_gradient_piecewise_constant():
     cfg = sim_config(**{"simulate.tiles": 8})
-    ref = S.flat_field(cfg, 15, 102)
+    ref = flat_field(cfg, 15, 102)
     k = np.diff(ref.phase, axis=0)
     assert np.allclose(k, k[:1])  # linear along the scan without flat_nonlinearity
     jumps = np.flatnonzero(np.abs(np.diff(k[0])) > 1e-12)
@@ -62,7 +64,7 @@ def test_tiles_make_the_phase_gradient_piecewise_constant():
     fringes = k[0, jumps[0]] * 15 / (2 * np.pi)
     assert abs(fringes - 2.0) <= 0.3 + 0.5 * 0.5 ** 2  # the centre's count, the edge growth, +- 0.3
     assert np.count_nonzero(np.diff(ref.transmission[0])) == 7
-    curved = S.flat_field(sim_config(**TILED), 15, 102)
+    curved = flat_field(sim_config(**TILED), 15, 102)
     assert np.ptp(np.diff(curved.phase, n=2, axis=0)) > 0 and np.ptp(curved.transmission[:, 0]) > 0
 
 
@@ -78,7 +80,8 @@ def test_zero_offsets_change_nothing_and_other_draws_stay():
 
 def test_the_preparation_reads_the_flat_field_where_the_scan_was_made(tmp_path):
     # noiseless: aligned with the true offsets (align.reference_offset, align.position_errors) the model
-    # reproduces the counts; aligned as recorded it does not
+    # reproduces the counts within the photon noise of one (its interpolation between reference rows against
+    # the analytic flat field where the pixels are); aligned as recorded it does not
     cfg = sim_config(**TILED, **{"simulate.noise": False, "simulate.dtype": "float64",
                                  "effects.reference_offset": 0.3, "effects.position_error": 0.3})
     scan, truth = S.simulate(cfg)
@@ -95,8 +98,9 @@ def test_the_preparation_reads_the_flat_field_where_the_scan_was_made(tmp_path):
         images = M.Images(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], axis=-1), np.ones(t.shape, bool))
         return np.max(np.abs(M.expected(obs, M.design(obs, params), images) - obs.counts) / cfg["simulate"]["flux"])
 
-    assert misfit(["align.reference_offset=0.3", f"align.position_errors={deltas}"]) < 1e-9
-    assert misfit([]) > 1e-3
+    noise = 1 / np.sqrt(cfg["simulate"]["flux"])
+    assert misfit(["align.reference_offset=0.3", f"align.position_errors={deltas}"]) < noise / 2
+    assert misfit([]) > 5 * noise
 
 
 def test_a_bad_position_error_file_is_refused_naming_it(tmp_path, small_scan):
@@ -154,8 +158,18 @@ def test_position_error_is_named_estimated_and_corrected(tmp_path):
     assert tmp_path / "diag" / "position_errors.txt" in written
     sets = reconstruct_settings(diag, out_dir=tmp_path / "diag")
     assert f"align.position_errors={tmp_path / 'diag' / 'position_errors.txt'}" in sets
-    # the frames' phase offsets absorb most of what position errors do to the phase image; the transmission
-    # and dark field keep it (measured with the true errors: 12 % and 8 % lower)
-    before = image_errors(P.reconstruct(scan, cfg), truth)
-    after = image_errors(P.reconstruct(scan, C.load([], sets)), truth)
-    assert np.all(after[1:] < 0.96 * before[1:]) and after[0] < before[0], (before, after)
+    # the transmission and dark field keep what position errors do (measured with the true errors: 12 % and 8 %
+    # lower after the correction)
+    plain, fixed = P.reconstruct(scan, cfg), P.reconstruct(scan, C.load([], sets))
+    before, after = image_errors(plain, truth), image_errors(fixed, truth)
+    assert np.all(after[1:] < 0.96 * before[1:]), (before, after)
+    # the frames' phase offsets absorb most of it in the phase image, whose error against the truth is the photon
+    # noise's (0.050 rad) give or take what the vibration fit's own noise moves with the alignment (0.0017 rad
+    # between the true and the estimated errors, either way round on other seeds): the phase image is judged
+    # against the same data reconstructed with the true errors, where that noise is common (measured 0.021 rad
+    # before, 0.005 after on this seed; 0.021 and 0.007 on seed 5)
+    np.savetxt(tmp_path / "true.txt", truth["vib_position_jitter"])
+    exact = P.reconstruct(scan, C.load([], [f"align.position_errors={tmp_path / 'true.txt'}"]))
+    ok = truth["image_transmission"] > 0.05
+    gaps = [phase_rms(r.differential_phase - exact.differential_phase, ok) for r in (plain, fixed)]
+    assert gaps[1] < 0.5 * gaps[0], (before, after, gaps)
