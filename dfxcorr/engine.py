@@ -10,14 +10,12 @@ The signatures and returned values are the kernels'.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
 
 import numpy as np
-from scipy import sparse
 
 from . import kernels as K
+from . import kernels_between as KB
 from . import model as M
-from .noise import noise_weights, variance
 from .observations import Observations
 
 
@@ -35,25 +33,9 @@ def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = 
                          keep_expected=keep_expected, next_weights=next_weights)
         out["coupling"] = None
         return out
-    if iterations < 1:
-        raise ValueError("iterations must be at least 1")
-    noisy = obs if gain is None else replace(obs, gain=gain)
-    dsg = M.design_channels(obs, ch)
-    w = noise_weights(noisy, np.maximum(obs.counts, 1.0)) if weights is None else np.where(obs.use, weights, 0.0)
-    for it in range(iterations):
-        images = M.solve_images(obs, dsg, w, keep_inverse=keep_inverse and it == iterations - 1)
-        ibar = M.expected(obs, dsg, images)
-        if it < iterations - 1:
-            w = noise_weights(noisy, ibar)
-    sel = obs.use & obs.gather_valid(images.valid)
-    var = variance(noisy, ibar)
-    chi2 = float(np.sum(np.where(sel, (obs.counts - ibar) ** 2 / var, 0.0)))
-    w_out = noise_weights(noisy, ibar) if next_weights else w
-    keep = keep_expected or next_weights
-    empty = np.zeros((0, obs.columns.size))
-    return {"coef": images.coef, "valid": images.valid, "inverse": images.inverse if keep_inverse else None,
-            "coupling": images.coupling if keep_inverse else None, "expected": ibar if keep else empty,
-            "weights": w_out if keep else empty, "chi2": chi2, "samples": int(sel.sum())}
+    K.set_threads()
+    return KB.retrieve(obs, ch, weights=weights, iterations=iterations, gain=gain, keep_inverse=keep_inverse,
+                       keep_expected=keep_expected, next_weights=next_weights)
 
 
 def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, cos_phif: np.ndarray,
@@ -62,28 +44,7 @@ def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, cos_phi
     """Reduced cost and its channel gradients (or Gauss-Newton sums): :func:`dfxcorr.kernels.reduced_cost`'s values."""
     if obs.reading is None:
         return K.reduced_cost(obs, ch, weights, cos_phif, sin_phif, phase=phase, square=square, channels=channels)
-    dsg = M.design_channels(obs, ch)
-    images = M.solve_images(obs, dsg, weights, phase=phase)
-    at = obs.gather(images.coef)
-    resid = obs.counts - M.expected(obs, dsg, images, at=at)
-    cost = float(np.sum(weights * resid ** 2))
-    J, C = obs.n_frames, obs.columns.size
-    out: list[np.ndarray] = [np.zeros((J, C)), np.zeros((J, C)), np.zeros(J), np.zeros(3), np.zeros(2)]
-    g = -2.0 * weights * resid
-    by_frame = sparse.csr_matrix((np.ones(obs.frame.size), (obs.frame, np.arange(obs.frame.size))),
-                                 shape=(J, obs.frame.size))
-    for name, cid in K.CHANNEL_IDS.items():
-        if name not in channels:
-            continue
-        fields = M.channel_fields(obs, dsg, images, cid, at=at)
-        sums = [(weights * F if square else g) * F for F in fields]
-        if cid in (K.PHASE, K.VISIBILITY):
-            out[cid] = by_frame @ sums[0]
-        elif cid == K.DOSE:
-            out[cid] = obs.frame_sum(sums[0].sum(axis=1))
-        else:
-            out[cid] = np.array([s.sum() for s in sums])
-    return cost, tuple(out)
+    return KB.reduced_cost(obs, ch, weights, cos_phif, sin_phif, phase=phase, square=square, channels=channels)
 
 
 def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray | None,
