@@ -1,11 +1,12 @@
-"""The model evaluated on observations: the compiled kernels, or the model's own arrays where samples read between rows.
+"""The model evaluated on observations: the compiled kernels of the paper's geometry, or those where samples read
+between rows.
 
 Every stage that solves images, evaluates the reduced cost or the Fisher information calls these three functions
 (never :mod:`dfxcorr.kernels` directly). Where each sample reads the images of its own pixel (the paper's geometry)
 they are the compiled loops of :mod:`dfxcorr.kernels`; where the beam paths move during the scan
-(``Observations.reading``, ``beam_path``) the images of neighbouring rows are coupled and the same quantities come
-from :mod:`dfxcorr.model`'s expressions with the block-tridiagonal solve (:func:`dfxcorr.banded.solve_read_between`).
-The signatures and returned values are the kernels'.
+(``Observations.reading``, ``beam_path``) the images of neighbouring rows are coupled, one block-tridiagonal solve
+per column: the compiled loops of :mod:`dfxcorr.kernels_between` (the numpy expressions of :mod:`dfxcorr.model` and
+:mod:`dfxcorr.banded` are their definition). The signatures and returned values are the kernels'.
 """
 from __future__ import annotations
 
@@ -52,12 +53,11 @@ def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndar
     """Fisher information of the parameters of ``names`` and its profiled correction, in
     :func:`dfxcorr.model.fisher_index`'s order: :func:`dfxcorr.kernels.fisher`'s values.
 
-    Where ``obs.reading`` is set, :func:`dfxcorr.model.fisher_parts` (a pixel's images share samples with its
-    neighbours', so the correction runs over whole columns).
+    Where ``obs.reading`` is set, :func:`dfxcorr.kernels_between.fisher` (a pixel's images share samples with its
+    neighbours', so the correction runs over whole columns; ``inverse`` is not read).
     """
     if obs.reading is None:
         K.set_threads()
         return K.fisher(obs, ch, weights, coef, inverse, M.component_table(names)[:3], profiled=profiled)
-    images = M.Images(coef, np.ones(coef.shape[:2], bool), inverse)
-    plain, corr, _ = M.fisher_parts(obs, M.design_channels(obs, ch), images, weights, names, profiled=profiled)
-    return plain, corr
+    K.set_threads()
+    return KB.fisher(obs, ch, weights, coef, M.component_table(names)[:3], profiled=profiled)

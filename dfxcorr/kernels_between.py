@@ -542,3 +542,190 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None,
             "coupling": coupling if keep_inverse else None, "expected": ibar, "weights": w,
             "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
+
+
+# --------------------------------------------------------------------------------------------------
+# Fisher information: plain and the profiled correction, driven by a component table
+# --------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def _solve_many(Y, scale, valid, Finv, Us, W):
+    """N^-1 Y of one column for the P right-hand sides ``Y`` (R, 3, P) into ``W`` (:func:`_solve` for many)."""
+    R, _, P = Y.shape
+    M = np.empty((3, 3))
+    v = np.empty((3, P))
+    for r in range(R):
+        for a in range(3):
+            s = scale[r, a]
+            for p in range(P):
+                W[r, a, p] = Y[r, a, p] / s if valid[r] else 0.0
+        if r > 0:
+            # y_r -= U_{r-1}^T F_{r-1}^-1 y_{r-1}
+            for a in range(3):
+                for b in range(3):
+                    M[a, b] = Us[r - 1, 0, a] * Finv[r - 1, 0, b] + Us[r - 1, 1, a] * Finv[r - 1, 1, b] \
+                        + Us[r - 1, 2, a] * Finv[r - 1, 2, b]
+            for a in range(3):
+                m0, m1, m2 = M[a, 0], M[a, 1], M[a, 2]
+                for p in range(P):
+                    W[r, a, p] -= m0 * W[r - 1, 0, p] + m1 * W[r - 1, 1, p] + m2 * W[r - 1, 2, p]
+    for r in range(R - 1, -1, -1):
+        for a in range(3):
+            for p in range(P):
+                v[a, p] = W[r, a, p]
+        if r + 1 < R:
+            for a in range(3):
+                u0, u1, u2 = Us[r, a, 0], Us[r, a, 1], Us[r, a, 2]
+                for p in range(P):
+                    v[a, p] -= u0 * W[r + 1, 0, p] + u1 * W[r + 1, 1, p] + u2 * W[r + 1, 2, p]
+        for a in range(3):
+            f0, f1, f2 = Finv[r, a, 0], Finv[r, a, 1], Finv[r, a, 2]
+            for p in range(P):
+                W[r, a, p] = f0 * v[0, p] + f1 * v[1, p] + f2 * v[2, p]
+    for r in range(R):
+        for a in range(3):
+            s = scale[r, a]
+            for p in range(P):
+                W[r, a, p] = W[r, a, p] / s if valid[r] else 0.0
+
+
+@njit(cache=True, parallel=True)
+def _fisher(tf, vf, cphi, sphi, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm, coef, channel, power,
+            n_per_frame, n_frames, row_first, row_last, profiled, chunks):
+    K, C = tf.shape
+    R = coef.shape[0]
+    Q = channel.size
+    Pf = n_per_frame
+    P = n_frames * Pf + Q - n_per_frame
+    n = chunks.size - 1
+    plain = np.empty((n, P, P))
+    corr = np.empty((n, P, P))
+    hc, hs = harm[0], harm[1]
+    for t in prange(n):
+        plain[t, :, :] = 0.0
+        corr[t, :, :] = 0.0
+        F = np.empty(Q)
+        slot = np.empty(Q, dtype=np.int64)
+        D = np.empty((R, 6, 1))
+        U = np.empty((R, 6, 1))
+        rhs = np.empty((R, 3, 1))
+        used = np.empty((R, 1))
+        Y = np.empty((R if profiled else 0, 3, P))
+        W = np.empty((R if profiled else 0, 3, P))
+        scale = np.empty((R, 3))
+        ok = np.empty(R, dtype=np.bool_)
+        Finv = np.empty((R, 3, 3))
+        Us = np.empty((R, 3, 3))
+        for c in range(chunks[t], chunks[t + 1]):
+            D[:] = 0.0
+            U[:] = 0.0
+            used[:] = 0.0
+            Y[:] = 0.0
+            for k in range(K):
+                wk = w[k, c]
+                if wk == 0:
+                    continue
+                j = frame[k]
+                lo, f = lo_[k], frac[k]
+                hi = min(lo + 1, R - 1)
+                g = 1.0 - f
+                ct, st, amp, c2, s2, a, bc, bs, hcc, hcs = _angle_design(cphi, sphi, cos_p, sin_p, tf, vf, vis, dose,
+                                                                         k, c, j, hc, hs)
+                tt = g * coef[lo, c, 0] + f * coef[hi, c, 0]
+                cs = g * coef[lo, c, 1] + f * coef[hi, c, 1]
+                ss = g * coef[lo, c, 2] + f * coef[hi, c, 2]
+                du, dw, e, ff = _direction(cs, ss)
+                basis = _derivatives(tt, cs, ss, ct, st, c2, s2, e, ff, tf[k, c], vf[k, c], amp, bc, bs, vis[j, c],
+                                     hc, hs)
+                for q in range(Q):
+                    ch = channel[q]
+                    if ch <= 1:
+                        F[q] = basis[ch] * x[c] ** power[q]
+                    elif ch == 2:
+                        F[q] = basis[2]
+                    elif ch == 3:
+                        F[q] = 1.0 if power[q] == 0 else (x[c] if power[q] == 1 else y[k])
+                    else:
+                        F[q] = basis[3 + power[q]]
+                    slot[q] = j * Pf + q if q < Pf else n_frames * Pf + q - Pf
+                for q1 in range(Q):
+                    wf = wk * F[q1]
+                    for q2 in range(Q):
+                        plain[t, slot[q1], slot[q2]] += wf * F[q2]
+                if profiled:
+                    # the images' columns: their derivatives at the images the sample reads
+                    xc, xs = _image_columns(bc, bs, hcc, hcs, du, dw)
+                    _add_sample(D, U, rhs, used, lo, hi, f, 0, wk, a, xc, xs, 0.0)
+                    for q in range(Q):
+                        p = slot[q]
+                        wf = wk * F[q]
+                        Y[lo, 0, p] += g * wf * a
+                        Y[lo, 1, p] += g * wf * xc
+                        Y[lo, 2, p] += g * wf * xs
+                        if f != 0.0:
+                            Y[hi, 0, p] += f * wf * a
+                            Y[hi, 1, p] += f * wf * xc
+                            Y[hi, 2, p] += f * wf * xs
+            if not profiled:
+                continue
+            # sum Y^T N^-1 Y over the column's images: W = N^-1 Y, then each parameter's row of Y^T W over the rows
+            # its samples read (Y is zero elsewhere)
+            _factor(D, U, used, 0, scale, ok, Finv, Us)
+            _solve_many(Y, scale, ok, Finv, Us, W)
+            for p in range(P):
+                for r in range(row_first[p], row_last[p] + 1):
+                    for a in range(3):
+                        yv = Y[r, a, p]
+                        if yv != 0.0:
+                            for q in range(P):
+                                corr[t, p, q] += yv * W[r, a, q]
+    return plain, corr
+
+
+def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, table: tuple, *, profiled: bool = True
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Fisher information of channel components and its correction for the profiled images where the samples read
+    between rows: :func:`dfxcorr.kernels.fisher`'s values, the correction over whole columns (a pixel's images
+    share samples with its neighbours', :func:`dfxcorr.model.read_between_correction`).
+
+    Parameters
+    ----------
+    obs : Observations
+        With ``reading``.
+    ch : Channels
+    weights : ndarray, shape (K, C)
+    coef : ndarray, shape (R, C, 3)
+        Images (t, c, s); the images' normal matrices are assembled at them.
+    table : tuple
+        (channel ids (Q,), power or basis index (Q,), number of per-frame components), see
+        :func:`dfxcorr.model.component_table`.
+    profiled : bool
+        Also compute the correction (otherwise zeros).
+
+    Returns
+    -------
+    plain, correction : ndarray, shape (P, P)
+        P = J * (per-frame components) + (global components), per-frame entries ordered (frame, component).
+    """
+    lo, frac = _reading(obs)
+    channel, power, n_per_frame = table
+    R, J, Pf = obs.rows.size, obs.n_frames, int(n_per_frame)
+    # the image rows each parameter's samples read: per-frame parameters only their frame's, global ones all
+    hi = np.minimum(lo + 1, R - 1)
+    first, last = np.full(J, R, dtype=np.int64), np.full(J, -1, dtype=np.int64)
+    counted = np.any(weights != 0, axis=1)
+    np.minimum.at(first, obs.frame[counted], lo[counted])
+    np.maximum.at(last, obs.frame[counted], np.where(frac > 0, hi, lo)[counted])
+    Pg = len(channel) - Pf
+    row_first = np.concatenate([np.repeat(first, Pf), np.zeros(Pg, dtype=np.int64)])
+    row_last = np.concatenate([np.repeat(last, Pf), np.full(Pg, R - 1, dtype=np.int64)])
+    C = obs.columns.size
+    n = max(1, min(C, numba.get_num_threads()))
+    chunks = np.linspace(0, C, n + 1).round().astype(np.int64)
+    plain, corr = _fisher(_c(obs.tf), _c(obs.vf), np.cos(obs.phif), np.sin(obs.phif), _c(weights, np.float64),
+                          obs.frame, lo, frac, obs.y, obs.x, np.cos(ch.phase), np.sin(ch.phase),
+                          _c(ch.vis, np.float64), ch.dose, ch.harmonic, _c(coef, np.float64),
+                          np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64), Pf, J, row_first,
+                          row_last, bool(profiled), chunks)
+    return plain.sum(axis=0), corr.sum(axis=0)

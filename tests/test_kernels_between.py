@@ -121,6 +121,20 @@ def test_reduced_cost_skips_channels_not_asked_for(case):
     assert all(not np.any(s_) for s_ in sums[1:])
 
 
+@pytest.mark.parametrize("profiled", [True, False])
+def test_fisher_information_equals_the_model(case, rng, profiled):
+    obs, ch = case
+    names = WITH_ALL if np.any(ch.harmonic) else NAMES
+    w = np.where(obs.use, 1.0 / np.maximum(obs.counts, 1.0), 0.0)
+    dsg = M.design_channels(obs, ch)
+    images = M.solve_images(obs, dsg, w)
+    want_plain, want_corr, _ = M.fisher_parts(obs, dsg, images, w, names, profiled=profiled)
+    plain, corr = KB.fisher(obs, ch, w, images.coef, M.component_table(names)[:3], profiled=profiled)
+    close(plain, want_plain)
+    close(corr, want_corr)
+    assert np.any(corr) == profiled
+
+
 def test_observations_without_a_reading_are_refused(rng):
     obs = tiny_obs(rng)
     ch = M.channels({}, x=obs.x, n_frames=obs.n_frames)
