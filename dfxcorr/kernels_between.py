@@ -55,24 +55,41 @@ def _reading(obs) -> tuple[np.ndarray, np.ndarray]:
 
 @njit(cache=True, inline="always")
 def _add_sample(D, U, rhs, used, lo, hi, f, i, wk, a, x1, x2, target):
-    """Add one sample reading rows lo and hi (share 1 - f and f) to column i of the tile's normal equations."""
+    """Add one sample reading rows lo and hi (share 1 - f and f) to column i of the tile's normal equations (the
+    symmetric blocks' entries 00, 01, 02, 11, 12, 22)."""
+    wa, w1, w2 = wk * a, wk * x1, wk * x2
+    p0, p1, p2, p3, p4, p5 = wa * a, wa * x1, wa * x2, w1 * x1, w1 * x2, w2 * x2
     g = 1.0 - f
-    xs = (a, x1, x2)
-    for p in range(3):
-        for q in range(p, 3):
-            prod = wk * xs[p] * xs[q]
-            m = _SYM[p, q]
-            D[lo, m, i] += g * g * prod
-            if f != 0.0:
-                D[hi, m, i] += f * f * prod
-                U[lo, m, i] += g * f * prod
-        wt = wk * xs[p] * target
-        rhs[lo, p, i] += g * wt
-        if f != 0.0:
-            rhs[hi, p, i] += f * wt
+    gg = g * g
+    D[lo, 0, i] += gg * p0
+    D[lo, 1, i] += gg * p1
+    D[lo, 2, i] += gg * p2
+    D[lo, 3, i] += gg * p3
+    D[lo, 4, i] += gg * p4
+    D[lo, 5, i] += gg * p5
+    rhs[lo, 0, i] += g * wa * target
+    rhs[lo, 1, i] += g * w1 * target
+    rhs[lo, 2, i] += g * w2 * target
     if wk > 0:
         used[lo, i] += 1.0
-        if f != 0.0:
+    if f != 0.0:
+        ff, gf = f * f, g * f
+        D[hi, 0, i] += ff * p0
+        D[hi, 1, i] += ff * p1
+        D[hi, 2, i] += ff * p2
+        D[hi, 3, i] += ff * p3
+        D[hi, 4, i] += ff * p4
+        D[hi, 5, i] += ff * p5
+        U[lo, 0, i] += gf * p0
+        U[lo, 1, i] += gf * p1
+        U[lo, 2, i] += gf * p2
+        U[lo, 3, i] += gf * p3
+        U[lo, 4, i] += gf * p4
+        U[lo, 5, i] += gf * p5
+        rhs[hi, 0, i] += f * wa * target
+        rhs[hi, 1, i] += f * w1 * target
+        rhs[hi, 2, i] += f * w2 * target
+        if wk > 0:
             used[hi, i] += 1.0
 
 
@@ -161,8 +178,8 @@ def _solve(rhs, i, scale, valid, Finv, Us, out):
                     acc += Us[r - 1, p, a] * z
                 yv[r, a] -= acc
     xv = np.empty((R, 3))
+    v = np.empty(3)
     for r in range(R - 1, -1, -1):
-        v = np.empty(3)
         for a in range(3):
             v[a] = yv[r, a]
             if r + 1 < R:
@@ -592,7 +609,7 @@ def _solve_many(Y, scale, valid, Finv, Us, W):
 
 @njit(cache=True, parallel=True)
 def _fisher(tf, vf, cphi, sphi, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm, coef, channel, power,
-            n_per_frame, n_frames, row_first, row_last, profiled, chunks):
+            n_per_frame, n_frames, block, block_rows, profiled, chunks):
     K, C = tf.shape
     R = coef.shape[0]
     Q = channel.size
@@ -669,17 +686,21 @@ def _fisher(tf, vf, cphi, sphi, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, do
                             Y[hi, 2, p] += f * wf * xs
             if not profiled:
                 continue
-            # sum Y^T N^-1 Y over the column's images: W = N^-1 Y, then each parameter's row of Y^T W over the rows
-            # its samples read (Y is zero elsewhere)
+            # sum Y^T N^-1 Y over the column's images: W = N^-1 Y, then each block of parameters' rows of Y^T W over
+            # the image rows its samples read (Y is zero elsewhere), one matrix product each
             _factor(D, U, used, 0, scale, ok, Finv, Us)
             _solve_many(Y, scale, ok, Finv, Us, W)
-            for p in range(P):
-                for r in range(row_first[p], row_last[p] + 1):
+            for b in range(block.size - 1):
+                p0, p1 = block[b], block[b + 1]
+                r0, r1 = block_rows[b, 0], block_rows[b, 1] + 1
+                if r1 <= r0 or p1 <= p0:
+                    continue
+                Yb = np.empty((3 * (r1 - r0), p1 - p0))
+                for r in range(r0, r1):
                     for a in range(3):
-                        yv = Y[r, a, p]
-                        if yv != 0.0:
-                            for q in range(P):
-                                corr[t, p, q] += yv * W[r, a, q]
+                        for p in range(p0, p1):
+                            Yb[3 * (r - r0) + a, p - p0] = Y[r, a, p]
+                corr[t, p0:p1, :] += np.dot(Yb.T, W[r0:r1].reshape(3 * (r1 - r0), P))
     return plain, corr
 
 
@@ -711,21 +732,20 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, table: tuple, *, prof
     lo, frac = _reading(obs)
     channel, power, n_per_frame = table
     R, J, Pf = obs.rows.size, obs.n_frames, int(n_per_frame)
-    # the image rows each parameter's samples read: per-frame parameters only their frame's, global ones all
+    # the parameters in blocks, each frame's and the global ones, and the image rows each block's samples read
     hi = np.minimum(lo + 1, R - 1)
-    first, last = np.full(J, R, dtype=np.int64), np.full(J, -1, dtype=np.int64)
+    block_rows = np.zeros((J + 1, 2), dtype=np.int64)
+    block_rows[:J, 0], block_rows[:J, 1], block_rows[J, 1] = R, -1, R - 1
     counted = np.any(weights != 0, axis=1)
-    np.minimum.at(first, obs.frame[counted], lo[counted])
-    np.maximum.at(last, obs.frame[counted], np.where(frac > 0, hi, lo)[counted])
-    Pg = len(channel) - Pf
-    row_first = np.concatenate([np.repeat(first, Pf), np.zeros(Pg, dtype=np.int64)])
-    row_last = np.concatenate([np.repeat(last, Pf), np.full(Pg, R - 1, dtype=np.int64)])
+    np.minimum.at(block_rows[:J, 0], obs.frame[counted], lo[counted])
+    np.maximum.at(block_rows[:J, 1], obs.frame[counted], np.where(frac > 0, hi, lo)[counted])
+    block = np.append(np.arange(J + 1, dtype=np.int64) * Pf, len(channel) - Pf + J * Pf)
     C = obs.columns.size
     n = max(1, min(C, numba.get_num_threads()))
     chunks = np.linspace(0, C, n + 1).round().astype(np.int64)
     plain, corr = _fisher(_c(obs.tf), _c(obs.vf), np.cos(obs.phif), np.sin(obs.phif), _c(weights, np.float64),
                           obs.frame, lo, frac, obs.y, obs.x, np.cos(ch.phase), np.sin(ch.phase),
                           _c(ch.vis, np.float64), ch.dose, ch.harmonic, _c(coef, np.float64),
-                          np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64), Pf, J, row_first,
-                          row_last, bool(profiled), chunks)
+                          np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64), Pf, J, block,
+                          block_rows, bool(profiled), chunks)
     return plain.sum(axis=0), corr.sum(axis=0)
