@@ -5,8 +5,9 @@ Every stage that solves images, evaluates the reduced cost or the Fisher informa
 (never :mod:`dfxcorr.kernels` directly). Where each sample reads the images of its own pixel (the paper's geometry)
 they are the compiled loops of :mod:`dfxcorr.kernels`; where the beam paths move during the scan
 (``Observations.reading``, ``beam_path``) the images of neighbouring rows are coupled, one block-tridiagonal solve
-per column: the compiled loops of :mod:`dfxcorr.kernels_between` (the numpy expressions of :mod:`dfxcorr.model` and
-:mod:`dfxcorr.banded` are their definition). The signatures and returned values are the kernels'.
+per column: the compiled loops of :mod:`dfxcorr.kernels_between` and :mod:`dfxcorr.fisher_between` (the numpy
+expressions of :mod:`dfxcorr.model` and :mod:`dfxcorr.banded` are their definition). The signatures and returned
+values are the kernels'.
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from . import fisher_between as FB
 from . import kernels as K
 from . import kernels_between as KB
 from . import model as M
@@ -53,11 +55,11 @@ def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndar
     """Fisher information of the parameters of ``names`` and its profiled correction, in
     :func:`dfxcorr.model.fisher_index`'s order: :func:`dfxcorr.kernels.fisher`'s values.
 
-    Where ``obs.reading`` is set, :func:`dfxcorr.kernels_between.fisher` (a pixel's images share samples with its
+    Where ``obs.reading`` is set, :func:`dfxcorr.fisher_between.fisher` (a pixel's images share samples with its
     neighbours', so the correction runs over whole columns; ``inverse`` is not read).
     """
     if obs.reading is None:
         K.set_threads()
         return K.fisher(obs, ch, weights, coef, inverse, M.component_table(names)[:3], profiled=profiled)
     K.set_threads()
-    return KB.fisher(obs, ch, weights, coef, M.component_table(names)[:3], profiled=profiled)
+    return FB.fisher(obs, ch, weights, coef, M.component_table(names)[:3], profiled=profiled)

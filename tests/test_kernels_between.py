@@ -4,6 +4,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from dfxcorr import fisher_between as FB
 from dfxcorr import kernels as K
 from dfxcorr import kernels_between as KB
 from dfxcorr import model as M
@@ -129,7 +130,7 @@ def test_fisher_information_equals_the_model(case, rng, profiled):
     dsg = M.design_channels(obs, ch)
     images = M.solve_images(obs, dsg, w)
     want_plain, want_corr, _ = M.fisher_parts(obs, dsg, images, w, names, profiled=profiled)
-    plain, corr = KB.fisher(obs, ch, w, images.coef, M.component_table(names)[:3], profiled=profiled)
+    plain, corr = FB.fisher(obs, ch, w, images.coef, M.component_table(names)[:3], profiled=profiled)
     close(plain, want_plain)
     close(corr, want_corr)
     assert np.any(corr) == profiled
