@@ -1,12 +1,13 @@
 """The model evaluated on observations: the compiled kernels, or the model's own arrays beyond what they take.
 
 Every stage that solves images, evaluates the reduced cost or the Fisher information calls these three functions
-(never :mod:`dfxcorr.kernels` directly). Where each sample reads the images of its own pixel (the paper's geometry)
-and every channel is a function of the frame and x, they are the compiled loops of :mod:`dfxcorr.kernels`. Where the
-beam paths move during the scan (``Observations.reading``, ``beam_path``) the images of neighbouring rows are coupled
-(the block-tridiagonal solve, :func:`dfxcorr.banded.solve_read_between`), and where a channel term depends on the
-detector row (``Channels.rows``, catalogue components 'x^k y^m') the channels vary within a column: the same
-quantities then come from :mod:`dfxcorr.model`'s expressions. The signatures and returned values are the kernels'.
+(never the kernels directly). Where every channel is a function of the frame and x they are compiled: the loops of
+:mod:`dfxcorr.kernels` where each sample reads the images of its own pixel (the paper's geometry), those of
+:mod:`dfxcorr.kernels_between` and :mod:`dfxcorr.fisher_between` where the beam paths move during the scan
+(``Observations.reading``, ``beam_path``: the images of neighbouring rows are coupled, one block-tridiagonal solve
+per column). Where a channel term depends on the detector row (``Channels.rows``, catalogue components 'x^k y^m')
+the channels vary within a column: the same quantities then come from :mod:`dfxcorr.model`'s expressions, which
+define what every compiled path computes. The signatures and returned values are the kernels'.
 """
 from __future__ import annotations
 
@@ -16,16 +17,18 @@ from dataclasses import replace
 import numpy as np
 from scipy import sparse
 
+from . import fisher_between as FB
 from . import kernels as K
+from . import kernels_between as KB
 from . import model as M
 from .catalogue import effect
 from .noise import noise_weights, variance
 from .observations import Observations
 
 
-def compiled(obs: Observations, ch: M.Channels, names: Sequence[str] = ()) -> bool:
-    """Whether the compiled kernels take these observations, channels and effects (see the module's docstring)."""
-    return obs.reading is None and not ch.rows and not any(r for n in names for r in effect(n).row_powers)
+def compiled(ch: M.Channels, names: Sequence[str] = ()) -> bool:
+    """Whether compiled kernels take these channels and effects (see the module's docstring)."""
+    return not ch.rows and not any(r for n in names for r in effect(n).row_powers)
 
 
 def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = None, iterations: int = 1,
@@ -36,12 +39,24 @@ def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = 
     Where ``obs.reading`` is set, ``inverse`` holds each row's diagonal block of the inverse and ``coupling`` the
     blocks between each row and the next (None otherwise).
     """
-    if compiled(obs, ch):
-        K.set_threads()
+    K.set_threads()
+    if compiled(ch) and obs.reading is not None:
+        return KB.retrieve(obs, ch, weights=weights, iterations=iterations, gain=gain, keep_inverse=keep_inverse,
+                           keep_expected=keep_expected, next_weights=next_weights)
+    if compiled(ch):
         out = K.retrieve(obs, ch, weights=weights, iterations=iterations, gain=gain, keep_inverse=keep_inverse,
                          keep_expected=keep_expected, next_weights=next_weights)
         out["coupling"] = None
         return out
+    return model_retrieve(obs, ch, weights=weights, iterations=iterations, gain=gain, keep_inverse=keep_inverse,
+                          keep_expected=keep_expected, next_weights=next_weights)
+
+
+def model_retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = None, iterations: int = 1,
+                   gain: float | None = None, keep_inverse: bool = False, keep_expected: bool = True,
+                   next_weights: bool = False) -> dict:
+    """:func:`retrieve` from the model's arrays (:func:`dfxcorr.model.solve_images`, ``expected``): what every
+    compiled retrieval computes, for any observations and channels."""
     if iterations < 1:
         raise ValueError("iterations must be at least 1")
     noisy = obs if gain is None else replace(obs, gain=gain)
@@ -67,9 +82,18 @@ def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, *, phas
                  square: bool = False, channels: Collection[str] = tuple(K.CHANNEL_IDS)) -> tuple[float, M.Channels]:
     """Reduced cost and its channel gradients (or Gauss-Newton sums): :func:`dfxcorr.kernels.reduced_cost`'s values,
     as a :class:`~dfxcorr.model.Channels` whose ``rows`` holds those of the coefficients of powers of y."""
-    if compiled(obs, ch):
-        cost, grads = K.reduced_cost(obs, ch, weights, phase=phase, square=square, channels=channels)
+    if compiled(ch):
+        kernel = K.reduced_cost if obs.reading is None else KB.reduced_cost
+        cost, grads = kernel(obs, ch, weights, phase=phase, square=square, channels=channels)
         return cost, M.Channels(grads[0], grads[1], grads[2], grads[3], grads[4])
+    return model_reduced_cost(obs, ch, weights, phase=phase, square=square, channels=channels)
+
+
+def model_reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, *, phase: float | None = None,
+                       square: bool = False, channels: Collection[str] = tuple(K.CHANNEL_IDS)
+                       ) -> tuple[float, M.Channels]:
+    """:func:`reduced_cost` from the model's arrays (:func:`dfxcorr.model.channel_fields`): what every compiled reduced
+    cost computes, for any observations and channels."""
     dsg = M.design_channels(obs, ch)
     images = M.solve_images(obs, dsg, weights, phase=phase)
     at = obs.gather(images.coef)
@@ -104,10 +128,13 @@ def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndar
     """Fisher information of the parameters of ``names`` and its profiled correction, in
     :func:`dfxcorr.model.fisher_index`'s order: :func:`dfxcorr.kernels.fisher`'s values.
 
-    Beyond the kernels (see :func:`compiled`), :func:`dfxcorr.model.fisher_parts`.
+    Where ``obs.reading`` is set, :func:`dfxcorr.fisher_between.fisher` (``inverse`` is not read); beyond the kernels
+    (see :func:`compiled`), :func:`dfxcorr.model.fisher_parts`.
     """
-    if compiled(obs, ch, names):
-        K.set_threads()
+    K.set_threads()
+    if compiled(ch, names) and obs.reading is not None:
+        return FB.fisher(obs, ch, weights, coef, M.component_table(names)[:3], profiled=profiled)
+    if compiled(ch, names):
         return K.fisher(obs, ch, weights, coef, inverse, M.component_table(names)[:3], profiled=profiled)
     images = M.Images(coef, np.ones(coef.shape[:2], bool), inverse)
     plain, corr, _ = M.fisher_parts(obs, M.design_channels(obs, ch), images, weights, names, profiled=profiled)

@@ -166,10 +166,10 @@ POLISH_SECONDS_PER_SAMPLE = 0.5e-6
 #: of the scan: what ``fit.time_floor`` leaves to the fit (0.076 us on the binned and 0.077 on the full-resolution
 #: clinical scan, 0.11 on the paper study; docs/benchmark.json, load 3.4-4.1).
 REST_SECONDS_PER_SAMPLE = 0.08e-6
-#: How much slower the fit runs where the samples read between rows (``geometry.parallax``: the model's numpy
-#: arrays and the block-tridiagonal solve instead of the compiled kernels): 32.9 s against 3.4 s on the 5 mm
-#: parallax scan, both under load 8.
-READ_BETWEEN_SLOWDOWN = 10.0
+#: How much slower the fit runs where the samples read between rows (``geometry.parallax``: one block-tridiagonal
+#: solve per column, :mod:`dfxcorr.kernels_between`): the same columns fitted, the paper study's fit 42.4 s against
+#: 16.8 s and 47.4 s against 18.3 s, the binned clinical scan's 15.3 s against 9.1 s (load 3.5-4.9).
+READ_BETWEEN_SLOWDOWN = 2.5
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,9 @@ reconstructs it
 - on every 4th column: with the Gauss-Newton steps, with L-BFGS instead (``fit.optimizer=lbfgs``), with the
   paper's diagonal preconditioner (``fit.preconditioner=diagonal``): what whitening by the whole profiled Fisher
   information saves, and without preconditioning (``fit.precondition=false``): what eq. 34 saves,
+- with a parallax set (``geometry.parallax=0.02``: the samples read the images between rows, one block-tridiagonal
+  solve per column), at the defaults (the plan counts the coupled rows' cost) and with every column (against
+  ``every column``: what the coupled rows cost),
 and reports seconds per stage, iterations, cost evaluations and the ratios.
 
 Target ``clinical`` simulates (once, into ``--dir``; never into the repository) the clinical scanner at
@@ -72,7 +75,9 @@ CASES = {"default": [], "every column": ["fit.subsample=1"], "every 20th column"
          "every 4th column": ["fit.subsample=4"],
          "L-BFGS (fit.optimizer=lbfgs)": ["fit.subsample=4", "fit.optimizer=lbfgs"],
          "diagonal preconditioning (eq. 34)": ["fit.subsample=4", "fit.optimizer=lbfgs", "fit.preconditioner=diagonal"],
-         "no preconditioning": ["fit.subsample=4", "fit.optimizer=lbfgs", "fit.precondition=false"]}
+         "no preconditioning": ["fit.subsample=4", "fit.optimizer=lbfgs", "fit.precondition=false"],
+         "parallax (geometry.parallax=0.02)": ["geometry.parallax=0.02"],
+         "parallax, every column": ["geometry.parallax=0.02", "fit.subsample=1"]}
 #: The fit's log line with its iterations and cost evaluations (dfxcorr.pipeline.run_fit).
 FIT_LINE = re.compile(r"vibration fit: (\d+) iterations, (\d+) evaluations of the cost over (\d+) samples")
 #: The log line of the chosen columns (dfxcorr.planning.plan_columns).

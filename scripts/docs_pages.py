@@ -144,7 +144,9 @@ phi0 / phi1 / v^s against the truth. The frames stay in the file and only their 
 PAPER_CASES = """\
 The paper's study, reconstructed in memory at the defaults and at other settings (one process, the scan
 simulated once). The optimiser and preconditioner comparisons use every 4th column, where L-BFGS without
-preconditioning still finishes in seconds."""
+preconditioning still finishes in seconds. The parallax rows set `geometry.parallax` on this scan, which has none
+(their reduced chi-square is the misfit of a wrong setting); with every column, against `every column`, they show
+what the coupled rows cost."""
 
 BASELINE = """\
 The same scan as separate processes, this version against the plain numpy/scipy implementation of the

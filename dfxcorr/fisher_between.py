@@ -1,0 +1,232 @@
+"""Compiled Fisher information where the samples read the images between rows (numba).
+
+The information of the channel components at known images, and the share the profiled images take: per column,
+sum Y^T N^-1 Y with Y = X^T W F and N the column's block-tridiagonal normal matrix of the images
+(:mod:`dfxcorr.kernels_between` assembles and factors it). :func:`dfxcorr.model.fisher_parts` with
+:func:`dfxcorr.model.read_between_correction` is the definition; the tests hold this kernel to it.
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+from .kernels import _c, _derivatives, _direction, _image_columns
+from .kernels_between import _add_sample, _factor, _reading, _sample
+
+#: Frames whose rows of the Fisher correction's Y^T N^-1 Y are one matrix product: the rows of N^-1 Y their samples
+#: read are streamed once for all of them (a frame's alone: a product of three rows, bound by memory). Paper study
+#: with a parallax, 73 columns, profiled Fisher information: 1 frame 2.37 s, 8 1.13 s, 16 0.43 s, 32 0.71 s (load
+#: 3.2-3.5).
+FRAME_GROUP = 16
+
+
+@njit(cache=True)
+def _solve_many(Y, scale, valid, Finv, Us, W):
+    """N^-1 Y of one column for the P right-hand sides ``Y`` (R, 3, P) into ``W``, from the column's factors
+    (``kernels_between._solve`` for many)."""
+    R, _, P = Y.shape
+    M = np.empty((3, 3))
+    v = np.empty((3, P))
+    for r in range(R):
+        for a in range(3):
+            s = scale[r, a]
+            for p in range(P):
+                W[r, a, p] = Y[r, a, p] / s if valid[r] else 0.0
+        if r > 0:
+            # y_r -= U_{r-1}^T F_{r-1}^-1 y_{r-1}
+            for a in range(3):
+                for b in range(3):
+                    M[a, b] = Us[r - 1, 0, a] * Finv[r - 1, 0, b] + Us[r - 1, 1, a] * Finv[r - 1, 1, b] \
+                        + Us[r - 1, 2, a] * Finv[r - 1, 2, b]
+            for a in range(3):
+                m0, m1, m2 = M[a, 0], M[a, 1], M[a, 2]
+                for p in range(P):
+                    W[r, a, p] -= m0 * W[r - 1, 0, p] + m1 * W[r - 1, 1, p] + m2 * W[r - 1, 2, p]
+    for r in range(R - 1, -1, -1):
+        for a in range(3):
+            for p in range(P):
+                v[a, p] = W[r, a, p]
+        if r + 1 < R:
+            for a in range(3):
+                u0, u1, u2 = Us[r, a, 0], Us[r, a, 1], Us[r, a, 2]
+                for p in range(P):
+                    v[a, p] -= u0 * W[r + 1, 0, p] + u1 * W[r + 1, 1, p] + u2 * W[r + 1, 2, p]
+        for a in range(3):
+            f0, f1, f2 = Finv[r, a, 0], Finv[r, a, 1], Finv[r, a, 2]
+            for p in range(P):
+                W[r, a, p] = f0 * v[0, p] + f1 * v[1, p] + f2 * v[2, p]
+    for r in range(R):
+        for a in range(3):
+            s = scale[r, a]
+            for p in range(P):
+                W[r, a, p] = W[r, a, p] / s if valid[r] else 0.0
+
+
+@njit(cache=True, parallel=True)
+def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm, coef, channel, power,
+            n_per_frame, n_frames, lead, rslot, block, block_rows, profiled, chunks):
+    K, C = tf.shape
+    R = coef.shape[0]
+    Q = channel.size
+    Pf = n_per_frame
+    P = n_frames * Pf + Q - n_per_frame
+    Pr = block[-1]
+    n = chunks.size - 1
+    plain = np.empty((n, P, P))
+    corr = np.empty((n, P, P))
+    hc, hs = harm[0], harm[1]
+    for t in prange(n):
+        plain[t, :, :] = 0.0
+        corr[t, :, :] = 0.0
+        F = np.empty(Q)
+        slot = np.empty(Q, dtype=np.int64)
+        D = np.empty((R, 6, 1))
+        U = np.empty((R, 6, 1))
+        rhs = np.empty((R, 3, 1))
+        used = np.empty((R, 1))
+        # the correction's right-hand sides: a column's per-frame components of one channel differ by a factor x^k,
+        # so one per (frame, channel) (``rslot``: where each component's is), then one per global component
+        Y = np.empty((R if profiled else 0, 3, Pr))
+        W = np.empty((R if profiled else 0, 3, Pr))
+        cr = np.empty((Pr if profiled else 0, Pr))
+        factor = np.empty(P)
+        scale = np.empty((R, 3))
+        ok = np.empty(R, dtype=np.bool_)
+        Finv = np.empty((R, 3, 3))
+        Us = np.empty((R, 3, 3))
+        for c in range(chunks[t], chunks[t + 1]):
+            D[:] = 0.0
+            U[:] = 0.0
+            used[:] = 0.0
+            Y[:] = 0.0
+            for k in range(K):
+                wk = w[k, c]
+                if wk == 0:
+                    continue
+                j = frame[k]
+                lo, f = lo_[k], frac[k]
+                hi = min(lo + 1, R - 1)
+                g = 1.0 - f
+                Fc, Fs, amp, c2, s2, a, bc, bs, hcc, hcs = _sample(fc, fs, cos_p, sin_p, tf, vis, dose, k, c, j, hc, hs)
+                tt = g * coef[lo, c, 0] + f * coef[hi, c, 0]
+                cs = g * coef[lo, c, 1] + f * coef[hi, c, 1]
+                ss = g * coef[lo, c, 2] + f * coef[hi, c, 2]
+                du, dw, e, ff = _direction(cs, ss)
+                basis = _derivatives(tt, cs, ss, Fc, Fs, c2, s2, e, ff, tf[k, c], dose[j], vis[j, c], hc, hs)
+                for q in range(Q):
+                    ch = channel[q]
+                    if ch <= 1:
+                        F[q] = basis[ch] * x[c] ** power[q]
+                    elif ch == 2:
+                        F[q] = basis[2]
+                    elif ch == 3:
+                        F[q] = 1.0 if power[q] == 0 else (x[c] if power[q] == 1 else y[k])
+                    else:
+                        F[q] = basis[3 + power[q]]
+                    slot[q] = j * Pf + q if q < Pf else n_frames * Pf + q - Pf
+                for q1 in range(Q):
+                    wf = wk * F[q1]
+                    for q2 in range(Q):
+                        plain[t, slot[q1], slot[q2]] += wf * F[q2]
+                if profiled:
+                    # the images' columns: their derivatives at the images the sample reads
+                    xc, xs = _image_columns(bc, bs, hcc, hcs, du, dw)
+                    _add_sample(D, U, rhs, used, lo, hi, f, 0, wk, a, xc, xs, 0.0)
+                    for q in range(Q):
+                        if not lead[q]:
+                            continue
+                        p = rslot[slot[q]]
+                        wf = wk * (basis[channel[q]] if q < Pf and channel[q] <= 1 else F[q])
+                        Y[lo, 0, p] += g * wf * a
+                        Y[lo, 1, p] += g * wf * xc
+                        Y[lo, 2, p] += g * wf * xs
+                        if f != 0.0:
+                            Y[hi, 0, p] += f * wf * a
+                            Y[hi, 1, p] += f * wf * xc
+                            Y[hi, 2, p] += f * wf * xs
+            if not profiled:
+                continue
+            # sum Y^T N^-1 Y over the column's images: W = N^-1 Y, then each block of parameters' rows of Y^T W over
+            # the image rows its samples read (Y is zero elsewhere), one matrix product each
+            _factor(D, U, used, 0, scale, ok, Finv, Us)
+            _solve_many(Y, scale, ok, Finv, Us, W)
+            for b in range(block.size - 1):
+                p0, p1 = block[b], block[b + 1]
+                r0, r1 = block_rows[b, 0], block_rows[b, 1] + 1
+                if r1 <= r0:
+                    cr[p0:p1, :] = 0.0
+                    continue
+                Yb = np.empty((3 * (r1 - r0), p1 - p0))
+                for r in range(r0, r1):
+                    for a in range(3):
+                        for p in range(p0, p1):
+                            Yb[3 * (r - r0) + a, p - p0] = Y[r, a, p]
+                cr[p0:p1, :] = np.dot(Yb.T, W[r0:r1].reshape(3 * (r1 - r0), Pr))
+            for q in range(Q):
+                f_q = x[c] ** power[q] if q < Pf and channel[q] <= 1 else 1.0
+                for j in range(n_frames if q < Pf else 1):
+                    factor[j * Pf + q if q < Pf else n_frames * Pf + q - Pf] = f_q
+            for p1 in range(P):
+                for p2 in range(P):
+                    corr[t, p1, p2] += factor[p1] * factor[p2] * cr[rslot[p1], rslot[p2]]
+    return plain, corr
+
+
+def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, table: tuple, *, profiled: bool = True
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Fisher information of channel components and its correction for the profiled images where the samples read
+    between rows: :func:`dfxcorr.kernels.fisher`'s values, the correction over whole columns (a pixel's images
+    share samples with its neighbours', :func:`dfxcorr.model.read_between_correction`).
+
+    Parameters
+    ----------
+    obs : Observations
+        With ``reading``.
+    ch : Channels
+    weights : ndarray, shape (K, C)
+    coef : ndarray, shape (R, C, 3)
+        Images (t, c, s); the images' normal matrices are assembled at them.
+    table : tuple
+        (channel ids (Q,), power or basis index (Q,), number of per-frame components), see
+        :func:`dfxcorr.model.component_table`.
+    profiled : bool
+        Also compute the correction (otherwise zeros).
+
+    Returns
+    -------
+    plain, correction : ndarray, shape (P, P)
+        P = J * (per-frame components) + (global components), per-frame entries ordered (frame, component).
+    """
+    lo, frac = _reading(obs)
+    channel, power, n_per_frame = table
+    R, J, Pf = obs.rows.size, obs.n_frames, int(n_per_frame)
+    # the correction's right-hand sides: per frame one per channel of its components (the first component of each
+    # channel leads), then one per global component; each component's (``rslot``), in blocks of a frame's and the
+    # global ones, with the image rows each block's samples read
+    Pg = len(channel) - Pf
+    chans = list(dict.fromkeys(int(ch_) for ch_ in channel[:Pf]))
+    lead = np.array([q >= Pf or int(channel[q]) not in [int(v) for v in channel[:q]] for q in range(len(channel))])
+    Pu = len(chans)
+    own = [chans.index(int(channel[q])) for q in range(Pf)]
+    rslot = np.concatenate([(np.arange(J)[:, None] * Pu + np.array(own, dtype=np.int64)[None, :]).ravel(),
+                            J * Pu + np.arange(Pg)]).astype(np.int64)
+    hi = np.minimum(lo + 1, R - 1)
+    groups = -(-J // FRAME_GROUP)
+    block_rows = np.zeros((groups + 1, 2), dtype=np.int64)
+    block_rows[:groups, 0], block_rows[:groups, 1], block_rows[groups, 1] = R, -1, R - 1
+    counted = np.any(weights != 0, axis=1)
+    group = obs.frame[counted] // FRAME_GROUP
+    np.minimum.at(block_rows[:groups, 0], group, lo[counted])
+    np.maximum.at(block_rows[:groups, 1], group, np.where(frac > 0, hi, lo)[counted])
+    block = np.append(np.arange(groups, dtype=np.int64) * FRAME_GROUP * Pu, [J * Pu, J * Pu + Pg])
+    C = obs.columns.size
+    n = max(1, min(C, numba.get_num_threads()))
+    chunks = np.linspace(0, C, n + 1).round().astype(np.int64)
+    fc, fs = obs.fringe
+    plain, corr = _fisher(_c(obs.tf), _c(fc), _c(fs), _c(weights, np.float64),
+                          obs.frame, lo, frac, obs.y, obs.x, np.cos(ch.phase), np.sin(ch.phase),
+                          _c(ch.vis, np.float64), ch.dose, ch.harmonic, _c(coef, np.float64),
+                          np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64), Pf, J, lead,
+                          rslot, block, block_rows, bool(profiled), chunks)
+    return plain.sum(axis=0), corr.sum(axis=0)

@@ -1,0 +1,107 @@
+"""The compiled loops where samples read the images between rows equal the model's numpy expressions (the engine's
+model path)."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from dfxcorr import engine as E
+from dfxcorr import fisher_between as FB
+from dfxcorr import kernels_between as KB
+from dfxcorr import model as M
+from dfxcorr.observations import displaced_reading
+
+from conftest import modelled_counts, random_params, tiny_obs
+
+NAMES = ("phase_offset", "tilt", "visibility_loss", "dose")
+WITH_ALL = NAMES + ("background", "harmonic")
+
+
+def displaced(rng, obs, spread=1.3):
+    """``obs`` with each frame reading the images up to ``spread`` rows off its own, samples reading outside unused."""
+    shift = rng.uniform(-spread, spread, obs.n_frames)[obs.frame]
+    reading, inside = displaced_reading(obs.row, obs.rows, shift)
+    return replace(obs, reading=reading, use=obs.use & inside[:, None])
+
+
+def close(got, want, rtol=1e-9):
+    np.testing.assert_allclose(got, want, rtol=rtol, atol=rtol * max(np.abs(want).max(), 1e-300))
+
+
+@pytest.fixture(params=[NAMES, WITH_ALL], ids=["plain", "harmonic"])
+def case(request, rng):
+    obs = tiny_obs(rng, J=16, H=9, W=11)
+    params = random_params(rng, obs.n_frames, request.param)
+    obs = displaced(rng, replace(obs, counts=modelled_counts(rng, obs, params)))
+    # no sample reads row 3 of column 4: that image cannot be solved, its neighbours can
+    lo, hi, f = obs.read_rows()
+    use = obs.use.copy()
+    use[(lo == 3) | ((hi == 3) & (f > 0)), 4] = False
+    return replace(obs, use=use), M.channels(params, x=obs.x, n_frames=obs.n_frames)
+
+
+@pytest.mark.parametrize("iterations,next_weights,given", [(1, False, False), (2, True, False), (2, False, True)])
+def test_retrieval_equals_the_model(case, rng, iterations, next_weights, given):
+    obs, ch = case
+    weights = rng.uniform(0.5, 2.0, obs.counts.shape) / 800 if given else None
+    want = E.model_retrieve(obs, ch, weights=weights, iterations=iterations, keep_inverse=True,
+                           next_weights=next_weights, gain=1.3)
+    got = KB.retrieve(obs, ch, weights=weights, iterations=iterations, keep_inverse=True, next_weights=next_weights,
+                      gain=1.3)
+    np.testing.assert_array_equal(got["valid"], want["valid"])
+    assert not want["valid"][3, 4] and want["valid"].sum() == want["valid"].size - 1
+    for key in ("coef", "inverse", "coupling", "expected", "weights"):
+        close(got[key], want[key])
+    assert got["chi2"] == pytest.approx(want["chi2"], rel=1e-9) and got["samples"] == want["samples"]
+
+
+def test_retrieval_with_pixel_noise_and_known_photons(case, rng):
+    obs, ch = case
+    obs = replace(obs, noise=rng.uniform(0.8, 1.5, (obs.rows.size, obs.columns.size)),
+                  offset=rng.uniform(0, 20, obs.counts.shape), electronic=4.0)
+    want, got = E.model_retrieve(obs, ch, iterations=2), KB.retrieve(obs, ch, iterations=2, keep_expected=False)
+    close(got["coef"], want["coef"])
+    assert got["chi2"] == pytest.approx(want["chi2"], rel=1e-9)
+    assert got["expected"].shape == (0, obs.columns.size) and got["inverse"] is None
+
+
+@pytest.mark.parametrize("square", [False, True])
+@pytest.mark.parametrize("phase", [None, 0.4])
+def test_reduced_cost_equals_the_model(case, square, phase):
+    obs, ch = case
+    w = np.where(obs.use, 1.0 / np.maximum(obs.counts, 1.0), 0.0)
+    cost, sums = KB.reduced_cost(obs, ch, w, phase=phase, square=square)
+    want_cost, want = E.model_reduced_cost(obs, ch, w, phase=phase, square=square)
+    assert cost == pytest.approx(want_cost, rel=1e-9)
+    for a, b in zip(sums, (want.phase, want.vis, want.dose, want.background, want.harmonic), strict=True):
+        close(a, b)
+
+
+def test_reduced_cost_skips_channels_not_asked_for(case):
+    obs, ch = case
+    w = np.where(obs.use, 1.0 / np.maximum(obs.counts, 1.0), 0.0)
+    _, sums = KB.reduced_cost(obs, ch, w, channels=("phase",))
+    _, full = KB.reduced_cost(obs, ch, w)
+    close(sums[0], full[0])
+    assert all(not np.any(s_) for s_ in sums[1:])
+
+
+@pytest.mark.parametrize("profiled", [True, False])
+def test_fisher_information_equals_the_model(case, rng, profiled):
+    obs, ch = case
+    names = WITH_ALL if np.any(ch.harmonic) else NAMES
+    w = np.where(obs.use, 1.0 / np.maximum(obs.counts, 1.0), 0.0)
+    dsg = M.design_channels(obs, ch)
+    images = M.solve_images(obs, dsg, w)
+    want_plain, want_corr, _ = M.fisher_parts(obs, dsg, images, w, names, profiled=profiled)
+    plain, corr = FB.fisher(obs, ch, w, images.coef, M.component_table(names)[:3], profiled=profiled)
+    close(plain, want_plain)
+    close(corr, want_corr)
+    assert np.any(corr) == profiled
+
+
+def test_observations_without_a_reading_are_refused(rng):
+    obs = tiny_obs(rng)
+    ch = M.channels({}, x=obs.x, n_frames=obs.n_frames)
+    with pytest.raises(ValueError, match="own row"):
+        KB.retrieve(obs, ch)
