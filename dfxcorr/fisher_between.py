@@ -3,7 +3,7 @@
 The information of the channel components at known images, and the share the profiled images take: per column,
 sum Y^T N^-1 Y with Y = X^T W F and N the column's block-tridiagonal normal matrix of the images
 (:mod:`dfxcorr.kernels_between` assembles and factors it). :func:`dfxcorr.model.fisher_parts` with
-:func:`dfxcorr.model.read_between_correction` is the definition; the tests hold this kernel to it.
+:func:`dfxcorr.banded.profiled_correction` is the definition; the tests hold this kernel to it.
 """
 from __future__ import annotations
 
@@ -177,7 +177,7 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, table: tuple, *, prof
            ) -> tuple[np.ndarray, np.ndarray]:
     """Fisher information of channel components and its correction for the profiled images where the samples read
     between rows: :func:`dfxcorr.kernels.fisher`'s values, the correction over whole columns (a pixel's images
-    share samples with its neighbours', :func:`dfxcorr.model.read_between_correction`).
+    share samples with its neighbours', :func:`dfxcorr.banded.profiled_correction`).
 
     Parameters
     ----------

@@ -71,37 +71,21 @@ def _add_sample(D, U, rhs, used, lo, hi, f, i, wk, a, x1, x2, target):
     """Add one sample reading rows lo and hi (share 1 - f and f) to column i of the tile's normal equations (the
     symmetric blocks' entries 00, 01, 02, 11, 12, 22)."""
     wa, w1, w2 = wk * a, wk * x1, wk * x2
-    p0, p1, p2, p3, p4, p5 = wa * a, wa * x1, wa * x2, w1 * x1, w1 * x2, w2 * x2
+    p = (wa * a, wa * x1, wa * x2, w1 * x1, w1 * x2, w2 * x2)
+    r = (wa * target, w1 * target, w2 * target)
     g = 1.0 - f
-    gg = g * g
-    D[lo, 0, i] += gg * p0
-    D[lo, 1, i] += gg * p1
-    D[lo, 2, i] += gg * p2
-    D[lo, 3, i] += gg * p3
-    D[lo, 4, i] += gg * p4
-    D[lo, 5, i] += gg * p5
-    rhs[lo, 0, i] += g * wa * target
-    rhs[lo, 1, i] += g * w1 * target
-    rhs[lo, 2, i] += g * w2 * target
+    for e in range(6):
+        D[lo, e, i] += g * g * p[e]
+    for e in range(3):
+        rhs[lo, e, i] += g * r[e]
     if wk > 0:
         used[lo, i] += 1.0
     if f != 0.0:
-        ff, gf = f * f, g * f
-        D[hi, 0, i] += ff * p0
-        D[hi, 1, i] += ff * p1
-        D[hi, 2, i] += ff * p2
-        D[hi, 3, i] += ff * p3
-        D[hi, 4, i] += ff * p4
-        D[hi, 5, i] += ff * p5
-        U[lo, 0, i] += gf * p0
-        U[lo, 1, i] += gf * p1
-        U[lo, 2, i] += gf * p2
-        U[lo, 3, i] += gf * p3
-        U[lo, 4, i] += gf * p4
-        U[lo, 5, i] += gf * p5
-        rhs[hi, 0, i] += f * wa * target
-        rhs[hi, 1, i] += f * w1 * target
-        rhs[hi, 2, i] += f * w2 * target
+        for e in range(6):
+            D[hi, e, i] += f * f * p[e]
+            U[lo, e, i] += g * f * p[e]
+        for e in range(3):
+            rhs[hi, e, i] += f * r[e]
         if wk > 0:
             used[hi, i] += 1.0
 

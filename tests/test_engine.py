@@ -43,6 +43,25 @@ def dense_design(obs, columns):
     return X
 
 
+def numeric_information(obs, params, w, names):
+    """J^T W J, J the central-difference derivative of the residuals at the images solved for each parameter value,
+    in :func:`dfxcorr.model.fisher_index`'s order: the profiled information, exactly for noise-free data without the
+    harmonic (the images are then linear in the data)."""
+
+    def residuals(p):
+        dsg = M.design(obs, p)
+        return (obs.counts - M.expected(obs, dsg, M.solve_images(obs, dsg, w))).ravel()
+
+    index = M.fisher_index(names, obs.n_frames)
+    jac = np.empty((obs.counts.size, len(index)))
+    for i, (name, j, m) in enumerate(index):
+        up, down = ({k: v.copy() for k, v in params.items()} for _ in range(2))
+        up[name][j, m] += 1e-6
+        down[name][j, m] -= 1e-6
+        jac[:, i] = (residuals(up) - residuals(down)) / 2e-6
+    return jac.T @ (w.ravel()[:, None] * jac)
+
+
 def test_displaced_reading_of_whole_rows():
     row = np.array([0, 0, 1, 1, 2, 2, 3])
     frame = np.array([0, 1, 0, 1, 0, 1, 0])
@@ -129,18 +148,7 @@ def test_profiled_information_where_samples_read_between_rows(rng):
     obs = replace(obs, counts=M.expected(obs, M.design(obs, params), random_images(rng, obs)))
     w = np.where(obs.use, 1.0 / np.maximum(obs.counts, 1.0), 0.0)
 
-    def residuals(p):
-        dsg = M.design(obs, p)
-        return (obs.counts - M.expected(obs, dsg, M.solve_images(obs, dsg, w))).ravel()
-
-    index = M.fisher_index(NAMES, obs.n_frames)
-    jac = np.empty((obs.counts.size, len(index)))
-    for i, (name, j, m) in enumerate(index):
-        up, down = ({k: v.copy() for k, v in params.items()} for _ in range(2))
-        up[name][j, m] += 1e-6
-        down[name][j, m] -= 1e-6
-        jac[:, i] = (residuals(up) - residuals(down)) / 2e-6
-    numeric = jac.T @ (w.ravel()[:, None] * jac)
+    numeric = numeric_information(obs, params, w, NAMES)
     dsg = M.design(obs, params)
     images = M.solve_images(obs, dsg, w, keep_inverse=True)
     info, _ = M.fisher_matrix(obs, dsg, images, w, NAMES)
@@ -229,18 +237,7 @@ def test_row_term_gradient_sums_and_information_match_finite_differences(rng, to
     # noise-free data: the profiled information is J^T W J of the residuals at the images solved for each value
     obs = replace(obs, counts=M.expected(obs, M.design(obs, params), random_images(rng, obs)))
 
-    def residuals(p):
-        dsg = M.design(obs, p)
-        return (obs.counts - M.expected(obs, dsg, M.solve_images(obs, dsg, w))).ravel()
-
-    index = M.fisher_index(names, obs.n_frames)
-    jac = np.empty((obs.counts.size, len(index)))
-    for i, (name, j, m) in enumerate(index):
-        up, down = ({k: v.copy() for k, v in params.items()} for _ in range(2))
-        up[name][j, m] += 1e-6
-        down[name][j, m] -= 1e-6
-        jac[:, i] = (residuals(up) - residuals(down)) / 2e-6
-    numeric = jac.T @ (w.ravel()[:, None] * jac)
+    numeric = numeric_information(obs, params, w, names)
     dsg = M.design(obs, params)
     images = M.solve_images(obs, dsg, w, keep_inverse=True)
     plain, corr = E.fisher(obs, dsg.channels, w, images.coef, images.inverse, names)
@@ -248,7 +245,7 @@ def test_row_term_gradient_sums_and_information_match_finite_differences(rng, to
     # the Gauss-Newton sums are the plain information's diagonal
     sums = M.channel_adjoint(names, cost(params, square=True)[1], x=obs.x, square=True)
     diag = np.diag(plain)
-    for i, (name, j, m) in enumerate(index):
+    for i, (name, j, m) in enumerate(M.fisher_index(names, obs.n_frames)):
         assert sums[name][j, m] == pytest.approx(diag[i], rel=1e-9)
 
 
