@@ -90,13 +90,20 @@ def _add_sample(D, U, rhs, used, lo, hi, f, i, wk, a, x1, x2, target):
             used[hi, i] += 1.0
 
 
+@njit(cache=True, inline="always")
+def _det3(M):
+    """Determinant of a 3 x 3 matrix (expansion along its first column)."""
+    return (M[0, 0] * (M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]) + M[1, 0] * (M[0, 2] * M[2, 1] - M[0, 1] * M[2, 2])
+            + M[2, 0] * (M[0, 1] * M[1, 2] - M[0, 2] * M[1, 1]))
+
+
 @njit(cache=True)
 def _inv3(M, out):
     """Inverse of a 3 x 3 matrix into ``out`` (cofactors)."""
     c00 = M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]
     c01 = M[0, 2] * M[2, 1] - M[0, 1] * M[2, 2]
     c02 = M[0, 1] * M[1, 2] - M[0, 2] * M[1, 1]
-    det = M[0, 0] * c00 + M[1, 0] * c01 + M[2, 0] * c02
+    det = _det3(M)
     out[0, 0] = c00 / det
     out[0, 1] = c01 / det
     out[0, 2] = c02 / det
@@ -127,10 +134,7 @@ def _factor(D, U, used, i, scale, valid, Finv, Us):
                     Ds[r, a, b] = D[r, _SYM[a, b], i] / (scale[r, a] * scale[r, b])
                 else:
                     Ds[r, a, b] = 1.0 if a == b else 0.0
-        det = (Ds[r, 0, 0] * (Ds[r, 1, 1] * Ds[r, 2, 2] - Ds[r, 1, 2] * Ds[r, 2, 1])
-               - Ds[r, 0, 1] * (Ds[r, 1, 0] * Ds[r, 2, 2] - Ds[r, 1, 2] * Ds[r, 2, 0])
-               + Ds[r, 0, 2] * (Ds[r, 1, 0] * Ds[r, 2, 1] - Ds[r, 1, 1] * Ds[r, 2, 0]))
-        valid[r] = used[r, i] >= n_present and D[r, 0, i] > 0 and abs(det) > 1e-10
+        valid[r] = used[r, i] >= n_present and D[r, 0, i] > 0 and abs(_det3(Ds[r])) > 1e-10
         if not valid[r]:
             # a row that cannot be solved is held at 0, apart from its neighbours
             for a in range(3):
