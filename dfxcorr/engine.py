@@ -39,17 +39,11 @@ def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = 
     Where ``obs.reading`` is set, ``inverse`` holds each row's diagonal block of the inverse and ``coupling`` the
     blocks between each row and the next (None otherwise).
     """
+    kernel = model_retrieve if not compiled(ch) else K.retrieve if obs.reading is None else KB.retrieve
     K.set_threads()
-    if compiled(ch) and obs.reading is not None:
-        return KB.retrieve(obs, ch, weights=weights, iterations=iterations, gain=gain, keep_inverse=keep_inverse,
-                           keep_expected=keep_expected, next_weights=next_weights)
-    if compiled(ch):
-        out = K.retrieve(obs, ch, weights=weights, iterations=iterations, gain=gain, keep_inverse=keep_inverse,
-                         keep_expected=keep_expected, next_weights=next_weights)
-        out["coupling"] = None
-        return out
-    return model_retrieve(obs, ch, weights=weights, iterations=iterations, gain=gain, keep_inverse=keep_inverse,
-                          keep_expected=keep_expected, next_weights=next_weights)
+    out = kernel(obs, ch, weights=weights, iterations=iterations, gain=gain, keep_inverse=keep_inverse,
+                 keep_expected=keep_expected, next_weights=next_weights)
+    return {"coupling": None, **out}
 
 
 def model_retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = None, iterations: int = 1,
@@ -131,11 +125,12 @@ def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndar
     Where ``obs.reading`` is set, :func:`dfxcorr.fisher_between.fisher` (``inverse`` is not read); beyond the kernels
     (see :func:`compiled`), :func:`dfxcorr.model.fisher_parts`.
     """
+    if not compiled(ch, names):
+        images = M.Images(coef, np.ones(coef.shape[:2], bool), inverse)
+        plain, corr, _ = M.fisher_parts(obs, M.design_channels(obs, ch), images, weights, names, profiled=profiled)
+        return plain, corr
     K.set_threads()
-    if compiled(ch, names) and obs.reading is not None:
-        return FB.fisher(obs, ch, weights, coef, M.component_table(names)[:3], profiled=profiled)
-    if compiled(ch, names):
-        return K.fisher(obs, ch, weights, coef, inverse, M.component_table(names)[:3], profiled=profiled)
-    images = M.Images(coef, np.ones(coef.shape[:2], bool), inverse)
-    plain, corr, _ = M.fisher_parts(obs, M.design_channels(obs, ch), images, weights, names, profiled=profiled)
-    return plain, corr
+    table = M.component_table(names)[:3]
+    if obs.reading is not None:
+        return FB.fisher(obs, ch, weights, coef, table, profiled=profiled)
+    return K.fisher(obs, ch, weights, coef, inverse, table, profiled=profiled)
