@@ -10,7 +10,6 @@ sharing the arrays that stay the same.
 """
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -99,6 +98,19 @@ def displaced_reading(row: np.ndarray, rows: np.ndarray, shift: np.ndarray) -> t
     return Reading(np.where(inside, lo_c, 0).astype(np.int64), frac), inside
 
 
+class Quadratures:
+    """The fringe quadratures of some observations (:attr:`Observations.fringe`) and the flat-field arrays they were
+    made from. The copies ``dataclasses.replace`` makes of observations share it: they keep the flat field's arrays, so
+    the quadratures one of them made serve every one (a diagnosis holds a dozen such copies, each 2 x 57 MB of
+    quadratures at clinical scale when each made its own)."""
+
+    __slots__ = ("source", "value")
+
+    def __init__(self) -> None:
+        self.source: tuple[np.ndarray, ...] = ()
+        self.value: tuple[np.ndarray, np.ndarray] | None = None
+
+
 @dataclass(frozen=True)
 class Observations:
     """Illuminated samples of a scan with their flat field, as blocks of (row, frame).
@@ -139,6 +151,8 @@ class Observations:
         variance (:meth:`photons`); the rest of ``dark`` is the detector's, without photon noise. None: none.
     reading : Reading or None
         Where each block reads the images (:class:`Reading`); None: at its own row (the paper's geometry).
+    quadratures : Quadratures
+        Where :attr:`fringe` is kept once made (shared with copies that keep the flat field's arrays).
     """
 
     counts: np.ndarray
@@ -157,6 +171,7 @@ class Observations:
     roi: np.ndarray | None = None
     offset: np.ndarray | None = None
     reading: Reading | None = None
+    quadratures: Quadratures = field(default_factory=Quadratures, repr=False, compare=False)
     rows: np.ndarray = field(init=False)
     starts: np.ndarray = field(init=False)
     pixel: np.ndarray = field(init=False)
@@ -184,14 +199,29 @@ class Observations:
     def n_frames(self) -> int:
         return self.shape[0]
 
-    @functools.cached_property
+    @property
     def fringe(self) -> tuple[np.ndarray, np.ndarray]:
         """The flat field's fringe at each sample as its quadratures, t^f v^f (cos phi^f, sin phi^f) (counts), each
         (K, C) in the samples' dtype: the compiled loops turn it by the phase channel with products alone, so no
-        sample needs a trigonometric call there. Made once per observations (the fit evaluates them many times)."""
+        sample needs a trigonometric call there. Made once per flat field held (the fit evaluates them many times;
+        :class:`Quadratures`)."""
+        slot = self.quadratures
+        if slot.value is not None and self._quadratures_made():
+            return slot.value
+        if slot.value is not None:
+            # a copy with a flat field of its own: a slot of its own, the others keep theirs
+            slot = Quadratures()
+            object.__setattr__(self, "quadratures", slot)
         amp = self.tf * self.vf
-        return ((amp * np.cos(self.phif)).astype(self.tf.dtype, copy=False),
-                (amp * np.sin(self.phif)).astype(self.tf.dtype, copy=False))
+        slot.source = (self.tf, self.vf, self.phif)
+        slot.value = ((amp * np.cos(self.phif)).astype(self.tf.dtype, copy=False),
+                      (amp * np.sin(self.phif)).astype(self.tf.dtype, copy=False))
+        return slot.value
+
+    def _quadratures_made(self) -> bool:
+        slot = self.quadratures
+        return slot.value is not None and all(a is b for a, b in zip(slot.source, (self.tf, self.vf, self.phif),
+                                                                       strict=True))
 
     @property
     def in_roi(self) -> np.ndarray:
@@ -263,11 +293,17 @@ class Observations:
         def cut(a: np.ndarray) -> np.ndarray:
             return a[:, idx[0]:idx[0] + idx.size] if run else np.ascontiguousarray(a[:, idx])
 
-        return Observations(cut(self.counts), cut(self.tf), cut(self.vf), cut(self.phif), cut(self.dark), cut(self.use),
-                            self.row, self.frame, self.columns[idx], self.shape, self.gain, self.electronic,
-                            None if self.noise is None else cut(self.noise),
-                            None if self.roi is None else cut(self.roi),
-                            None if self.offset is None else cut(self.offset), self.reading)
+        out = Observations(cut(self.counts), cut(self.tf), cut(self.vf), cut(self.phif), cut(self.dark), cut(self.use),
+                           self.row, self.frame, self.columns[idx], self.shape, self.gain, self.electronic,
+                           None if self.noise is None else cut(self.noise),
+                           None if self.roi is None else cut(self.roi),
+                           None if self.offset is None else cut(self.offset), self.reading)
+        if self._quadratures_made():
+            # the quadratures already made, cut like the rest (no trigonometry again)
+            fc, fs = self.fringe
+            out.quadratures.source = (out.tf, out.vf, out.phif)
+            out.quadratures.value = (cut(fc), cut(fs))
+        return out
 
     def column_chunks(self, samples: float = 1e6) -> list[np.ndarray]:
         """Positions of ``self.columns`` in consecutive runs holding about ``samples`` samples each (at least one

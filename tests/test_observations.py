@@ -1,0 +1,51 @@
+"""The observations' fringe quadratures: their definition, and one set shared by the copies that keep the flat field."""
+from dataclasses import replace
+
+import numpy as np
+
+from conftest import tiny_obs
+
+
+def quadratures(obs):
+    amp = obs.tf * obs.vf
+    return amp * np.cos(obs.phif), amp * np.sin(obs.phif)
+
+
+def test_the_fringe_is_the_flat_fields_quadratures_in_the_samples_dtype():
+    obs = tiny_obs(np.random.default_rng(1))
+    for a, b in zip(obs.fringe, quadratures(obs), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-14, atol=0)
+    single = replace(obs, tf=obs.tf.astype(np.float32), vf=obs.vf.astype(np.float32),
+                     phif=obs.phif.astype(np.float32))
+    for a, b in zip(single.fringe, quadratures(obs), strict=True):
+        assert a.dtype == np.float32
+        # single-precision products and trigonometry: a few ulps of the amplitude
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-6 * np.abs(obs.tf * obs.vf).max())
+
+
+def test_copies_keeping_the_flat_field_share_its_quadratures_and_others_make_their_own():
+    obs = tiny_obs(np.random.default_rng(2))
+    fc, fs = obs.fringe
+    masked = replace(obs, use=obs.use & (obs.counts > 800), dark=obs.dark + 3.0)
+    assert masked.fringe[0] is fc and masked.fringe[1] is fs
+    moved = replace(obs, phif=obs.phif + 0.3)
+    for a, b in zip(moved.fringe, quadratures(moved), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-14, atol=0)
+    # the original and the copy sharing its slot keep the quadratures of their own flat field
+    assert obs.fringe[0] is fc and masked.fringe[1] is fs
+    assert not np.allclose(moved.fringe[0], fc)
+
+
+def test_a_subset_cuts_the_quadratures_already_made_and_equals_making_them_afresh():
+    obs = tiny_obs(np.random.default_rng(3))
+    cols = np.array([1, 4, 5])
+    fresh = obs.subset(cols)
+    expected = quadratures(fresh)
+    made = obs.fringe
+    for copy in (True, False):
+        cut = obs.subset(cols, copy=copy)
+        for a, b, c in zip(cut.fringe, expected, made, strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-14, atol=0)
+            np.testing.assert_array_equal(a, c[:, cols])
+    run = obs.subset(np.arange(2, 5), copy=False)
+    assert np.shares_memory(run.fringe[0], obs.fringe[0])
