@@ -91,7 +91,7 @@ class ReadBetween:
     """The images' normal matrices of every column where the samples read between rows, factored.
 
     Scaled by the square roots of their diagonals (``scale``), rows that cannot be solved set to the identity;
-    ``Finv`` and ``U`` are the scaled system's :func:`dfxcorr.forward` factors.
+    ``Finv`` and ``U`` are the scaled system's :func:`forward` factors.
 
     Attributes
     ----------
@@ -203,13 +203,17 @@ def solve_read_between(obs: Observations, columns: list[np.ndarray], target: np.
     return coef, fac.valid, inverse, coupling
 
 
+#: Columns whose normal equations :func:`profiled_correction` factors at once (its temporaries grow with them).
+CORRECTION_COLUMNS = 16
+
+
 def profiled_correction(obs: Observations, columns: list[np.ndarray], weights: np.ndarray, F: list[np.ndarray],
-                        where: list[np.ndarray], n_params: int, *, chunk: int = 16) -> np.ndarray:
+                        where: list[np.ndarray], n_params: int) -> np.ndarray:
     """The profiled images' share of the Fisher information, from the model's arrays.
 
     sum over columns of Y^T N^-1 Y, Y = X^T W F. Where the samples read between rows a pixel's images share samples
     with its neighbours', so N is the column's block-tridiagonal normal matrix (:func:`factor_read_between`; block
-    diagonal where each sample reads its own row), solved ``chunk`` columns at a time. The compiled
+    diagonal where each sample reads its own row), solved :data:`CORRECTION_COLUMNS` columns at a time. The compiled
     :func:`dfxcorr.kernels.fisher` computes the same where every sample reads its own row and every component is a
     power of x.
 
@@ -231,23 +235,22 @@ def profiled_correction(obs: Observations, columns: list[np.ndarray], weights: n
     -------
     ndarray, shape (P, P)
     """
-    X = columns
     R, K = obs.rows.size, obs.frame.size
-    lo, hi, frac = obs.read_rows()
+    lo, hi, g = _read_shares(obs)
     owners = [np.unique(wq, return_inverse=True) for wq in where]
     corr = np.zeros((n_params, n_params))
-    for start in range(0, obs.columns.size, chunk):
-        cols = np.arange(start, min(start + chunk, obs.columns.size))
+    for start in range(0, obs.columns.size, CORRECTION_COLUMNS):
+        cols = np.arange(start, min(start + CORRECTION_COLUMNS, obs.columns.size))
         sub = obs.subset(cols, copy=False)
-        Xs, w = [x[:, cols] for x in X], weights[:, cols]
+        Xs, w = [x[:, cols] for x in columns], weights[:, cols]
         fac = factor_read_between(sub, Xs, w)
         # Y of each column: (image row, column, unknown, parameter)
-        Y = np.zeros((R, cols.size, len(X), n_params))
+        Y = np.zeros((R, cols.size, len(columns), n_params))
         for (params, owner), Fq in zip(owners, F, strict=True):
             # sums over the samples of each (image row, parameter) pair, with what each sample reads of the row
             spread = sum(sparse.csr_matrix((share, (rows * params.size + owner, np.arange(K))),
                                            shape=(R * params.size, K))
-                         for rows, share in ((lo, 1.0 - frac), (hi, frac)))
+                         for rows, share in ((lo, g), (hi, 1 - g)))
             for a, Xa in enumerate(Xs):
                 Y[:, :, a, params] += np.moveaxis((spread @ (w * Xa * Fq[:, cols])).reshape(R, params.size, cols.size),
                                                   1, 2)
