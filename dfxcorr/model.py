@@ -94,11 +94,12 @@ class Channels:
     rows: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
 
     def phase_at(self, obs: Observations, blocks: np.ndarray | slice = slice(None)) -> np.ndarray:
-        """Φ at every sample of ``blocks``, shape (K', C)."""
+        """Φ (rad) at every sample of ``blocks`` (indices or a slice of ``obs``'s K blocks, K' of them), shape
+        (K', C)."""
         return self._at(kernels.PHASE, self.phase, obs, blocks)
 
     def vis_at(self, obs: Observations, blocks: np.ndarray | slice = slice(None)) -> np.ndarray:
-        """V at every sample of ``blocks``, shape (K', C)."""
+        """V at every sample of ``blocks`` (as :meth:`phase_at`), shape (K', C)."""
         return self._at(kernels.VISIBILITY, self.vis, obs, blocks)
 
     def _at(self, cid: int, base: np.ndarray, obs: Observations, blocks: np.ndarray | slice) -> np.ndarray:
@@ -203,7 +204,8 @@ def component_table(names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, int, 
     channel : ndarray of int, shape (Q,)
         :data:`dfxcorr.kernels.CHANNEL_IDS` of each component, per-frame components first.
     power : ndarray of int, shape (Q,)
-        Power of x (per-frame components) or index into the effect's basis (global ones).
+        Power of x (per-frame components; a power of y is not in the table: the compiled kernels take no such
+        component, :func:`dfxcorr.engine.compiled`) or index into the effect's basis (global ones).
     n_per_frame : int
     components : list of (name, component)
     """
@@ -539,8 +541,8 @@ def channel_fields(obs: Observations, dsg: Design, images: Images, cid: int, *, 
                    ) -> list[np.ndarray]:
     """dIbar/d(channel value) at every sample, each (K, C): [dIbar/dΦ], [dIbar/dV], [dIbar/dD], the three
     background basis fields, or the two of the harmonic (hc, hs); the channel ``cid`` of
-    :data:`dfxcorr.kernels.CHANNEL_IDS`. :func:`sample_derivatives` multiplies them by the powers of x. ``at``: the
-    images at every sample (``obs.gather(images.coef)``), where the caller has them."""
+    :data:`dfxcorr.kernels.CHANNEL_IDS`. :func:`sample_derivatives` multiplies them by the powers of x and y.
+    ``at``: the images at every sample (``obs.gather(images.coef)``), where the caller has them."""
     c = obs.gather(images.coef) if at is None else at
     t, cc, ss = c[..., 0], c[..., 1], c[..., 2]
     hc, hs = dsg.harmonic
@@ -659,8 +661,9 @@ def fisher_parts(obs: Observations, dsg: Design, images: Images, weights: np.nda
     the Schur complement sum_i D_i^T (W - W X (X^T W X)^-1 X^T W) D_i over pixels i, where D_i holds
     the derivatives of the pixel's samples with respect to the effect parameters and X_i its image
     design. Per-frame parameters of different frames are coupled through the pixels they share.
-    The information at known images is computed here; the correction for the profiled images, a
-    loop over pixels, by :func:`dfxcorr.kernels.fisher`.
+    The information at known images is computed here; the correction for the profiled images by
+    :func:`dfxcorr.kernels.fisher` (a loop over pixels), or where the samples read between rows or a component
+    holds a power of y by :func:`dfxcorr.banded.profiled_correction` (a solve per column).
 
     Parameters
     ----------
