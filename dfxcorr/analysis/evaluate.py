@@ -25,33 +25,35 @@ def frames_lighting(position: np.ndarray, active_rows: int, height: int, fractio
     return gauge_frames(np.bincount(frame, minlength=np.size(position)), fraction)
 
 
-def vibration_rmse(params: dict[str, Any], truth: dict[str, Any], good: np.ndarray) -> dict[str, float]:
-    """RMSE of each per-frame effect against the truth over ``good`` frames, both in the median gauge."""
+def _gauged_errors(params: dict[str, Any], truth: dict[str, Any], good: np.ndarray) -> dict[str, np.ndarray]:
+    """Estimate - truth of each per-frame effect that has a truth key, each first put in the median gauge over the
+    frames ``good`` (:func:`gauge_median`), shape (J,)."""
     out = {}
     for name, key in TRUTH_KEYS.items():
         if name not in params or key not in truth:
             continue
         scale = effect(name).gauge == "scale"
         est = gauge_median(np.asarray(params[name])[:, 0], good, scale=scale)
-        tru = gauge_median(np.asarray(truth[key], dtype=float), good, scale=scale)
-        out[name] = float(np.sqrt(np.mean((est - tru)[good] ** 2)))
+        out[name] = est - gauge_median(np.asarray(truth[key], dtype=float), good, scale=scale)
     return out
+
+
+def vibration_rmse(params: dict[str, Any], truth: dict[str, Any], good: np.ndarray) -> dict[str, float]:
+    """RMSE of each per-frame effect against the truth over ``good`` frames, both in the median gauge."""
+    return {name: float(np.sqrt(np.mean(err[good] ** 2))) for name, err in _gauged_errors(params, truth, good).items()}
 
 
 def vibration_pulls(params: dict[str, Any], uncertainty: dict[str, Any], truth: dict[str, Any], good: np.ndarray
                     ) -> dict[str, float]:
-    """RMS of (estimate - truth) / reported standard error of each per-frame effect over ``good`` frames, both in the
-    median gauge (1 where the reported errors are right)."""
+    """RMS of (estimate - truth) / reported standard error of each per-frame effect over the ``good`` frames whose
+    error is finite and positive, both in the median gauge (1 where the reported errors are right)."""
     out = {}
-    for name, key in TRUTH_KEYS.items():
-        if name not in params or name not in uncertainty or key not in truth:
+    for name, err in _gauged_errors(params, truth, good).items():
+        if name not in uncertainty:
             continue
-        scale = effect(name).gauge == "scale"
-        est = gauge_median(np.asarray(params[name])[:, 0], good, scale=scale)
-        tru = gauge_median(np.asarray(truth[key], dtype=float), good, scale=scale)
         se = np.asarray(uncertainty[name])[:, 0]
         ok = good & np.isfinite(se) & (se > 0)
-        out[name] = float(np.sqrt(np.mean(((est - tru)[ok] / se[ok]) ** 2)))
+        out[name] = float(np.sqrt(np.mean((err[ok] / se[ok]) ** 2)))
     return out
 
 

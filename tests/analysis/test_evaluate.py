@@ -16,8 +16,9 @@ def test_pulls_are_errors_in_units_of_their_standard_errors_in_the_median_gauge(
     # a common shift of the phase and a common factor of the visibility are the images': no error
     exact = {"phase_offset": truth["vib_phase_offset"][:, None] + 0.7,
              "visibility_loss": 1.3 * truth["vib_visibility"][:, None]}
-    for value in vibration_pulls(exact, se, truth, good).values():
-        assert value == pytest.approx(0.0, abs=1e-9)
+    zero = vibration_pulls(exact, se, truth, good)
+    assert set(zero) == {"phase_offset", "visibility_loss"}
+    assert all(value == pytest.approx(0.0, abs=1e-9) for value in zero.values()), zero
     # an error of one standard error at every good frame but the median one
     sign = np.where(np.arange(J) % 2, 1.0, -1.0)
     sign[(3 + J) // 2] = 0.0
