@@ -439,8 +439,9 @@ def realign(store: LitStore, reference: Reference, like: Observations, shift: np
 
     ``like`` must come from ``store`` (same rows and columns); its ``use``, noise model and region of
     interest (v^f = 0 outside) are kept, so that the realigned samples are the same samples. ``base``: the store
-    ``like`` was read from, where known; if ``store`` shifted holds the same counts read at the same flat-field rows
-    (a correction of the offset only), ``like``'s arrays are kept and only the unmodulated counts are made (the
+    ``like`` was read from (with ``reference``), where known; if ``store`` shifted holds the same counts read at the
+    same flat-field rows (a correction of the offset only), ``like``'s arrays are kept and only the unmodulated
+    counts are made (the
     held samples of a large scan, in float32, are hundreds of megabytes each time).
     """
     rows = (int(like.row[0]), int(like.row[-1]) + 1)
@@ -451,8 +452,8 @@ def realign(store: LitStore, reference: Reference, like: Observations, shift: np
         lo, hi = np.searchsorted(moved.row, rows)
         dark, offset = moved.unmodulated(int(lo), int(hi), like.columns, dtype=like.counts.dtype)
         return replace(like, dark=dark, offset=offset)
-    obs = moved.observations(reference, columns=like.columns, rows=rows, gain=like.gain,
-                                            electronic=like.electronic, dtype=like.counts.dtype)
+    obs = moved.observations(reference, columns=like.columns, rows=rows, gain=like.gain, electronic=like.electronic,
+                             dtype=like.counts.dtype)
     return replace(obs, noise=like.noise, vf=np.where(like.in_roi, obs.vf, 0).astype(obs.vf.dtype, copy=False),
                    use=like.use, roi=like.roi)
 

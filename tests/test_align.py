@@ -1,9 +1,15 @@
 """Flat-field alignment against analytic references."""
+import dataclasses
+
 import numpy as np
 
-from dfxcorr.align import build_observations, interpolate_rows, lit_blocks
+from dfxcorr import config as C
+from dfxcorr.align import build_observations, interpolate_rows, lit_blocks, realign
 from dfxcorr.io import Reference, Scan, SteppingReference
 from dfxcorr.reference import fit_reference
+from dfxcorr.sim import simulate as S
+
+from conftest import prepare, sim_config
 
 
 def test_linear_maps_are_reproduced_exactly_including_outer_half_rows():
@@ -78,3 +84,34 @@ def test_compiled_interpolation_is_the_formula():
     np.testing.assert_array_equal(interpolate_rows(maps, u, columns=cols), oracle[:, cols])
     np.testing.assert_array_equal(interpolate_rows(maps[:1], u, columns=cols),
                                   np.repeat(maps[:1, cols], u.size, axis=0))
+
+
+def _same_observations(a, b) -> bool:
+    """Every input field of two Observations equal (arrays by value, float32 bit for bit)."""
+    for f in dataclasses.fields(a):
+        if not f.init or not f.compare:
+            continue
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
+            if x is None or y is None or x.dtype != y.dtype or not np.array_equal(x, y):
+                return False
+        elif x != y:
+            return False
+    return True
+
+
+def test_realigning_with_the_base_store_shares_only_what_the_correction_left_alone():
+    """An offset-only correction (scatter's) keeps the counts and the flat field's rows: the shortcut gives the
+    observations a full read gives; a shift of the flat field's rows is read in full, base or not."""
+    scan, _ = S.simulate(sim_config())
+    prep = prepare(scan, C.defaults())
+    store, ref = prep.store, prep.reference
+    like = store.observations(ref, columns=np.arange(10, 40, 3), rows=(20, 50), dtype=np.float32)
+    rng = np.random.default_rng(4)
+    offset = dataclasses.replace(store, offset=rng.uniform(0, 50, store.counts.shape).astype(np.float32))
+    shared = realign(offset, ref, like, 0.0, base=store)
+    assert shared.counts is like.counts and shared.offset is not None
+    assert _same_observations(shared, realign(offset, ref, like, 0.0))
+    moved = realign(store, ref, like, 0.3, base=store)
+    assert _same_observations(moved, realign(store, ref, like, 0.3))
+    assert not np.array_equal(moved.phif, like.phif)
