@@ -78,13 +78,18 @@ class Effect:
 
     @property
     def powers(self) -> tuple[int, ...]:
-        """Powers of x for per-frame components ('x^k' or 'x^k y^m')."""
-        return tuple(_power(c, "x") for c in self.components)
+        """Powers of x of per-frame components ('x^k' or 'x^k y^m'); 0 for each component of a global entry (its
+        components name a basis, such as background's '1', 'x', 'y')."""
+        return self._powers("x")
 
     @property
     def row_powers(self) -> tuple[int, ...]:
-        """Powers of the row coordinate y for per-frame components (0 where a component names none)."""
-        return tuple(_power(c, "y") for c in self.components) if self.per_frame else (0,) * self.size
+        """Powers of the row coordinate y of per-frame components (0 where a component names none, and for each
+        component of a global entry)."""
+        return self._powers("y")
+
+    def _powers(self, axis: str) -> tuple[int, ...]:
+        return tuple(_power(c, axis) for c in self.components) if self.per_frame else (0,) * self.size
 
     @property
     def size(self) -> int:
