@@ -292,9 +292,9 @@ class LitStore:
         return runs
 
     def observations(self, reference: Reference, *, columns: np.ndarray | None = None,
-                     rows: tuple[int, int] | None = None, pixel_mask: np.ndarray | None = None,
-                     gain: float | None = None, electronic: float = 0.0, noise: np.ndarray | None = None,
-                     dtype: DTypeLike = np.float64, phase_unwrapped: bool = False) -> Observations:
+                     rows: tuple[int, int] | None = None, gain: float | None = None, electronic: float = 0.0,
+                     noise: np.ndarray | None = None, dtype: DTypeLike = np.float64, phase_unwrapped: bool = False
+                     ) -> Observations:
         """Align the flat field to the held samples of some columns and rows.
 
         Parameters
@@ -305,8 +305,6 @@ class LitStore:
             Detector columns (default all).
         rows : (int, int), optional
             Detector rows r0 <= r < r1 (default all held).
-        pixel_mask : ndarray of bool, shape (H, W), optional
-            False for pixels that must not enter (their samples get ``use = False``).
         gain : float, optional
             Overrides the file's detector gain.
         electronic : float
@@ -338,7 +336,7 @@ class LitStore:
         # every cost evaluation about 1.7x slower)
         counts = (self.counts[lo:hi] if columns is None else self.counts[lo:hi, cols]).astype(dtype, order="C")
         dark, offset = self.unmodulated(lo, hi, None if columns is None else cols, dtype=dtype)
-        use = np.ones(counts.shape, bool) if pixel_mask is None else pixel_mask[row[:, None], cols[None, :]]
+        use = np.ones(counts.shape, bool)
         held = np.ix_(np.unique(row), cols)
         if self.good is not None:
             use &= self.good[lo:hi] if columns is None else self.good[lo:hi, cols]
@@ -458,9 +456,8 @@ def realign(store: LitStore, reference: Reference, like: Observations, shift: np
                    use=like.use, roi=like.roi)
 
 
-def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray | None = None,
-                       min_frames: int = 3, pixel_mask: np.ndarray | None = None,
-                       gain: float | None = None, dtype: DTypeLike = np.float64) -> Observations:
+def build_observations(scan: Scan, reference: Reference, *, min_frames: int = 3, dtype: DTypeLike = np.float64
+                       ) -> Observations:
     """Align the flat field to every lit sample and collect the data as :class:`Observations` (float64 unless
     ``dtype`` says otherwise, see :meth:`LitStore.observations`).
 
@@ -473,7 +470,7 @@ def build_observations(scan: Scan, reference: Reference, *, columns: np.ndarray 
         If no row is lit in at least ``min_frames`` frames.
     """
     store = collect_lit_rows(scan, active_rows=reference.transmission.shape[0], min_frames=min_frames)
-    return store.observations(reference, columns=columns, pixel_mask=pixel_mask, gain=gain, dtype=dtype)
+    return store.observations(reference, dtype=dtype)
 
 
 def subsample_columns(width: int, n: int, *, offset: int | None = None) -> np.ndarray:
