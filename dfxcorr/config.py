@@ -227,11 +227,12 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "max_samples": Option(5e5, "the diagnosis fits and tests on every n-th column, n at least diagnose.subsample "
                                    "and large enough that they hold at most this many samples (bounds the "
                                    "diagnosis's time on a large scan)", _NUM, check=_within(1e3, 1e12)),
-        "max_held_samples": Option(1.5e7, "the per-pixel tests (sample motion, pixel noise, reference offset, the "
-                                          "residual maps) hold at most this many samples: on a larger scan (a "
-                                          "clinical one) they see a band of contiguous columns in the middle of the "
-                                          "detector, and the fit and the residual signatures still see columns "
-                                          "spread over all of it (bounds the diagnosis's memory)", _NUM,
+        "max_held_samples": Option(7e6, "the per-pixel tests (sample motion, pixel noise, reference offset, the "
+                                        "residual maps) hold at most this many samples, as many as a "
+                                        "reconstruction's fit (fit.max_samples): on a larger scan (a clinical one) "
+                                        "they see a band of contiguous columns in the middle of the detector, and "
+                                        "the fit and the residual signatures still see columns spread over all of "
+                                        "it (bounds the diagnosis's memory)", _NUM,
                                    check=_within(1e4, 1e12)),
         "max_rounds": Option(8, "at most this many effects are added", int, check=_within(1, 100)),
         "motion_p": Option(1e-6, "per-pixel p-value below which a pixel's frames disagree", _NUM, check=_fraction),

@@ -104,9 +104,11 @@ class Quadratures:
     the quadratures one of them made serve every one (a diagnosis holds a dozen such copies, each 2 x 57 MB of
     quadratures at clinical scale when each made its own)."""
 
-    __slots__ = ("source", "value")
+    __slots__ = ("keep", "source", "value")
 
-    def __init__(self) -> None:
+    def __init__(self, *, keep: bool = True) -> None:
+        #: False: made at every call and not held (samples a few passes read, not a fit's many)
+        self.keep = keep
         self.source: tuple[np.ndarray, ...] = ()
         self.value: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -213,10 +215,11 @@ class Observations:
             slot = Quadratures()
             object.__setattr__(self, "quadratures", slot)
         amp = self.tf * self.vf
-        slot.source = (self.tf, self.vf, self.phif)
-        slot.value = ((amp * np.cos(self.phif)).astype(self.tf.dtype, copy=False),
-                      (amp * np.sin(self.phif)).astype(self.tf.dtype, copy=False))
-        return slot.value
+        value = ((amp * np.cos(self.phif)).astype(self.tf.dtype, copy=False),
+                 (amp * np.sin(self.phif)).astype(self.tf.dtype, copy=False))
+        if slot.keep:
+            slot.source, slot.value = (self.tf, self.vf, self.phif), value
+        return value
 
     def _quadratures_made(self) -> bool:
         slot = self.quadratures

@@ -3,6 +3,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from dfxcorr.observations import Quadratures
+
 from conftest import tiny_obs
 
 
@@ -49,3 +51,13 @@ def test_a_subset_cuts_the_quadratures_already_made_and_equals_making_them_afres
             np.testing.assert_array_equal(a, c[:, cols])
     run = obs.subset(np.arange(2, 5), copy=False)
     assert np.shares_memory(run.fringe[0], obs.fringe[0])
+
+
+def test_a_slot_that_does_not_keep_makes_the_same_quadratures_at_every_call():
+    obs = tiny_obs(np.random.default_rng(4))
+    passing = replace(obs, quadratures=Quadratures(keep=False))
+    first, again = passing.fringe, replace(passing, use=~passing.use).fringe
+    for a, b, c in zip(first, again, quadratures(obs), strict=True):
+        np.testing.assert_allclose(a, c, rtol=1e-14, atol=0)
+        np.testing.assert_array_equal(a, b)
+    assert first[0] is not again[0] and passing.quadratures.value is None
