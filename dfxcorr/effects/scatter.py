@@ -367,7 +367,7 @@ def field(store: LitStore, reference: Reference, t: np.ndarray, width: tuple[flo
 
 
 def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_mm: tuple[float, float] | None, *,
-                 start: np.ndarray | None = None, plain: np.ndarray | None = None) -> np.ndarray:
+                 start: np.ndarray | None = None, plain: tuple[np.ndarray, ScatterField] | None = None) -> np.ndarray:
     """The sample's transmission (H, W) under the scatter of ``setting``: a retrieval without it, divided by the
     measured ratio's 1 + s share, then damped fixed-point updates with the previous transmission's scatter in the
     offset until the remaining change is below :data:`TOLERANCE` (at most :data:`MAX_UPDATES`).
@@ -381,8 +381,9 @@ def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_
         The detector's pixel pitch (mm).
     start : ndarray, shape (H, W), optional
         A transmission to update from instead (the one behind a nearby setting: the updates stop sooner).
-    plain : ndarray, shape (H, W), optional
-        The retrieval without the scatter (:func:`retrieved` at the kernel's :func:`block`), where already made.
+    plain : (ndarray, ScatterField), optional
+        The retrieval without the scatter (:func:`retrieved` at the kernel's :func:`block`), shape (H, W), and its
+        unit field at the setting's width, where already made (:class:`Unscattered`).
 
     Raises
     ------
@@ -394,10 +395,14 @@ def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_
     width = kernel_pixels(setting.width_mm, pixel_mm)
     step, s = block(width), setting.ratio
     if start is None:
-        t = retrieved(store, reference, step=step) if plain is None else plain
+        if plain is None:
+            t = retrieved(store, reference, step=step)
+            unit = field(store, reference, t, width)
+        else:
+            t, unit = plain
         # the retrieval without the offset takes the scatter for transmission: t is high by about the measured ratio;
         # dividing that out leaves the error's variation across the sample, which the updates take out
-        t = t / (1.0 + field(store, reference, t, width).scaled(s).share())
+        t = t / (1.0 + unit.scaled(s).share())
     else:
         t = start
     # an update maps an error e of t to about -s L e, L the superposition over the band, of gain at most 1: plain
@@ -627,8 +632,8 @@ class Scatter(EffectBase[ScatterScore]):
         # s = 0.117 for 0.1 and a dark field 12 % low); the search's t at the test's estimate, the final one at the
         # best setting (the module's text)
         configured = float(test.payload.width_mm)
-        plain, _ = ctx.cached(Unscattered(configured), hyp)
-        t = transmission(prep.store, prep.reference, Setting(start, configured), pixel_mm(prep.scan), plain=plain)
+        t = transmission(prep.store, prep.reference, Setting(start, configured), pixel_mm(prep.scan),
+                         plain=ctx.cached(Unscattered(configured), hyp))
         profile = profiler(prep, state)
 
         def unit(t: np.ndarray, width_mm: float) -> ScatterField:
