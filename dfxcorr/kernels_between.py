@@ -522,6 +522,7 @@ def reduced_cost(obs, ch, weights: np.ndarray, *, phase: float | None = None, sq
         With ``reading``.
     ch : Channels
     weights : ndarray, shape (K, C)
+        Read in :func:`dfxcorr.kernels.weights_dtype` (single precision for float32 samples).
     phase : float, optional
         Hold the phase image at this constant: 2 unknowns per pixel.
     square : bool
@@ -666,7 +667,8 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         With ``reading``.
     ch : Channels
     weights : ndarray, shape (K, C), optional
-        Weights of the first solve (0 where ``obs.use`` is false); default the data's inverse noise variances.
+        Weights of the first solve (0 where ``obs.use`` is false), read in :func:`dfxcorr.kernels.weights_dtype`;
+        default the data's inverse noise variances.
     iterations : int
         Solves; each after the first takes the weights from the previous model.
     gain : float, optional
@@ -683,8 +685,8 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
     -------
     dict
         'coef' (R, C, 3), 'valid' (R, C), 'inverse' and 'coupling' (R, C, 3, 3) or None, 'expected' (K, C)
-        counts, 'weights' (both (0, C) without ``keep_expected`` or ``next_weights``), 'chi2' (Pearson chi-square
-        over the used samples whose rows were solved), 'samples' (their number).
+        counts, 'weights' (both in the samples' dtype; (0, C) without ``keep_expected`` or ``next_weights``), 'chi2'
+        (Pearson chi-square over the used samples whose rows were solved), 'samples' (their number).
     """
     lo, frac = _reading(obs)
     if iterations < 1:
