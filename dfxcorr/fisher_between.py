@@ -108,7 +108,8 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
                 lo, f = lo_[k], frac[k]
                 hi = min(lo + 1, R - 1)
                 g = 1.0 - f
-                Fc, Fs, amp, c2, s2, a, bc, bs, hcc, hcs = _sample(fc, fs, cos_p, sin_p, tf, vis, dose, k, c, j, hc, hs)
+                Fc, Fs, amp, c2, s2, a, bc, bs, hcc, hcs = _sample(fc, fs, cos_p, sin_p, tf, vis, dose, k, c, j, hc, hs,
+                                                                   True)
                 tt = g * coef[lo, c, 0] + f * coef[hi, c, 0]
                 cs = g * coef[lo, c, 1] + f * coef[hi, c, 1]
                 ss = g * coef[lo, c, 2] + f * coef[hi, c, 2]

@@ -100,6 +100,30 @@ def test_fisher_information_equals_the_model(case, rng, profiled):
     assert np.any(corr) == profiled
 
 
+#: Agreement of float32 samples with the same samples in float64: the fringe's quadratures are made in the samples'
+#: dtype (single-precision cos and sin, within 1e-7 of their amplitude) and the weights are read in it.
+FRINGE32 = 1e-6
+
+
+def test_float32_samples_read_between_rows_give_the_float64_result(case):
+    obs, ch = case
+    samples = ("counts", "tf", "vf", "phif", "dark")
+    single = replace(obs, **{n: getattr(obs, n).astype(np.float32) for n in samples})
+    # the same samples in float64
+    obs = replace(single, **{n: getattr(single, n).astype(np.float64) for n in samples})
+    w = np.where(obs.use, 1.0 / np.maximum(obs.counts, 1.0), 0.0)
+    cost, sums = KB.reduced_cost(single, ch, w)
+    cost64, sums64 = KB.reduced_cost(obs, ch, w)
+    assert cost == pytest.approx(cost64, rel=FRINGE32)
+    for a, b in zip(sums, sums64, strict=True):
+        close(a, b, rtol=FRINGE32)
+    got, want = KB.retrieve(single, ch, iterations=2), KB.retrieve(obs, ch, iterations=2)
+    assert got["expected"].dtype == np.float32
+    for key in ("coef", "expected", "weights"):
+        close(got[key], want[key], rtol=FRINGE32)
+    assert got["chi2"] == pytest.approx(want["chi2"], rel=FRINGE32)
+
+
 def test_observations_without_a_reading_are_refused(rng):
     obs = tiny_obs(rng)
     ch = M.channels({}, x=obs.x, n_frames=obs.n_frames)
