@@ -269,6 +269,20 @@ def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_
     g_dose = np.empty((n, J, C))
     g_bg = np.empty((n, 3, C))
     g_harm = np.empty((n, 2, C))
+    for t in prange(n):
+        _cost_rows(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks[t], chunks[t + 1], cos_p, sin_p, vis,
+                   dose, bg, harm, hold, square, need, tile, cost[t], g_phase[t], g_vis[t], g_dose[t], g_bg[t],
+                   g_harm[t])
+    return cost, g_phase, g_vis, g_dose, g_bg, g_harm
+
+
+@njit(cache=True, error_model="numpy")
+def _cost_rows(counts, tf, fc, fs, dark, w, frame, y, x, bounds, first, last, cos_p, sin_p, vis, dose, bg, harm, hold,
+               square, need, tile, cost, g_phase, g_vis, g_dose, g_bg, g_harm):
+    """One chunk of :func:`_reduced_cost`: rows ``first:last`` into its own accumulators, cost (C,), g_phase, g_vis,
+    g_dose (J, C), g_bg (3, C), g_harm (2, C). The parallel loop only calls it: numba's parallel passes then see a
+    small loop body (compiling the body inside the parallel loop took about twice as long)."""
+    C = counts.shape[1]
     hc, hs = harm[0], harm[1]
     steps = 1 + (HARMONIC_STEPS if (hc != 0.0 or hs != 0.0) else 0)
     # the double angle where the harmonic is in the model or its derivatives are asked for
@@ -277,97 +291,95 @@ def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_
     b0, b1, b2 = bg[0], bg[1], bg[2]
     np_, nv, nd = 1.0 if need[0] else 0.0, 1.0 if need[1] else 0.0, 1.0 if need[2] else 0.0
     nb, nh = 1.0 if need[3] else 0.0, 1.0 if need[4] else 0.0
-    for t in prange(n):
-        cost[t, :] = 0.0
-        g_phase[t, :, :] = 0.0
-        g_vis[t, :, :] = 0.0
-        g_dose[t, :, :] = 0.0
-        g_bg[t, :, :] = 0.0
-        g_harm[t, :, :] = 0.0
-        # one 1-d array per accumulator, each sample row's operands as 1-d slices: the column loops below are
-        # elementwise over contiguous memory, which the compiler vectorises (a 2-d accumulator indexed [q, i] and
-        # the samples indexed [k, c] were about eight times slower per sample)
-        n00, n01, n02, n11, n12, n22 = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
-            np.empty(tile), np.empty(tile)
-        r0, r1, r2, used, ct, cc, cs = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
-            np.empty(tile), np.empty(tile), np.empty(tile)
-        du, dw, de, df = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile)
-        u = np.empty(3)
-        inv = np.empty((3, 3))
-        for r in range(chunks[t], chunks[t + 1]):
-            lo, hi = bounds[r], bounds[r + 1]
-            for c0 in range(0, C, tile):
-                c1 = min(c0 + tile, C)
-                T, xs = c1 - c0, x[c0:c1]
-                for step in range(steps):
-                    n00[:T], n01[:T], n02[:T], n11[:T], n12[:T], n22[:T] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-                    r0[:T], r1[:T], r2[:T], used[:T] = 0.0, 0.0, 0.0, 0.0
-                    for k in range(lo, hi):
-                        j = frame[k]
-                        dj, off = dose[j], b0 + b2 * y[k]
-                        cnt, tfk, fck, fsk = counts[k, c0:c1], tf[k, c0:c1], fc[k, c0:c1], fs[k, c0:c1]
-                        dk, wk = dark[k, c0:c1], w[k, c0:c1]
-                        cp, sp, vv = cos_p[j, c0:c1], sin_p[j, c0:c1], vis[j, c0:c1]
-                        # the first solve in a loop of its own: a branch on the step kept it from being vectorised
-                        if step == 0:
-                            for i in range(T):
-                                Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
-                                dv = dj * vv[i]
-                                _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), dj * tfk[i],
-                                     dv * (m00 * Fc - m01 * Fs), dv * (m10 * Fc - m11 * Fs),
-                                     cnt[i] - dk[i] - off - b1 * xs[i])
-                        else:
-                            for i in range(T):
-                                Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
-                                _, _, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
-                                # Gauss-Newton step of the harmonic: the columns at the current images
-                                bc, bs = _image_columns(bc, bs, hcc, hcs, du[i], dw[i])
-                                _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), a,
-                                     m00 * bc + m01 * bs, m10 * bc + m11 * bs, cnt[i] - dk[i] - off - b1 * xs[i])
-                    for i in range(T):
-                        _solve(n00[i], n01[i], n02[i], n11[i], n12[i], n22[i], r0[i], r1[i], r2[i], used[i], u, inv)
-                        # back from the solved columns (x1, x2) to (t, c, s)
-                        ct[i] = u[0]
-                        cc[i] = m00 * u[1] + m10 * u[2]
-                        cs[i] = m01 * u[1] + m11 * u[2]
-                        du[i], dw[i], de[i], df[i] = _direction(cc[i], cs[i])
-                costs, gh0, gh1 = cost[t, c0:c1], g_harm[t, 0, c0:c1], g_harm[t, 1, c0:c1]
-                gb0, gb1, gb2 = g_bg[t, 0, c0:c1], g_bg[t, 1, c0:c1], g_bg[t, 2, c0:c1]
+    cost[:] = 0.0
+    g_phase[:, :] = 0.0
+    g_vis[:, :] = 0.0
+    g_dose[:, :] = 0.0
+    g_bg[:, :] = 0.0
+    g_harm[:, :] = 0.0
+    # one 1-d array per accumulator, each sample row's operands as 1-d slices: the column loops below are
+    # elementwise over contiguous memory, which the compiler vectorises (a 2-d accumulator indexed [q, i] and
+    # the samples indexed [k, c] were about eight times slower per sample)
+    n00, n01, n02, n11, n12, n22 = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
+        np.empty(tile), np.empty(tile)
+    r0, r1, r2, used, ct, cc, cs = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
+        np.empty(tile), np.empty(tile), np.empty(tile)
+    du, dw, de, df = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile)
+    u = np.empty(3)
+    inv = np.empty((3, 3))
+    for r in range(first, last):
+        lo, hi = bounds[r], bounds[r + 1]
+        for c0 in range(0, C, tile):
+            c1 = min(c0 + tile, C)
+            T, xs = c1 - c0, x[c0:c1]
+            for step in range(steps):
+                n00[:T], n01[:T], n02[:T], n11[:T], n12[:T], n22[:T] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+                r0[:T], r1[:T], r2[:T], used[:T] = 0.0, 0.0, 0.0, 0.0
                 for k in range(lo, hi):
-                    j, yk = frame[k], y[k]
-                    dj, off = dose[j], b0 + b2 * yk
+                    j = frame[k]
+                    dj, off = dose[j], b0 + b2 * y[k]
                     cnt, tfk, fck, fsk = counts[k, c0:c1], tf[k, c0:c1], fc[k, c0:c1], fs[k, c0:c1]
                     dk, wk = dark[k, c0:c1], w[k, c0:c1]
                     cp, sp, vv = cos_p[j, c0:c1], sin_p[j, c0:c1], vis[j, c0:c1]
-                    gp, gv, gd = g_phase[t, j, c0:c1], g_vis[t, j, c0:c1], g_dose[t, j, c0:c1]
-                    if not double:
-                        # without the harmonic in a loop of its own: _design and _derivatives at hc = hs = 0
+                    # the first solve in a loop of its own: a branch on the step kept it from being vectorised
+                    if step == 0:
                         for i in range(T):
                             Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
                             dv = dj * vv[i]
-                            tt, cs_, ss = ct[i], cc[i], cs[i]
-                            q = cs_ * Fc - ss * Fs
-                            ww = np.float64(wk[i])
-                            res = cnt[i] - dk[i] - off - b1 * xs[i] - (tt * dj * tfk[i] + dv * q)
-                            costs[i] += ww * res * res
-                            g = ww if square else -2.0 * ww * res
-                            _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb,
-                                      -dv * (cs_ * Fs + ss * Fc), dj * q, tfk[i] * tt + vv[i] * q, xs[i], yk)
-                        continue
+                            _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), dj * tfk[i],
+                                 dv * (m00 * Fc - m01 * Fs), dv * (m10 * Fc - m11 * Fs),
+                                 cnt[i] - dk[i] - off - b1 * xs[i])
+                    else:
+                        for i in range(T):
+                            Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
+                            _, _, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
+                            # Gauss-Newton step of the harmonic: the columns at the current images
+                            bc, bs = _image_columns(bc, bs, hcc, hcs, du[i], dw[i])
+                            _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), a,
+                                 m00 * bc + m01 * bs, m10 * bc + m11 * bs, cnt[i] - dk[i] - off - b1 * xs[i])
+                for i in range(T):
+                    _solve(n00[i], n01[i], n02[i], n11[i], n12[i], n22[i], r0[i], r1[i], r2[i], used[i], u, inv)
+                    # back from the solved columns (x1, x2) to (t, c, s)
+                    ct[i] = u[0]
+                    cc[i] = m00 * u[1] + m10 * u[2]
+                    cs[i] = m01 * u[1] + m11 * u[2]
+                    du[i], dw[i], de[i], df[i] = _direction(cc[i], cs[i])
+            costs, gh0, gh1 = cost[c0:c1], g_harm[0, c0:c1], g_harm[1, c0:c1]
+            gb0, gb1, gb2 = g_bg[0, c0:c1], g_bg[1, c0:c1], g_bg[2, c0:c1]
+            for k in range(lo, hi):
+                j, yk = frame[k], y[k]
+                dj, off = dose[j], b0 + b2 * yk
+                cnt, tfk, fck, fsk = counts[k, c0:c1], tf[k, c0:c1], fc[k, c0:c1], fs[k, c0:c1]
+                dk, wk = dark[k, c0:c1], w[k, c0:c1]
+                cp, sp, vv = cos_p[j, c0:c1], sin_p[j, c0:c1], vis[j, c0:c1]
+                gp, gv, gd = g_phase[j, c0:c1], g_vis[j, c0:c1], g_dose[j, c0:c1]
+                if not double:
+                    # without the harmonic in a loop of its own: _design and _derivatives at hc = hs = 0
                     for i in range(T):
                         Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
-                        c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
-                        tt, cs_, ss, e, f = ct[i], cc[i], cs[i], de[i], df[i]
-                        f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs_, ss, Fc, Fs, c2, s2, e, f, tfk[i], dj, vv[i],
-                                                                hc, hs)
+                        dv = dj * vv[i]
+                        tt, cs_, ss = ct[i], cc[i], cs[i]
+                        q = cs_ * Fc - ss * Fs
                         ww = np.float64(wk[i])
-                        res = cnt[i] - dk[i] - off - b1 * xs[i] - (tt * a + cs_ * bc + ss * bs) - (hcc * e - hcs * f)
+                        res = cnt[i] - dk[i] - off - b1 * xs[i] - (tt * dj * tfk[i] + dv * q)
                         costs[i] += ww * res * res
                         g = ww if square else -2.0 * ww * res
-                        _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb, f_p, f_v, f_d, xs[i], yk)
-                        gh0[i] += nh * g * (f_c * f_c if square else f_c)
-                        gh1[i] += nh * g * (f_s * f_s if square else f_s)
-    return cost, g_phase, g_vis, g_dose, g_bg, g_harm
+                        _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb,
+                                  -dv * (cs_ * Fs + ss * Fc), dj * q, tfk[i] * tt + vv[i] * q, xs[i], yk)
+                    continue
+                for i in range(T):
+                    Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
+                    c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
+                    tt, cs_, ss, e, f = ct[i], cc[i], cs[i], de[i], df[i]
+                    f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs_, ss, Fc, Fs, c2, s2, e, f, tfk[i], dj, vv[i],
+                                                            hc, hs)
+                    ww = np.float64(wk[i])
+                    res = cnt[i] - dk[i] - off - b1 * xs[i] - (tt * a + cs_ * bc + ss * bs) - (hcc * e - hcs * f)
+                    costs[i] += ww * res * res
+                    g = ww if square else -2.0 * ww * res
+                    _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb, f_p, f_v, f_d, xs[i], yk)
+                    gh0[i] += nh * g * (f_c * f_c if square else f_c)
+                    gh1[i] += nh * g * (f_s * f_s if square else f_s)
 
 
 def weights_dtype(obs) -> np.dtype:
@@ -517,7 +529,11 @@ def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, 
                             coef[r, c, 0], coef[r, c, 1], coef[r, c, 2] = u[0], u[1], u[2]
                             dirn[0, i], dirn[1, i], dirn[2, i], dirn[3, i] = _direction(u[1], u[2])
                             if keep_inverse:
-                                inverse[r, c] = inv
+                                # element by element: an array assignment compiles a shape check with its error
+                                # message (about 6 s)
+                                for a1 in range(3):
+                                    for a2 in range(3):
+                                        inverse[r, c, a1, a2] = inv[a1, a2]
                 for b in range(nb):
                     k = lo + b
                     for i in range(T):
@@ -615,96 +631,110 @@ def _fisher(tf, fc, fs, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose,
             for c in range(C):
                 xq[q, c] = x[c] ** (power[q] if channel[q] <= 1 else 1)
     for t in prange(n):
-        plain[t, :, :] = 0.0
-        corr[t, :, :] = 0.0
-        F = np.empty(Q)
-        basis = np.empty(5)
-        # a frame's block, summed over the row's columns before it is placed (not a store per sample and slot)
-        blk = np.empty((Q, Q))
-        dirs = np.empty((4, C))  # _direction of each column's images: per pixel, not per sample
-        for r in range(chunks[t], chunks[t + 1]):
-            lo, hi = bounds[r], bounds[r + 1]
-            nb = hi - lo
-            m = nb * Pf + Pg
-            idx = np.empty(m, dtype=np.int64)
-            for b in range(nb):
-                for q in range(Pf):
-                    idx[b * Pf + q] = frame[lo + b] * Pf + q
-            for g in range(Pg):
-                idx[nb * Pf + g] = n_frames * Pf + g
-            # the row's information at known images, on its own slots (frames of the row, then globals)
-            local = np.zeros((m, m))
-            # Y = X^T W D of each pixel (3 rows per column)
-            Y = np.zeros((3 * C, m))
+        _fisher_rows(tf, fc, fs, w, frame, y, bounds, chunks[t], chunks[t + 1], cos_p, sin_p, vis, dose, harm, coef,
+                     inverse, channel, power, xq, n_per_frame, n_frames, profiled, double, plain[t], corr[t])
+    return plain, corr
+
+
+@njit(cache=True, error_model="numpy")
+def _fisher_rows(tf, fc, fs, w, frame, y, bounds, first, last, cos_p, sin_p, vis, dose, harm, coef, inverse, channel,
+                 power, xq, n_per_frame, n_frames, profiled, double, plain, corr):
+    """One chunk of :func:`_fisher`: rows ``first:last`` into its own plain and corr (P, P), with the components'
+    column factors ``xq`` (Q, C) and ``double`` whether the double angle is needed (as :func:`_cost_rows`)."""
+    C = tf.shape[1]
+    Q = channel.size
+    Pf, Pg = n_per_frame, Q - n_per_frame
+    hc, hs = harm[0], harm[1]
+    plain[:, :] = 0.0
+    corr[:, :] = 0.0
+    F = np.empty(Q)
+    basis = np.empty(5)
+    # a frame's block, summed over the row's columns before it is placed (not a store per sample and slot)
+    blk = np.empty((Q, Q))
+    dirs = np.empty((4, C))  # _direction of each column's images: per pixel, not per sample
+    for r in range(first, last):
+        lo, hi = bounds[r], bounds[r + 1]
+        nb = hi - lo
+        m = nb * Pf + Pg
+        idx = np.empty(m, dtype=np.int64)
+        for b in range(nb):
+            for q in range(Pf):
+                idx[b * Pf + q] = frame[lo + b] * Pf + q
+        for g in range(Pg):
+            idx[nb * Pf + g] = n_frames * Pf + g
+        # the row's information at known images, on its own slots (frames of the row, then globals)
+        local = np.zeros((m, m))
+        # Y = X^T W D of each pixel (3 rows per column)
+        Y = np.zeros((3 * C, m))
+        for c in range(C):
+            dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c] = _direction(coef[r, c, 1], coef[r, c, 2])
+        for b in range(nb):
+            k = lo + b
+            j = frame[k]
+            blk[:, :] = 0.0
             for c in range(C):
-                dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c] = _direction(coef[r, c, 1], coef[r, c, 2])
-            for b in range(nb):
-                k = lo + b
-                j = frame[k]
-                blk[:, :] = 0.0
-                for c in range(C):
-                    wk = w[k, c]
-                    if wk == 0:
-                        continue
-                    tt, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
-                    du, dw, e, f = dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c]
-                    Fc, Fs = _turned(fc[k, c], fs[k, c], cos_p[j, c], sin_p[j, c])
-                    c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dose[j] * tf[k, c], dose[j] * vis[j, c], hc, hs,
-                                                          double)
-                    basis[0], basis[1], basis[2], basis[3], basis[4] = _derivatives(
-                        tt, cs, ss, Fc, Fs, c2, s2, e, f, tf[k, c], dose[j], vis[j, c], hc, hs)
-                    # the images' columns of the profiled correction: their derivatives at the images
-                    xc, xs = _image_columns(bc, bs, hcc, hcs, du, dw)
-                    for q in range(Q):
-                        ch = channel[q]
-                        if ch <= 2:
-                            F[q] = basis[ch] * xq[q, c]
-                        elif ch == 3:
-                            F[q] = y[k] if power[q] == 2 else xq[q, c]
-                        else:
-                            F[q] = basis[3 + power[q]]
-                    for q1 in range(Q):
-                        wf = wk * F[q1]
-                        for q2 in range(Q):
-                            blk[q1, q2] += wf * F[q2]
-                        if profiled:
-                            s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
-                            Y[3 * c, s1] += wf * a
-                            Y[3 * c + 1, s1] += wf * xc
-                            Y[3 * c + 2, s1] += wf * xs
+                wk = w[k, c]
+                if wk == 0:
+                    continue
+                tt, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
+                du, dw, e, f = dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c]
+                Fc, Fs = _turned(fc[k, c], fs[k, c], cos_p[j, c], sin_p[j, c])
+                c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dose[j] * tf[k, c], dose[j] * vis[j, c], hc, hs,
+                                                      double)
+                basis[0], basis[1], basis[2], basis[3], basis[4] = _derivatives(
+                    tt, cs, ss, Fc, Fs, c2, s2, e, f, tf[k, c], dose[j], vis[j, c], hc, hs)
+                # the images' columns of the profiled correction: their derivatives at the images
+                xc, xs = _image_columns(bc, bs, hcc, hcs, du, dw)
+                for q in range(Q):
+                    ch = channel[q]
+                    if ch <= 2:
+                        F[q] = basis[ch] * xq[q, c]
+                    elif ch == 3:
+                        F[q] = y[k] if power[q] == 2 else xq[q, c]
+                    else:
+                        F[q] = basis[3 + power[q]]
                 for q1 in range(Q):
-                    s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
+                    wf = wk * F[q1]
                     for q2 in range(Q):
-                        local[s1, b * Pf + q2 if q2 < Pf else nb * Pf + q2 - Pf] += blk[q1, q2]
-            if profiled:
-                # sum over the row's columns of Y^T N^-1 Y = Z^T Z, Z = L^T Y with N^-1 = L L^T: Y becomes Z in place
-                # (each column's three rows), then one matrix product (BLAS; the scalar triple loop it replaces
-                # took 0.49 s per call on 64 columns of the binned clinical scan)
-                for c in range(C):
-                    i00, i01, i02 = inverse[r, c, 0, 0], inverse[r, c, 0, 1], inverse[r, c, 0, 2]
-                    i11, i12, i22 = inverse[r, c, 1, 1], inverse[r, c, 1, 2], inverse[r, c, 2, 2]
-                    if i00 <= 0:
-                        Y[3 * c:3 * c + 3, :] = 0.0  # not solvable: the images are not profiled there
-                        continue
-                    l00 = np.sqrt(i00)
-                    l10, l20 = i01 / l00, i02 / l00
-                    d11 = i11 - l10 * l10
-                    l11 = np.sqrt(d11) if d11 > 0 else 0.0
-                    l21 = (i12 - l20 * l10) / l11 if l11 > 0 else 0.0
-                    d22 = i22 - l20 * l20 - l21 * l21
-                    l22 = np.sqrt(d22) if d22 > 0 else 0.0
-                    for col in range(m):
-                        y0, y1, y2 = Y[3 * c, col], Y[3 * c + 1, col], Y[3 * c + 2, col]
-                        Y[3 * c, col] = l00 * y0 + l10 * y1 + l20 * y2
-                        Y[3 * c + 1, col] = l11 * y1 + l21 * y2
-                        Y[3 * c + 2, col] = l22 * y2
-                rc = np.dot(Y.T, Y)
-                for a1 in range(m):
-                    for a2 in range(m):
-                        corr[t, idx[a1], idx[a2]] += rc[a1, a2]
+                        blk[q1, q2] += wf * F[q2]
+                    if profiled:
+                        s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
+                        Y[3 * c, s1] += wf * a
+                        Y[3 * c + 1, s1] += wf * xc
+                        Y[3 * c + 2, s1] += wf * xs
+            for q1 in range(Q):
+                s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
+                for q2 in range(Q):
+                    local[s1, b * Pf + q2 if q2 < Pf else nb * Pf + q2 - Pf] += blk[q1, q2]
+        if profiled:
+            # sum over the row's columns of Y^T N^-1 Y = Z^T Z, Z = L^T Y with N^-1 = L L^T: Y becomes Z in place
+            # (each column's three rows), then one matrix product (BLAS; the scalar triple loop it replaces
+            # took 0.49 s per call on 64 columns of the binned clinical scan)
+            for c in range(C):
+                i00, i01, i02 = inverse[r, c, 0, 0], inverse[r, c, 0, 1], inverse[r, c, 0, 2]
+                i11, i12, i22 = inverse[r, c, 1, 1], inverse[r, c, 1, 2], inverse[r, c, 2, 2]
+                if i00 <= 0:
+                    Y[3 * c:3 * c + 3, :] = 0.0  # not solvable: the images are not profiled there
+                    continue
+                l00 = np.sqrt(i00)
+                l10, l20 = i01 / l00, i02 / l00
+                d11 = i11 - l10 * l10
+                l11 = np.sqrt(d11) if d11 > 0 else 0.0
+                l21 = (i12 - l20 * l10) / l11 if l11 > 0 else 0.0
+                d22 = i22 - l20 * l20 - l21 * l21
+                l22 = np.sqrt(d22) if d22 > 0 else 0.0
+                for col in range(m):
+                    y0, y1, y2 = Y[3 * c, col], Y[3 * c + 1, col], Y[3 * c + 2, col]
+                    Y[3 * c, col] = l00 * y0 + l10 * y1 + l20 * y2
+                    Y[3 * c + 1, col] = l11 * y1 + l21 * y2
+                    Y[3 * c + 2, col] = l22 * y2
+            rc = np.dot(Y.T, Y)
             for a1 in range(m):
                 for a2 in range(m):
-                    plain[t, idx[a1], idx[a2]] += local[a1, a2]
+                    corr[idx[a1], idx[a2]] += rc[a1, a2]
+        for a1 in range(m):
+            for a2 in range(m):
+                plain[idx[a1], idx[a2]] += local[a1, a2]
     return plain, corr
 
 
