@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import functools
 import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
@@ -108,6 +109,38 @@ def row_chunks(starts: np.ndarray, n_blocks: int, *, per_thread: int = 4) -> np.
     rows = np.searchsorted(starts, np.linspace(0, n_blocks, n + 1), side="left")
     rows[0], rows[-1] = 0, R
     return np.unique(rows).astype(np.int64)
+
+
+def over_chunks(rows, chunks: np.ndarray, before: tuple, after: tuple, outs: tuple) -> None:
+    """Run a compiled loop over chunks of rows on numba's thread count (:func:`set_threads`).
+
+    Calls ``rows(*before, chunks[t], chunks[t + 1], *after, *(o[t] for o in outs))`` for every chunk t, in threads of
+    this process: ``rows`` releases the GIL and writes only to its chunk's outputs ``o[t]``. Not numba's parallel loop:
+    that compiles the function it calls a second time, into the loop (4-9 s per kernel at a first run).
+
+    Parameters
+    ----------
+    rows : numba dispatcher
+        Compiled with ``nogil=True``.
+    chunks : ndarray of int64, shape (n + 1,)
+        Row boundaries (:func:`row_chunks`).
+    before, after : tuple
+        Arguments before and after the chunk's first and last row.
+    outs : tuple of ndarray
+        Per-chunk outputs, each of first dimension n.
+    """
+    n = chunks.size - 1
+
+    def one(t: int) -> None:
+        rows(*before, chunks[t], chunks[t + 1], *after, *(o[t] for o in outs))
+
+    threads = min(numba.get_num_threads(), n)
+    if threads <= 1:
+        for t in range(n):
+            one(t)
+        return
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(one, range(n)))
 
 
 def _c(a: np.ndarray, dtype=None) -> np.ndarray:
@@ -256,32 +289,11 @@ def _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb, f_p, f_v
     gb1[i], gb2[i] = gb1[i] + nb * g * (x * x if square else x), gb2[i] + nb * g * (y * y if square else y)
 
 
-@njit(cache=True, parallel=True)
-def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose,
-                  bg, harm, hold, square, need, tile):
-    C = counts.shape[1]
-    J = vis.shape[0]
-    n = chunks.size - 1
-    # np.empty, zeroed by each chunk: np.zeros here would be a parallel region of its own
-    cost = np.empty((n, C))
-    g_phase = np.empty((n, J, C))
-    g_vis = np.empty((n, J, C))
-    g_dose = np.empty((n, J, C))
-    g_bg = np.empty((n, 3, C))
-    g_harm = np.empty((n, 2, C))
-    for t in prange(n):
-        _cost_rows(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks[t], chunks[t + 1], cos_p, sin_p, vis,
-                   dose, bg, harm, hold, square, need, tile, cost[t], g_phase[t], g_vis[t], g_dose[t], g_bg[t],
-                   g_harm[t])
-    return cost, g_phase, g_vis, g_dose, g_bg, g_harm
-
-
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _cost_rows(counts, tf, fc, fs, dark, w, frame, y, x, bounds, first, last, cos_p, sin_p, vis, dose, bg, harm, hold,
                square, need, tile, cost, g_phase, g_vis, g_dose, g_bg, g_harm):
-    """One chunk of :func:`_reduced_cost`: rows ``first:last`` into its own accumulators, cost (C,), g_phase, g_vis,
-    g_dose (J, C), g_bg (3, C), g_harm (2, C). The parallel loop only calls it: numba's parallel passes then see a
-    small loop body (compiling the body inside the parallel loop took about twice as long)."""
+    """Reduced cost and its channel sums of rows ``first:last`` (a chunk, :func:`over_chunks`) into the chunk's own
+    accumulators: cost (C,), g_phase, g_vis, g_dose (J, C), g_bg (3, C), g_harm (2, C) (:func:`reduced_cost`)."""
     C = counts.shape[1]
     hc, hs = harm[0], harm[1]
     steps = 1 + (HARMONIC_STEPS if (hc != 0.0 or hs != 0.0) else 0)
@@ -419,10 +431,14 @@ def reduced_cost(obs, ch, weights: np.ndarray, *, phase: float | None = None, sq
     bounds = _bounds(obs)
     weights = _c(weights, weights_dtype(obs))
     fc, fs = obs.fringe
-    out = _reduced_cost(_c(obs.counts), _c(obs.tf), fc, fs, _c(obs.dark), weights, obs.frame,
-                        obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase),
-                        np.sin(ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, hold, square,
-                        need, FIT_TILE)
+    chunks = row_chunks(bounds[:-1], obs.frame.size)
+    n, J, C = chunks.size - 1, obs.n_frames, obs.columns.size
+    out = (np.empty((n, C)), np.empty((n, J, C)), np.empty((n, J, C)), np.empty((n, J, C)), np.empty((n, 3, C)),
+           np.empty((n, 2, C)))
+    over_chunks(_cost_rows, chunks, (_c(obs.counts), _c(obs.tf), fc, fs, _c(obs.dark), weights, obs.frame, obs.y, obs.x,
+                                     bounds),
+                (np.cos(ch.phase), np.sin(ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic,
+                 hold, square, need, FIT_TILE), out)
     cost, g_phase, g_vis, g_dose, g_bg, g_harm = (a.sum(axis=0) for a in out)
     return float(cost.sum()), (g_phase, g_vis, g_dose.sum(axis=1), g_bg.sum(axis=1), g_harm.sum(axis=1))
 
@@ -609,38 +625,12 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
 # Fisher information: plain and the profiled correction, driven by a component table
 
 
-@njit(cache=True, parallel=True)
-def _fisher(tf, fc, fs, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose, harm, coef, inverse, channel, power,
-            n_per_frame, n_frames, profiled):
-    C = tf.shape[1]
-    Q = channel.size
-    Pf, Pg = n_per_frame, Q - n_per_frame
-    P = n_frames * Pf + Pg
-    n = chunks.size - 1
-    plain = np.empty((n, P, P))
-    corr = np.empty((n, P, P))
-    hc, hs = harm[0], harm[1]
-    # the double angle where the harmonic is in the model or among the components
-    double = hc != 0.0 or hs != 0.0
-    for q in range(Q):
-        double = double or channel[q] == 4
-    # the column factor of each component: x^power (phase, visibility), the basis (background), else 1
-    xq = np.ones((Q, C))
-    for q in range(Q):
-        if channel[q] <= 1 or (channel[q] == 3 and power[q] == 1):
-            for c in range(C):
-                xq[q, c] = x[c] ** (power[q] if channel[q] <= 1 else 1)
-    for t in prange(n):
-        _fisher_rows(tf, fc, fs, w, frame, y, bounds, chunks[t], chunks[t + 1], cos_p, sin_p, vis, dose, harm, coef,
-                     inverse, channel, power, xq, n_per_frame, n_frames, profiled, double, plain[t], corr[t])
-    return plain, corr
-
-
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _fisher_rows(tf, fc, fs, w, frame, y, bounds, first, last, cos_p, sin_p, vis, dose, harm, coef, inverse, channel,
                  power, xq, n_per_frame, n_frames, profiled, double, plain, corr):
-    """One chunk of :func:`_fisher`: rows ``first:last`` into its own plain and corr (P, P), with the components'
-    column factors ``xq`` (Q, C) and ``double`` whether the double angle is needed (as :func:`_cost_rows`)."""
+    """Fisher information and its profiled correction of rows ``first:last`` (a chunk, :func:`over_chunks`) into the
+    chunk's own plain and corr (P, P) (:func:`fisher`), with the components' column factors ``xq`` (Q, C,
+    :func:`_column_factors`) and ``double`` whether the double angle is needed."""
     C = tf.shape[1]
     Q = channel.size
     Pf, Pg = n_per_frame, Q - n_per_frame
@@ -738,6 +728,18 @@ def _fisher_rows(tf, fc, fs, w, frame, y, bounds, first, last, cos_p, sin_p, vis
     return plain, corr
 
 
+def _column_factors(channel: np.ndarray, power: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The column factor of each component, shape (Q, C): x^power (phase, visibility), x for the background's x
+    term, else 1."""
+    xq = np.ones((channel.size, x.size))
+    for q, (c, p) in enumerate(zip(channel, power, strict=True)):
+        if c <= VISIBILITY:
+            xq[q] = x ** p
+        elif c == BACKGROUND and p == 1:
+            xq[q] = x
+    return xq
+
+
 def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray | None, table: tuple, *,
            profiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Fisher information of channel components and its correction for profiled images.
@@ -772,9 +774,14 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray |
     # one chunk per thread: the accumulators are (P, P) each
     weights = _c(weights, np.float64)  # one compiled specialisation whatever the caller's dtype
     fc, fs = obs.fringe
-    plain, corr = _fisher(_c(obs.tf), fc, fs, weights, obs.frame, obs.y, obs.x, bounds,
-                   row_chunks(bounds[:-1], obs.frame.size, per_thread=1), np.cos(ch.phase), np.sin(ch.phase),
-                   _c(ch.vis, np.float64), ch.dose, ch.harmonic, coef, inv, np.asarray(channel, dtype=np.int64),
-                   np.asarray(power, dtype=np.int64),
-                   int(n_per_frame), int(obs.n_frames), bool(profiled and inverse is not None))
+    channel, power = np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64)
+    chunks = row_chunks(bounds[:-1], obs.frame.size, per_thread=1)
+    P = obs.n_frames * n_per_frame + channel.size - n_per_frame
+    plain, corr = np.empty((chunks.size - 1, P, P)), np.empty((chunks.size - 1, P, P))
+    over_chunks(_fisher_rows, chunks, (_c(obs.tf), fc, fs, weights, obs.frame, obs.y, bounds),
+                (np.cos(ch.phase), np.sin(ch.phase), _c(ch.vis, np.float64), ch.dose, ch.harmonic, coef, inv, channel,
+                 power, _column_factors(channel, power, obs.x), int(n_per_frame), int(obs.n_frames),
+                 bool(profiled and inverse is not None),
+                 # the double angle where the harmonic is in the model or among the components
+                 bool(np.any(ch.harmonic != 0.0) or np.any(channel == HARMONIC))), (plain, corr))
     return plain.sum(axis=0), corr.sum(axis=0)
