@@ -14,8 +14,10 @@ non-zero, each pixel's solve is followed by :data:`HARMONIC_STEPS` Gauss-Newton 
 :func:`_image_columns` at the previous images (``model.solve_images``).
 
 Layout: a pixel is (row, column); its samples are the blocks ``starts[r]:starts[r + 1]`` of one row
-(:class:`dfxcorr.observations.Observations`). The kernels run over chunks of rows in parallel; every chunk owns its
-accumulators (summed afterwards), so no two threads write the same memory. Within a row the columns are handled in tiles
+(:class:`dfxcorr.observations.Observations`). The kernels run over chunks of rows in parallel (the cost and the Fisher
+information as compiled functions of one chunk in threads, :func:`over_chunks`, which compile in about half the time of
+numba's parallel loop; the retrieval in that loop); every chunk owns its accumulators (summed afterwards), so no two
+threads write the same memory. Within a row the columns are handled in tiles
 (:data:`TILE`, :data:`FIT_TILE`) so that the second pass over a tile finds what the first left in cache. Sums are
 accumulated in float64 whatever the sample dtype.
 """
@@ -28,6 +30,8 @@ import numba
 import numpy as np
 from numba import njit, prange
 from threadpoolctl import threadpool_limits
+
+from .chunks import over_chunks, row_chunks
 
 #: Channel ids of the component tables (see :func:`dfxcorr.model.component_table`).
 PHASE, VISIBILITY, DOSE, BACKGROUND, HARMONIC = range(5)
@@ -86,34 +90,20 @@ def _single_threaded_blas() -> None:
     threadpool_limits(limits=1, user_api="blas")
 
 
-def row_chunks(starts: np.ndarray, n_blocks: int, *, per_thread: int = 4) -> np.ndarray:
-    """Row boundaries of chunks holding about equal numbers of blocks.
-
-    Parameters
-    ----------
-    starts : ndarray of int, shape (R,)
-        First block of each row.
-    n_blocks : int
-        K.
-    per_thread : int
-        Chunks per thread (more chunks balance uneven rows, fewer keep the per-chunk accumulators small).
-
-    Returns
-    -------
-    ndarray of int64, shape (n + 1,)
-        Chunk i holds rows ``bounds[i]:bounds[i + 1]``.
-    """
-    R = starts.size
-    n = max(1, min(R, per_thread * numba.get_num_threads()))
-    rows = np.searchsorted(starts, np.linspace(0, n_blocks, n + 1), side="left")
-    rows[0], rows[-1] = 0, R
-    return np.unique(rows).astype(np.int64)
-
-
 def _c(a: np.ndarray, dtype=None) -> np.ndarray:
     """``a`` C-ordered (copied only if it is not, or not of ``dtype``): numba compiles a kernel once per layout and
     dtype (a first demo run compiled the retrieval five times, about 6 s each), and walks samples a row at a time."""
     return np.ascontiguousarray(a, dtype=dtype)
+
+
+def _turning(obs, phase: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of the phase channel (J, C), each (J, C) float64, at the frames the observations hold (zeros at the
+    others, which no sample reads): a block of detector rows sees a sixth of a clinical scan's frames, and the float64
+    cos and sin of every frame took 17 ms per block, a serial part of the full-detector retrieval."""
+    frames = np.flatnonzero(np.bincount(obs.frame, minlength=obs.n_frames))
+    cos_p, sin_p = np.zeros(phase.shape), np.zeros(phase.shape)
+    cos_p[frames], sin_p[frames] = np.cos(phase[frames]), np.sin(phase[frames])
+    return cos_p, sin_p
 
 
 def _per_pixel(obs) -> None:
@@ -256,19 +246,12 @@ def _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb, f_p, f_v
     gb1[i], gb2[i] = gb1[i] + nb * g * (x * x if square else x), gb2[i] + nb * g * (y * y if square else y)
 
 
-@njit(cache=True, parallel=True)
-def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose,
-                  bg, harm, hold, square, need, tile):
+@njit(cache=True, error_model="numpy", nogil=True)
+def _cost_rows(counts, tf, fc, fs, dark, w, frame, y, x, bounds, first, last, cos_p, sin_p, vis, dose, bg, harm, hold,
+               square, need, tile, cost, g_phase, g_vis, g_dose, g_bg, g_harm):
+    """Reduced cost and its channel sums of rows ``first:last`` (a chunk, :func:`over_chunks`) into the chunk's own
+    accumulators: cost (C,), g_phase, g_vis, g_dose (J, C), g_bg (3, C), g_harm (2, C) (:func:`reduced_cost`)."""
     C = counts.shape[1]
-    J = vis.shape[0]
-    n = chunks.size - 1
-    # np.empty, zeroed by each chunk: np.zeros here would be a parallel region of its own
-    cost = np.empty((n, C))
-    g_phase = np.empty((n, J, C))
-    g_vis = np.empty((n, J, C))
-    g_dose = np.empty((n, J, C))
-    g_bg = np.empty((n, 3, C))
-    g_harm = np.empty((n, 2, C))
     hc, hs = harm[0], harm[1]
     steps = 1 + (HARMONIC_STEPS if (hc != 0.0 or hs != 0.0) else 0)
     # the double angle where the harmonic is in the model or its derivatives are asked for
@@ -277,97 +260,95 @@ def _reduced_cost(counts, tf, fc, fs, dark, w, frame, y, x, bounds, chunks, cos_
     b0, b1, b2 = bg[0], bg[1], bg[2]
     np_, nv, nd = 1.0 if need[0] else 0.0, 1.0 if need[1] else 0.0, 1.0 if need[2] else 0.0
     nb, nh = 1.0 if need[3] else 0.0, 1.0 if need[4] else 0.0
-    for t in prange(n):
-        cost[t, :] = 0.0
-        g_phase[t, :, :] = 0.0
-        g_vis[t, :, :] = 0.0
-        g_dose[t, :, :] = 0.0
-        g_bg[t, :, :] = 0.0
-        g_harm[t, :, :] = 0.0
-        # one 1-d array per accumulator, each sample row's operands as 1-d slices: the column loops below are
-        # elementwise over contiguous memory, which the compiler vectorises (a 2-d accumulator indexed [q, i] and
-        # the samples indexed [k, c] were about eight times slower per sample)
-        n00, n01, n02, n11, n12, n22 = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
-            np.empty(tile), np.empty(tile)
-        r0, r1, r2, used, ct, cc, cs = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
-            np.empty(tile), np.empty(tile), np.empty(tile)
-        du, dw, de, df = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile)
-        u = np.empty(3)
-        inv = np.empty((3, 3))
-        for r in range(chunks[t], chunks[t + 1]):
-            lo, hi = bounds[r], bounds[r + 1]
-            for c0 in range(0, C, tile):
-                c1 = min(c0 + tile, C)
-                T, xs = c1 - c0, x[c0:c1]
-                for step in range(steps):
-                    n00[:T], n01[:T], n02[:T], n11[:T], n12[:T], n22[:T] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-                    r0[:T], r1[:T], r2[:T], used[:T] = 0.0, 0.0, 0.0, 0.0
-                    for k in range(lo, hi):
-                        j = frame[k]
-                        dj, off = dose[j], b0 + b2 * y[k]
-                        cnt, tfk, fck, fsk = counts[k, c0:c1], tf[k, c0:c1], fc[k, c0:c1], fs[k, c0:c1]
-                        dk, wk = dark[k, c0:c1], w[k, c0:c1]
-                        cp, sp, vv = cos_p[j, c0:c1], sin_p[j, c0:c1], vis[j, c0:c1]
-                        # the first solve in a loop of its own: a branch on the step kept it from being vectorised
-                        if step == 0:
-                            for i in range(T):
-                                Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
-                                dv = dj * vv[i]
-                                _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), dj * tfk[i],
-                                     dv * (m00 * Fc - m01 * Fs), dv * (m10 * Fc - m11 * Fs),
-                                     cnt[i] - dk[i] - off - b1 * xs[i])
-                        else:
-                            for i in range(T):
-                                Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
-                                _, _, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
-                                # Gauss-Newton step of the harmonic: the columns at the current images
-                                bc, bs = _image_columns(bc, bs, hcc, hcs, du[i], dw[i])
-                                _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), a,
-                                     m00 * bc + m01 * bs, m10 * bc + m11 * bs, cnt[i] - dk[i] - off - b1 * xs[i])
-                    for i in range(T):
-                        _solve(n00[i], n01[i], n02[i], n11[i], n12[i], n22[i], r0[i], r1[i], r2[i], used[i], u, inv)
-                        # back from the solved columns (x1, x2) to (t, c, s)
-                        ct[i] = u[0]
-                        cc[i] = m00 * u[1] + m10 * u[2]
-                        cs[i] = m01 * u[1] + m11 * u[2]
-                        du[i], dw[i], de[i], df[i] = _direction(cc[i], cs[i])
-                costs, gh0, gh1 = cost[t, c0:c1], g_harm[t, 0, c0:c1], g_harm[t, 1, c0:c1]
-                gb0, gb1, gb2 = g_bg[t, 0, c0:c1], g_bg[t, 1, c0:c1], g_bg[t, 2, c0:c1]
+    cost[:] = 0.0
+    g_phase[:, :] = 0.0
+    g_vis[:, :] = 0.0
+    g_dose[:, :] = 0.0
+    g_bg[:, :] = 0.0
+    g_harm[:, :] = 0.0
+    # one 1-d array per accumulator, each sample row's operands as 1-d slices: the column loops below are
+    # elementwise over contiguous memory, which the compiler vectorises (a 2-d accumulator indexed [q, i] and
+    # the samples indexed [k, c] were about eight times slower per sample)
+    n00, n01, n02, n11, n12, n22 = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
+        np.empty(tile), np.empty(tile)
+    r0, r1, r2, used, ct, cc, cs = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
+        np.empty(tile), np.empty(tile), np.empty(tile)
+    du, dw, de, df = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile)
+    u = np.empty(3)
+    inv = np.empty((3, 3))
+    for r in range(first, last):
+        lo, hi = bounds[r], bounds[r + 1]
+        for c0 in range(0, C, tile):
+            c1 = min(c0 + tile, C)
+            T, xs = c1 - c0, x[c0:c1]
+            for step in range(steps):
+                n00[:T], n01[:T], n02[:T], n11[:T], n12[:T], n22[:T] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+                r0[:T], r1[:T], r2[:T], used[:T] = 0.0, 0.0, 0.0, 0.0
                 for k in range(lo, hi):
-                    j, yk = frame[k], y[k]
-                    dj, off = dose[j], b0 + b2 * yk
+                    j = frame[k]
+                    dj, off = dose[j], b0 + b2 * y[k]
                     cnt, tfk, fck, fsk = counts[k, c0:c1], tf[k, c0:c1], fc[k, c0:c1], fs[k, c0:c1]
                     dk, wk = dark[k, c0:c1], w[k, c0:c1]
                     cp, sp, vv = cos_p[j, c0:c1], sin_p[j, c0:c1], vis[j, c0:c1]
-                    gp, gv, gd = g_phase[t, j, c0:c1], g_vis[t, j, c0:c1], g_dose[t, j, c0:c1]
-                    if not double:
-                        # without the harmonic in a loop of its own: _design and _derivatives at hc = hs = 0
+                    # the first solve in a loop of its own: a branch on the step kept it from being vectorised
+                    if step == 0:
                         for i in range(T):
                             Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
                             dv = dj * vv[i]
-                            tt, cs_, ss = ct[i], cc[i], cs[i]
-                            q = cs_ * Fc - ss * Fs
-                            ww = np.float64(wk[i])
-                            res = cnt[i] - dk[i] - off - b1 * xs[i] - (tt * dj * tfk[i] + dv * q)
-                            costs[i] += ww * res * res
-                            g = ww if square else -2.0 * ww * res
-                            _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb,
-                                      -dv * (cs_ * Fs + ss * Fc), dj * q, tfk[i] * tt + vv[i] * q, xs[i], yk)
-                        continue
+                            _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), dj * tfk[i],
+                                 dv * (m00 * Fc - m01 * Fs), dv * (m10 * Fc - m11 * Fs),
+                                 cnt[i] - dk[i] - off - b1 * xs[i])
+                    else:
+                        for i in range(T):
+                            Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
+                            _, _, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
+                            # Gauss-Newton step of the harmonic: the columns at the current images
+                            bc, bs = _image_columns(bc, bs, hcc, hcs, du[i], dw[i])
+                            _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), a,
+                                 m00 * bc + m01 * bs, m10 * bc + m11 * bs, cnt[i] - dk[i] - off - b1 * xs[i])
+                for i in range(T):
+                    _solve(n00[i], n01[i], n02[i], n11[i], n12[i], n22[i], r0[i], r1[i], r2[i], used[i], u, inv)
+                    # back from the solved columns (x1, x2) to (t, c, s)
+                    ct[i] = u[0]
+                    cc[i] = m00 * u[1] + m10 * u[2]
+                    cs[i] = m01 * u[1] + m11 * u[2]
+                    du[i], dw[i], de[i], df[i] = _direction(cc[i], cs[i])
+            costs, gh0, gh1 = cost[c0:c1], g_harm[0, c0:c1], g_harm[1, c0:c1]
+            gb0, gb1, gb2 = g_bg[0, c0:c1], g_bg[1, c0:c1], g_bg[2, c0:c1]
+            for k in range(lo, hi):
+                j, yk = frame[k], y[k]
+                dj, off = dose[j], b0 + b2 * yk
+                cnt, tfk, fck, fsk = counts[k, c0:c1], tf[k, c0:c1], fc[k, c0:c1], fs[k, c0:c1]
+                dk, wk = dark[k, c0:c1], w[k, c0:c1]
+                cp, sp, vv = cos_p[j, c0:c1], sin_p[j, c0:c1], vis[j, c0:c1]
+                gp, gv, gd = g_phase[j, c0:c1], g_vis[j, c0:c1], g_dose[j, c0:c1]
+                if not double:
+                    # without the harmonic in a loop of its own: _design and _derivatives at hc = hs = 0
                     for i in range(T):
                         Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
-                        c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
-                        tt, cs_, ss, e, f = ct[i], cc[i], cs[i], de[i], df[i]
-                        f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs_, ss, Fc, Fs, c2, s2, e, f, tfk[i], dj, vv[i],
-                                                                hc, hs)
+                        dv = dj * vv[i]
+                        tt, cs_, ss = ct[i], cc[i], cs[i]
+                        q = cs_ * Fc - ss * Fs
                         ww = np.float64(wk[i])
-                        res = cnt[i] - dk[i] - off - b1 * xs[i] - (tt * a + cs_ * bc + ss * bs) - (hcc * e - hcs * f)
+                        res = cnt[i] - dk[i] - off - b1 * xs[i] - (tt * dj * tfk[i] + dv * q)
                         costs[i] += ww * res * res
                         g = ww if square else -2.0 * ww * res
-                        _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb, f_p, f_v, f_d, xs[i], yk)
-                        gh0[i] += nh * g * (f_c * f_c if square else f_c)
-                        gh1[i] += nh * g * (f_s * f_s if square else f_s)
-    return cost, g_phase, g_vis, g_dose, g_bg, g_harm
+                        _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb,
+                                  -dv * (cs_ * Fs + ss * Fc), dj * q, tfk[i] * tt + vv[i] * q, xs[i], yk)
+                    continue
+                for i in range(T):
+                    Fc, Fs = _turned(np.float64(fck[i]), np.float64(fsk[i]), cp[i], sp[i])
+                    c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
+                    tt, cs_, ss, e, f = ct[i], cc[i], cs[i], de[i], df[i]
+                    f_p, f_v, f_d, f_c, f_s = _derivatives(tt, cs_, ss, Fc, Fs, c2, s2, e, f, tfk[i], dj, vv[i],
+                                                            hc, hs)
+                    ww = np.float64(wk[i])
+                    res = cnt[i] - dk[i] - off - b1 * xs[i] - (tt * a + cs_ * bc + ss * bs) - (hcc * e - hcs * f)
+                    costs[i] += ww * res * res
+                    g = ww if square else -2.0 * ww * res
+                    _gradient(gp, gv, gd, gb0, gb1, gb2, i, g, square, np_, nv, nd, nb, f_p, f_v, f_d, xs[i], yk)
+                    gh0[i] += nh * g * (f_c * f_c if square else f_c)
+                    gh1[i] += nh * g * (f_s * f_s if square else f_s)
 
 
 def weights_dtype(obs) -> np.dtype:
@@ -407,10 +388,14 @@ def reduced_cost(obs, ch, weights: np.ndarray, *, phase: float | None = None, sq
     bounds = _bounds(obs)
     weights = _c(weights, weights_dtype(obs))
     fc, fs = obs.fringe
-    out = _reduced_cost(_c(obs.counts), _c(obs.tf), fc, fs, _c(obs.dark), weights, obs.frame,
-                        obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase),
-                        np.sin(ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, hold, square,
-                        need, FIT_TILE)
+    chunks = row_chunks(bounds[:-1], obs.frame.size)
+    n, J, C = chunks.size - 1, obs.n_frames, obs.columns.size
+    out = (np.empty((n, C)), np.empty((n, J, C)), np.empty((n, J, C)), np.empty((n, J, C)), np.empty((n, 3, C)),
+           np.empty((n, 2, C)))
+    over_chunks(_cost_rows, chunks, (_c(obs.counts), _c(obs.tf), fc, fs, _c(obs.dark), weights, obs.frame, obs.y, obs.x,
+                                     bounds),
+                (*_turning(obs, ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, hold, square,
+                 need, FIT_TILE), out)
     cost, g_phase, g_vis, g_dose, g_bg, g_harm = (a.sum(axis=0) for a in out)
     return float(cost.sum()), (g_phase, g_vis, g_dose.sum(axis=1), g_bg.sum(axis=1), g_harm.sum(axis=1))
 
@@ -428,6 +413,7 @@ def _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn):
     return m
 
 
+# numba's parallel loop, not over_chunks: compiled as a function of one chunk, this loop took twice the time per sample
 @njit(cache=True, parallel=True)
 def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose, bg,
               harm, gain, electronic, iterations, from_data, keep_inverse, keep_expected, keep_weights, next_weights,
@@ -517,7 +503,11 @@ def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, 
                             coef[r, c, 0], coef[r, c, 1], coef[r, c, 2] = u[0], u[1], u[2]
                             dirn[0, i], dirn[1, i], dirn[2, i], dirn[3, i] = _direction(u[1], u[2])
                             if keep_inverse:
-                                inverse[r, c] = inv
+                                # element by element: an array assignment compiles a shape check with its error
+                                # message (about 6 s)
+                                for a1 in range(3):
+                                    for a2 in range(3):
+                                        inverse[r, c, a1, a2] = inv[a1, a2]
                 for b in range(nb):
                     k = lo + b
                     for i in range(T):
@@ -582,8 +572,8 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
     fc, fs = obs.fringe
     coef, valid, inverse, ibar, w, chi2, n_sel = _retrieve(
         _c(obs.counts), _c(obs.tf), fc, fs, dark, quiet, _c(obs.use), start,
-        obs.frame, obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), np.cos(ch.phase),
-        np.sin(ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, _c(g, np.float64),
+        obs.frame, obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), *_turning(obs, ch.phase),
+        _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, _c(g, np.float64),
         float(obs.electronic), int(iterations), weights is None, keep_inverse, keep_expected,
         keep_expected or next_weights, next_weights, TILE)
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
@@ -593,119 +583,119 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
 # Fisher information: plain and the profiled correction, driven by a component table
 
 
-@njit(cache=True, parallel=True)
-def _fisher(tf, fc, fs, w, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose, harm, coef, inverse, channel, power,
-            n_per_frame, n_frames, profiled):
+@njit(cache=True, error_model="numpy", nogil=True)
+def _fisher_rows(tf, fc, fs, w, frame, y, bounds, first, last, cos_p, sin_p, vis, dose, harm, coef, inverse, channel,
+                 power, xq, n_per_frame, n_frames, profiled, double, plain, corr):
+    """Fisher information and its profiled correction of rows ``first:last`` (a chunk, :func:`over_chunks`) into the
+    chunk's own plain and corr (P, P) (:func:`fisher`), with the components' column factors ``xq`` (Q, C,
+    :func:`_column_factors`) and ``double`` whether the double angle is needed."""
     C = tf.shape[1]
     Q = channel.size
     Pf, Pg = n_per_frame, Q - n_per_frame
-    P = n_frames * Pf + Pg
-    n = chunks.size - 1
-    plain = np.empty((n, P, P))
-    corr = np.empty((n, P, P))
     hc, hs = harm[0], harm[1]
-    # the double angle where the harmonic is in the model or among the components
-    double = hc != 0.0 or hs != 0.0
-    for q in range(Q):
-        double = double or channel[q] == 4
-    # the column factor of each component: x^power (phase, visibility), the basis (background), else 1
-    xq = np.ones((Q, C))
-    for q in range(Q):
-        if channel[q] <= 1 or (channel[q] == 3 and power[q] == 1):
+    plain[:, :] = 0.0
+    corr[:, :] = 0.0
+    F = np.empty(Q)
+    basis = np.empty(5)
+    # a frame's block, summed over the row's columns before it is placed (not a store per sample and slot)
+    blk = np.empty((Q, Q))
+    dirs = np.empty((4, C))  # _direction of each column's images: per pixel, not per sample
+    for r in range(first, last):
+        lo, hi = bounds[r], bounds[r + 1]
+        nb = hi - lo
+        m = nb * Pf + Pg
+        idx = np.empty(m, dtype=np.int64)
+        for b in range(nb):
+            for q in range(Pf):
+                idx[b * Pf + q] = frame[lo + b] * Pf + q
+        for g in range(Pg):
+            idx[nb * Pf + g] = n_frames * Pf + g
+        # the row's information at known images, on its own slots (frames of the row, then globals)
+        local = np.zeros((m, m))
+        # Y = X^T W D of each pixel (3 rows per column)
+        Y = np.zeros((3 * C, m))
+        for c in range(C):
+            dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c] = _direction(coef[r, c, 1], coef[r, c, 2])
+        for b in range(nb):
+            k = lo + b
+            j = frame[k]
+            blk[:, :] = 0.0
             for c in range(C):
-                xq[q, c] = x[c] ** (power[q] if channel[q] <= 1 else 1)
-    for t in prange(n):
-        plain[t, :, :] = 0.0
-        corr[t, :, :] = 0.0
-        F = np.empty(Q)
-        basis = np.empty(5)
-        # a frame's block, summed over the row's columns before it is placed (not a store per sample and slot)
-        blk = np.empty((Q, Q))
-        dirs = np.empty((4, C))  # _direction of each column's images: per pixel, not per sample
-        for r in range(chunks[t], chunks[t + 1]):
-            lo, hi = bounds[r], bounds[r + 1]
-            nb = hi - lo
-            m = nb * Pf + Pg
-            idx = np.empty(m, dtype=np.int64)
-            for b in range(nb):
-                for q in range(Pf):
-                    idx[b * Pf + q] = frame[lo + b] * Pf + q
-            for g in range(Pg):
-                idx[nb * Pf + g] = n_frames * Pf + g
-            # the row's information at known images, on its own slots (frames of the row, then globals)
-            local = np.zeros((m, m))
-            # Y = X^T W D of each pixel (3 rows per column)
-            Y = np.zeros((3 * C, m))
-            for c in range(C):
-                dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c] = _direction(coef[r, c, 1], coef[r, c, 2])
-            for b in range(nb):
-                k = lo + b
-                j = frame[k]
-                blk[:, :] = 0.0
-                for c in range(C):
-                    wk = w[k, c]
-                    if wk == 0:
-                        continue
-                    tt, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
-                    du, dw, e, f = dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c]
-                    Fc, Fs = _turned(fc[k, c], fs[k, c], cos_p[j, c], sin_p[j, c])
-                    c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dose[j] * tf[k, c], dose[j] * vis[j, c], hc, hs,
-                                                          double)
-                    basis[0], basis[1], basis[2], basis[3], basis[4] = _derivatives(
-                        tt, cs, ss, Fc, Fs, c2, s2, e, f, tf[k, c], dose[j], vis[j, c], hc, hs)
-                    # the images' columns of the profiled correction: their derivatives at the images
-                    xc, xs = _image_columns(bc, bs, hcc, hcs, du, dw)
-                    for q in range(Q):
-                        ch = channel[q]
-                        if ch <= 2:
-                            F[q] = basis[ch] * xq[q, c]
-                        elif ch == 3:
-                            F[q] = y[k] if power[q] == 2 else xq[q, c]
-                        else:
-                            F[q] = basis[3 + power[q]]
-                    for q1 in range(Q):
-                        wf = wk * F[q1]
-                        for q2 in range(Q):
-                            blk[q1, q2] += wf * F[q2]
-                        if profiled:
-                            s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
-                            Y[3 * c, s1] += wf * a
-                            Y[3 * c + 1, s1] += wf * xc
-                            Y[3 * c + 2, s1] += wf * xs
+                wk = w[k, c]
+                if wk == 0:
+                    continue
+                tt, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
+                du, dw, e, f = dirs[0, c], dirs[1, c], dirs[2, c], dirs[3, c]
+                Fc, Fs = _turned(fc[k, c], fs[k, c], cos_p[j, c], sin_p[j, c])
+                c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, dose[j] * tf[k, c], dose[j] * vis[j, c], hc, hs,
+                                                      double)
+                basis[0], basis[1], basis[2], basis[3], basis[4] = _derivatives(
+                    tt, cs, ss, Fc, Fs, c2, s2, e, f, tf[k, c], dose[j], vis[j, c], hc, hs)
+                # the images' columns of the profiled correction: their derivatives at the images
+                xc, xs = _image_columns(bc, bs, hcc, hcs, du, dw)
+                for q in range(Q):
+                    ch = channel[q]
+                    if ch <= 2:
+                        F[q] = basis[ch] * xq[q, c]
+                    elif ch == 3:
+                        F[q] = y[k] if power[q] == 2 else xq[q, c]
+                    else:
+                        F[q] = basis[3 + power[q]]
                 for q1 in range(Q):
-                    s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
+                    wf = wk * F[q1]
                     for q2 in range(Q):
-                        local[s1, b * Pf + q2 if q2 < Pf else nb * Pf + q2 - Pf] += blk[q1, q2]
-            if profiled:
-                # sum over the row's columns of Y^T N^-1 Y = Z^T Z, Z = L^T Y with N^-1 = L L^T: Y becomes Z in place
-                # (each column's three rows), then one matrix product (BLAS; the scalar triple loop it replaces
-                # took 0.49 s per call on 64 columns of the binned clinical scan)
-                for c in range(C):
-                    i00, i01, i02 = inverse[r, c, 0, 0], inverse[r, c, 0, 1], inverse[r, c, 0, 2]
-                    i11, i12, i22 = inverse[r, c, 1, 1], inverse[r, c, 1, 2], inverse[r, c, 2, 2]
-                    if i00 <= 0:
-                        Y[3 * c:3 * c + 3, :] = 0.0  # not solvable: the images are not profiled there
-                        continue
-                    l00 = np.sqrt(i00)
-                    l10, l20 = i01 / l00, i02 / l00
-                    d11 = i11 - l10 * l10
-                    l11 = np.sqrt(d11) if d11 > 0 else 0.0
-                    l21 = (i12 - l20 * l10) / l11 if l11 > 0 else 0.0
-                    d22 = i22 - l20 * l20 - l21 * l21
-                    l22 = np.sqrt(d22) if d22 > 0 else 0.0
-                    for col in range(m):
-                        y0, y1, y2 = Y[3 * c, col], Y[3 * c + 1, col], Y[3 * c + 2, col]
-                        Y[3 * c, col] = l00 * y0 + l10 * y1 + l20 * y2
-                        Y[3 * c + 1, col] = l11 * y1 + l21 * y2
-                        Y[3 * c + 2, col] = l22 * y2
-                rc = np.dot(Y.T, Y)
-                for a1 in range(m):
-                    for a2 in range(m):
-                        corr[t, idx[a1], idx[a2]] += rc[a1, a2]
+                        blk[q1, q2] += wf * F[q2]
+                    if profiled:
+                        s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
+                        Y[3 * c, s1] += wf * a
+                        Y[3 * c + 1, s1] += wf * xc
+                        Y[3 * c + 2, s1] += wf * xs
+            for q1 in range(Q):
+                s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
+                for q2 in range(Q):
+                    local[s1, b * Pf + q2 if q2 < Pf else nb * Pf + q2 - Pf] += blk[q1, q2]
+        if profiled:
+            # sum over the row's columns of Y^T N^-1 Y = Z^T Z, Z = L^T Y with N^-1 = L L^T: Y becomes Z in place
+            # (each column's three rows), then one matrix product (BLAS; the scalar triple loop it replaces
+            # took 0.49 s per call on 64 columns of the binned clinical scan)
+            for c in range(C):
+                i00, i01, i02 = inverse[r, c, 0, 0], inverse[r, c, 0, 1], inverse[r, c, 0, 2]
+                i11, i12, i22 = inverse[r, c, 1, 1], inverse[r, c, 1, 2], inverse[r, c, 2, 2]
+                if i00 <= 0:
+                    Y[3 * c:3 * c + 3, :] = 0.0  # not solvable: the images are not profiled there
+                    continue
+                l00 = np.sqrt(i00)
+                l10, l20 = i01 / l00, i02 / l00
+                d11 = i11 - l10 * l10
+                l11 = np.sqrt(d11) if d11 > 0 else 0.0
+                l21 = (i12 - l20 * l10) / l11 if l11 > 0 else 0.0
+                d22 = i22 - l20 * l20 - l21 * l21
+                l22 = np.sqrt(d22) if d22 > 0 else 0.0
+                for col in range(m):
+                    y0, y1, y2 = Y[3 * c, col], Y[3 * c + 1, col], Y[3 * c + 2, col]
+                    Y[3 * c, col] = l00 * y0 + l10 * y1 + l20 * y2
+                    Y[3 * c + 1, col] = l11 * y1 + l21 * y2
+                    Y[3 * c + 2, col] = l22 * y2
+            rc = np.dot(Y.T, Y)
             for a1 in range(m):
                 for a2 in range(m):
-                    plain[t, idx[a1], idx[a2]] += local[a1, a2]
+                    corr[idx[a1], idx[a2]] += rc[a1, a2]
+        for a1 in range(m):
+            for a2 in range(m):
+                plain[idx[a1], idx[a2]] += local[a1, a2]
     return plain, corr
+
+
+def _column_factors(channel: np.ndarray, power: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The column factor of each component, shape (Q, C): x^power (phase, visibility), x for the background's x
+    term, else 1."""
+    xq = np.ones((channel.size, x.size))
+    for q, (c, p) in enumerate(zip(channel, power, strict=True)):
+        if c <= VISIBILITY:
+            xq[q] = x ** p
+        elif c == BACKGROUND and p == 1:
+            xq[q] = x
+    return xq
 
 
 def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray | None, table: tuple, *,
@@ -742,9 +732,14 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray |
     # one chunk per thread: the accumulators are (P, P) each
     weights = _c(weights, np.float64)  # one compiled specialisation whatever the caller's dtype
     fc, fs = obs.fringe
-    plain, corr = _fisher(_c(obs.tf), fc, fs, weights, obs.frame, obs.y, obs.x, bounds,
-                   row_chunks(bounds[:-1], obs.frame.size, per_thread=1), np.cos(ch.phase), np.sin(ch.phase),
-                   _c(ch.vis, np.float64), ch.dose, ch.harmonic, coef, inv, np.asarray(channel, dtype=np.int64),
-                   np.asarray(power, dtype=np.int64),
-                   int(n_per_frame), int(obs.n_frames), bool(profiled and inverse is not None))
+    channel, power = np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64)
+    chunks = row_chunks(bounds[:-1], obs.frame.size, per_thread=1)
+    P = obs.n_frames * n_per_frame + channel.size - n_per_frame
+    plain, corr = np.empty((chunks.size - 1, P, P)), np.empty((chunks.size - 1, P, P))
+    over_chunks(_fisher_rows, chunks, (_c(obs.tf), fc, fs, weights, obs.frame, obs.y, bounds),
+                (*_turning(obs, ch.phase), _c(ch.vis, np.float64), ch.dose, ch.harmonic, coef, inv, channel,
+                 power, _column_factors(channel, power, obs.x), int(n_per_frame), int(obs.n_frames),
+                 bool(profiled and inverse is not None),
+                 # the double angle where the harmonic is in the model or among the components
+                 bool(np.any(ch.harmonic != 0.0) or np.any(channel == HARMONIC))), (plain, corr))
     return plain.sum(axis=0), corr.sum(axis=0)

@@ -1,0 +1,67 @@
+"""Chunks of detector rows for the compiled loops, and running a loop over them in threads.
+
+A compiled loop over pixels works a chunk of rows at a time, each chunk with its own accumulators (summed
+afterwards), so no two threads write the same memory (:mod:`dfxcorr.kernels`).
+"""
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numba
+import numpy as np
+
+
+def row_chunks(starts: np.ndarray, n_blocks: int, *, per_thread: int = 4) -> np.ndarray:
+    """Row boundaries of chunks holding about equal numbers of blocks.
+
+    Parameters
+    ----------
+    starts : ndarray of int, shape (R,)
+        First block of each row.
+    n_blocks : int
+        K.
+    per_thread : int
+        Chunks per thread (more chunks balance uneven rows, fewer keep the per-chunk accumulators small).
+
+    Returns
+    -------
+    ndarray of int64, shape (n + 1,)
+        Chunk i holds rows ``bounds[i]:bounds[i + 1]``.
+    """
+    R = starts.size
+    n = max(1, min(R, per_thread * numba.get_num_threads()))
+    rows = np.searchsorted(starts, np.linspace(0, n_blocks, n + 1), side="left")
+    rows[0], rows[-1] = 0, R
+    return np.unique(rows).astype(np.int64)
+
+
+def over_chunks(rows, chunks: np.ndarray, before: tuple, after: tuple, outs: tuple) -> None:
+    """Run a compiled loop over chunks of rows on numba's thread count (:func:`set_threads`).
+
+    Calls ``rows(*before, chunks[t], chunks[t + 1], *after, *(o[t] for o in outs))`` for every chunk t, in threads of
+    this process: ``rows`` releases the GIL and writes only to its chunk's outputs ``o[t]``. Not numba's parallel loop:
+    that compiles the function it calls a second time, into the loop (4-9 s per kernel at a first run).
+
+    Parameters
+    ----------
+    rows : numba dispatcher
+        Compiled with ``nogil=True``.
+    chunks : ndarray of int64, shape (n + 1,)
+        Row boundaries (:func:`row_chunks`).
+    before, after : tuple
+        Arguments before and after the chunk's first and last row.
+    outs : tuple of ndarray
+        Per-chunk outputs, each of first dimension n.
+    """
+    n = chunks.size - 1
+
+    def one(t: int) -> None:
+        rows(*before, chunks[t], chunks[t + 1], *after, *(o[t] for o in outs))
+
+    threads = min(numba.get_num_threads(), n)
+    if threads <= 1:
+        for t in range(n):
+            one(t)
+        return
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(one, range(n)))
