@@ -218,8 +218,10 @@ def signatures(obs: Observations, params: dict[str, Any], *, alpha: float,
                 g[:, a] = np.bincount(lab, weights=np.where(use, Dn[..., a], 0.0)[sel], minlength=nb)
             first = np.zeros(nb, int)
             first[lab] = frame[sel]
+            # at most the bin's own one: a frame the fit cannot determine (its inverse information infinite, on a fit
+            # of a few columns) takes all of its bins
             with np.errstate(divide="ignore", invalid="ignore"):
-                lost = float(np.nansum(np.einsum("ba,bac,bc->b", g, info_inv[first], g) * c / V))
+                lost = float(np.nansum(np.minimum(np.einsum("ba,bac,bc->b", g, info_inv[first], g) * c / V, 1.0)))
             if axis == "frame_row" and g.shape[1]:
                 S, lost = _without_frame_terms(S, V, g, first)
         ok = V > 0

@@ -18,8 +18,11 @@ def fit_counts(state: State) -> np.ndarray:
     """The expected counts of the fit's used, solved samples in the region of interest on the columns held for the
     per-pixel tests (``state.obs``): where bins of expected count are cut from, without every column's."""
     obs, rec = state.fit_obs, state.fit_rec
-    held = obs.use & obs.in_roi & obs.gather_valid(rec.images.valid) & np.isin(obs.columns, state.obs.columns)[None, :]
-    return rec.expected[held]
+    solved = obs.use & obs.in_roi & obs.gather_valid(rec.images.valid)
+    held = solved & np.isin(obs.columns, state.obs.columns)[None, :]
+    # a band narrower than the fit's column step holds none of its columns (a full-resolution clinical scan's band of
+    # 93 columns, the fit's every 434th): the bins from every column of the fit
+    return rec.expected[held if held.any() else solved]
 
 
 def squared_residuals(obs: Observations, params: Params, images: M.Images, exclude: np.ndarray | None = None
