@@ -207,9 +207,10 @@ class Observations:
         (K, C) in the samples' dtype: the compiled loops turn it by the phase channel with products alone, so no
         sample needs a trigonometric call there. Made once per flat field held (the fit evaluates them many times;
         :class:`Quadratures`)."""
+        held = self._held_quadratures()
+        if held is not None:
+            return held
         slot = self.quadratures
-        if slot.value is not None and self._quadratures_made():
-            return slot.value
         if slot.value is not None:
             # a copy with a flat field of its own: a slot of its own, the others keep theirs
             slot = Quadratures()
@@ -221,10 +222,13 @@ class Observations:
             slot.source, slot.value = (self.tf, self.vf, self.phif), value
         return value
 
-    def _quadratures_made(self) -> bool:
+    def _held_quadratures(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The quadratures held for this flat field, or None."""
         slot = self.quadratures
-        return slot.value is not None and all(a is b for a, b in zip(slot.source, (self.tf, self.vf, self.phif),
-                                                                       strict=True))
+        if slot.value is None or any(a is not b for a, b in zip(slot.source, (self.tf, self.vf, self.phif),
+                                                                 strict=True)):
+            return None
+        return slot.value
 
     @property
     def in_roi(self) -> np.ndarray:
@@ -301,11 +305,11 @@ class Observations:
                            None if self.noise is None else cut(self.noise),
                            None if self.roi is None else cut(self.roi),
                            None if self.offset is None else cut(self.offset), self.reading)
-        if self._quadratures_made():
+        held = self._held_quadratures()
+        if held is not None:
             # the quadratures already made, cut like the rest (no trigonometry again)
-            fc, fs = self.fringe
             out.quadratures.source = (out.tf, out.vf, out.phif)
-            out.quadratures.value = (cut(fc), cut(fs))
+            out.quadratures.value = (cut(held[0]), cut(held[1]))
         return out
 
     def column_chunks(self, samples: float = 1e6) -> list[np.ndarray]:
