@@ -588,10 +588,15 @@ def parallax_section(par: dict) -> list[str]:
                      f"{d['reduced_chi2'][0]:.3f} -> {d['reduced_chi2'][1]:.3f}", ", ".join(d["unexplained"]) or "-",
                      cell(r["defaults"]), cell(r["recommended"]), cell(r["twin"])])
     floor = ", ".join(f"{k} row: {v:.2f}" for k, v in par["interpolation_z2"].items())
+    scale = [f"Displacements of up to 0.3 rows as the interpolation between rows predicts them, against the exact "
+             f"pixels: x{par['interpolation_scale']['linear']:.3f} (linear, the model's: a kappa whose displacements "
+             f"stay within a fraction of a row is found about that factor low), "
+             f"x{par['interpolation_scale']['cubic convolution']:.3f} with cubic convolution."
+             ] if "interpolation_scale" in par else []
     return ["", "## Beam paths that change during the scan", "",
             f"`scripts/parallax.py` -> `docs/parallax.json`. Machine: {par['machine']}. {par['pixel_mm']:g} mm "
             f"pixels, scan {' x '.join(str(n) for n in par['runs'][0]['shape'])}, flux {par['flux']:g}.", PARALLAX, "",
-            f"Interpolation floor (mean z^2 of the transmission alone, per displacement): {floor}.", "",
+            f"Interpolation floor (mean z^2 of the transmission alone, per displacement): {floor}.", *scale, "",
             *table(["kappa", "diagnosis names", "kappa found", "diagnosis chi-square", "unexplained",
                     "defaults: chi-square; errors t / ln v / phi; time", "recommended", "twin"], rows)]
 
