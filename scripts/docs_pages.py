@@ -149,8 +149,10 @@ preconditioning still finishes in seconds. The parallax rows set `geometry.paral
 what the coupled rows cost."""
 
 BASELINE = """\
-The same scan as separate processes, this version against the plain numpy/scipy implementation of the
-paper (commit `{ref}`, installed in its own virtual environment), runs alternated, medians of {runs}."""
+The same scan as separate processes, dfxcorr at commit `{this}` against its own first version (commit `{ref}`: the
+paper's method in numpy/scipy, before the compiled kernels; installed in its own virtual environment), runs
+alternated, medians of {runs}. An old record of the project's own progress: the speed anchor is the section
+after it."""
 
 KERNELS = """\
 CPU nanoseconds per (pixel, frame) sample of one cost-and-gradient evaluation and of one retrieval pass, in
@@ -327,10 +329,10 @@ def speed_section(bench: dict, base: dict, kern: dict) -> list[str]:
             rows.append([case, f"{med['this checkout']:g} s, {rss['this checkout']} MiB",
                          f"{med[ref]:g} s, {rss[ref]} MiB", f"{s['ratio_this_over_ref']:.2f}"])
         runs = len(next(iter(base["runs"].values()))["this checkout"])
-        out += ["", "### Against the plain numpy/scipy implementation", "",
+        out += ["", "### Against an earlier dfxcorr", "",
                 "`scripts/bench_baseline.py` -> `docs/bench-baseline.json`. Machine: " + base["machine"] + ".", "",
-                BASELINE.format(ref=ref[:7], runs=runs), "",
-                *table(["case", "this version", f"`{ref[:7]}`", "time ratio"], rows)]
+                BASELINE.format(this=base["commit"][:7], ref=ref[:7], runs=runs), "",
+                *table(["case", f"`{base['commit'][:7]}`", f"`{ref[:7]}`", "time ratio"], rows)]
     anc = bench.get("anchor")
     if anc:
         runs = anc["runs"]
