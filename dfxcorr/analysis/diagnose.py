@@ -65,6 +65,11 @@ class Fitted:
     fit_rec: Retrieval
     _cache: dict[Hashable, Any] = field(default_factory=dict, repr=False)
 
+    def release(self) -> None:
+        """Drop the values tests computed from it (a fit the loop moved on from: no round tests it again; what the
+        report asks of it later is computed again)."""
+        self._cache.clear()
+
     @property
     def signatures(self) -> list[dict[str, Any]]:
         """The residual signatures of the fit, made when first asked for: a trial that is refined or settled again,
@@ -81,6 +86,11 @@ class Fitted:
 
 def _signatures(state: Fitted) -> list[dict[str, Any]]:
     return signatures(state.fit_obs, state.params, alpha=state.alpha, rec=state.fit_rec)
+
+
+def _release(state: State) -> None:
+    if isinstance(state, Fitted):
+        state.release()
 
 
 class Session:
@@ -296,7 +306,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = No
     before = located_once(first)
     out = loop.run(registry, session, first, fit=session.fit, alpha=d["alpha"], explain_share=d["explain_share"],
                    proxy_spread=d["proxy_spread"], max_rounds=d["max_rounds"], timings=timings,
-                   noise_first=d["order"] == "noise-first")
+                   noise_first=d["order"] == "noise-first", superseded=_release)
     final = out.state
     replicated = {}
     if d["replicate"] and out.steps:

@@ -386,12 +386,13 @@ def _best_of(first: Step, others: list[str], tests: Mapping[str, Test[Any]], eff
 
 def run(effects: Effects, ctx: Context, start: State, *, fit: Fit, alpha: float, explain_share: float,
         proxy_spread: float, max_rounds: int, timings: dict[str, float] | None = None,
-        noise_first: bool = False) -> Outcome:
+        noise_first: bool = False, superseded: Callable[[State], None] | None = None) -> Outcome:
     """Add effects to the model of ``start`` until no candidate explains what is left (see the module's text).
 
     ``proxy_spread``: a candidate whose consistency test is significant and whose sizes span more than this is
     refused as a proxy (:meth:`EffectBase.consistency`); ``timings`` receives the seconds of each round's tests;
-    ``noise_first``: see :func:`ranked`."""
+    ``noise_first``: see :func:`ranked`; ``superseded``: called with each fit the loop moves on from (no round
+    tests it again)."""
     out = Outcome(state=start)
     for rnd in range(max_rounds):
         state = out.state
@@ -490,5 +491,7 @@ def run(effects: Effects, ctx: Context, start: State, *, fit: Fit, alpha: float,
                            "reduced_chi2_before": state.reduced_chi2, "reduced_chi2_after": step.after.reduced_chi2,
                            "delta_chi2": state.chi2 - step.after.chi2, "explained_share": step.share})
         log.info("round %d: adding %s", rnd, " and ".join(step.names))
+        if superseded is not None:
+            superseded(state)
         out.state = step.after
     return out
