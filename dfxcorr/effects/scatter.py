@@ -117,9 +117,9 @@ class ScatterError(DfxcorrError, ValueError):
 class Setting:
     """A scatter correction: s (scatter per unit primary) and the kernel's std (mm at the detector). A hashable value
     of those two; ``measured``, the scatter-to-primary ratio over the lit samples that it makes (NaN where not
-    computed), ``start``, the transmission behind the primary at a nearby setting where one is known (H, W),
-    from which the correction's fixed point starts (:func:`transmission`), and ``start_unit``, the unit field of
-    ``start`` at this width where already made, do not take part in comparisons."""
+    computed), ``start``, the transmission behind the primary at a nearby setting where one is known (H, W), from
+    which the correction's fixed point starts (:func:`transmission`), and its unit field where made (``start_unit``),
+    do not take part in comparisons."""
 
     ratio: float
     width_mm: float
@@ -414,11 +414,10 @@ def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_
     # updates (omega = 1) diverge for s > 1 (t falls to 0 and the field with it: no correction at all). Damped,
     # every error shrinks by at least q = s / (2 + s) a step (s = 0.1: 0.05)
     omega = 2.0 / (2.0 + s)
-    made = start_unit if start is not None else None  # the unit field of t where already made
-    for _ in range(MAX_UPDATES):
-        at_t = field(store, reference, t, width) if made is None else made
-        update = retrieved(replace(store, offset=at_t.scaled(s)), reference, step=step)
-        made = None
+    for k in range(MAX_UPDATES):
+        made = start_unit if k == 0 and start is not None else None  # the unit field of t, where already made
+        update = retrieved(replace(store, offset=(made or field(store, reference, t, width)).scaled(s)), reference,
+                           step=step)
         new = (1.0 - omega) * t + omega * update
         change = float(np.sqrt(np.mean((new - t) ** 2) / max(np.mean(t ** 2), 1e-300)))
         t = new
@@ -648,9 +647,7 @@ class Scatter(EffectBase[ScatterScore]):
             return field(prep.store, prep.reference, t, kernel_pixels(width_mm, pixel_mm(prep.scan)))
 
         fitted: dict[float, tuple[float, float, float]] = {}
-        # the best width's field so far: the first round's transmission starts from it (each field of a binned
-        # clinical scan costs a second)
-        kept: list[ScatterField] = []
+        kept: list[ScatterField] = []  # the best width's field so far: where the first round's updates start
 
         def tried(w: float) -> None:
             F = unit(t, w)
@@ -668,12 +665,11 @@ class Scatter(EffectBase[ScatterScore]):
             if a > 0:
                 tried(float(np.exp(np.clip(-b / (2 * a), x[0], x[2]))))
         width_mm = float(min(fitted, key=lambda w: fitted[w][1]))
-        F = kept[0]
         # s and the t behind its field, in turn: a t made at a low s is high by the scatter left in it, its field
         # too, and s comes out low again; each round shrinks the gap by about s times the measured ratio per unit s
         # (0.035 at s = 0.1 on the 5 mm test scan, one round; at s = 1.5, 0.5: 1.30 after one round for 1.5). Each
         # round's t is updated from the last one's: s moves little, so one or two updates reach the tolerance
-        s = fitted[width_mm][0]
+        s, F = fitted[width_mm][0], kept[0]
         for _ in range(ROUNDS):
             t = transmission(prep.store, prep.reference, Setting(s, width_mm), pixel_mm(prep.scan), start=t,
                              start_unit=F)
