@@ -4,9 +4,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
 
 from .catalogue import PAPER_MODEL, neutral_params
+from .stats import chi2_quantile
 
 
 def paper_params(params: dict, n_frames: int) -> dict:
@@ -38,8 +38,8 @@ def chi2_limits(dof: int) -> tuple[float, float]:
     its noise model is wrong (``dfxcorr diagnose`` says which).
     """
     dof = max(int(dof), 1)
-    return (min(float(chi2.ppf(MISFIT_TAIL, dof)) / dof, 1 / MISFIT_FACTOR),
-            max(float(chi2.isf(MISFIT_TAIL, dof)) / dof, MISFIT_FACTOR))
+    return (min(float(chi2_quantile(MISFIT_TAIL, dof)) / dof, 1 / MISFIT_FACTOR),
+            max(float(chi2_quantile(MISFIT_TAIL, dof, upper=True)) / dof, MISFIT_FACTOR))
 
 
 @dataclass

@@ -1,10 +1,58 @@
 """Statistics the diagnosis shares: tail probabilities, multiple-testing rules, and how a set of indices reads."""
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
-from scipy import stats
+from scipy import special
+
+#: Below this a tail probability is taken in log space (its float would lose digits, then underflow).
+_TINY = 1e-280
+
+
+def _continued_fraction(a_term: Callable[[int], float], b_term: Callable[[int], float]) -> float:
+    """The value of b_0 + a_1 / (b_1 + a_2 / (b_2 + ...)) by the modified Lentz method, ``a_term(i)`` and
+    ``b_term(i)`` its i-th terms; converged to 1e-15 relative (the tails below need at most a few hundred terms)."""
+    tiny = 1e-300
+    f = b_term(0) or tiny
+    c, d = f, 0.0
+    for i in range(1, 10_000):
+        a, b = a_term(i), b_term(i)
+        d = b + a * d
+        d = 1.0 / (d or tiny)
+        c = b + a / c
+        c = c or tiny
+        f *= c * d
+        if abs(c * d - 1.0) < 1e-15:
+            return f
+    raise ArithmeticError("continued fraction did not converge")
+
+
+def log_gamma_q(a: float, z: float) -> float:
+    """log of the regularised upper incomplete gamma function Q(a, z), exact where Q underflows (z > a + 1 there:
+    Legendre's continued fraction, Q = z^a e^-z / Gamma(a) / (z + 1 - a - 1 (1 - a) / (z + 3 - a - ...)))."""
+    q = float(special.gammaincc(a, z))
+    if q > _TINY:
+        return float(np.log(q))
+    cf = _continued_fraction(lambda i: -i * (i - a), lambda i: z + 2 * i + 1 - a)
+    return a * np.log(z) - z - float(special.gammaln(a)) - float(np.log(cf))
+
+
+def log_beta_i(a: float, b: float, x: float) -> float:
+    """log of the regularised incomplete beta function I_x(a, b), exact where it underflows (x small there: its
+    continued fraction, I = x^a (1 - x)^b / (a B(a, b)) / (1 + d_1 / (1 + d_2 / ...)))."""
+    value = float(special.betainc(a, b, x))
+    if value > _TINY:
+        return float(np.log(value))
+
+    def d(i: int) -> float:
+        m = i // 2
+        if i % 2:
+            return -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1))
+        return m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m))
+
+    cf = _continued_fraction(d, lambda i: 1.0)
+    return a * np.log(x) + b * np.log1p(-x) - np.log(a) - float(special.betaln(a, b)) - float(np.log(cf))
 
 
 def chi2_tail(statistic: float, dof: int) -> tuple[float, float]:
@@ -14,7 +62,31 @@ def chi2_tail(statistic: float, dof: int) -> tuple[float, float]:
         return 1.0, 0.0
     if not np.isfinite(statistic):
         return 0.0, -np.inf
-    return float(stats.chi2.sf(statistic, dof)), float(stats.chi2.logsf(statistic, dof))
+    if statistic <= 0:
+        return 1.0, 0.0
+    return float(special.chdtrc(dof, statistic)), log_gamma_q(dof / 2, statistic / 2)
+
+
+def chi2_quantile(q: float, dof: int | np.ndarray, *, upper: bool = False) -> np.ndarray:
+    """The chi-square distribution's quantile: the value its lower tail (``upper``: its upper tail) reaches at
+    probability ``q`` with ``dof`` degrees of freedom, an array of ``dof``'s shape."""
+    half = np.asarray(dof, dtype=float) / 2
+    return 2.0 * np.asarray(special.gammainccinv(half, q) if upper else special.gammaincinv(half, q))
+
+
+def binomial_log_tail(k: int, n: int, p: float) -> float:
+    """log P(X >= k) of a binomial X of ``n`` trials with success probability ``p`` (0 for k <= 0), exact where the
+    probability underflows (P(X >= k) = I_p(k, n - k + 1))."""
+    if k <= 0:
+        return 0.0
+    if k > n:
+        return -np.inf
+    return log_beta_i(k, n - k + 1, p)
+
+
+def normal_log_tail(z: np.ndarray) -> np.ndarray:
+    """log P(Z > z) of a standard normal Z, elementwise, exact far into the tail."""
+    return special.log_ndtr(-np.asarray(z, dtype=float))
 
 
 def bonferroni(log_p: Sequence[float]) -> tuple[int, float]:
@@ -80,4 +152,5 @@ def one_way_anova(y: np.ndarray, w: np.ndarray, group: np.ndarray, n_groups: int
     between = float(np.sum(W * (means - pooled) ** 2)) / d1
     within = float(np.sum(w * (y - means[group]) ** 2)) / d2
     F = between / within if within > 0 else 0.0
-    return F, d1, d2, float(stats.f.logsf(F, d1, d2)), means, pooled
+    log_p = log_beta_i(d2 / 2, d1 / 2, d2 / (d2 + d1 * F)) if F > 0 else 0.0
+    return F, d1, d2, log_p, means, pooled

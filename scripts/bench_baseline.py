@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """This checkout against a reference version, on the paper's simulation study, in one run.
 
-The reference (default :data:`BASELINE`: the plain numpy/scipy implementation of the paper) is exported
+The reference (default :data:`BASELINE`: dfxcorr's first version, the paper's method in numpy/scipy before the
+compiled kernels; the speed anchor proper is ``../shared/bench/``, ``scripts/benchmark.py targets``) is exported
 with ``git archive`` and installed into its own virtual environment under ``--work``; this checkout
 runs from the environment that runs the script. The paper's study (209 frames of 450 x 510,
 ``configs/paper-simulation.yaml``) is simulated once, then both versions reconstruct it in
@@ -26,7 +27,7 @@ from dfxcorr.analysis.compare import machine
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = {"defaults": [], "fit.subsample=20": ["--set", "fit.subsample=20"]}
-#: The plain numpy/scipy implementation of the paper: the last commit without compiled kernels, frames held in
+#: dfxcorr's first version, the paper's method in numpy/scipy: the last commit without compiled kernels, frames held in
 #: memory.
 BASELINE = "8a55ae67a752f7ac14bc59aa8c1bb0bdcdbba0d9"
 

@@ -149,8 +149,10 @@ preconditioning still finishes in seconds. The parallax rows set `geometry.paral
 what the coupled rows cost."""
 
 BASELINE = """\
-The same scan as separate processes, this version against the plain numpy/scipy implementation of the
-paper (commit `{ref}`, installed in its own virtual environment), runs alternated, medians of {runs}."""
+The same scan as separate processes, dfxcorr at commit `{this}` against its own first version (commit `{ref}`: the
+paper's method in numpy/scipy, before the compiled kernels; installed in its own virtual environment), runs
+alternated, medians of {runs}. An old record of the project's own progress: the speed anchor is the section
+after it."""
 
 KERNELS = """\
 CPU nanoseconds per (pixel, frame) sample of one cost-and-gradient evaluation and of one retrieval pass, in
@@ -327,10 +329,10 @@ def speed_section(bench: dict, base: dict, kern: dict) -> list[str]:
             rows.append([case, f"{med['this checkout']:g} s, {rss['this checkout']} MiB",
                          f"{med[ref]:g} s, {rss[ref]} MiB", f"{s['ratio_this_over_ref']:.2f}"])
         runs = len(next(iter(base["runs"].values()))["this checkout"])
-        out += ["", "### Against the plain numpy/scipy implementation", "",
+        out += ["", "### Against an earlier dfxcorr", "",
                 "`scripts/bench_baseline.py` -> `docs/bench-baseline.json`. Machine: " + base["machine"] + ".", "",
-                BASELINE.format(ref=ref[:7], runs=runs), "",
-                *table(["case", "this version", f"`{ref[:7]}`", "time ratio"], rows)]
+                BASELINE.format(this=base["commit"][:7], ref=ref[:7], runs=runs), "",
+                *table(["case", f"`{base['commit'][:7]}`", f"`{ref[:7]}`", "time ratio"], rows)]
     anc = bench.get("anchor")
     if anc:
         runs = anc["runs"]
@@ -588,10 +590,15 @@ def parallax_section(par: dict) -> list[str]:
                      f"{d['reduced_chi2'][0]:.3f} -> {d['reduced_chi2'][1]:.3f}", ", ".join(d["unexplained"]) or "-",
                      cell(r["defaults"]), cell(r["recommended"]), cell(r["twin"])])
     floor = ", ".join(f"{k} row: {v:.2f}" for k, v in par["interpolation_z2"].items())
+    scale = [f"Displacements of up to 0.3 rows as the interpolation between rows predicts them, against the exact "
+             f"pixels: x{par['interpolation_scale']['linear']:.3f} (linear, the model's: a kappa whose displacements "
+             f"stay within a fraction of a row is found about that factor low), "
+             f"x{par['interpolation_scale']['cubic convolution']:.3f} with cubic convolution."
+             ] if "interpolation_scale" in par else []
     return ["", "## Beam paths that change during the scan", "",
             f"`scripts/parallax.py` -> `docs/parallax.json`. Machine: {par['machine']}. {par['pixel_mm']:g} mm "
             f"pixels, scan {' x '.join(str(n) for n in par['runs'][0]['shape'])}, flux {par['flux']:g}.", PARALLAX, "",
-            f"Interpolation floor (mean z^2 of the transmission alone, per displacement): {floor}.", "",
+            f"Interpolation floor (mean z^2 of the transmission alone, per displacement): {floor}.", *scale, "",
             *table(["kappa", "diagnosis names", "kappa found", "diagnosis chi-square", "unexplained",
                     "defaults: chi-square; errors t / ln v / phi; time", "recommended", "twin"], rows)]
 

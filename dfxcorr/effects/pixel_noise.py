@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from .. import model as M
 from ..catalogue import Effect
@@ -19,7 +18,7 @@ from ..errors import DfxcorrError
 from ..noise import pearson
 from ..observations import Observations
 from ..preparation import Correctable
-from ..stats import holm, ranges
+from ..stats import holm, normal_log_tail, ranges
 from .base import Consistency, Context, EffectBase, Finding, Hypothesis, Option, Params, Policy, State, Test, chi2_test
 from .residuals import fit_counts, line_consistency, pixel_chi2, squared_residuals
 
@@ -154,7 +153,7 @@ def pixel_noise_test(obs: Observations, params: Params, images: M.Images, *, alp
             ok = Da > 0
             z = np.where(ok, (Xa - c * Da) / (c * np.sqrt(np.where(ok, Va, 1.0))), 0.0)
             lines.append((Xa, Da, Va))
-            log_p = np.log(2) + stats.norm.logsf(np.abs(z))
+            log_p = np.log(2) + normal_log_tail(np.abs(z))
             tests += [(float(log_p[i]), axis, i) for i in np.flatnonzero(ok)]
         significant = holm([t[0] for t in tests], alpha)
         new = []

@@ -8,11 +8,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage, stats
+from scipy import ndimage
 
 from ..catalogue import Effect
 from ..mask import motion_score
 from ..observations import Observations
+from ..stats import binomial_log_tail, chi2_quantile
 from .base import Context, EffectBase, Finding, Hypothesis, Option, Params, Policy, State, Test, Unexplained
 
 #: The largest share of the scored pixels that a moving part of the sample may cover: a misfit spread wider is
@@ -40,7 +41,7 @@ def motion_test(obs: Observations, params: Params, *, p_pixel: float = 1e-6, min
     # the chi-square tail beyond p_pixel as a critical value per degree of freedom (a few distinct ones): the
     # log-tail of every pixel would take 0.3 s a round on a 512 x 1536 detector
     dofs, at = np.unique(dof, return_inverse=True)
-    critical = stats.chi2.isf(p_pixel, dofs)[at.reshape(dof.shape)]
+    critical = chi2_quantile(p_pixel, dofs, upper=True)[at.reshape(dof.shape)]
     flag = obs.to_image(ok & (np.nan_to_num(score) * dof > critical), fill=False).astype(bool)
     labels, count = ndimage.label(flag)
     if count:
@@ -49,7 +50,7 @@ def motion_test(obs: Observations, params: Params, *, p_pixel: float = 1e-6, min
         flag = np.isin(labels, 1 + np.flatnonzero(sizes >= 3))
     k = int(flag.sum())
     excess = obs.to_image(np.nan_to_num(score - 1) * dof, fill=0.0)
-    log_p = float(stats.binom.logsf(k - 1, int(ok.sum()), p_pixel)) if k >= min_pixels else 0.0
+    log_p = binomial_log_tail(k, int(ok.sum()), p_pixel) if k >= min_pixels else 0.0
     stat = float(excess[flag].sum())
     return Test(stat, k, float(np.exp(log_p)), log_p, None, explains=stat, material=k <= MAX_SHARE * ok.sum(),
                 flagged=flag)

@@ -61,7 +61,6 @@ from dataclasses import field as dc_field
 from typing import Any
 
 import numpy as np
-from scipy import signal
 
 from .. import model as M
 from ..align import LitStore, interpolate_rows, pixel_mm, realign
@@ -162,6 +161,9 @@ def blur(a: np.ndarray, sigma: float, *, axis: int = -1) -> np.ndarray:
         return np.moveaxis(np.tensordot(band, a, axes=([1], [axis])), 0, axis)
     shape = [1] * a.ndim
     shape[axis] = kernel.size
+    # imported here: scipy.signal imports scipy.stats, about a second at every start of the command line
+    from scipy import signal
+
     return signal.fftconvolve(a, kernel.reshape(shape), mode="same", axes=axis)
 
 
