@@ -116,9 +116,8 @@ class ScatterError(DfxcorrError, ValueError):
 class Setting:
     """A scatter correction: s (scatter per unit primary) and the kernel's std (mm at the detector). A hashable value
     of those two; ``measured``, the scatter-to-primary ratio over the lit samples that it makes (NaN where not
-    computed), ``start``, the transmission behind the primary at a nearby setting where one is known (H, W), from
-    which the correction's fixed point starts (:func:`transmission`), and its unit field where made (``start_unit``),
-    do not take part in comparisons."""
+    computed), and ``start``, a transmission behind the primary at a nearby setting (H, W) where the correction's
+    fixed point starts (:func:`transmission`), with its unit field where made (``start_unit``), are not compared."""
 
     ratio: float
     width_mm: float
@@ -652,8 +651,7 @@ class Scatter(EffectBase[ScatterScore]):
         kept: list[ScatterField] = []  # the best width's field so far: where the first round's updates start
 
         def tried(w: float) -> None:
-            F = unit(t, w)
-            fitted[w] = profile(F)
+            fitted[w] = profile(F := unit(t, w))
             if min(fitted, key=lambda v: fitted[v][1]) == w:
                 kept[:] = [F]
 
