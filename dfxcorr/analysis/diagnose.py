@@ -49,8 +49,9 @@ T = TypeVar("T")
 @dataclass(frozen=True, eq=False)
 class Fitted:
     """A hypothesis fitted: its parameters and their standard errors, chi-square, retrieval and residual
-    signatures, and the samples it was fitted on (the held columns, :func:`held_band`, and the fit's columns);
-    values that tests compute from it are kept with it (:meth:`cached`)."""
+    signatures (at family-wise false-alarm probability ``alpha``), and the samples it was fitted on (the held
+    columns, :func:`held_band`, and the fit's columns); values that tests compute from it are kept with it
+    (:meth:`cached`)."""
 
     hypothesis: Hypothesis
     params: Params
@@ -58,11 +59,22 @@ class Fitted:
     chi2: float
     reduced_chi2: float
     rec: Retrieval
-    signatures: list[dict[str, Any]]
+    alpha: float
     obs: Observations
     fit_obs: Observations
     fit_rec: Retrieval
     _cache: dict[Hashable, Any] = field(default_factory=dict, repr=False)
+
+    def release(self) -> None:
+        """Drop the values tests computed from it (a fit the loop moved on from: no round tests it again; what the
+        report asks of it later is computed again)."""
+        self._cache.clear()
+
+    @property
+    def signatures(self) -> list[dict[str, Any]]:
+        """The residual signatures of the fit, made when first asked for: a trial that is refined or settled again,
+        and a fit on part of the detector, are never judged on theirs."""
+        return self.cached(_signatures)
 
     def cached(self, make: Callable[..., T], *args: np.ndarray) -> T:
         """``make(self, *args)``, computed once for this state and these arguments (arrays, compared by value)."""
@@ -70,6 +82,15 @@ class Fitted:
         if key not in self._cache:
             self._cache[key] = make(self, *args)
         return self._cache[key]
+
+
+def _signatures(state: Fitted) -> list[dict[str, Any]]:
+    return signatures(state.fit_obs, state.params, alpha=state.alpha, rec=state.fit_rec)
+
+
+def _release(state: State) -> None:
+    if isinstance(state, Fitted):
+        state.release()
 
 
 class Session:
@@ -170,8 +191,8 @@ class Session:
             # need every column's expected counts make them a run of columns at a time)
             rec = retrieve(obs, params, n_frame_params=n_par, keep_expected=False)
             fit_rec = retrieve(fit_obs, params, keep_inverse=True)
-            sigs = signatures(fit_obs, params, alpha=self.cfg["diagnose"]["alpha"], rec=fit_rec)
-        return Fitted(hypothesis, params, unc, rec.chi2_sum, rec.reduced_chi2, rec, sigs, obs, fit_obs, fit_rec)
+        return Fitted(hypothesis, params, unc, rec.chi2_sum, rec.reduced_chi2, rec, self.cfg["diagnose"]["alpha"], obs,
+                      fit_obs, fit_rec)
 
 
 def _within(obs: Observations, part: Part | None) -> Observations:
@@ -285,7 +306,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = No
     before = located_once(first)
     out = loop.run(registry, session, first, fit=session.fit, alpha=d["alpha"], explain_share=d["explain_share"],
                    proxy_spread=d["proxy_spread"], max_rounds=d["max_rounds"], timings=timings,
-                   noise_first=d["order"] == "noise-first")
+                   noise_first=d["order"] == "noise-first", superseded=_release)
     final = out.state
     replicated = {}
     if d["replicate"] and out.steps:

@@ -292,6 +292,15 @@ def _trial(effect: EffectBase[Any], ctx: Context, state: State, test: Test[Any],
     return Trial(trial, False)
 
 
+def _blind(effect: EffectBase[Any], ctx: Context, state: State, test: Test[Any], flagged: np.ndarray, *, fit: Fit,
+           label: str, settle: Effects, alpha: float, explain_share: float) -> Blind:
+    """A trial refit with an effect this acquisition cannot identify (:func:`_trial`): whether it explains the
+    misfit (removes at least ``explain_share`` of the excess of the signatures it is judged on)."""
+    tried = _trial(effect, ctx, state, test, flagged, fit=fit, label=label, settle=settle, alpha=alpha).state
+    share = explained_share(state.signatures, tried.signatures, judge(effect))
+    return Blind(share is None or share >= explain_share, share, tried.reduced_chi2)
+
+
 def _admitted(effect: EffectBase[Any], ctx: Context, before: State, trial: Trial, test: Test[Any], *,
               explain_share: float, alpha: float, proxy_spread: float) -> tuple[bool, Consistency | None]:
     """Whether a trial justifies adding ``effect``: not astray, explains the signatures it is judged on
@@ -386,12 +395,13 @@ def _best_of(first: Step, others: list[str], tests: Mapping[str, Test[Any]], eff
 
 def run(effects: Effects, ctx: Context, start: State, *, fit: Fit, alpha: float, explain_share: float,
         proxy_spread: float, max_rounds: int, timings: dict[str, float] | None = None,
-        noise_first: bool = False) -> Outcome:
+        noise_first: bool = False, superseded: Callable[[State], None] | None = None) -> Outcome:
     """Add effects to the model of ``start`` until no candidate explains what is left (see the module's text).
 
     ``proxy_spread``: a candidate whose consistency test is significant and whose sizes span more than this is
     refused as a proxy (:meth:`EffectBase.consistency`); ``timings`` receives the seconds of each round's tests;
-    ``noise_first``: see :func:`ranked`."""
+    ``noise_first``: see :func:`ranked`; ``superseded``: called with each fit the loop moves on from (no round
+    tests it again)."""
     out = Outcome(state=start)
     for rnd in range(max_rounds):
         state = out.state
@@ -406,13 +416,12 @@ def run(effects: Effects, ctx: Context, start: State, *, fit: Fit, alpha: float,
         while (suspect := strongest_unidentifiable(tests, effects, alpha, out.blind)) is not None:
             # an effect this acquisition cannot determine may still be what the data show: if a trial refit with
             # it explains the misfit, no identifiable proxy may be named for it
-            tried = _trial(effects[suspect], ctx, state, tests[suspect], flagged, fit=fit,
-                           label=f"round {rnd}: trial {suspect} (not identifiable)",
-                           settle=_settled(suspect, effects, out.steps), alpha=alpha).state
-            share = explained_share(state.signatures, tried.signatures, judge(effects[suspect]))
-            explains = share is None or share >= explain_share
-            out.blind[suspect] = Blind(explains, share, tried.reduced_chi2)
-            if explains:
+            out.blind[suspect] = _blind(effects[suspect], ctx, state, tests[suspect], flagged, fit=fit,
+                                        label=f"round {rnd}: trial {suspect} (not identifiable)",
+                                        settle=_settled(suspect, effects, out.steps), alpha=alpha,
+                                        explain_share=explain_share)
+            if out.blind[suspect].explains_misfit:
+                share = out.blind[suspect].explained_share
                 blind = suspect, 1.0 if share is None else share
                 break
         step = None
@@ -425,6 +434,7 @@ def run(effects: Effects, ctx: Context, start: State, *, fit: Fit, alpha: float,
             order = [n for n in order if n not in out.held]
         threshold = float(np.log(alpha / max(len(tests), 1)))
         passed: set[str] = set()  # decided in a pair: tried in another's place, or one finding with it
+        trial: Trial | None = None
         for i, first in enumerate(order):
             if first in out.rejected or first in passed:
                 continue
@@ -474,6 +484,9 @@ def run(effects: Effects, ctx: Context, start: State, *, fit: Fit, alpha: float,
                                                                     f"{trial.state.reduced_chi2:.4f}"
                                                                     if trial.astray else ""))
             out.rejected[name] = Rejection(share, trial.astray, trial.state.reduced_chi2)
+        # a rejected trial's fit is not needed beyond its round: held, it would be one more fit beside the next
+        # round's tests, at the diagnosis's peak memory
+        trial = None
         if step is None:
             if blind is not None:
                 out.blind[blind[0]] = replace(out.blind[blind[0]], stopped=True)
@@ -490,5 +503,7 @@ def run(effects: Effects, ctx: Context, start: State, *, fit: Fit, alpha: float,
                            "reduced_chi2_before": state.reduced_chi2, "reduced_chi2_after": step.after.reduced_chi2,
                            "delta_chi2": state.chi2 - step.after.chi2, "explained_share": step.share})
         log.info("round %d: adding %s", rnd, " and ".join(step.names))
+        if superseded is not None:
+            superseded(state)
         out.state = step.after
     return out

@@ -89,11 +89,12 @@ def locate(obs: Observations, params: dict[str, Any], images: M.Images, *, count
 
 def _binned(value: np.ndarray, z2: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Sum of the finite ``z2`` and their number in each bin of ``value`` between ``edges``, shape (2, bins)."""
-    ok = np.isfinite(z2)
-    idx = np.digitize(value[ok], edges) - 1
-    inside = (idx >= 0) & (idx < edges.size - 1)
-    return np.stack([np.bincount(idx[inside], weights=z2[ok][inside], minlength=edges.size - 1),
-                     np.bincount(idx[inside], minlength=edges.size - 1)])
+    nb = edges.size - 1
+    idx = np.digitize(value, edges).ravel() - 1
+    # the samples outside every bin, or without a finite z2, go to one more bin, dropped: no copies of the rest
+    idx[~np.isfinite(z2.ravel()) | (idx < 0) | (idx >= nb)] = nb
+    return np.stack([np.bincount(idx, weights=np.where(idx < nb, z2.ravel(), 0.0), minlength=nb + 1)[:nb],
+                     np.bincount(idx, minlength=nb + 1)[:nb]])
 
 
 #: Axes of the residual signatures (``unexplained`` in ``spec/diagnosis.md``, version 2).

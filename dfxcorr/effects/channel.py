@@ -21,7 +21,6 @@ from .. import model as M
 from ..catalogue import CATALOGUE, Effect, effect, neutral_params
 from ..noise import noise_weights
 from ..observations import Observations
-from ..retrieve import retrieve
 from ..stats import frames_where
 from .base import (
     MEAN,
@@ -277,7 +276,7 @@ def round_scores(state: State) -> Scores:
     """The score tests of every channel effect the fit ``state`` lacks: one Fisher information serves them all."""
     model = state.hypothesis.effects
     obs = state.fit_obs
-    weights = noise_weights(obs, retrieve(obs, state.params).expected)
+    weights = noise_weights(obs, state.fit_rec.expected)
     return score_tests(obs, state.params, weights, model, [n for n in CATALOGUE if n not in model],
                        dispersion=max(state.reduced_chi2, 1e-6))
 

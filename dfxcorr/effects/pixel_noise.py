@@ -114,7 +114,9 @@ def pixel_noise_test(obs: Observations, params: Params, images: M.Images, *, alp
     n = N.sum(axis=2)
     dof = np.maximum(n - 3, 0.0)
     share = dof / np.maximum(n, 1)  # a sample's share of its pixel's dof
-    SN = N * share[..., None].astype(np.float32)  # the samples' share of the dof per cell
+    # from here on N holds the samples' share of the dof per cell (in place: the (R, C, bins) sums are the test's
+    # largest arrays)
+    N *= share[..., None].astype(np.float32)
     V = np.where(dof > 0, kv_sum * dof / np.maximum(n, 1), 0.0)
     img = {k: obs.to_image(v, fill=0.0) for k, v in (("dof", dof), ("V", V))}
     H, W = obs.shape[1:]
@@ -132,12 +134,15 @@ def pixel_noise_test(obs: Observations, params: Params, images: M.Images, *, alp
         # regular = regular rows x regular columns: the cells summed over the rows (float32, a few hundred each),
         # then over the columns of each kind in float64
         rows = (groups[1][obs.rows] == 0).astype(np.float32)
-        by_column = [np.tensordot(rows, A, 1).astype(np.float64) for A in (Z, SN)]
+        by_column = [np.tensordot(rows, A, 1).astype(np.float64) for A in (Z, N)]
         for k in (0, 1):
             cols = ((groups[0][obs.columns] == 0) & (kind == k)).astype(np.float64)
             num, den = cols @ by_column[0], cols @ by_column[1]
             per_count[k] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
-        X = (Z * (1.0 / per_count[kind]).astype(np.float32)[None]).sum(axis=2, dtype=np.float64)
+        scale = (1.0 / per_count[kind]).astype(np.float32)[None]
+        # a run of rows at a time: the scaled sums of every pixel at once would be one more (R, C, bins) array
+        X = np.concatenate([(Z[r] * scale).sum(axis=2, dtype=np.float64)
+                            for r in np.array_split(np.arange(R), max(R // 64, 1))])
         img["X"] = obs.to_image(np.where(dof > 0, X, 0.0), fill=0.0)
         c = _dispersion(img, regular)
         tests, lines = [], []

@@ -116,13 +116,14 @@ class ScatterError(DfxcorrError, ValueError):
 class Setting:
     """A scatter correction: s (scatter per unit primary) and the kernel's std (mm at the detector). A hashable value
     of those two; ``measured``, the scatter-to-primary ratio over the lit samples that it makes (NaN where not
-    computed), and ``start``, the transmission behind the primary at a nearby setting where one is known (H, W),
-    from which the correction's fixed point starts (:func:`transmission`), do not take part in comparisons."""
+    computed), and ``start``, a transmission behind the primary at a nearby setting (H, W) where the correction's
+    fixed point starts (:func:`transmission`), with its unit field where made (``start_unit``), are not compared."""
 
     ratio: float
     width_mm: float
     measured: float = dc_field(default=float("nan"), compare=False)
     start: np.ndarray | None = dc_field(default=None, compare=False, repr=False)
+    start_unit: ScatterField | None = dc_field(default=None, compare=False, repr=False)
 
 
 def kernel_pixels(width_mm: float, pixel_mm: tuple[float, float] | None) -> tuple[float, float]:
@@ -369,7 +370,8 @@ def field(store: LitStore, reference: Reference, t: np.ndarray, width: tuple[flo
 
 
 def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_mm: tuple[float, float] | None, *,
-                 start: np.ndarray | None = None, plain: tuple[np.ndarray, ScatterField] | None = None) -> np.ndarray:
+                 start: np.ndarray | None = None, start_unit: ScatterField | None = None,
+                 plain: tuple[np.ndarray, ScatterField] | None = None) -> np.ndarray:
     """The sample's transmission (H, W) under the scatter of ``setting``: a retrieval without it, divided by the
     measured ratio's 1 + s share, then damped fixed-point updates with the previous transmission's scatter in the
     offset until the remaining change is below :data:`TOLERANCE` (at most :data:`MAX_UPDATES`).
@@ -383,6 +385,8 @@ def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_
         The detector's pixel pitch (mm).
     start : ndarray, shape (H, W), optional
         A transmission to update from instead (the one behind a nearby setting: the updates stop sooner).
+    start_unit : ScatterField, optional
+        The unit field of ``start`` at the setting's width (:func:`field`), where already made: the first update's.
     plain : (ndarray, ScatterField), optional
         The retrieval without the scatter (:func:`retrieved` at the kernel's :func:`block`), shape (H, W), and its
         unit field at the setting's width, where already made (:class:`Unscattered`).
@@ -411,8 +415,10 @@ def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_
     # updates (omega = 1) diverge for s > 1 (t falls to 0 and the field with it: no correction at all). Damped,
     # every error shrinks by at least q = s / (2 + s) a step (s = 0.1: 0.05)
     omega = 2.0 / (2.0 + s)
-    for _ in range(MAX_UPDATES):
-        update = retrieved(replace(store, offset=field(store, reference, t, width).scaled(s)), reference, step=step)
+    for k in range(MAX_UPDATES):
+        made = start_unit if k == 0 and start is not None else None  # the unit field of t, where already made
+        update = retrieved(replace(store, offset=(made or field(store, reference, t, width)).scaled(s)), reference,
+                           step=step)
         new = (1.0 - omega) * t + omega * update
         change = float(np.sqrt(np.mean((new - t) ** 2) / max(np.mean(t ** 2), 1e-300)))
         t = new
@@ -434,7 +440,7 @@ def scattered(store: LitStore, reference: Reference, setting: Setting, pixel_mm:
     ValueError
         If the store already holds an offset.
     """
-    t = transmission(store, reference, setting, pixel_mm, start=setting.start)
+    t = transmission(store, reference, setting, pixel_mm, start=setting.start, start_unit=setting.start_unit)
     return replace(store, offset=field(store, reference, t, kernel_pixels(setting.width_mm, pixel_mm)).scaled(
         setting.ratio))
 
@@ -641,29 +647,39 @@ class Scatter(EffectBase[ScatterScore]):
         def unit(t: np.ndarray, width_mm: float) -> ScatterField:
             return field(prep.store, prep.reference, t, kernel_pixels(width_mm, pixel_mm(prep.scan)))
 
-        fitted = {w: profile(unit(t, w)) for w in configured * WIDTHS}
+        fitted: dict[float, tuple[float, float, float]] = {}
+        kept: list[ScatterField] = []  # the best width's field so far: where the first round's updates start
+
+        def tried(w: float) -> None:
+            fitted[w] = profile(F := unit(t, w))
+            if min(fitted, key=lambda v: fitted[v][1]) == w:
+                kept[:] = [F]
+
+        for w in configured * WIDTHS:
+            tried(w)
         widths = sorted(fitted)
         best = min(range(len(widths)), key=lambda i: fitted[widths[i]][1])
         if 0 < best < len(widths) - 1:
             x = np.log(widths[best - 1:best + 2])
             a, b, _ = np.polyfit(x, [fitted[w][1] for w in widths[best - 1:best + 2]], 2)
             if a > 0:
-                w = float(np.exp(np.clip(-b / (2 * a), x[0], x[2])))
-                fitted[w] = profile(unit(t, w))
+                tried(float(np.exp(np.clip(-b / (2 * a), x[0], x[2]))))
         width_mm = float(min(fitted, key=lambda w: fitted[w][1]))
         # s and the t behind its field, in turn: a t made at a low s is high by the scatter left in it, its field
         # too, and s comes out low again; each round shrinks the gap by about s times the measured ratio per unit s
         # (0.035 at s = 0.1 on the 5 mm test scan, one round; at s = 1.5, 0.5: 1.30 after one round for 1.5). Each
         # round's t is updated from the last one's: s moves little, so one or two updates reach the tolerance
-        s = fitted[width_mm][0]
+        s, F = fitted[width_mm][0], kept[0]
         for _ in range(ROUNDS):
-            t = transmission(prep.store, prep.reference, Setting(s, width_mm), pixel_mm(prep.scan), start=t)
+            t = transmission(prep.store, prep.reference, Setting(s, width_mm), pixel_mm(prep.scan), start=t,
+                             start_unit=F)
             F = unit(t, width_mm)
             (s, share), moved = refitted(prep, state, ctx.cfg["fit"], F, profile(F)[0]), s
             if abs(s - moved) < 0.25 * test.payload.se:
                 break
         # the correction's t starts at the last round's (s has moved little since: an update or two)
-        return hyp.but(corrections=(*hyp.corrections, (self.name, Setting(s, width_mm, measured=s * share, start=t))))
+        return hyp.but(corrections=(*hyp.corrections, (self.name, Setting(s, width_mm, measured=s * share, start=t,
+                                                                          start_unit=F))))
 
     def accepted(self, ctx: Context, before: State, after: State, test: Test[ScatterScore]) -> Finding:
         setting = dict(after.hypothesis.corrections)[self.name]

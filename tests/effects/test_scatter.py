@@ -214,6 +214,21 @@ def test_the_transmission_on_every_bth_column_stands_for_its_strip():
     np.testing.assert_allclose(t, np.repeat(full[:, [W - 1]], W, axis=1), rtol=1e-12)
 
 
+def test_a_start_given_with_its_field_updates_as_without_it():
+    # the trial hands the correction its last transmission and that one's field: the same fixed point, one field less
+    scan, _ = S.simulate(sim_config(**SCATTER))
+    prep = prepare(scan, C.defaults())
+    setting = SC.Setting(0.1, 50.0)
+    start = 1.05 * SC.retrieved(prep.store, prep.reference)
+    unit = SC.field(prep.store, prep.reference, start, SC.kernel_pixels(50.0, pixel_mm(scan)))
+    given = SC.Setting(0.1, 50.0, start=start, start_unit=unit)
+    np.testing.assert_array_equal(SC.transmission(prep.store, prep.reference, setting, pixel_mm(scan), start=start),
+                                  SC.transmission(prep.store, prep.reference, given, pixel_mm(scan), start=start,
+                                                  start_unit=unit))
+    # a correction's setting is the same key of the diagnosis's caches with or without them
+    assert given == setting and hash(given) == hash(setting)
+
+
 def test_the_coarse_field_gives_any_run_of_samples_and_columns_as_the_whole():
     # a kernel of 100 pixels: blocks of 3 x 3; frames lighting rows at different offsets (their own grids)
     rng = np.random.default_rng(4)
