@@ -31,6 +31,7 @@ from .estimators import ESTIMATORS
 from .faults import MIN_KEPT_SHARE
 from .fit import FitResult
 from .io import Scan
+from .kernels import row_counts
 from .mask import motion_mask
 from .observations import Observations
 from .planning import ColumnPlan, pilot_estimate, plan_columns, resolve_effects, row_blocks
@@ -144,15 +145,14 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
     left_out = 0
     for obs in retrieval_parts(prep, blocks):
         roi = obs.in_roi
-        with np.errstate(invalid="ignore"):
-            kept = obs.segment_sum(obs.use.astype(np.float64)) / obs.segment_sum(np.ones(obs.use.shape))
+        kept = row_counts(obs, obs.use) / np.diff(np.append(obs.starts, obs.frame.size))[:, None]
         obs = replace(obs, use=obs.use & roi & (kept >= MIN_KEPT_SHARE)[obs.pixel])
         for m, p, acc in zip(maps, params, sums, strict=True):
             rec = retrieve(obs, p, iterations=iterations, n_frame_params=0, keep_expected=False)
             for k, v in image_values(rec.images).items():
                 obs.place(m[k], v)
             acc += (rec.chi2_sum, rec.samples, int(rec.images.valid.sum()))
-        left_out += int(np.count_nonzero(obs.segment_sum(roi.astype(np.float64)) == 0))
+        left_out += int(np.count_nonzero(row_counts(obs, roi) == 0))
     if prep.store.parallax:
         maps = [detector_rows(m, prep.store.parallax) for m in maps]
     if left_out:
