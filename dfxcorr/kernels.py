@@ -37,9 +37,9 @@ from .chunks import over_chunks, row_chunks
 PHASE, VISIBILITY, DOSE, BACKGROUND, HARMONIC = range(5)
 CHANNEL_IDS = {"phase": PHASE, "visibility": VISIBILITY, "dose": DOSE, "background": BACKGROUND, "harmonic": HARMONIC}
 
-#: Columns per tile of the retrieval (at most; :func:`_tile_width`): a tile's design arrays of one row (about 30
-#: blocks at clinical scale) stay in the L2 cache, and each loop over a tile's columns is long enough to repay its
-#: set-up (64 -> 512 columns: 16.5 -> 11 ns CPU per sample of a two-solve retrieval, 30 blocks per row)
+#: Columns per tile of the retrieval (at most, in equal tiles): a tile's design arrays of one row (about 30 blocks at
+#: clinical scale) stay in the L2 cache, and each loop over a tile's columns is long enough to repay its set-up
+#: (64 -> 512 columns: 16.5 -> 11 ns CPU per sample of a two-solve retrieval, 30 blocks per row)
 TILE = 512
 #: Columns per tile of the fit's cost, which keeps only a few numbers per column between its passes: wider tiles mean
 #: fewer passes over a row's blocks (cost+gradient 18.0 -> 15.5 ns CPU per sample on the paper study at every column)
@@ -114,36 +114,9 @@ def _per_pixel(obs) -> None:
         raise ValueError("samples read the images between rows: evaluate them through dfxcorr.engine")
 
 
-def _tile_width(columns: int, widest: int) -> int:
-    """Tile width for ``columns`` columns in tiles of at most ``widest``: equal tiles (not one short last one)."""
-    n = -(-columns // widest)
-    return max(1, -(-columns // max(n, 1)))
-
-
 def _bounds(obs) -> np.ndarray:
     """Block boundaries of the rows, shape (R + 1,)."""
     return np.append(obs.starts, obs.frame.size).astype(np.int64)
-
-
-@njit(cache=True, parallel=True)
-def _row_counts(flags, bounds):
-    R, C = bounds.size - 1, flags.shape[1]
-    out = np.empty((R, C), np.int64)
-    for r in prange(R):
-        o = out[r]
-        o[:] = 0
-        for k in range(bounds[r], bounds[r + 1]):
-            f = flags[k]
-            for c in range(C):
-                o[c] += f[c]
-    return out
-
-
-def row_counts(obs, flags: np.ndarray) -> np.ndarray:
-    """How many of each pixel's samples are flagged: ``flags`` (K, C) bool -> (R, C) int64, what
-    ``obs.segment_sum(flags.astype(float))`` gives, compiled (numpy's reduceat of a float copy took 15 ms per block of
-    a full-resolution clinical scan, 2 s of its retrieval)."""
-    return _row_counts(_c(flags, np.bool_), _bounds(obs))
 
 
 # Per-sample helpers (inlined into the kernels)
@@ -206,17 +179,12 @@ def _variance(g, m, quiet, electronic):
 
 @njit(cache=True, inline="always")
 def _normal(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used):
-    """Closed-form solve of one pixel's 3x3 normal equations with the rules of ``model.solve_pixels``.
+    """Closed-form solve of one pixel's 3x3 normal equations with the rules of ``model.solve_pixels``: valid, the
+    coefficients (3) and the inverse normal matrix's entries i00, i01, i02, i11, i12, i22 (zeros where invalid).
 
     A column with zero diagonal is not an unknown; valid needs the first column, as many used samples as unknowns and
-    |det| > 1e-10 of the unit-diagonal matrix. Without a branch (selects only), so that a loop over a tile's columns
-    that calls it is vectorised; the inverse's entries are dropped by the compiler where not used.
-
-    Returns
-    -------
-    tuple
-        valid, the coefficients (3) and the inverse normal matrix's entries i00, i01, i02, i11, i12, i22 (zeros where
-        invalid).
+    |det| > 1e-10 of the unit-diagonal matrix. Selects, no branch: a loop over a tile's columns that calls it is
+    vectorised (the compiler drops the values not used).
     """
     p0, p1, p2 = n00 > 0, n11 > 0, n22 > 0
     s0 = np.sqrt(n00) if p0 else 1.0
@@ -233,36 +201,16 @@ def _normal(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used):
     c02 = a01 * a12 - a02 * a11
     det = a00 * c00 + a01 * c01 + a02 * c02
     valid = p0 & (n_used >= (1.0 * p0 + p1 + p2)) & (abs(det) > 1e-10)
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
+    c11, c12, c22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
     b0, b1, b2 = r0 / s0, r1 / s1, r2 / s2
     # where invalid det may be 0: the quotients are then inf or nan, never selected
-    return (valid,
-            (c00 * b0 + c01 * b1 + c02 * b2) / det / s0 if valid else 0.0,
-            (c01 * b0 + c11 * b1 + c12 * b2) / det / s1 if valid else 0.0,
-            (c02 * b0 + c12 * b1 + c22 * b2) / det / s2 if valid else 0.0,
-            c00 / det / (s0 * s0) if valid else 0.0,
-            c01 / det / (s0 * s1) if valid else 0.0,
-            c02 / det / (s0 * s2) if valid else 0.0,
-            c11 / det / (s1 * s1) if valid else 0.0,
-            c12 / det / (s1 * s2) if valid else 0.0,
-            c22 / det / (s2 * s2) if valid else 0.0)
-
-
-@njit(cache=True, inline="always")
-def _solve(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used, out, inv):
-    """:func:`_normal` into ``out`` (3,), the coefficients, and ``inv`` (3, 3), the inverse normal matrix.
-
-    Returns
-    -------
-    bool
-        valid.
-    """
-    valid, out[0], out[1], out[2], inv[0, 0], inv[0, 1], inv[0, 2], inv[1, 1], inv[1, 2], inv[2, 2] = _normal(
-        n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used)
-    inv[1, 0], inv[2, 0], inv[2, 1] = inv[0, 1], inv[0, 2], inv[1, 2]
-    return valid
+    x0, x1, x2 = (c00 * b0 + c01 * b1 + c02 * b2) / det / s0, (c01 * b0 + c11 * b1 + c12 * b2) / det / s1, \
+        (c02 * b0 + c12 * b1 + c22 * b2) / det / s2
+    i00, i11, i22 = c00 / det / (s0 * s0), c11 / det / (s1 * s1), c22 / det / (s2 * s2)
+    i01, i02, i12 = c01 / det / (s0 * s1), c02 / det / (s0 * s2), c12 / det / (s1 * s2)
+    z = 0.0
+    return (valid, x0 if valid else z, x1 if valid else z, x2 if valid else z, i00 if valid else z,
+            i01 if valid else z, i02 if valid else z, i11 if valid else z, i12 if valid else z, i22 if valid else z)
 
 
 # The fit: reduced cost and its gradient (or the Gauss-Newton diagonal) in one pass per pixel
@@ -445,9 +393,8 @@ def reduced_cost(obs, ch, weights: np.ndarray, *, phase: float | None = None, sq
 
 @njit(cache=True, inline="always")
 def _count(i, off, a, bc, bs, hcc, hcs, img, harmonic):
-    """Expected count of a tile row's sample i from its offset ``off``, design ``a``, ``bc``, ``bs`` (and the harmonic's
-    columns ``hcc``, ``hcs`` where ``harmonic``), each a (T,) row, at the images of its column ``img`` = (t, c, s, e,
-    f) (the images and their harmonic factors, :func:`_direction`), each (T,)."""
+    """Expected count of a tile row's sample i from its offset, design (and harmonic's columns where ``harmonic``)
+    rows (T,), at its column's images and their harmonic factors ``img`` = (t, c, s, e, f), each (T,)."""
     m = off[i] + img[0][i] * a[i] + img[1][i] * bc[i] + img[2][i] * bs[i]
     if harmonic:
         m += hcc[i] * img[3][i] - hcs[i] * img[4][i]
@@ -469,8 +416,7 @@ def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, 
     # per-sample outputs in the samples' dtype: float32 samples need no float64 copies of their size
     ibar = np.empty((K if keep_expected else 0, C), tf.dtype)
     w_out = np.empty((K if keep_weights else 0, C), tf.dtype)
-    chi2 = np.empty(n)
-    n_sel = np.empty(n)
+    chi2, n_sel = np.empty(n), np.empty(n)
     b0, b1, b2 = bg[0], bg[1], bg[2]
     hc, hs = harm[0], harm[1]
     harmonic = hc != 0.0 or hs != 0.0
@@ -486,21 +432,15 @@ def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, 
         img = (ct, cc, cs, de, df)
         # the chunk's chi-square and samples per column: a sum over columns would be a serial chain
         chi_t, sel_t = np.zeros(tile), np.zeros(tile)
-        u = np.empty(3)
-        inv = np.empty((3, 3))
         for r in range(chunks[t], chunks[t + 1]):
-            lo, hi = bounds[r], bounds[r + 1]
-            nb = hi - lo
+            lo, nb = bounds[r], bounds[r + 1] - bounds[r]
             # the tile's design, offsets and weights, computed once
             A, Bc, Bs, off, w = np.empty((nb, tile)), np.empty((nb, tile)), np.empty((nb, tile)), \
                 np.empty((nb, tile)), np.empty((nb, tile))
-            # the harmonic's columns only where it is in the model (two stores and loads per sample less; one row
-            # that no sample reads otherwise)
-            Hc = np.empty((nb if harmonic else 1, tile))
-            Hs = np.empty((nb if harmonic else 1, tile))
+            # the harmonic's columns only where it is in the model (one row no sample reads otherwise)
+            Hc, Hs = np.empty((nb if harmonic else 1, tile)), np.empty((nb if harmonic else 1, tile))
             for c0 in range(0, C, tile):
-                c1 = min(c0 + tile, C)
-                T = c1 - c0
+                T, c1 = min(tile, C - c0), min(c0 + tile, C)
                 xs, gr = x[c0:c1], gain[r, c0:c1]
                 for it in range(iterations):
                     for step in range(steps):
@@ -560,12 +500,11 @@ def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, 
                     coef[r, c, 0], coef[r, c, 1], coef[r, c, 2] = ct[i], cc[i], cs[i]
                 if keep_inverse:
                     for i in range(T):
-                        _solve(n00[i], n01[i], n02[i], n11[i], n12[i], n22[i], r0[i], r1[i], r2[i], used[i], u, inv)
-                        # element by element: an array assignment compiles a shape check with its error message
-                        # (about 6 s)
-                        for a1 in range(3):
-                            for a2 in range(3):
-                                inverse[r, c0 + i, a1, a2] = inv[a1, a2]
+                        _, _, _, _, i00, i01, i02, i11, i12, i22 = _normal(n00[i], n01[i], n02[i], n11[i], n12[i],
+                                                                           n22[i], r0[i], r1[i], r2[i], used[i])
+                        iv = inverse[r, c0 + i]
+                        iv[0, 0], iv[0, 1], iv[0, 2], iv[1, 1], iv[1, 2], iv[2, 2] = i00, i01, i02, i11, i12, i22
+                        iv[1, 0], iv[2, 0], iv[2, 1] = i01, i02, i12
                 for b in range(nb):
                     k = lo + b
                     cnt, qk, uk = counts[k, c0:c1], quiet[k, c0:c1], use[k, c0:c1]
@@ -577,20 +516,14 @@ def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, 
                         sel = ok[i] & uk[i]
                         chi_t[i] += (cnt[i] - m) ** 2 / _variance(gr[i], m, qk[i], electronic) if sel else 0.0
                         sel_t[i] += 1.0 if sel else 0.0
-                    if keep_expected:
-                        ik = ibar[k, c0:c1]
-                        for i in range(T):
-                            ik[i] = _count(i, ob, ab, bcb, bsb, hcb, hsb, img, harmonic)
-                    if keep_weights:
-                        wo = w_out[k, c0:c1]
-                        if next_weights:
-                            # the weights of the last solve's model (what a further solve would use)
-                            for i in range(T):
-                                m = _count(i, ob, ab, bcb, bsb, hcb, hsb, img, harmonic)
-                                wo[i] = 1.0 / _variance(gr[i], m, qk[i], electronic) if uk[i] else 0.0
-                        else:
-                            for i in range(T):
-                                wo[i] = wb[i]
+                    for i in range(T if keep_expected or keep_weights else 0):
+                        m = _count(i, ob, ab, bcb, bsb, hcb, hsb, img, harmonic)
+                        if keep_expected:
+                            ibar[k, c0 + i] = m
+                        if keep_weights:
+                            # the weights of this solve, or of its model (what a further solve would use)
+                            w_out[k, c0 + i] = ((1.0 / _variance(gr[i], m, qk[i], electronic) if uk[i] else 0.0)
+                                                if next_weights else wb[i])
         chi2[t] = chi_t.sum()
         n_sel[t] = sel_t.sum()
     return coef, valid, inverse, ibar, w_out, chi2, n_sel
@@ -640,12 +573,13 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
     dark = _c(obs.dark)
     quiet = dark if obs.offset is None else _c(obs.quiet)
     fc, fs = obs.fringe
+    n_c = max(obs.columns.size, 1)
     coef, valid, inverse, ibar, w, chi2, n_sel = _retrieve(
         _c(obs.counts), _c(obs.tf), fc, fs, dark, quiet, _c(obs.use), start,
         obs.frame, obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), *_turning(obs, ch.phase),
         _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, _c(g, np.float64),
         float(obs.electronic), int(iterations), weights is None, keep_inverse, keep_expected,
-        keep_expected or next_weights, next_weights, _tile_width(obs.columns.size, TILE))
+        keep_expected or next_weights, next_weights, -(-n_c // -(-n_c // TILE)))
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
 

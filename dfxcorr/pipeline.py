@@ -27,12 +27,12 @@ from . import config as C
 from . import model as M
 from .align import tilt_alias_period
 from .catalogue import effect
+from .chunks import row_counts
 from .effects import REGISTRY
 from .estimators import ESTIMATORS
 from .faults import MIN_KEPT_SHARE
 from .fit import FitResult
 from .io import Scan
-from .kernels import row_counts
 from .mask import motion_mask
 from .observations import Observations
 from .planning import ColumnPlan, pilot_estimate, plan_columns, resolve_effects, row_blocks
