@@ -39,20 +39,36 @@ def no_lit_rows(min_frames: int) -> AlignmentError:
                           f"(dataset /entry/scan/position)")
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def _interpolate_rows(maps: np.ndarray, cols: np.ndarray, u: np.ndarray, add: np.ndarray, wrap: bool,
                       out: np.ndarray) -> None:
     A = maps.shape[0]
+    n = cols.size
+    # a run of consecutive columns (every column of a block of rows) read as slices: a loop the compiler vectorises,
+    # where an index array makes it gather one value at a time
+    run = n > 0 and cols[n - 1] - cols[0] == n - 1
+    first = cols[0] if n > 0 else 0
     for k in prange(u.size):
         f = u[k] - 0.5
         k0 = min(max(int(np.floor(f)), 0), A - 2)
         a = f - k0
-        for i in range(cols.size):
+        lo, hi, o = maps[k0], maps[k0 + 1], out[k]
+        if run:
+            lo, hi = lo[first:first + n], hi[first:first + n]
+            if wrap:
+                for i in range(n):
+                    v = (1.0 - a) * lo[i] + a * hi[i] + add[k]
+                    o[i] = v - 2.0 * np.pi * np.floor(v / (2.0 * np.pi) + 0.5)
+            else:
+                for i in range(n):
+                    o[i] = (1.0 - a) * lo[i] + a * hi[i] + add[k]
+            continue
+        for i in range(n):
             c = cols[i]
-            v = (1.0 - a) * maps[k0, c] + a * maps[k0 + 1, c] + add[k]
+            v = (1.0 - a) * lo[c] + a * hi[c] + add[k]
             if wrap:
                 v -= 2.0 * np.pi * np.floor(v / (2.0 * np.pi) + 0.5)
-            out[k, i] = v
+            o[i] = v
 
 
 def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | None = None,

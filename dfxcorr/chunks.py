@@ -1,4 +1,4 @@
-"""Chunks of detector rows for the compiled loops, and running a loop over them in threads.
+"""Chunks of detector rows for the compiled loops, running a loop over them in threads, and counting flags per pixel.
 
 A compiled loop over pixels works a chunk of rows at a time, each chunk with its own accumulators (summed
 afterwards), so no two threads write the same memory (:mod:`dfxcorr.kernels`).
@@ -9,6 +9,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
+from numba import njit, prange
 
 
 def row_chunks(starts: np.ndarray, n_blocks: int, *, per_thread: int = 4) -> np.ndarray:
@@ -65,3 +66,24 @@ def over_chunks(rows, chunks: np.ndarray, before: tuple, after: tuple, outs: tup
         return
     with ThreadPoolExecutor(threads) as pool:
         list(pool.map(one, range(n)))
+
+
+@njit(cache=True, parallel=True)
+def _row_counts(flags, bounds):
+    R, C = bounds.size - 1, flags.shape[1]
+    out = np.empty((R, C), np.int64)
+    for r in prange(R):
+        o = out[r]
+        o[:] = 0
+        for k in range(bounds[r], bounds[r + 1]):
+            f = flags[k]
+            for c in range(C):
+                o[c] += f[c]
+    return out
+
+
+def row_counts(obs, flags: np.ndarray) -> np.ndarray:
+    """How many of each pixel's samples are flagged: ``flags`` (K, C) bool -> (R, C) int64, what
+    ``obs.segment_sum(flags.astype(float))`` gives, compiled (numpy's reduceat of a float copy took 15 ms per block of
+    a full-resolution clinical scan, 2 s of its retrieval)."""
+    return _row_counts(np.ascontiguousarray(flags, np.bool_), np.append(obs.starts, obs.frame.size).astype(np.int64))

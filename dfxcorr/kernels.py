@@ -37,8 +37,10 @@ from .chunks import over_chunks, row_chunks
 PHASE, VISIBILITY, DOSE, BACKGROUND, HARMONIC = range(5)
 CHANNEL_IDS = {"phase": PHASE, "visibility": VISIBILITY, "dose": DOSE, "background": BACKGROUND, "harmonic": HARMONIC}
 
-#: Columns per tile of the retrieval: a tile's design arrays of one row (a few hundred frames) stay in the L2 cache.
-TILE = 64
+#: Columns per tile of the retrieval (at most, in equal tiles): a tile's design arrays of one row (about 30 blocks at
+#: clinical scale) stay in the L2 cache, and each loop over a tile's columns is long enough to repay its set-up
+#: (64 -> 512 columns: 16.5 -> 11 ns CPU per sample of a two-solve retrieval, 30 blocks per row)
+TILE = 512
 #: Columns per tile of the fit's cost, which keeps only a few numbers per column between its passes: wider tiles mean
 #: fewer passes over a row's blocks (cost+gradient 18.0 -> 15.5 ns CPU per sample on the paper study at every column)
 FIT_TILE = 512
@@ -140,11 +142,11 @@ def _design(Fc, Fs, amp, dv, hc, hs, harm):
 
 @njit(cache=True, inline="always")
 def _direction(cs, ss):
-    """cos phi, sin phi of images (c, s) (0 where c = s = 0) and the harmonic factors e = m cos 2phi, f = m sin 2phi."""
+    """cos phi, sin phi of images (c, s) (0 where c = s = 0) and the harmonic factors e = m cos 2phi, f = m sin 2phi.
+    Without a branch: a loop over columns that calls it is vectorised."""
     m = np.sqrt(cs * cs + ss * ss)
-    if m == 0.0:
-        return 0.0, 0.0, 0.0, 0.0
-    u, w = cs / m, ss / m
+    some = m != 0.0
+    u, w = cs / m if some else 0.0, ss / m if some else 0.0
     return u, w, cs * u - ss * w, ss * u + cs * w
 
 
@@ -176,17 +178,13 @@ def _variance(g, m, quiet, electronic):
 
 
 @njit(cache=True, inline="always")
-def _solve(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used, out, inv):
-    """Closed-form solve of one pixel's 3x3 normal equations with the rules of ``model.solve_pixels``.
+def _normal(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used):
+    """Closed-form solve of one pixel's 3x3 normal equations with the rules of ``model.solve_pixels``: valid, the
+    coefficients (3) and the inverse normal matrix's entries i00, i01, i02, i11, i12, i22 (zeros where invalid).
 
-    A column with zero diagonal is not an unknown; valid needs the first column, as many used
-    samples as unknowns and |det| > 1e-10 of the unit-diagonal matrix. Writes the coefficients to
-    ``out`` (3,) and the inverse normal matrix to ``inv`` (3, 3) (zeros where invalid).
-
-    Returns
-    -------
-    bool
-        valid.
+    A column with zero diagonal is not an unknown; valid needs the first column, as many used samples as unknowns and
+    |det| > 1e-10 of the unit-diagonal matrix. Selects, no branch: a loop over a tile's columns that calls it is
+    vectorised (the compiler drops the values not used).
     """
     p0, p1, p2 = n00 > 0, n11 > 0, n22 > 0
     s0 = np.sqrt(n00) if p0 else 1.0
@@ -195,32 +193,24 @@ def _solve(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used, out, inv):
     a00 = n00 / (s0 * s0) if p0 else 1.0
     a11 = n11 / (s1 * s1) if p1 else 1.0
     a22 = n22 / (s2 * s2) if p2 else 1.0
-    a01 = n01 / (s0 * s1) if (p0 and p1) else 0.0
-    a02 = n02 / (s0 * s2) if (p0 and p2) else 0.0
-    a12 = n12 / (s1 * s2) if (p1 and p2) else 0.0
+    a01 = n01 / (s0 * s1) if (p0 & p1) else 0.0
+    a02 = n02 / (s0 * s2) if (p0 & p2) else 0.0
+    a12 = n12 / (s1 * s2) if (p1 & p2) else 0.0
     c00 = a11 * a22 - a12 * a12
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
     det = a00 * c00 + a01 * c01 + a02 * c02
-    valid = p0 and n_used >= (1.0 * p0 + p1 + p2) and abs(det) > 1e-10
-    if not valid:
-        out[:] = 0.0
-        inv[:, :] = 0.0
-        return False
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
+    valid = p0 & (n_used >= (1.0 * p0 + p1 + p2)) & (abs(det) > 1e-10)
+    c11, c12, c22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
     b0, b1, b2 = r0 / s0, r1 / s1, r2 / s2
-    out[0] = (c00 * b0 + c01 * b1 + c02 * b2) / det / s0
-    out[1] = (c01 * b0 + c11 * b1 + c12 * b2) / det / s1
-    out[2] = (c02 * b0 + c12 * b1 + c22 * b2) / det / s2
-    inv[0, 0] = c00 / det / (s0 * s0)
-    inv[1, 1] = c11 / det / (s1 * s1)
-    inv[2, 2] = c22 / det / (s2 * s2)
-    inv[0, 1] = inv[1, 0] = c01 / det / (s0 * s1)
-    inv[0, 2] = inv[2, 0] = c02 / det / (s0 * s2)
-    inv[1, 2] = inv[2, 1] = c12 / det / (s1 * s2)
-    return True
+    # where invalid det may be 0: the quotients are then inf or nan, never selected
+    x0, x1, x2 = (c00 * b0 + c01 * b1 + c02 * b2) / det / s0, (c01 * b0 + c11 * b1 + c12 * b2) / det / s1, \
+        (c02 * b0 + c12 * b1 + c22 * b2) / det / s2
+    i00, i11, i22 = c00 / det / (s0 * s0), c11 / det / (s1 * s1), c22 / det / (s2 * s2)
+    i01, i02, i12 = c01 / det / (s0 * s1), c02 / det / (s0 * s2), c12 / det / (s1 * s2)
+    z = 0.0
+    return (valid, x0 if valid else z, x1 if valid else z, x2 if valid else z, i00 if valid else z,
+            i01 if valid else z, i02 if valid else z, i11 if valid else z, i12 if valid else z, i22 if valid else z)
 
 
 # The fit: reduced cost and its gradient (or the Gauss-Newton diagonal) in one pass per pixel
@@ -274,8 +264,6 @@ def _cost_rows(counts, tf, fc, fs, dark, w, frame, y, x, bounds, first, last, co
     r0, r1, r2, used, ct, cc, cs = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
         np.empty(tile), np.empty(tile), np.empty(tile)
     du, dw, de, df = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile)
-    u = np.empty(3)
-    inv = np.empty((3, 3))
     for r in range(first, last):
         lo, hi = bounds[r], bounds[r + 1]
         for c0 in range(0, C, tile):
@@ -307,11 +295,11 @@ def _cost_rows(counts, tf, fc, fs, dark, w, frame, y, x, bounds, first, last, co
                             _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), a,
                                  m00 * bc + m01 * bs, m10 * bc + m11 * bs, cnt[i] - dk[i] - off - b1 * xs[i])
                 for i in range(T):
-                    _solve(n00[i], n01[i], n02[i], n11[i], n12[i], n22[i], r0[i], r1[i], r2[i], used[i], u, inv)
+                    _, ct[i], x1, x2, _, _, _, _, _, _ = _normal(n00[i], n01[i], n02[i], n11[i], n12[i], n22[i], r0[i],
+                                                                 r1[i], r2[i], used[i])
                     # back from the solved columns (x1, x2) to (t, c, s)
-                    ct[i] = u[0]
-                    cc[i] = m00 * u[1] + m10 * u[2]
-                    cs[i] = m01 * u[1] + m11 * u[2]
+                    cc[i] = m00 * x1 + m10 * x2
+                    cs[i] = m01 * x1 + m11 * x2
                     du[i], dw[i], de[i], df[i] = _direction(cc[i], cs[i])
             costs, gh0, gh1 = cost[c0:c1], g_harm[0, c0:c1], g_harm[1, c0:c1]
             gb0, gb1, gb2 = g_bg[0, c0:c1], g_bg[1, c0:c1], g_bg[2, c0:c1]
@@ -404,125 +392,141 @@ def reduced_cost(obs, ch, weights: np.ndarray, *, phase: float | None = None, sq
 
 
 @njit(cache=True, inline="always")
-def _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn):
-    """Expected count of sample b of a retrieval tile's column i (pixel (r, c)) at its images and their direction
-    ``dirn`` (_direction); the harmonic's columns Hc, Hs are empty where it is not in the model."""
-    m = off[b, i] + coef[r, c, 0] * A[b, i] + coef[r, c, 1] * Bc[b, i] + coef[r, c, 2] * Bs[b, i]
-    if Hc.shape[0] > 0:
-        m += Hc[b, i] * dirn[2, i] - Hs[b, i] * dirn[3, i]
+def _count(i, off, a, bc, bs, hcc, hcs, t, c, s, e, f, harmonic):
+    """Expected count of sample i of a tile row from rows (T,) of offsets, design, harmonic's columns and images."""
+    m = off[i] + t[i] * a[i] + c[i] * bc[i] + s[i] * bs[i]
+    if harmonic:
+        m += hcc[i] * e[i] - hcs[i] * f[i]
     return m
 
 
 # numba's parallel loop, not over_chunks: compiled as a function of one chunk, this loop took twice the time per sample
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose, bg,
               harm, gain, electronic, iterations, from_data, keep_inverse, keep_expected, keep_weights, next_weights,
               tile):
-    K, C = counts.shape
-    R = bounds.size - 1
-    n = chunks.size - 1
+    (K, C), R, n = counts.shape, bounds.size - 1, chunks.size - 1
     # every entry is written by its chunk: np.empty (np.zeros would be a parallel region of its own)
-    coef = np.empty((R, C, 3))
-    valid = np.empty((R, C), dtype=np.bool_)
+    coef, valid = np.empty((R, C, 3)), np.empty((R, C), dtype=np.bool_)
     inverse = np.empty((R if keep_inverse else 0, C, 3, 3))
     # per-sample outputs in the samples' dtype: float32 samples need no float64 copies of their size
     ibar = np.empty((K if keep_expected else 0, C), tf.dtype)
     w_out = np.empty((K if keep_weights else 0, C), tf.dtype)
-    chi2 = np.empty(n)
-    n_sel = np.empty(n)
+    chi2, n_sel = np.empty(n), np.empty(n)
+    b0, b1, b2 = bg[0], bg[1], bg[2]
     hc, hs = harm[0], harm[1]
-    steps = 1 + (HARMONIC_STEPS if (hc != 0.0 or hs != 0.0) else 0)
+    harmonic = hc != 0.0 or hs != 0.0
+    steps = 1 + (HARMONIC_STEPS if harmonic else 0)
     for t in prange(n):
-        chi2[t] = 0.0
-        n_sel[t] = 0.0
-        N = np.empty((6, tile))
-        rhs = np.empty((3, tile))
-        N0, N1, N2, N3, N4, N5, R0, R1, R2 = N[0], N[1], N[2], N[3], N[4], N[5], rhs[0], rhs[1], rhs[2]
-        used = np.empty(tile)
-        dirn = np.empty((4, tile))  # u, w, e, f of each column's images (_direction)
-        u = np.empty(3)
-        inv = np.empty((3, 3))
+        # one 1-d array per accumulator and per-column value, the tile's samples as 1-d rows: every loop over a
+        # tile's columns below is elementwise over memory no other operand shares, which the compiler vectorises
+        n00, n01, n02, n11, n12, n22 = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile), \
+            np.empty(tile), np.empty(tile)
+        r0, r1, r2, used = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile)
+        ct, cc, cs, ok = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile, dtype=np.bool_)
+        du, dw, de, df = np.empty(tile), np.empty(tile), np.empty(tile), np.empty(tile)
+        # the chunk's chi-square and samples per column (a sum over columns is a serial chain). Loops, not slice
+        # assignments or sums: each array expression of a parallel function is a loop nest to compile (44 -> 33 s)
+        chi_t, sel_t = np.empty(tile), np.empty(tile)
+        for i in range(tile):
+            chi_t[i] = sel_t[i] = 0.0
         for r in range(chunks[t], chunks[t + 1]):
-            lo, hi = bounds[r], bounds[r + 1]
-            nb = hi - lo
+            lo, nb = bounds[r], bounds[r + 1] - bounds[r]
             # the tile's design, offsets and weights, computed once
-            A = np.empty((nb, tile))
-            Bc = np.empty((nb, tile))
-            Bs = np.empty((nb, tile))
-            # the harmonic's columns only where it is in the model (two stores and loads per sample less)
-            Hc = np.empty((nb if steps > 1 else 0, tile))
-            Hs = np.empty((nb if steps > 1 else 0, tile))
-            off = np.empty((nb, tile))
-            w = np.empty((nb, tile))
+            A, Bc, Bs, off, w = np.empty((nb, tile)), np.empty((nb, tile)), np.empty((nb, tile)), \
+                np.empty((nb, tile)), np.empty((nb, tile))
+            # the harmonic's columns only where it is in the model (one row no sample reads otherwise)
+            Hc, Hs = np.empty((nb if harmonic else 1, tile)), np.empty((nb if harmonic else 1, tile))
             for c0 in range(0, C, tile):
-                T = min(tile, C - c0)
-                for b in range(nb):
-                    k = lo + b
-                    j = frame[k]
-                    for i in range(T):
-                        c = c0 + i
-                        Fc, Fs = _turned(fc[k, c], fs[k, c], cos_p[j, c], sin_p[j, c])
-                        _, _, a, bc, bs, hcc, hcs = _design(Fc, Fs, dose[j] * tf[k, c], dose[j] * vis[j, c], hc, hs,
-                                                            steps > 1)
-                        A[b, i], Bc[b, i], Bs[b, i] = a, bc, bs
-                        if steps > 1:
-                            Hc[b, i], Hs[b, i] = hcc, hcs
-                        off[b, i] = dark[k, c] + bg[0] + bg[1] * x[c] + bg[2] * y[k]
-                        if from_data:
-                            w[b, i] = (1.0 / _variance(gain[r, c], counts[k, c], quiet[k, c], electronic)
-                                       if use[k, c] else 0.0)
-                        else:
-                            w[b, i] = start[k, c]
+                T, c1 = min(tile, C - c0), min(c0 + tile, C)
+                xs, gr = x[c0:c1], gain[r, c0:c1]
                 for it in range(iterations):
-                    if it > 0:
-                        # weights from the previous model (noise.variance: its photon term at least one count)
-                        for b in range(nb):
-                            k = lo + b
-                            for i in range(T):
-                                c = c0 + i
-                                m = _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn)
-                                w[b, i] = (1.0 / _variance(gain[r, c], m, quiet[k, c], electronic) if use[k, c]
-                                           else 0.0)
                     for step in range(steps):
-                        N[:, :T] = 0.0
-                        rhs[:, :T] = 0.0
-                        used[:T] = 0.0
+                        for i in range(T):
+                            n00[i] = n01[i] = n02[i] = n11[i] = n12[i] = n22[i] = r0[i] = r1[i] = r2[i] = 0.0
+                            used[i] = 0.0
                         for b in range(nb):
                             k = lo + b
-                            for i in range(T):
-                                bc, bs = Bc[b, i], Bs[b, i]
-                                if step > 0:
-                                    # Gauss-Newton step of the harmonic: the columns at the current images
-                                    bc, bs = _image_columns(bc, bs, Hc[b, i], Hs[b, i], dirn[0, i], dirn[1, i])
-                                _add(N0, N1, N2, N3, N4, N5, R0, R1, R2, used, i, w[b, i], A[b, i], bc, bs,
-                                     counts[k, c0 + i] - off[b, i])
+                            cnt, qk, uk = counts[k, c0:c1], quiet[k, c0:c1], use[k, c0:c1]
+                            ab, bcb, bsb, ob, wb = A[b, :T], Bc[b, :T], Bs[b, :T], off[b, :T], w[b, :T]
+                            hcb, hsb = Hc[b if harmonic else 0, :T], Hs[b if harmonic else 0, :T]
+                            if it == 0 and step == 0:
+                                j = frame[k]
+                                dj, yk = dose[j], y[k]
+                                fck, fsk, tfk, dk = fc[k, c0:c1], fs[k, c0:c1], tf[k, c0:c1], dark[k, c0:c1]
+                                cp, sp, vv = cos_p[j, c0:c1], sin_p[j, c0:c1], vis[j, c0:c1]
+                                if harmonic:
+                                    for i in range(T):
+                                        Fc, Fs = _turned(fck[i], fsk[i], cp[i], sp[i])
+                                        _, _, ab[i], bcb[i], bsb[i], hcb[i], hsb[i] = _design(
+                                            Fc, Fs, dj * tfk[i], dj * vv[i], hc, hs, True)
+                                else:
+                                    for i in range(T):
+                                        Fc, Fs = _turned(fck[i], fsk[i], cp[i], sp[i])
+                                        dv = dj * vv[i]
+                                        ab[i], bcb[i], bsb[i] = dj * tfk[i], dv * Fc, -dv * Fs
+                                for i in range(T):
+                                    ob[i] = dk[i] + b0 + b1 * xs[i] + b2 * yk
+                                if from_data:
+                                    for i in range(T):
+                                        wb[i] = 1.0 / _variance(gr[i], cnt[i], qk[i], electronic) if uk[i] else 0.0
+                                else:
+                                    sk = start[k, c0:c1]
+                                    for i in range(T):
+                                        wb[i] = sk[i]
+                            elif step == 0:
+                                # weights from the previous model (noise.variance: its photon term at least one count)
+                                for i in range(T):
+                                    m = _count(i, ob, ab, bcb, bsb, hcb, hsb, ct, cc, cs, de, df, harmonic)
+                                    wb[i] = 1.0 / _variance(gr[i], m, qk[i], electronic) if uk[i] else 0.0
+                            if step == 0:
+                                for i in range(T):
+                                    _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, wb[i], ab[i], bcb[i],
+                                         bsb[i], cnt[i] - ob[i])
+                            else:
+                                # Gauss-Newton step of the harmonic: the columns at the current images
+                                for i in range(T):
+                                    bc, bs = _image_columns(bcb[i], bsb[i], hcb[i], hsb[i], du[i], dw[i])
+                                    _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, wb[i], ab[i], bc, bs,
+                                         cnt[i] - ob[i])
                         for i in range(T):
-                            c = c0 + i
-                            valid[r, c] = _solve(N[0, i], N[1, i], N[2, i], N[3, i], N[4, i], N[5, i], rhs[0, i],
-                                                 rhs[1, i], rhs[2, i], used[i], u, inv)
-                            coef[r, c, 0], coef[r, c, 1], coef[r, c, 2] = u[0], u[1], u[2]
-                            dirn[0, i], dirn[1, i], dirn[2, i], dirn[3, i] = _direction(u[1], u[2])
-                            if keep_inverse:
-                                # element by element: an array assignment compiles a shape check with its error
-                                # message (about 6 s)
-                                for a1 in range(3):
-                                    for a2 in range(3):
-                                        inverse[r, c, a1, a2] = inv[a1, a2]
+                            ok[i], ct[i], cc[i], cs[i], _, _, _, _, _, _ = _normal(
+                                n00[i], n01[i], n02[i], n11[i], n12[i], n22[i], r0[i], r1[i], r2[i], used[i])
+                            du[i], dw[i], de[i], df[i] = _direction(cc[i], cs[i])
+                for i in range(T):
+                    c = c0 + i
+                    valid[r, c] = ok[i]
+                    coef[r, c, 0], coef[r, c, 1], coef[r, c, 2] = ct[i], cc[i], cs[i]
+                if keep_inverse:
+                    for i in range(T):
+                        _, _, _, _, i00, i01, i02, i11, i12, i22 = _normal(n00[i], n01[i], n02[i], n11[i], n12[i],
+                                                                           n22[i], r0[i], r1[i], r2[i], used[i])
+                        iv = inverse[r, c0 + i]
+                        iv[0, 0], iv[0, 1], iv[0, 2], iv[1, 1], iv[1, 2], iv[2, 2] = i00, i01, i02, i11, i12, i22
+                        iv[1, 0], iv[2, 0], iv[2, 1] = i01, i02, i12
                 for b in range(nb):
                     k = lo + b
+                    cnt, qk, uk = counts[k, c0:c1], quiet[k, c0:c1], use[k, c0:c1]
+                    ab, bcb, bsb, ob, wb = A[b, :T], Bc[b, :T], Bs[b, :T], off[b, :T], w[b, :T]
+                    hcb, hsb = Hc[b if harmonic else 0, :T], Hs[b if harmonic else 0, :T]
                     for i in range(T):
-                        c = c0 + i
-                        m = _tile_count(off, A, Bc, Bs, Hc, Hs, b, i, coef, r, c, dirn)
+                        m = _count(i, ob, ab, bcb, bsb, hcb, hsb, ct, cc, cs, de, df, harmonic)
+                        # Pearson residual with the variance of the weights (noise.variance)
+                        sel = ok[i] & uk[i]
+                        chi_t[i] += (cnt[i] - m) ** 2 / _variance(gr[i], m, qk[i], electronic) if sel else 0.0
+                        sel_t[i] += 1.0 if sel else 0.0
+                    for i in range(T if keep_expected or keep_weights else 0):
+                        m = _count(i, ob, ab, bcb, bsb, hcb, hsb, ct, cc, cs, de, df, harmonic)
                         if keep_expected:
-                            ibar[k, c] = m
+                            ibar[k, c0 + i] = m
                         if keep_weights:
-                            # the weights of this solve, or those of its model (what a further solve would use)
-                            w_out[k, c] = (1.0 / _variance(gain[r, c], m, quiet[k, c], electronic) if use[k, c]
-                                           else 0.0) if next_weights else w[b, i]
-                        if valid[r, c] and use[k, c]:
-                            # Pearson residual with the variance of the weights (noise.variance)
-                            chi2[t] += (counts[k, c] - m) ** 2 / _variance(gain[r, c], m, quiet[k, c], electronic)
-                            n_sel[t] += 1.0
+                            # the weights of this solve, or of its model (what a further solve would use)
+                            w_out[k, c0 + i] = ((1.0 / _variance(gr[i], m, qk[i], electronic) if uk[i] else 0.0)
+                                                if next_weights else wb[i])
+        chi2[t], n_sel[t] = 0.0, 0.0
+        for i in range(tile):
+            chi2[t] += chi_t[i]
+            n_sel[t] += sel_t[i]
     return coef, valid, inverse, ibar, w_out, chi2, n_sel
 
 
@@ -570,12 +574,13 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
     dark = _c(obs.dark)
     quiet = dark if obs.offset is None else _c(obs.quiet)
     fc, fs = obs.fringe
+    n_c = max(obs.columns.size, 1)
     coef, valid, inverse, ibar, w, chi2, n_sel = _retrieve(
         _c(obs.counts), _c(obs.tf), fc, fs, dark, quiet, _c(obs.use), start,
         obs.frame, obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), *_turning(obs, ch.phase),
         _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, _c(g, np.float64),
         float(obs.electronic), int(iterations), weights is None, keep_inverse, keep_expected,
-        keep_expected or next_weights, next_weights, TILE)
+        keep_expected or next_weights, next_weights, -(-n_c // -(-n_c // TILE)))
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}
 

@@ -194,11 +194,24 @@ def mask_from_score(image: np.ndarray, *, dof: np.ndarray | None = None, thresho
     moving = score > thr
     if dof is not None and np.isfinite(image).any():
         typical = float(np.median(dof[np.isfinite(image)]))
+        # at the pixels above the threshold only (a few of a detector's millions: 0.4 s per call at full resolution)
+        at = np.flatnonzero(moving)
         with np.errstate(invalid="ignore"):
-            moving &= _chi2_logsf(score * dof, np.maximum(dof, 1)) <= _chi2_logsf(thr * typical, typical)
+            moving.flat[at] = (_chi2_logsf(score.flat[at] * dof.flat[at], np.maximum(dof.flat[at], 1))
+                               <= _chi2_logsf(thr * typical, typical))
     if dilate > 0 and moving.any():
-        moving = ndimage.binary_dilation(moving, iterations=dilate)
+        moving = _dilated(moving, dilate)
     return moving, thr
+
+
+def _dilated(moving: np.ndarray, n: int) -> np.ndarray:
+    """``moving`` (H, W) grown by ``n`` pixels (binary dilation, ``n`` iterations of the cross), in the box around the
+    flagged pixels widened by ``n``: the same pixels as over the whole image, where only a few are flagged."""
+    rows, cols = np.flatnonzero(moving.any(axis=1)), np.flatnonzero(moving.any(axis=0))
+    box = (slice(max(rows[0] - n, 0), rows[-1] + n + 1), slice(max(cols[0] - n, 0), cols[-1] + n + 1))
+    out = np.zeros_like(moving)
+    out[box] = ndimage.binary_dilation(moving[box], iterations=n)
+    return out
 
 
 def motion_mask(blocks: Iterable[Observations], *, pilot: dict, threshold: float | None = None,

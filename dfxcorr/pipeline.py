@@ -24,8 +24,10 @@ import numpy as np
 
 from . import __version__
 from . import config as C
+from . import model as M
 from .align import tilt_alias_period
 from .catalogue import effect
+from .chunks import row_counts
 from .effects import REGISTRY
 from .estimators import ESTIMATORS
 from .faults import MIN_KEPT_SHARE
@@ -142,17 +144,22 @@ def blocked_retrieval(prep: Prepared, blocks: list[tuple[int, int]], params: lis
             for _ in params]
     sums = np.zeros((len(params), 3))  # chi-square, samples, pixels
     left_out = 0
+    # each parameter set's channel values at the columns of the last part: the blocks of rows share them (made for
+    # every block, 0.8 s of a full-resolution retrieval)
+    held: list[tuple[np.ndarray, M.Channels] | None] = [None] * len(params)
     for obs in retrieval_parts(prep, blocks):
         roi = obs.in_roi
-        with np.errstate(invalid="ignore"):
-            kept = obs.segment_sum(obs.use.astype(np.float64)) / obs.segment_sum(np.ones(obs.use.shape))
+        kept = row_counts(obs, obs.use) / np.diff(np.append(obs.starts, obs.frame.size))[:, None]
         obs = replace(obs, use=obs.use & roi & (kept >= MIN_KEPT_SHARE)[obs.pixel])
-        for m, p, acc in zip(maps, params, sums, strict=True):
-            rec = retrieve(obs, p, iterations=iterations, n_frame_params=0, keep_expected=False)
+        for i, (m, p, acc) in enumerate(zip(maps, params, sums, strict=True)):
+            last = held[i]
+            if last is None or not np.array_equal(last[0], obs.columns):
+                last = held[i] = (obs.columns, M.channels(p, x=obs.x, n_frames=obs.n_frames))
+            rec = retrieve(obs, p, iterations=iterations, n_frame_params=0, keep_expected=False, channels=last[1])
             for k, v in image_values(rec.images).items():
                 obs.place(m[k], v)
             acc += (rec.chi2_sum, rec.samples, int(rec.images.valid.sum()))
-        left_out += int(np.count_nonzero(obs.segment_sum(roi.astype(np.float64)) == 0))
+        left_out += int(np.count_nonzero(row_counts(obs, roi) == 0))
     if prep.store.parallax:
         maps = [detector_rows(m, prep.store.parallax) for m in maps]
     if left_out:
@@ -182,9 +189,13 @@ def fit_motion_mask(prep: Prepared, cfg: dict, plan: ColumnPlan, blocks: list[tu
         return np.zeros((H, W), bool)
     m = cfg["mask"]
     pilot = pilot_estimate(prep) if plan.pilot is None else plan.pilot
-    # the per-pixel statistics of the fit's columns only (the others never enter the fit), block by block
-    # where the samples read between rows the images of a column are one solve: the fit's columns whole
-    rows_of = blocks if not prep.store.parallax else [None]
+    # the per-pixel statistics of the fit's columns only (the others never enter the fit), block by block: as many of
+    # the retrieval's blocks of rows at once as hold a block's samples of those columns (one block each: 138 at full
+    # resolution, 2 s of overheads); where the samples read between rows the images of a column are one solve: the
+    # fit's columns whole
+    per = max(W // max(plan.columns.size, 1), 1)
+    rows_of = ([(blocks[i][0], blocks[min(i + per, len(blocks)) - 1][1]) for i in range(0, len(blocks), per)]
+               if not prep.store.parallax else [None])
     moving, _, thr = motion_mask((prep.observations(columns=plan.columns, rows=rows, dtype=np.float32)
                                   for rows in rows_of),
                                  pilot=pilot, threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])

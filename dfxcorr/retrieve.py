@@ -46,7 +46,8 @@ class Retrieval:
 
 
 def retrieve(obs: Observations, params: dict, *, iterations: int = 2, n_frame_params: int | None = None,
-             gain: float | None = None, keep_inverse: bool = False, keep_expected: bool = True) -> Retrieval:
+             gain: float | None = None, keep_inverse: bool = False, keep_expected: bool = True,
+             channels: M.Channels | None = None) -> Retrieval:
     """Solve the images for fixed effect parameters.
 
     Parameters
@@ -67,14 +68,18 @@ def retrieve(obs: Observations, params: dict, *, iterations: int = 2, n_frame_pa
     keep_expected : bool
         Return the expected counts and weights; without them both are (0, C) and the pass writes nothing per
         sample (images and chi-square alone).
+    channels : Channels, optional
+        ``params``' channel values at ``obs``' columns (:func:`dfxcorr.model.channels`), where the caller holds them
+        (the blocks of rows of one scan share them); default made here.
 
     Returns
     -------
     Retrieval
     """
     K.set_threads()
-    out = E.retrieve(obs, M.channels(params, x=obs.x, n_frames=obs.n_frames), iterations=iterations, gain=gain,
-                     keep_inverse=keep_inverse, keep_expected=keep_expected)
+    ch = M.channels(params, x=obs.x, n_frames=obs.n_frames) if channels is None else channels
+    out = E.retrieve(obs, ch, iterations=iterations, gain=gain, keep_inverse=keep_inverse,
+                     keep_expected=keep_expected)
     images = M.Images(out["coef"], out["valid"], out["inverse"], out["coupling"])
     n_par = sum(np.size(p) for p in params.values()) if n_frame_params is None else n_frame_params
     chi2 = per_dof(out["chi2"], out["samples"], int(images.valid.sum()), n_par, 3)

@@ -69,6 +69,28 @@ def test_chi2_tail_matches_scipy_stats():
     np.testing.assert_allclose(_chi2_logsf(x, k), stats.chi2.logsf(x, k), rtol=1e-10)
 
 
+def test_mask_grows_as_a_dilation_of_the_whole_image():
+    from scipy import ndimage
+
+    from dfxcorr.mask import mask_from_score
+
+    rng = np.random.default_rng(3)
+    score = rng.normal(1.0, 0.1, (60, 80))
+    score[[0, 7, 30, 59], [79, 40, 0, 3]] = 50.0  # a few pixels far above, two on the edges
+    for dilate in (1, 2):
+        moving, thr = mask_from_score(score, threshold=10.0, dilate=dilate)
+        assert thr == 10.0
+        assert np.array_equal(moving, ndimage.binary_dilation(score > 10.0, iterations=dilate))
+    # a pixel lit in few frames must also be as improbable as the threshold is at the typical dof: one that is not
+    # (a score of 50 on 1 degree of freedom against 10 on 20) is not flagged, the others are
+    dof = np.full(score.shape, 20.0)
+    dof[0, 79] = 1.0
+    moving, _ = mask_from_score(score, dof=dof, threshold=10.0, dilate=0)
+    expected = score > 10.0
+    expected[0, 79] = False
+    assert np.array_equal(moving, expected)
+
+
 @pytest.mark.slow
 def test_row_blocks_give_the_mask_of_one_pass(small_scan):
     scan, _ = small_scan(**{"effects.sample_motion": 0.3})
