@@ -55,6 +55,17 @@ def log_beta_i(a: float, b: float, x: float) -> float:
     return a * np.log(x) + b * np.log1p(-x) - np.log(a) - float(special.betaln(a, b)) - float(np.log(cf))
 
 
+def chi2_log_tails(statistic: np.ndarray | float, dof: np.ndarray | float) -> np.ndarray:
+    """log P(chi-square with ``dof`` degrees of freedom > ``statistic``), elementwise over the two arrays
+    (broadcast), exact where the probability underflows (:func:`log_gamma_q`)."""
+    x, k = np.broadcast_arrays(np.asarray(statistic, dtype=float), np.asarray(dof, dtype=float))
+    with np.errstate(divide="ignore"):
+        out = np.log(special.gammaincc(k / 2, x / 2))
+    for i in np.flatnonzero(np.isneginf(out) & np.isfinite(x) & (k > 0)):
+        out.flat[i] = log_gamma_q(k.flat[i] / 2, x.flat[i] / 2)
+    return out
+
+
 def chi2_tail(statistic: float, dof: int) -> tuple[float, float]:
     """The chi-square tail probability of ``statistic`` with ``dof`` degrees of freedom and its log (exact where
     the probability underflows); (1, 0) where dof <= 0, (0, -inf) for an infinite statistic."""

@@ -59,16 +59,6 @@ def test_a_heart_that_moves_half_way_is_masked_where_its_data_disagree(small_sca
     assert moving[still].sum() <= 0.1 * moving.sum()
 
 
-def test_chi2_tail_matches_scipy_stats():
-    from scipy import stats
-
-    from dfxcorr.mask import _chi2_logsf
-
-    x = np.array([0.5, 3.0, 40.0, 180.0, 900.0])
-    k = np.array([1, 4, 30, 30, 60])
-    np.testing.assert_allclose(_chi2_logsf(x, k), stats.chi2.logsf(x, k), rtol=1e-10)
-
-
 def test_mask_grows_as_a_dilation_of_the_whole_image():
     from scipy import ndimage
 

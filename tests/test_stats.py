@@ -56,3 +56,13 @@ def test_quantiles_and_normal_tail_are_scipys():
     assert float(S.chi2_quantile(1e-6, 10)) == pytest.approx(stats.chi2.ppf(1e-6, 10), rel=1e-12)
     z = np.array([0.0, 1.5, 12.0, 60.0])
     assert np.allclose(S.normal_log_tail(z), stats.norm.logsf(z), rtol=1e-12)
+
+
+def test_elementwise_log_tails_are_scipys_and_continue_beyond_it():
+    x = np.array([0.5, 3.0, 40.0, 180.0, 900.0, 9e4])
+    k = np.array([1, 4, 30, 30, 60, 4])
+    out = S.chi2_log_tails(x, k)
+    np.testing.assert_allclose(out[:5], stats.chi2.logsf(x[:5], k[:5]), rtol=1e-10)
+    # the last underflows in scipy; Q(2, z) = (1 + z) e^-z
+    assert out[5] == pytest.approx(np.log1p(4.5e4) - 4.5e4, rel=1e-13)
+    assert out[5] == pytest.approx(S.chi2_tail(9e4, 4)[1], rel=1e-15)
