@@ -63,7 +63,7 @@ from typing import Any
 import numpy as np
 
 from .. import model as M
-from ..align import LitStore, interpolate_rows, pixel_mm, realign
+from ..align import LitStore, pixel_mm, realign
 from ..catalogue import Effect
 from ..errors import DfxcorrError
 from ..fit import fit_vibrations
@@ -88,6 +88,7 @@ from .base import (
     strongest,
 )
 from .channel import strata
+from .superposition import Primary, ScatterField, block, unit_scatter
 
 log = logging.getLogger(__name__)
 
@@ -140,205 +141,6 @@ def kernel_pixels(width_mm: float, pixel_mm: tuple[float, float] | None) -> tupl
     return width_mm / pixel_mm[0], width_mm / pixel_mm[1]
 
 
-def blur(a: np.ndarray, sigma: float, *, axis: int = -1) -> np.ndarray:
-    """Gaussian blur of ``a`` along ``axis`` (std ``sigma`` pixels, kernel cut at 4 sigma), zeros beyond the edges.
-
-    scipy.ndimage.gaussian_filter1d(mode='constant'), by FFT along an axis longer than :data:`DIRECT_BLUR`: the
-    scatter's kernel spans hundreds of pixels (50 mm at 0.3 mm: sigma 167), where the direct sum took 10 s for a
-    5-step 512 x 1536 scan. Along a shorter axis as a product with the kernel's band matrix: the FFT pads the axis
-    to the kernel's span (a binned clinical scan's 44 block rows under a kernel of 271 blocks: 1.9 s by FFT, 0.05 s
-    so, for its every frame).
-    """
-    radius = int(4.0 * sigma + 0.5)
-    x = np.arange(-radius, radius + 1, dtype=float)
-    kernel = np.exp(-0.5 * (x / max(sigma, 1e-12)) ** 2)
-    kernel /= kernel.sum()
-    n = a.shape[axis]
-    if n <= DIRECT_BLUR:
-        apart = np.arange(n)[:, None] - np.arange(n)[None, :]
-        band = np.where(np.abs(apart) <= radius, kernel[np.clip(apart + radius, 0, 2 * radius)], 0.0)
-        return np.moveaxis(np.tensordot(band, a, axes=([1], [axis])), 0, axis)
-    shape = [1] * a.ndim
-    shape[axis] = kernel.size
-    # imported here: scipy.signal imports scipy.stats, about a second at every start of the command line
-    from scipy import signal
-
-    return signal.fftconvolve(a, kernel.reshape(shape), mode="same", axes=axis)
-
-
-def primary(store: LitStore, reference: Reference, t: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
-    """Block indices (n,) -> the unmodulated primary t^f t of those blocks' samples (counts, (n, W) float32), the
-    flat field's transmission read at each block's position: what :func:`unit_scatter` blurs.
-
-    ``t`` (H, W): the sample's transmission."""
-    return lambda idx: interpolate_rows(reference.transmission, store.u[idx], dtype=np.float32) * t[store.row[idx]]
-
-
-@dataclass(frozen=True)
-class ScatterField:
-    """S of a store's samples, held coarse: each frame's primary convolved with the kernel on blocks of b x b pixels,
-    interpolated to the samples asked for (:meth:`take`). S of every lit sample of a full-resolution
-    clinical scan, in float32, is 2.2 GB; its blocks are about 10 MB.
-
-    Attributes
-    ----------
-    grids : ndarray, shape (J, N, M), float32
-        Frame j's field on blocks (rows from ``origin[j]``, its first ``rows[j]`` block rows), counts per unit s.
-    rows, origin : ndarray of int, shape (J,)
-        Block rows of each frame's grid, and the detector row of its first pixel row.
-    b : int
-        Block side (pixels).
-    row, frame : ndarray of int, shape (K,)
-        Detector row and frame of each block of samples.
-    width : int
-        Detector columns.
-    lit_total, primary_total : ndarray, shape (J,)
-        Per frame: the sum of the field (per unit s) over its lit samples, and that of its primary (counts).
-    ratio : float
-        Factor on the field (s).
-    """
-
-    grids: np.ndarray
-    rows: np.ndarray
-    origin: np.ndarray
-    b: int
-    row: np.ndarray
-    frame: np.ndarray
-    width: int
-    lit_total: np.ndarray
-    primary_total: np.ndarray
-    ratio: float = 1.0
-
-    def scaled(self, ratio: float) -> ScatterField:
-        """The field times ``ratio``."""
-        return replace(self, ratio=self.ratio * ratio)
-
-    def share(self) -> float:
-        """The measured scatter-to-primary ratio in the lit bands: the field's sum over every lit sample over the
-        primary's (times ``ratio``). Below ``ratio`` by what the kernel carries off the bands (0 without primary)."""
-        total = float(self.primary_total.sum())
-        return self.ratio * float(self.lit_total.sum()) / total if total > 0 else 0.0
-
-    def take(self, lo: int = 0, hi: int | None = None, columns: np.ndarray | None = None) -> np.ndarray:
-        """The field at blocks [lo, hi) and ``columns`` (default all), shape (hi - lo, C), float32: linear
-        interpolation between block centres (held beyond the outer ones); the grid itself where b = 1."""
-        hi = self.row.size if hi is None else hi
-        cols = np.arange(self.width) if columns is None else np.asarray(columns)
-        c0, c1, c = _between(cols, self.grids.shape[2], self.b)
-        out = np.empty((hi - lo, cols.size), np.float32)
-        # about 1e6 values at a time: a clinical scan's every block at once, on a grid of its every column (a kernel
-        # of 12.5 mm at 0.3 mm: b = 1), made 1.3 GB of temporaries
-        step = max(int(1e6 // max(cols.size, self.grids.shape[2], 1)), 1)
-        for a0 in range(lo, hi, step):
-            a1 = min(a0 + step, hi)
-            f = self.frame[a0:a1]
-            r0, r1, a = _between(self.row[a0:a1] - self.origin[f], self.rows[f], self.b)
-            by_row = (self.grids[f, r0] * (1 - a)[:, None] + self.grids[f, r1] * a[:, None]) * self.ratio
-            out[a0 - lo:a1 - lo] = by_row[:, c0] * (1 - c) + by_row[:, c1] * c
-        return out
-
-
-def unit_scatter(primary: Callable[[np.ndarray], np.ndarray], row: np.ndarray, frame: np.ndarray,
-                 width: tuple[float, float]) -> ScatterField:
-    """S of every sample: the superposition of its frame's primary under the kernel (counts per unit s).
-
-    Parameters
-    ----------
-    primary : callable
-        Block indices (n,) -> the unmodulated primary t^f t of those blocks' samples (counts), shape (n, W), every
-        detector column: made a frame at a time (a clinical scan's primary of every sample at once is gigabytes).
-    row, frame : ndarray of int, shape (K,)
-        Detector row and frame of each block.
-    width : (float, float)
-        Kernel std between rows and along a row (pixels).
-
-    Returns
-    -------
-    ScatterField
-        S (``take`` gives it at samples): S_j(r, c) = sum over frame j's lit samples (r', c') of P_j(r', c')
-        K(r - r', c - c'), K the normalised Gaussian. Nothing is renormalised: what the kernel carries off the lit
-        band (and off the detector) is lost, so S falls towards the band's edges, and a band narrow against the
-        kernel gets less scatter per unit primary than a full field (:meth:`ScatterField.share`).
-    """
-    # the frame's lit band as an image (rows left out by alignment stay empty: no primary), summed on blocks of
-    # b x b pixels: a kernel of hundreds of pixels (50 mm at 0.148 mm: 338) is blurred as well on a grid b = sigma /
-    # 32 coarser and interpolated back, at about a b^2-th of the cost (a binned clinical scan, sigma 169: 7.5 ->
-    # 0.8 s). The block sums hold only the band's blocks, so a kernel far wider than the detector (one block) needs
-    # no more memory than a narrow one.
-    b = block(width)
-    J = int(frame.max(initial=-1)) + 1
-    order = np.argsort(frame, kind="stable")
-    bounds = np.searchsorted(frame[order], np.arange(J + 1))
-    lit = np.flatnonzero(np.diff(bounds))
-    origin = np.zeros(J, int)
-    origin[lit] = np.minimum.reduceat(row[order], bounds[lit])
-    rows = np.ones(J, int)
-    rows[lit] = (np.maximum.reduceat(row[order], bounds[lit]) - origin[lit]) // b + 1
-    lit_total, primary_total = np.zeros(J), np.zeros(J)
-    # float32: where b = 1 the grids are every sample's field (a binned clinical scan's at 12.5 mm: 0.25 GB)
-    stack = np.zeros((J, int(rows.max(initial=1)), 1), np.float32)
-    W = 0
-    # the frames blurred together, about BLUR_VALUES block values at a time (a frame at a time, the blur's overhead on
-    # grids of 44 x 288 blocks was most of the field's time on a binned clinical scan), holding only those frames'
-    # block sums (all of them at once, at b = 1: 1 GB). The bands are padded to a common height with zeros, which the
-    # blur assumes beyond a band's last row anyway
-    j0, step = 0, 1
-    while j0 < J:
-        j1 = min(j0 + step, J)
-        padded = np.zeros((j1 - j0, *stack.shape[1:]))
-        counts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        for j in range(j0, j1):
-            idx = order[bounds[j]:bounds[j + 1]]
-            if idx.size == 0:
-                continue
-            p = primary(idx).astype(np.float64)
-            if not W:
-                W = p.shape[1]
-                stack = np.zeros((J, stack.shape[1], -(-W // b)), np.float32)
-                padded = np.zeros((j1 - j0, *stack.shape[1:]))
-            at = (row[idx] - origin[j]) // b
-            # within a frame the rows ascend: each block row's samples are one run
-            first = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
-            # (a sum over blocks of one pixel is the pixel: at b = 1, a fifth of the field's time)
-            by_row = p if first.size == at.size else np.add.reduceat(p, first, axis=0)
-            padded[j - j0, at[first]] = by_row if b == 1 else np.add.reduceat(by_row, np.arange(0, W, b), axis=1)
-            counts[j] = (at[first], np.diff(np.r_[first, at.size]))
-            primary_total[j] = float(p.sum())
-        # the kernel on the block grid is normalised over blocks: per pixel it is b^-2 of that
-        blurred = blur(blur(padded, width[0] / b, axis=1), width[1] / b, axis=2) / float(b * b)
-        per_column = np.diff(np.r_[np.arange(0, W, b), W])
-        for j, (held, n) in counts.items():
-            grid = blurred[j - j0, :rows[j]]
-            # the field's sum over the frame's lit samples: each block's value times its samples
-            lit_total[j] = float(n @ grid[held] @ per_column)
-            stack[j, :rows[j]] = grid
-        j0, step = j1, max(int(BLUR_VALUES // stack[0].size), 1)
-    return ScatterField(stack, rows, origin, b, row, frame, W, lit_total=lit_total, primary_total=primary_total)
-
-
-#: unit_scatter blurs on blocks of sigma / COARSE_PER_SIGMA pixels (at least one).
-COARSE_PER_SIGMA = 32
-#: unit_scatter blurs the frames' block grids together, about this many values (float64) at a time.
-BLUR_VALUES = 1_000_000
-#: blur sums directly along an axis of at most this many values (by FFT along a longer one).
-DIRECT_BLUR = 512
-
-
-def block(width: tuple[float, float]) -> int:
-    """The side (pixels) of the blocks on which :func:`unit_scatter` blurs, for a kernel of std ``width``."""
-    return max(int(min(width) // COARSE_PER_SIGMA), 1)
-
-
-def _between(pixels: np.ndarray, n: np.ndarray | int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The block centres (at (i + 1/2) b) each pixel lies between, and its weight on the second: lower and upper
-    index and fraction (``n`` blocks, per pixel or one for all). Beyond the outer centres the line through the outer
-    two is extended (the half block there is where the field falls fastest, towards the band's and the detector's
-    edges: held constant, 1.5 % off at a kernel of 333 pixels)."""
-    n = np.asarray(n)
-    at = np.clip((pixels + 0.5) / b - 0.5, -0.5, n - 0.5)
-    lo = np.clip(np.floor(at).astype(int), 0, np.maximum(n - 2, 0))
-    return lo, np.minimum(lo + 1, n - 1), np.where(n > 1, at - lo, 0.0)
-
 
 def retrieved(store: LitStore, reference: Reference, *, step: int = 1) -> np.ndarray:
     """Transmission from a retrieval at neutral per-frame parameters, block by block of rows, shape (H, W) (0 where
@@ -365,8 +167,9 @@ def retrieved(store: LitStore, reference: Reference, *, step: int = 1) -> np.nda
 
 def field(store: LitStore, reference: Reference, t: np.ndarray, width: tuple[float, float]) -> ScatterField:
     """S of the store's samples with the primary of transmission ``t`` (H, W) and a kernel of std ``width``
-    (pixels: between rows, along a row), counts per unit s."""
-    return unit_scatter(primary(store, reference, t), store.row, store.frame, width)
+    (pixels: between rows, along a row), counts per unit s: the flat field's transmission read at each block's
+    position times ``t`` (:class:`Primary`)."""
+    return unit_scatter(Primary(reference.transmission, store.u, t, store.row), store.row, store.frame, width)
 
 
 def transmission(store: LitStore, reference: Reference, setting: Setting, pixel_mm: tuple[float, float] | None, *,

@@ -8,11 +8,12 @@ import pytest
 
 from dfxcorr import config as C
 from dfxcorr import model as M
-from dfxcorr.align import pixel_mm
+from dfxcorr.align import interpolate_rows, pixel_mm
 from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.analysis.report import reconstruct_settings
 from dfxcorr.catalogue import neutral_params
 from dfxcorr.effects import scatter as SC
+from dfxcorr.effects import superposition as SP
 from dfxcorr.noise import MIN_SIGNAL, variance
 from dfxcorr.pipeline import reconstruct
 from dfxcorr.retrieve import reduced_chi2, retrieve
@@ -158,6 +159,32 @@ def test_clean_scan_and_phase_stepping_do_not_name_it():
     assert not verdict["scatter"].identifiable and not verdict["scatter"].detected
 
 
+def dense(primary):
+    """A primary given sample by sample, (K, W): the flat field one row of ones, ``t`` the primary itself."""
+    return SP.Primary(np.ones((1, primary.shape[1])), np.zeros(len(primary)), primary, np.arange(len(primary)))
+
+
+@pytest.mark.parametrize("b", [1, 3, 7])
+def test_the_primarys_block_sums_are_the_flat_field_read_where_each_sample_sits_times_t(b):
+    # the compiled sums against the alignment's own interpolation of the flat field, summed on blocks by numpy
+    rng = np.random.default_rng(b)
+    A, H, W, n = 40, 60, 23, 50
+    maps, t = rng.uniform(0.5, 1.5, (A, W)), rng.uniform(0.1, 1.0, (H, W))
+    u = np.concatenate([[0.1, A - 0.1], rng.uniform(0, A, n - 2)])  # the outer half rows extrapolated
+    row = rng.integers(0, H, n)
+    idx = rng.permutation(n)[:35]
+    at = rng.integers(0, 9, idx.size)
+    P = SP.Primary(maps, u, t, row)
+    out = np.zeros((9, -(-W // b)))
+    total = P.block_sums(idx, at, b, out)
+    p = interpolate_rows(maps, u[idx]) * t[row[idx]]
+    want = np.zeros((9, W))
+    np.add.at(want, at, p)
+    want = np.add.reduceat(want, np.arange(0, W, b), axis=1)
+    np.testing.assert_allclose(out, want, rtol=1e-12)
+    assert total == pytest.approx(p.sum(), rel=1e-12)
+
+
 @pytest.mark.parametrize("rows, width_mm", [(30, 3.0), (30, 100.0), (450, 3.0), (450, 100.0), (151, 30.0),
                                              (100, 1e9)])
 def test_the_models_field_is_the_simulators_superposition(rows, width_mm):
@@ -168,7 +195,7 @@ def test_the_models_field_is_the_simulators_superposition(rows, width_mm):
     # a sample with a sharp edge: the primary jumps at column 120
     primary = 1e4 * (0.3 + 0.2 * rng.random((rows, W)) + 0.5 * (np.arange(W) > 120))
     exact = S.scatter_field(primary, row, sigma, width=W)
-    field = SC.unit_scatter(lambda idx: primary[idx], row, np.zeros(rows, int), (sigma, sigma))
+    field = SP.unit_scatter(dense(primary), row, np.zeros(rows, int), (sigma, sigma))
     # the model's tolerance, 1e-3 of the field at every sample: its kernel cut at 4 sigma (6e-5) and float32 where it
     # blurs pixel by pixel, the blocks' linear interpolation where it blurs on blocks (measured up to 7e-4 at 333
     # pixels, at the band's edges). At s = 0.1 that is 1e-4 of the primary, a hundredth of its photon noise at 1e4
@@ -236,7 +263,7 @@ def test_the_coarse_field_gives_any_run_of_samples_and_columns_as_the_whole():
     frame = np.concatenate([np.full(40, j) for j in range(5)])[np.argsort(
         np.concatenate([np.arange(j, j + 40) for j in range(0, 30, 6)]), kind="stable")]
     primary = rng.uniform(1, 9, (row.size, 250))
-    S = SC.unit_scatter(lambda idx: primary[idx], row, frame, (100.0, 100.0))
+    S = SP.unit_scatter(dense(primary), row, frame, (100.0, 100.0))
     assert S.b == 3
     whole = S.take()
     cols = np.array([0, 1, 7, 124, 248, 249])
@@ -251,7 +278,7 @@ def test_the_coarse_field_gives_any_run_of_samples_and_columns_as_the_whole():
 def test_the_scatter_blur_is_the_gaussian_filter_with_zeros_beyond_the_edges(sigma):
     from scipy import ndimage
 
-    from dfxcorr.effects.scatter import blur
+    from dfxcorr.effects.superposition import blur
     # one axis summed directly, the other (longer than DIRECT_BLUR) by FFT
     a = np.random.default_rng(3).random((37, 700))
     for axis in (0, 1):
