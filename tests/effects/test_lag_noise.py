@@ -11,7 +11,7 @@ from dfxcorr.align import collect_lit_rows
 from dfxcorr.analysis.diagnose import diagnose
 from dfxcorr.analysis.evaluate import image_rmse
 from dfxcorr.analysis.report import reconstruct_settings, write_report
-from dfxcorr.effects.detector_lag import measured_lag, without_lag
+from dfxcorr.effects.detector_lag import lag_free, measured_lag, without_lag
 from dfxcorr.effects.pixel_noise import PixelNoiseError, class_chi2
 from dfxcorr.retrieve import retrieve
 from dfxcorr.sim import simulate as S
@@ -27,6 +27,27 @@ def quantisation_bound(store) -> float:
     prev = store.counts[store.left_prev].astype(float) - store.dark[store.row[store.left_prev]]
     # the pixels just left and their previous frame are both rounded (the latter's recursion grows it by < 2)
     return 0.5 * prev.size / prev.sum() * 3
+
+
+def test_lag_free_is_the_recursion_over_each_pixels_frames_with_gaps():
+    # S_j = I_j - dark - a S_(j-1), S_(j-1) = 0 where frame j - 1 did not light the row; float32 as the store holds it
+    rng = np.random.default_rng(5)
+    lit = rng.random((7, 12)) < 0.7  # (row, frame)
+    row, frame = np.nonzero(lit)
+    counts = rng.integers(100, 1000, (row.size, 3)).astype(np.uint16)
+    dark = rng.uniform(0, 50, (7, 3))
+    a = 0.07
+    want = np.zeros(counts.shape, np.float32)
+    for k in range(row.size):
+        s = counts[k].astype(np.float32) - dark[row[k]].astype(np.float32)
+        if k and row[k - 1] == row[k] and frame[k - 1] == frame[k] - 1:
+            s = s - np.float32(a) * want[k - 1]
+        want[k] = s
+    want += dark[row]
+    np.testing.assert_array_equal(lag_free(counts, dark, row, frame, a), want)
+    # some blocks only: the same values
+    some = np.array([20, 3, 0, len(row) - 1])
+    np.testing.assert_array_equal(lag_free(counts, dark, row, frame, a, blocks=some), want[some])
 
 
 def test_lag_free_counts_are_the_lag_free_frames():
