@@ -7,8 +7,10 @@ study at 1 mm), the clinical ones are read from ``--dir`` (made there by ``scrip
 195 frames of 1440 x 1440 and of 2880 x 2880; the binned one with Compton scatter, s = 0.1, is made there by this
 script). Writes docs/diagnose-cost.json and prints a table.
 
+Each command runs ``--runs`` times (alternated with the other); the run of median time counts.
+
 Usage: python scripts/diagnose_cost.py [--cases real stepping paper clinical-binned clinical-full
-       clinical-binned-scatter] [--dir /tmp/dfx-bench] [--out docs/]
+       clinical-binned-scatter] [--dir /tmp/dfx-bench] [--runs 3] [--out docs/]
 """
 from __future__ import annotations
 
@@ -94,6 +96,9 @@ def main():
                              "clinical-binned-scatter"])
     ap.add_argument("--dir", type=Path, default=None, help="where the clinical scans are")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
+    ap.add_argument("--runs", type=int, default=3,
+                    help="runs of each command, alternated; the medians count (one reconstruct of a clinical scan "
+                         "varied by 20 %% from run to run)")
     args = ap.parse_args()
     from dfxcorr.analysis.compare import machine
 
@@ -101,7 +106,9 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         for case in args.cases:
             path, base = make(case, Path(tmp), args.dir)
-            rec, diag = measure("reconstruct", path, base), measure("diagnose", path, base)
+            runs = [(measure("reconstruct", path, base), measure("diagnose", path, base)) for _ in range(args.runs)]
+            # the run of median time stands for each command (its memory and stage timings with it)
+            rec, diag = (sorted((r[i] for r in runs), key=lambda m: m["seconds"])[len(runs) // 2] for i in (0, 1))
             stages: dict[str, float] = {}
             for name, seconds in diag["timings"].items():
                 # 'test <effect>' keys stay as they are: each effect's share of the rounds' tests (already counted
@@ -114,6 +121,8 @@ def main():
                                    "time_ratio": diag["seconds"] / rec["seconds"], "reconstruct_mb": rec["peak_mb"],
                                    "diagnose_mb": diag["peak_mb"], "memory_ratio": diag["peak_mb"] / rec["peak_mb"],
                                    "diagnose_stages_s": stages, "machine": rows["machine"],
+                                   "runs_s": {"reconstruct": [round(r[0]["seconds"], 2) for r in runs],
+                                              "diagnose": [round(r[1]["seconds"], 2) for r in runs]},
                                    "load_average_after": round(os.getloadavg()[0], 2)}
             print(case, json.dumps(rows["cases"][case]), flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
