@@ -98,6 +98,14 @@ class Channels:
         (K', C)."""
         return self._at(kernels.PHASE, self.phase, obs, blocks)
 
+    def phase_quadratures(self, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+        """cos Φ and sin Φ at every sample, each (K, C): made on the (frame, column) grid and read per sample where Φ
+        has no term in the detector row."""
+        if any(c == kernels.PHASE for c, _ in self.rows):
+            phase = self.phase_at(obs)
+            return np.cos(phase), np.sin(phase)
+        return np.cos(self.phase)[obs.frame], np.sin(self.phase)[obs.frame]
+
     def vis_at(self, obs: Observations, blocks: np.ndarray | slice = slice(None)) -> np.ndarray:
         """V at every sample of ``blocks`` (as :meth:`phase_at`), shape (K', C)."""
         return self._at(kernels.VISIBILITY, self.vis, obs, blocks)
@@ -236,8 +244,9 @@ class Design:
     """Per-sample coefficients of the per-pixel model Ibar = t A + c Bc + s Bs + Hc e - Hs f + offset.
 
     e = (c^2 - s^2) / m, f = 2 c s / m (:func:`harmonic_factors`). All arrays have shape (K, C)
-    (``dose`` (K, 1)); ``theta`` is the fringe phase without the sample; ``Hc``, ``Hs`` are zero without
-    the harmonic. ``channels`` holds the channel values they were made from.
+    (``dose`` (K, 1)); ``theta`` is the fringe phase without the sample, ``Fc``, ``Fs`` the flat field's fringe
+    there, t^f v^f cos theta and t^f v^f sin theta; ``Hc``, ``Hs`` are zero without the harmonic. ``channels``
+    holds the channel values they were made from.
     """
 
     A: np.ndarray
@@ -247,6 +256,8 @@ class Design:
     Hs: np.ndarray
     offset: np.ndarray
     theta: np.ndarray
+    Fc: np.ndarray
+    Fs: np.ndarray
     dose: np.ndarray
     vis: np.ndarray
     harmonic: tuple[float, float]
@@ -277,14 +288,20 @@ def design_channels(obs: Observations, ch: Channels) -> Design:
                   else np.zeros(obs.counts.shape))
     hc, hs = float(ch.harmonic[0]), float(ch.harmonic[1])
     theta = obs.phif + ch.phase_at(obs)
+    # the fringe at theta by the angle sum from the flat field's quadratures (made once per observations) and Φ's
+    # (on the (frame, column) grid): no trigonometry per sample, as in the compiled kernels
+    fc, fs = obs.fringe
+    cp, sp = ch.phase_quadratures(obs)
+    Fc, Fs = fc * cp - fs * sp, fs * cp + fc * sp
     amp = dose * obs.tf
-    Bv = amp * obs.vf * vis
     Hc, Hs = np.zeros_like(theta), np.zeros_like(theta)
     if hc or hs:
+        Bv = amp * obs.vf * vis
         c2, s2 = np.cos(2 * theta), np.sin(2 * theta)
         Hc, Hs = Bv * (hc * c2 - hs * s2), Bv * (hc * s2 + hs * c2)
-    return Design(A=amp * np.ones_like(theta), Bc=Bv * np.cos(theta), Bs=-Bv * np.sin(theta), Hc=Hc, Hs=Hs,
-                  offset=background + obs.dark, theta=theta, dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
+    return Design(A=amp * np.ones_like(theta), Bc=dose * vis * Fc, Bs=-dose * vis * Fs, Hc=Hc, Hs=Hs,
+                  offset=background + obs.dark, theta=theta, Fc=Fc, Fs=Fs, dose=dose, vis=vis, harmonic=(hc, hs),
+                  channels=ch)
 
 
 def background_basis(obs: Observations) -> list[np.ndarray]:
@@ -562,11 +579,11 @@ def channel_fields(obs: Observations, dsg: Design, images: Images, cid: int, *, 
         c2, s2 = np.cos(2 * dsg.theta), np.sin(2 * dsg.theta)
         g, k = c2 * ef - s2 * ff, s2 * ef + c2 * ff
         p2, q2 = hc * g - hs * k, hc * k + hs * g
-    q = cc * np.cos(dsg.theta) - ss * np.sin(dsg.theta)
     if cid == kernels.PHASE:
         return [cc * dsg.Bs - ss * dsg.Bc - 2 * bv * q2]
     if cid == kernels.VISIBILITY:
-        return [amp * obs.vf * (q + p2)]
+        # t^f v^f D (c cos theta - s sin theta + the harmonic's part)
+        return [dsg.dose * (cc * dsg.Fc - ss * dsg.Fs) + amp * obs.vf * p2]
     if cid == kernels.DOSE:
         return [(t * dsg.A + cc * dsg.Bc + ss * dsg.Bs + (dsg.Hc * ef - dsg.Hs * ff)) / dsg.dose]
     if cid == kernels.BACKGROUND:
