@@ -12,30 +12,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-import numba
 import numpy as np
 from numpy.typing import DTypeLike
-
-from .chunks import over_chunks
 
 
 def lateral_coordinate(columns: np.ndarray, width: int) -> np.ndarray:
     """x = (2c + 1) / W - 1: -1 and +1 at the outer edges of the first and last column."""
     return (2.0 * np.asarray(columns, dtype=np.float64) + 1.0) / width - 1.0
-
-
-def quadratures(tf: np.ndarray, vf: np.ndarray, phif: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """t^f v^f cos phi^f and t^f v^f sin phi^f, each of ``tf``'s shape (K, C) and dtype, in chunks of rows on numba's
-    threads (numpy's cos and sin release the GIL; on one thread they were a tenth of a diagnosis with scatter)."""
-    fc, fs = np.empty(tf.shape, tf.dtype), np.empty(tf.shape, tf.dtype)
-
-    def rows(lo: int, hi: int) -> None:
-        amp = tf[lo:hi] * vf[lo:hi]
-        np.multiply(amp, np.cos(phif[lo:hi]), out=fc[lo:hi], casting="same_kind")
-        np.multiply(amp, np.sin(phif[lo:hi]), out=fs[lo:hi], casting="same_kind")
-
-    over_chunks(rows, np.linspace(0, tf.shape[0], 4 * numba.get_num_threads() + 1).astype(np.int64), (), (), ())
-    return fc, fs
 
 
 @dataclass(frozen=True)
@@ -232,7 +215,9 @@ class Observations:
             # a copy with a flat field of its own: a slot of its own, the others keep theirs
             slot = Quadratures()
             object.__setattr__(self, "quadratures", slot)
-        value = quadratures(self.tf, self.vf, self.phif)
+        amp = self.tf * self.vf
+        value = ((amp * np.cos(self.phif)).astype(self.tf.dtype, copy=False),
+                 (amp * np.sin(self.phif)).astype(self.tf.dtype, copy=False))
         if slot.keep:
             slot.source, slot.value = (self.tf, self.vf, self.phif), value
         return value

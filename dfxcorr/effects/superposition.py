@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 from scipy import fft as sfft
 
 
@@ -162,10 +162,10 @@ class ScatterField:
         return out
 
 
-@njit(cache=True, parallel=True, nogil=True)
+@njit(cache=True, nogil=True)
 def _bilinear(grids: np.ndarray, frame: np.ndarray, r0: np.ndarray, r1: np.ndarray, a: np.ndarray, c0: np.ndarray,
               c1: np.ndarray, c: np.ndarray, ratio: float, out: np.ndarray) -> None:
-    for k in prange(out.shape[0]):
+    for k in range(out.shape[0]):
         g0, g1, w = grids[frame[k], r0[k]], grids[frame[k], r1[k]], a[k]
         o = out[k]
         for i in range(c0.size):
