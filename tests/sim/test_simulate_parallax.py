@@ -16,16 +16,18 @@ EXACT = {"simulate.noise": False, "simulate.dtype": "float64"}
 ODD = {"simulate.height_mm": 455.0}
 KEYS = ("transmission", "dark_field", "differential_phase")
 
-# sha256 of scan.data and of the truth images, pinned before the option existed: kappa = 0 must not change a bit.
+# Pinned before the option existed: kappa = 0 must not change the scan (sha256 of scan.data: integer counts, the same
+# on every machine) nor the truth images (their sums and sums of squares, to 1e-12: the phantom's floating-point
+# functions differ in the last bit between CPUs, which a digest of the images would read as a change).
+THORAX = ((1972.9869021870993, 1683.3825080310562), (8244.418110807826, 7745.923562661953),
+          (0.0, 0.05964683841144981))
 PINNED = {
-    "thorax": ({}, "2884401680639ec4cf64e13e15eb883ff9348e3b567a89463fbd30f80c8be15f",
-               "185292cb581ec08147a4909714a5899d65852221974c9e7449ab4e98a89c6834"),
+    "thorax": ({}, "2884401680639ec4cf64e13e15eb883ff9348e3b567a89463fbd30f80c8be15f", THORAX),
     "slab": ({"simulate.phantom": "slab"}, "5492b0e58536c8adbecff83db8b7561d63bf5464a338674982fbbab6f39cb12a",
-             "896194da86a3853fe27c650b16723a7db5839042081e85a9ffa8a507f3bdbac8"),
+             ((191.4798313234711, 3.9939570592227605), (9180.0, 9180.0), (0.0, 0.0))),
     "moving heart with scatter": ({"effects.sample_motion": 0.3, "effects.heart_step_mm": 10.0,
                                    "effects.scatter": 0.1},
-                                  "903ee8f0db8ebe2880d6e6ef3b528ffa39ebfa292c9b902a6cd0801acb3da761",
-                                  "185292cb581ec08147a4909714a5899d65852221974c9e7449ab4e98a89c6834"),
+                                  "903ee8f0db8ebe2880d6e6ef3b528ffa39ebfa292c9b902a6cd0801acb3da761", THORAX),
 }
 
 
@@ -36,11 +38,12 @@ def displacement(scan, kappa: float) -> np.ndarray:
 
 
 @pytest.mark.parametrize("case", list(PINNED))
-def test_without_parallax_the_scan_and_truth_are_bit_identical(case):
-    settings, counts_digest, images_digest = PINNED[case]
+def test_without_parallax_the_scan_and_truth_are_unchanged(case):
+    settings, counts_digest, image_sums = PINNED[case]
     scan, truth = S.simulate(sim_config(**settings, **{"effects.parallax": 0.0}))
     assert hashlib.sha256(scan.data.tobytes()).hexdigest() == counts_digest
-    assert hashlib.sha256(b"".join(truth[f"image_{k}"].tobytes() for k in KEYS)).hexdigest() == images_digest
+    sums = [(truth[f"image_{k}"].sum(), (truth[f"image_{k}"] ** 2).sum()) for k in KEYS]
+    np.testing.assert_allclose(sums, image_sums, rtol=1e-12, atol=1e-12)
     assert truth["beam_path"] == 0.0
 
 
