@@ -284,8 +284,9 @@ def design_channels(obs: Observations, ch: Channels) -> Design:
     """:func:`design` from channel values (:func:`channels`) rather than effect parameters."""
     dose = ch.dose[obs.frame][:, None]
     vis = ch.vis_at(obs)
-    background = (sum(ch.background[m] * b for m, b in enumerate(background_basis(obs))) if np.any(ch.background)
-                  else np.zeros(obs.counts.shape))
+    # (K, C) temporaries only where needed: a stepping scan's design of every sample at once is 31 MB each
+    offset = (sum(ch.background[m] * b for m, b in enumerate(background_basis(obs))) + obs.dark
+              if np.any(ch.background) else obs.dark.astype(np.float64))
     hc, hs = float(ch.harmonic[0]), float(ch.harmonic[1])
     theta = obs.phif + ch.phase_at(obs)
     # the fringe at theta by the angle sum from the flat field's quadratures (made once per observations) and Φ's
@@ -294,14 +295,13 @@ def design_channels(obs: Observations, ch: Channels) -> Design:
     cp, sp = ch.phase_quadratures(obs)
     Fc, Fs = fc * cp - fs * sp, fs * cp + fc * sp
     amp = dose * obs.tf
-    Hc, Hs = np.zeros_like(theta), np.zeros_like(theta)
+    Hc = Hs = np.zeros_like(theta)  # read only
     if hc or hs:
         Bv = amp * obs.vf * vis
         c2, s2 = np.cos(2 * theta), np.sin(2 * theta)
         Hc, Hs = Bv * (hc * c2 - hs * s2), Bv * (hc * s2 + hs * c2)
-    return Design(A=amp * np.ones_like(theta), Bc=dose * vis * Fc, Bs=-dose * vis * Fs, Hc=Hc, Hs=Hs,
-                  offset=background + obs.dark, theta=theta, Fc=Fc, Fs=Fs, dose=dose, vis=vis, harmonic=(hc, hs),
-                  channels=ch)
+    return Design(A=amp, Bc=dose * vis * Fc, Bs=-dose * vis * Fs, Hc=Hc, Hs=Hs, offset=offset, theta=theta, Fc=Fc,
+                  Fs=Fs, dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
 
 
 def background_basis(obs: Observations) -> list[np.ndarray]:
