@@ -45,8 +45,9 @@ def over_chunks(rows, chunks: np.ndarray, before: tuple, after: tuple, outs: tup
 
     Parameters
     ----------
-    rows : numba dispatcher
-        Compiled with ``nogil=True``.
+    rows : callable
+        A numba dispatcher compiled with ``nogil=True``, or a function whose work releases the GIL (numpy's
+        elementwise functions on large arrays).
     chunks : ndarray of int64, shape (n + 1,)
         Row boundaries (:func:`row_chunks`).
     before, after : tuple
