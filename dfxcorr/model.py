@@ -295,7 +295,8 @@ def design_channels(obs: Observations, ch: Channels) -> Design:
     cp, sp = ch.phase_quadratures(obs)
     Fc, Fs = fc * cp - fs * sp, fs * cp + fc * sp
     amp = dose * obs.tf
-    Hc = Hs = np.zeros_like(theta)  # read only
+    Hc = Hs = np.zeros_like(theta)
+    Hc.setflags(write=False)  # one array for both
     if hc or hs:
         Bv = amp * obs.vf * vis
         c2, s2 = np.cos(2 * theta), np.sin(2 * theta)

@@ -100,6 +100,8 @@ def main():
                     help="runs of each command, alternated; the medians count (one reconstruct of a clinical scan "
                          "varied by 20 %% from run to run)")
     args = ap.parse_args()
+    if args.runs < 1:
+        ap.error("--runs must be at least 1")
     from dfxcorr.analysis.compare import machine
 
     rows = {"machine": machine(), "cases": {}}

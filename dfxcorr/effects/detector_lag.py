@@ -54,7 +54,8 @@ def lag_free(counts: np.ndarray, dark: np.ndarray, row: np.ndarray, frame: np.nd
     fraction : float
         The lag fraction a (``spec/diagnosis.md``: I_j = S_j + a S_(j-1)).
     blocks : ndarray of int, shape (K',), optional
-        Only these blocks' result (default every block): the recursion still runs through every block, holding one.
+        Only these blocks' result, in this order (default every block; repeats allowed): the recursion still runs
+        through every block, holding one.
     dtype : numpy dtype
         Of the result, and of the recursion (I - dark in it, as the result's values were).
 
@@ -65,14 +66,21 @@ def lag_free(counts: np.ndarray, dark: np.ndarray, row: np.ndarray, frame: np.nd
         light the pixel the lag-free signal of j - 1 is 0 and I_j is returned unchanged.
     """
     K = row.size
-    want = np.arange(K) if blocks is None else np.full(K, -1)
-    if blocks is not None:
-        want[blocks] = np.arange(np.size(blocks))
-    out: np.ndarray = np.empty((K if blocks is None else np.size(blocks), counts.shape[1]), dtype)
+    if blocks is None:
+        want, again = np.arange(K), None
+    else:
+        blocks = np.asarray(blocks, dtype=np.int64)
+        if blocks.size and not 0 <= blocks.min() <= blocks.max() < K:
+            raise ValueError(f"blocks outside 0..{K - 1}")
+        # each block once (the kernel writes a block's row once), then as asked
+        blocks, again = np.unique(blocks, return_inverse=True)
+        want = np.full(K, -1)
+        want[blocks] = np.arange(blocks.size)
+    out: np.ndarray = np.empty((want.size if blocks is None else blocks.size, counts.shape[1]), dtype)
     # the fraction in the result's dtype, as numpy's products of an array and a Python float are
     dark = np.asarray(dark, np.float64)
     _lag_free(counts, dark, dark.astype(dtype), row, previous_block(row, frame), out.dtype.type(fraction), want, out)
-    return out
+    return out if again is None else out[again]
 
 
 @njit(cache=True, nogil=True)

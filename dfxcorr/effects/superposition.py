@@ -13,11 +13,13 @@ import numpy as np
 from numba import njit
 from scipy import fft as sfft
 
+from .. import kernels as K
+
 
 @dataclass(frozen=True)
 class Primary:
     """The unmodulated primary t^f t of a store's samples, read where a field needs it (every lit sample of a
-    clinical scan at once is gigabytes): sample i of block ``k`` and column c is
+    clinical scan at once is gigabytes): the sample of block ``k`` in column c is
     interp(maps, u[k])[c] * t[row[k], c], ``maps`` interpolated linearly between row centres as
     :func:`dfxcorr.align.interpolate_rows` does.
 
@@ -42,6 +44,12 @@ class Primary:
         # converted once: a field reads them a frame at a time
         for name, dtype in (("maps", np.float64), ("u", np.float64), ("t", np.float64), ("row", np.int64)):
             object.__setattr__(self, name, np.ascontiguousarray(getattr(self, name), dtype=dtype))
+        # the compiled sums index without bounds checks
+        if (self.maps.ndim != 2 or self.maps.shape[0] < 1 or self.t.ndim != 2 or self.t.shape[1] != self.maps.shape[1]
+                or self.u.shape != self.row.shape or self.row.ndim != 1
+                or (self.row.size and not 0 <= self.row.min() <= self.row.max() < self.t.shape[0])):
+            raise ValueError(f"a primary needs maps (A, W), t (R, W) and u, row (K,) with rows in [0, R): got maps "
+                             f"{self.maps.shape}, t {self.t.shape}, u {self.u.shape}, row {self.row.shape}")
 
     @property
     def width(self) -> int:
@@ -94,12 +102,14 @@ def blur(a: np.ndarray, sigma: float, *, axis: int = -1) -> np.ndarray:
         apart = np.arange(n)[:, None] - np.arange(n)[None, :]
         band = np.where(np.abs(apart) <= radius, kernel[np.clip(apart + radius, 0, 2 * radius)], 0.0)
         # a stack of matrix products (tensordot moved the axis to the front, a copy of the whole array each way)
+        if a.ndim == 1:
+            return band @ a
         return np.moveaxis(band @ np.moveaxis(a, axis, -2), -2, axis)
-    # the linear convolution by real FFTs padded to the kernel's span, on every core (scipy.signal's fftconvolve
-    # on one: a binned clinical scan's field at 12.5 mm took 1.9 s, most of it there)
-    m = sfft.next_fast_len(n + 2 * radius, real=True)
-    spectrum = sfft.rfft(np.moveaxis(a, axis, -1), m, axis=-1, workers=-1) * sfft.rfft(kernel, m)
-    return np.moveaxis(sfft.irfft(spectrum, m, axis=-1, workers=-1)[..., radius:radius + n], -1, axis)
+    # the linear convolution by real FFTs padded to the kernel's span, on the kernels' threads (scipy.signal's
+    # fftconvolve on one: a binned clinical scan's field at 12.5 mm took 1.9 s, most of it there)
+    m, threads = sfft.next_fast_len(n + 2 * radius, real=True), K.set_threads()
+    spectrum = sfft.rfft(np.moveaxis(a, axis, -1), m, axis=-1, workers=threads) * sfft.rfft(kernel, m)
+    return np.moveaxis(sfft.irfft(spectrum, m, axis=-1, workers=threads)[..., radius:radius + n], -1, axis)
 
 
 @dataclass(frozen=True)
@@ -149,7 +159,8 @@ class ScatterField:
 
     def take(self, lo: int = 0, hi: int | None = None, columns: np.ndarray | None = None) -> np.ndarray:
         """The field at blocks [lo, hi) and ``columns`` (default all), shape (hi - lo, C), float32: linear
-        interpolation between block centres (held beyond the outer ones); the grid itself where b = 1."""
+        interpolation between block centres, extended linearly over the outer half blocks (:func:`_between`); the
+        grid itself where b = 1."""
         hi = self.row.size if hi is None else hi
         cols = np.arange(self.width) if columns is None else np.asarray(columns)
         c0, c1, c = _between(cols, self.grids.shape[2], self.b)
@@ -169,9 +180,9 @@ def _bilinear(grids: np.ndarray, frame: np.ndarray, r0: np.ndarray, r1: np.ndarr
         g0, g1, w = grids[frame[k], r0[k]], grids[frame[k], r1[k]], a[k]
         o = out[k]
         for i in range(c0.size):
-            below = g0[c0[i]] * (1.0 - w) + g1[c0[i]] * w
-            above = g0[c1[i]] * (1.0 - w) + g1[c1[i]] * w
-            o[i] = (below * (1.0 - c[i]) + above * c[i]) * ratio
+            below = (g0[c0[i]] * (1.0 - w) + g1[c0[i]] * w) * ratio
+            above = (g0[c1[i]] * (1.0 - w) + g1[c1[i]] * w) * ratio
+            o[i] = below * (1.0 - c[i]) + above * c[i]
 
 
 def unit_scatter(primary: Primary, row: np.ndarray, frame: np.ndarray,

@@ -45,9 +45,11 @@ def test_lag_free_is_the_recursion_over_each_pixels_frames_with_gaps():
         want[k] = s
     want += dark[row]
     np.testing.assert_array_equal(lag_free(counts, dark, row, frame, a), want)
-    # some blocks only: the same values
-    some = np.array([20, 3, 0, len(row) - 1])
+    # some blocks only, in any order and repeated: the same values
+    some = np.array([20, 3, 0, len(row) - 1, 3])
     np.testing.assert_array_equal(lag_free(counts, dark, row, frame, a, blocks=some), want[some])
+    with pytest.raises(ValueError, match="blocks outside"):
+        lag_free(counts, dark, row, frame, a, blocks=np.array([-1]))
 
 
 def test_lag_free_counts_are_the_lag_free_frames():

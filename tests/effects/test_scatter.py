@@ -183,6 +183,10 @@ def test_the_primarys_block_sums_are_the_flat_field_read_where_each_sample_sits_
     want = np.add.reduceat(want, np.arange(0, W, b), axis=1)
     np.testing.assert_allclose(out, want, rtol=1e-12)
     assert total == pytest.approx(p.sum(), rel=1e-12)
+    # the compiled sums read without bounds checks: shapes that do not fit are refused
+    for bad in (dict(t=t[:, :-1]), dict(row=row + H), dict(u=u[:-1])):
+        with pytest.raises(ValueError, match="a primary needs"):
+            SP.Primary(**{"maps": maps, "u": u, "t": t, "row": row, **bad})
 
 
 @pytest.mark.parametrize("rows, width_mm", [(30, 3.0), (30, 100.0), (450, 3.0), (450, 100.0), (151, 30.0),
@@ -284,6 +288,9 @@ def test_the_scatter_blur_is_the_gaussian_filter_with_zeros_beyond_the_edges(sig
     for axis in (0, 1):
         assert np.allclose(blur(a, sigma, axis=axis), ndimage.gaussian_filter1d(a, sigma, axis=axis, mode="constant"),
                            rtol=0, atol=1e-12)
+    for line in (a[0], a[:, 0]):  # one axis only, either way
+        assert np.allclose(blur(line, sigma), ndimage.gaussian_filter1d(line, sigma, mode="constant"), rtol=0,
+                           atol=1e-12)
 
 
 @pytest.mark.slow
