@@ -304,7 +304,9 @@ class Observations:
 
     def pixel_mask(self, image: np.ndarray) -> np.ndarray:
         """A detector image of booleans (H, W) at every sample, shape (K, C)."""
-        return image[self.row][:, self.columns]
+        # the held columns first: every sample's full detector row was a (K, W) gather (a band of 187 of 1440
+        # columns: a second of a binned clinical scan's diagnosis)
+        return image[:, self.columns][self.row]
 
     def subset(self, columns: np.ndarray, *, copy: bool = True) -> Observations:
         """The same blocks restricted to the given positions of ``self.columns``, C-ordered.

@@ -14,6 +14,7 @@ from numba import njit
 from scipy import fft as sfft
 
 from .. import kernels as K
+from ..chunks import over_chunks
 
 
 @dataclass(frozen=True)
@@ -56,32 +57,44 @@ class Primary:
         """Detector columns W."""
         return int(self.maps.shape[1])
 
-    def block_sums(self, idx: np.ndarray, at: np.ndarray, b: int, out: np.ndarray) -> float:
-        """Adds the primary of blocks ``idx`` (n,) to ``out`` (N, ceil(W / b)) at block rows ``at`` (n,), summed over
-        b x b pixels, and returns its sum (counts)."""
-        return _block_sums(self.maps, self.u, self.t, self.row, np.asarray(idx, np.int64), np.asarray(at, np.int64), b,
-                           out)
+    def frame_sums(self, detector_row: np.ndarray, order: np.ndarray, bounds: np.ndarray, origin: np.ndarray, b: int,
+                   frames: tuple[int, int], out: np.ndarray, totals: np.ndarray) -> None:
+        """Adds the primary of frames j0 <= j < j1 (``frames``) to ``out[j - j0]`` (N, ceil(W / b)), summed on b x b
+        blocks, and writes each frame's sum (counts) to ``totals[j]``.
+
+        Frame j's blocks are ``order[bounds[j]:bounds[j + 1]]``, block k at block row
+        (detector_row[k] - origin[j]) // b. In chunks of frames on the kernels' threads (each writes its own frames).
+        """
+        j0, j1 = frames
+        n = max(1, min(j1 - j0, 2 * K.set_threads()))
+        chunks = np.linspace(j0, j1, n + 1).round().astype(np.int64)
+        over_chunks(_frame_sums, chunks, (self.maps, self.u, self.t, self.row, np.asarray(detector_row, np.int64),
+                                          np.asarray(order, np.int64), np.asarray(bounds, np.int64),
+                                          np.asarray(origin, np.int64), int(b), int(j0)), (out, totals), ())
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _block_sums(maps: np.ndarray, u: np.ndarray, t: np.ndarray, row: np.ndarray, idx: np.ndarray, at: np.ndarray,
-                b: int, out: np.ndarray) -> float:
+def _frame_sums(maps: np.ndarray, u: np.ndarray, t: np.ndarray, row: np.ndarray, detector_row: np.ndarray,
+                order: np.ndarray, bounds: np.ndarray, origin: np.ndarray, b: int, j0: int, lo: int, hi: int,
+                out: np.ndarray, totals: np.ndarray) -> None:
     A, W = maps.shape
-    total = 0.0
-    for n in range(idx.size):
-        k = idx[n]
-        k0, a = 0, 0.0
-        if A > 1:
-            f = u[k] - 0.5
-            k0 = min(max(int(np.floor(f)), 0), A - 2)
-            a = f - k0
-        k1 = min(k0 + 1, A - 1)
-        lo, hi, tr, o = maps[k0], maps[k1], t[row[k]], out[at[n]]
-        for c in range(W):
-            p = ((1.0 - a) * lo[c] + a * hi[c]) * tr[c]
-            o[c // b] += p
-            total += p
-    return total
+    for j in range(lo, hi):
+        total = 0.0
+        for n in range(bounds[j], bounds[j + 1]):
+            k = order[n]
+            k0, a = 0, 0.0
+            if A > 1:
+                f = u[k] - 0.5
+                k0 = min(max(int(np.floor(f)), 0), A - 2)
+                a = f - k0
+            k1 = min(k0 + 1, A - 1)
+            below, above, tr = maps[k0], maps[k1], t[row[k]]
+            o = out[j - j0, (detector_row[k] - origin[j]) // b]
+            for c in range(W):
+                p = ((1.0 - a) * below[c] + a * above[c]) * tr[c]
+                o[c // b] += p
+                total += p
+        totals[j] = total
 
 
 def blur(a: np.ndarray, sigma: float, *, axis: int = -1) -> np.ndarray:
@@ -234,12 +247,12 @@ def unit_scatter(primary: Primary, row: np.ndarray, frame: np.ndarray,
         j1 = min(j0 + step, J)
         padded = np.zeros((j1 - j0, *stack.shape[1:]))
         counts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        primary.frame_sums(row, order, bounds, origin, b, (j0, j1), padded, primary_total)
         for j in range(j0, j1):
             idx = order[bounds[j]:bounds[j + 1]]
             if idx.size == 0:
                 continue
             at = (row[idx] - origin[j]) // b
-            primary_total[j] = primary.block_sums(idx, at, b, padded[j - j0])
             # within a frame the rows ascend: each block row's samples are one run
             first = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
             counts[j] = (at[first], np.diff(np.r_[first, at.size]))

@@ -168,21 +168,25 @@ def dense(primary):
 def test_the_primarys_block_sums_are_the_flat_field_read_where_each_sample_sits_times_t(b):
     # the compiled sums against the alignment's own interpolation of the flat field, summed on blocks by numpy
     rng = np.random.default_rng(b)
-    A, H, W, n = 40, 60, 23, 50
+    A, H, W, n, J = 40, 60, 23, 50, 6
     maps, t = rng.uniform(0.5, 1.5, (A, W)), rng.uniform(0.1, 1.0, (H, W))
     u = np.concatenate([[0.1, A - 0.1], rng.uniform(0, A, n - 2)])  # the outer half rows extrapolated
-    row = rng.integers(0, H, n)
-    idx = rng.permutation(n)[:35]
-    at = rng.integers(0, 9, idx.size)
+    row, detector_row = rng.integers(0, H, n), rng.integers(0, 30, n)
+    frame = rng.integers(0, J, n)
+    frame[frame == 2] = 3  # a frame without samples
+    order = np.argsort(frame, kind="stable")
+    bounds = np.searchsorted(frame[order], np.arange(J + 1))
+    origin = np.array([detector_row[frame == j].min(initial=0) for j in range(J)])
     P = SP.Primary(maps, u, t, row)
-    out = np.zeros((9, -(-W // b)))
-    total = P.block_sums(idx, at, b, out)
-    p = interpolate_rows(maps, u[idx]) * t[row[idx]]
-    want = np.zeros((9, W))
-    np.add.at(want, at, p)
-    want = np.add.reduceat(want, np.arange(0, W, b), axis=1)
-    np.testing.assert_allclose(out, want, rtol=1e-12)
-    assert total == pytest.approx(p.sum(), rel=1e-12)
+    out, totals = np.zeros((J - 1, 30 // b + 1, -(-W // b))), np.full(J, np.nan)
+    P.frame_sums(detector_row, order, bounds, origin, b, (1, J), out, totals)
+    p = interpolate_rows(maps, u) * t[row]
+    for j in range(1, J):
+        want = np.zeros((out.shape[1], W))
+        np.add.at(want, (detector_row[frame == j] - origin[j]) // b, p[frame == j])
+        np.testing.assert_allclose(out[j - 1], np.add.reduceat(want, np.arange(0, W, b), axis=1), rtol=1e-12)
+        assert totals[j] == pytest.approx(p[frame == j].sum(), rel=1e-12, abs=1e-300)
+    assert np.isnan(totals[0])  # outside the frames asked for
     # the compiled sums read without bounds checks: shapes that do not fit are refused
     for bad in (dict(t=t[:, :-1]), dict(row=row + H), dict(u=u[:-1])):
         with pytest.raises(ValueError, match="a primary needs"):
