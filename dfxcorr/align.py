@@ -468,8 +468,13 @@ def realign(store: LitStore, reference: Reference, like: Observations, shift: np
         return replace(like, dark=dark, offset=offset)
     obs = moved.observations(reference, columns=like.columns, rows=rows, gain=like.gain, electronic=like.electronic,
                              dtype=like.counts.dtype)
-    return replace(obs, noise=like.noise, vf=np.where(like.in_roi, obs.vf, 0).astype(obs.vf.dtype, copy=False),
-                   use=like.use, roi=like.roi)
+
+    def own(a: np.ndarray | None) -> np.ndarray | None:
+        # ``like`` may be a view of a run of columns (Observations.subset(copy=False)): the kernels read C order
+        return None if a is None else np.ascontiguousarray(a)
+
+    return replace(obs, noise=own(like.noise), vf=np.where(like.in_roi, obs.vf, 0).astype(obs.vf.dtype, copy=False),
+                   use=np.ascontiguousarray(like.use), roi=own(like.roi))
 
 
 def build_observations(scan: Scan, reference: Reference, *, min_frames: int = 3, dtype: DTypeLike = np.float64

@@ -57,8 +57,9 @@ def _realigned_images(realigned: Realign, obs: Observations, params: dict[str, A
     """The images of the samples of ``obs`` with the flat field read ``shift`` rows off the prepared alignment, and
     their reduced chi-square, solved a run of columns at a time (a clinical scan's realigned samples at once would be
     most of its diagnosis's peak memory)."""
-    parts = [retrieve(realigned(obs.subset(c), shift), params, keep_inverse=keep_inverse, keep_expected=False)
-             for c in obs.column_chunks()]
+    # views of each run of columns: the realignment reads their samples anew and keeps only their masks
+    parts = [retrieve(realigned(obs.subset(c, copy=False), shift), params, keep_inverse=keep_inverse,
+                      keep_expected=False) for c in obs.column_chunks()]
     inverse = np.concatenate([p.images.inverse for p in parts], axis=1) if keep_inverse else None
     images = M.Images(np.concatenate([p.images.coef for p in parts], axis=1),
                       np.concatenate([p.images.valid for p in parts], axis=1), inverse)
