@@ -230,9 +230,15 @@ How the decisions are made, and what the study's other cases show:
 
 COST = """\
 Each command in a process of its own (its own peak resident memory, VmHWM), warm numba cache, the cases one
-after another (the load average after each in the table); diagnose against reconstruct of the same scan. Where
-the time goes, from each case's `test <effect>` and `trial fits` timings (summed over the diagnosis's rounds) and
-the replication of its findings on halves of the detector: the largest shares below.
+after another (the load average after each in the table); diagnose against reconstruct of the same scan, each run
+three times alternated, the run of median time counting. Where the time goes, from each case's `test <effect>`
+and `trial fits` timings (summed over the diagnosis's rounds) and the replication of its findings on halves of
+the detector: the largest shares below.
+
+The stepping case is far above 5x because its reconstruction is a closed-form retrieval with no vibration fit
+(under a second): the diagnosis tests every catalogue effect in each round (four rounds there, three effects
+added), and every test reads every sample at least once, so a round's tests alone take longer than the
+reconstruction.
 
 On a scan larger than `diagnose.max_held_samples` the per-pixel tests (sample motion, pixel noise, reference
 offset, the residual maps) see a band of contiguous columns in the middle of the detector, while the fit and the
