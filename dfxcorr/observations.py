@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-import numba
 import numpy as np
 from numpy.typing import DTypeLike
 
@@ -29,9 +28,9 @@ def quadratures(tf: np.ndarray, vf: np.ndarray, phif: np.ndarray) -> tuple[np.nd
     """t^f v^f cos phi^f and t^f v^f sin phi^f, each of ``tf``'s shape (K, C) and dtype, in chunks of rows on the
     kernels' threads (numpy's cos and sin release the GIL; on one thread they were 40 % of a scatter correction's
     retrieval on a binned clinical scan)."""
-    # the kernels' thread count and threading layer first: numba's default layer (OpenMP), started by asking for
-    # the thread count, kills a process that forks later
-    K.set_threads()
+    # the kernels' thread count and threading layer (set_threads): numba's default layer (OpenMP), started by asking
+    # numba for its thread count first, kills a process that forks later
+    threads = K.set_threads()
     fc, fs = np.empty(tf.shape, tf.dtype), np.empty(tf.shape, tf.dtype)
 
     def rows(lo: int, hi: int) -> None:
@@ -39,7 +38,7 @@ def quadratures(tf: np.ndarray, vf: np.ndarray, phif: np.ndarray) -> tuple[np.nd
         np.multiply(amp, np.cos(phif[lo:hi]), out=fc[lo:hi], casting="same_kind")
         np.multiply(amp, np.sin(phif[lo:hi]), out=fs[lo:hi], casting="same_kind")
 
-    over_chunks(rows, np.linspace(0, tf.shape[0], 4 * numba.get_num_threads() + 1).astype(np.int64), (), (), ())
+    over_chunks(rows, np.linspace(0, tf.shape[0], 4 * threads + 1).astype(np.int64), (), (), ())
     return fc, fs
 
 
