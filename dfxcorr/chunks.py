@@ -1,15 +1,26 @@
 """Chunks of detector rows for the compiled loops, running a loop over them in threads, and counting flags per pixel.
 
 A compiled loop over pixels works a chunk of rows at a time, each chunk with its own accumulators (summed
-afterwards), so no two threads write the same memory (:mod:`dfxcorr.kernels`).
+afterwards), so no two threads write the same memory (:mod:`dfxcorr.kernels`). Every module with compiled loops
+imports this one, which sets how LLVM vectorises them (:data:`MEMORY_CHECKS`) before any of them compiles.
 """
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 
+import llvmlite.binding as llvm
 import numba
 import numpy as np
 from numba import njit, prange
+
+#: Pairs of arrays LLVM may compare at run time to prove that a loop's stores do not overlap its loads. numba cannot
+#: tell the compiler that two arrays are distinct, so a loop over a tile's columns that updates ten accumulators
+#: while reading nine sample and channel rows needs more pairs than LLVM's default (8, 128 under a pragma) and stayed
+#: scalar ("too many memory checks needed"). The checks run once per loop, not per column; the vectorised loop
+#: computes each column exactly as the scalar one (no reassociation), so results are unchanged.
+MEMORY_CHECKS = 1000
+llvm.set_option("dfxcorr", f"-runtime-memory-check-threshold={MEMORY_CHECKS}")
+llvm.set_option("dfxcorr", f"-vectorize-memory-check-threshold={MEMORY_CHECKS}")
 
 
 def row_chunks(starts: np.ndarray, n_blocks: int, *, per_thread: int = 4) -> np.ndarray:

@@ -17,9 +17,8 @@ Layout: a pixel is (row, column); its samples are the blocks ``starts[r]:starts[
 (:class:`dfxcorr.observations.Observations`). The kernels run over chunks of rows in parallel (the cost and the Fisher
 information as compiled functions of one chunk in threads, :func:`over_chunks`, which compile in about half the time of
 numba's parallel loop; the retrieval in that loop); every chunk owns its accumulators (summed afterwards), so no two
-threads write the same memory. Within a row the columns are handled in tiles
-(:data:`TILE`, :data:`FIT_TILE`) so that the second pass over a tile finds what the first left in cache. Sums are
-accumulated in float64 whatever the sample dtype.
+threads write the same memory. Within a row the columns are handled in tiles (:data:`TILE`) so that the second pass
+over a tile finds what the first left in cache. Sums are accumulated in float64 whatever the sample dtype.
 """
 from __future__ import annotations
 
@@ -37,13 +36,10 @@ from .chunks import over_chunks, row_chunks
 PHASE, VISIBILITY, DOSE, BACKGROUND, HARMONIC = range(5)
 CHANNEL_IDS = {"phase": PHASE, "visibility": VISIBILITY, "dose": DOSE, "background": BACKGROUND, "harmonic": HARMONIC}
 
-#: Columns per tile of the retrieval (at most, in equal tiles): a tile's design arrays of one row (about 30 blocks at
-#: clinical scale) stay in the L2 cache, and each loop over a tile's columns is long enough to repay its set-up
-#: (64 -> 512 columns: 16.5 -> 11 ns CPU per sample of a two-solve retrieval, 30 blocks per row)
+#: Columns per tile (at most, in equal tiles) of the retrieval and the fit's cost: a tile's design arrays of one row
+#: (about 30 blocks at clinical scale) stay in the L2 cache, and each loop over a tile's columns repays its set-up
+#: (retrieval 64 -> 512 columns: 16.5 -> 11 ns CPU per sample; the cost's 256 -> 512 on the paper study: 7.0 -> 5.3)
 TILE = 512
-#: Columns per tile of the fit's cost, which keeps only a few numbers per column between its passes: wider tiles mean
-#: fewer passes over a row's blocks (cost+gradient 18.0 -> 15.5 ns CPU per sample on the paper study at every column)
-FIT_TILE = 512
 
 #: Gauss-Newton steps of the per-pixel solve after the first (harmonic-free) one when the second harmonic is in the
 #: model (its term is not linear in the images; tests/test_model.py holds these steps to a converged solve).
@@ -183,8 +179,8 @@ def _normal(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used):
     coefficients (3) and the inverse normal matrix's entries i00, i01, i02, i11, i12, i22 (zeros where invalid).
 
     A column with zero diagonal is not an unknown; valid needs the first column, as many used samples as unknowns and
-    |det| > 1e-10 of the unit-diagonal matrix. Called, not inlined: once per pixel, not per sample (inlined at its
-    call sites the retrieval compiled in 39 s, not 25, and ran no faster).
+    |det| > 1e-10 of the unit-diagonal matrix. Called where it runs once per pixel outside the hot loops;
+    :data:`_normal_inlined` where a loop over a tile's columns solves every pixel of the tile.
     """
     p0, p1, p2 = n00 > 0, n11 > 0, n22 > 0
     s0 = np.sqrt(n00) if p0 else 1.0
@@ -211,6 +207,11 @@ def _normal(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used):
     z = 0.0
     return (valid, x0 if valid else z, x1 if valid else z, x2 if valid else z, i00 if valid else z,
             i01 if valid else z, i02 if valid else z, i11 if valid else z, i12 if valid else z, i22 if valid else z)
+
+
+#: :func:`_normal` inlined: the loop over a tile's columns that calls it is vectorised (the called solve took 1.9 of
+#: 6.9 CPU ns per sample of a cost evaluation on the paper study, 0.2 inlined; retrieval 10.8 -> 8.3, compile +3 s)
+_normal_inlined = njit(inline="always")(_normal.py_func)
 
 
 # The fit: reduced cost and its gradient (or the Gauss-Newton diagonal) in one pass per pixel
@@ -295,8 +296,8 @@ def _cost_rows(counts, tf, fc, fs, dark, w, frame, y, x, bounds, first, last, co
                             _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, np.float64(wk[i]), a,
                                  m00 * bc + m01 * bs, m10 * bc + m11 * bs, cnt[i] - dk[i] - off - b1 * xs[i])
                 for i in range(T):
-                    _, ct[i], x1, x2, _, _, _, _, _, _ = _normal(n00[i], n01[i], n02[i], n11[i], n12[i], n22[i], r0[i],
-                                                                 r1[i], r2[i], used[i])
+                    _, ct[i], x1, x2, _, _, _, _, _, _ = _normal_inlined(n00[i], n01[i], n02[i], n11[i], n12[i],
+                                                                         n22[i], r0[i], r1[i], r2[i], used[i])
                     # back from the solved columns (x1, x2) to (t, c, s)
                     cc[i] = m00 * x1 + m10 * x2
                     cs[i] = m01 * x1 + m11 * x2
@@ -383,7 +384,7 @@ def reduced_cost(obs, ch, weights: np.ndarray, *, phase: float | None = None, sq
     over_chunks(_cost_rows, chunks, (_c(obs.counts), _c(obs.tf), fc, fs, _c(obs.dark), weights, obs.frame, obs.y, obs.x,
                                      bounds),
                 (*_turning(obs, ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, hold, square,
-                 need, FIT_TILE), out)
+                 need, TILE), out)
     cost, g_phase, g_vis, g_dose, g_bg, g_harm = (a.sum(axis=0) for a in out)
     return float(cost.sum()), (g_phase, g_vis, g_dose.sum(axis=1), g_bg.sum(axis=1), g_harm.sum(axis=1))
 
@@ -490,7 +491,7 @@ def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, 
                                     _add(n00, n01, n02, n11, n12, n22, r0, r1, r2, used, i, wb[i], ab[i], bc, bs,
                                          cnt[i] - ob[i])
                         for i in range(T):
-                            ok[i], ct[i], cc[i], cs[i], _, _, _, _, _, _ = _normal(
+                            ok[i], ct[i], cc[i], cs[i], _, _, _, _, _, _ = _normal_inlined(
                                 n00[i], n01[i], n02[i], n11[i], n12[i], n22[i], r0[i], r1[i], r2[i], used[i])
                             du[i], dw[i], de[i], df[i] = _direction(cc[i], cs[i])
                 for i in range(T):
@@ -725,8 +726,7 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray |
     Returns
     -------
     plain : ndarray, shape (P, P)
-        sum w F F^T over samples, P = J * (per-frame components) + (global components), per-frame
-        entries ordered (frame, component).
+        sum w F F^T over samples, P = J * (per-frame components) + (global components), ordered (frame, component).
     correction : ndarray, shape (P, P)
         sum over pixels of Y^T N^-1 Y (Y = X^T W F): the profiled information is plain - correction.
     """
