@@ -214,7 +214,7 @@ def profiled_correction(obs: Observations, columns: list[np.ndarray], weights: n
     sum over columns of Y^T N^-1 Y, Y = X^T W F. Where the samples read between rows a pixel's images share samples
     with its neighbours', so N is the column's block-tridiagonal normal matrix (:func:`factor_read_between`; block
     diagonal where each sample reads its own row), solved :data:`CORRECTION_COLUMNS` columns at a time. The compiled
-    :func:`dfxcorr.kernels.fisher` computes the same where every sample reads its own row and every component is a
+    :func:`dfxcorr.fisher_pixels.fisher` computes the same where every sample reads its own row and every component is a
     power of x.
 
     Parameters

@@ -18,6 +18,7 @@ import numpy as np
 from scipy import sparse
 
 from . import fisher_between as FB
+from . import fisher_pixels as FP
 from . import kernels as K
 from . import kernels_between as KB
 from . import model as M
@@ -120,7 +121,7 @@ def model_reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, *
 def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray | None,
            names: Sequence[str], *, profiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Fisher information of the parameters of ``names`` and its profiled correction, in
-    :func:`dfxcorr.model.fisher_index`'s order: :func:`dfxcorr.kernels.fisher`'s values.
+    :func:`dfxcorr.model.fisher_index`'s order: :func:`dfxcorr.fisher_pixels.fisher`'s values.
 
     Where ``obs.reading`` is set, :func:`dfxcorr.fisher_between.fisher` (``inverse`` is not read); beyond the kernels
     (see :func:`compiled`), :func:`dfxcorr.model.fisher_parts`.
@@ -133,4 +134,4 @@ def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndar
     table = M.component_table(names)[:3]
     if obs.reading is not None:
         return FB.fisher(obs, ch, weights, coef, table, profiled=profiled)
-    return K.fisher(obs, ch, weights, coef, inverse, table, profiled=profiled)
+    return FP.fisher(obs, ch, weights, coef, inverse, table, profiled=profiled)

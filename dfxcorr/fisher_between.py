@@ -177,7 +177,7 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
 def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, table: tuple, *, profiled: bool = True
            ) -> tuple[np.ndarray, np.ndarray]:
     """Fisher information of channel components and its correction for the profiled images where the samples read
-    between rows: :func:`dfxcorr.kernels.fisher`'s values, the correction over whole columns (a pixel's images
+    between rows: :func:`dfxcorr.fisher_pixels.fisher`'s values, the correction over whole columns (a pixel's images
     share samples with its neighbours', :func:`dfxcorr.banded.profiled_correction`).
 
     Parameters

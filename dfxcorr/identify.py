@@ -86,7 +86,7 @@ class Information:
 def information(obs: Observations, ch: M.Channels, images: M.Images, weights: np.ndarray, names) -> Information:
     """Fisher information of ``names`` at the given channel values and images (``images.inverse`` needed).
 
-    From the compiled kernel (:func:`dfxcorr.kernels.fisher`, held to :func:`dfxcorr.model.fisher_matrix`
+    From the compiled kernel (:func:`dfxcorr.fisher_pixels.fisher`, held to :func:`dfxcorr.model.fisher_matrix`
     by the tests): the plain information and the profiled correction in one pass.
     """
     K.set_threads()

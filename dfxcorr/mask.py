@@ -117,7 +117,7 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
 
     Gauss-Newton steps (at most ``iterations``, until the rms step is below ``tol``) on every
     ``every``-th held column with the images profiled out (the profiled Fisher information of
-    :func:`dfxcorr.kernels.fisher`; its gauge directions get the minimum-norm step). Pixels whose
+    :func:`dfxcorr.fisher_pixels.fisher`; its gauge directions get the minimum-norm step). Pixels whose
     mean squared residual exceeds 4 times the median pixel's are left out of each step so that a
     moving region does not steer its frames (relative to the median: early on, the vibrations
     themselves are far beyond photon noise); whole pixels, not samples, so that no frame

@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import kernels
+from . import fisher_pixels, kernels
 from .banded import profiled_correction, solve_read_between
 from .catalogue import effect
 from .observations import Observations
@@ -680,7 +680,7 @@ def fisher_parts(obs: Observations, dsg: Design, images: Images, weights: np.nda
     the derivatives of the pixel's samples with respect to the effect parameters and X_i its image
     design. Per-frame parameters of different frames are coupled through the pixels they share.
     The information at known images is computed here; the correction for the profiled images by
-    :func:`dfxcorr.kernels.fisher` (a loop over pixels), or where the samples read between rows or a component
+    :func:`dfxcorr.fisher_pixels.fisher` (a loop over pixels), or where the samples read between rows or a component
     holds a power of y by :func:`dfxcorr.banded.profiled_correction` (a solve per column).
 
     Parameters
@@ -735,5 +735,5 @@ def fisher_parts(obs: Observations, dsg: Design, images: Images, weights: np.nda
         X = [dsg.A, *image_columns(dsg, at[..., 1], at[..., 2])]
         return info, profiled_correction(obs, X, weights, F, where, J * Pf + Pg), index
     kernels.set_threads()
-    _, corr = kernels.fisher(obs, dsg.channels, weights, images.coef, images.inverse, component_table(names)[:3])
+    _, corr = fisher_pixels.fisher(obs, dsg.channels, weights, images.coef, images.inverse, component_table(names)[:3])
     return info, corr, index

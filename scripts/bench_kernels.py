@@ -151,7 +151,7 @@ def fit_times(scan) -> dict:
 COMPILE_PROBE = """
 import time, numpy as np
 t0 = time.perf_counter()
-from dfxcorr import kernels as K, model as M
+from dfxcorr import fisher_pixels as FP, kernels as K, model as M
 from dfxcorr.catalogue import PAPER_MODEL
 from dfxcorr.noise import noise_weights
 from dfxcorr.observations import Observations
@@ -166,7 +166,7 @@ ch = M.channels({}, x=obs.x, n_frames=4)
 w = noise_weights(obs, obs.counts)
 K.reduced_cost(obs, ch, np.asarray(w, np.float32))
 r = K.retrieve(obs, ch, weights=w, keep_inverse=True)
-K.fisher(obs, ch, w, r["coef"], r["inverse"], M.component_table(PAPER_MODEL)[:3])
+FP.fisher(obs, ch, w, r["coef"], r["inverse"], M.component_table(PAPER_MODEL)[:3])
 print(time.perf_counter() - t0)
 """
 

@@ -4,6 +4,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from dfxcorr import fisher_pixels as FP
 from dfxcorr import kernels as K
 from dfxcorr import model as M
 from dfxcorr.catalogue import PAPER_MODEL, effect
@@ -149,7 +150,7 @@ def test_fisher_information_matches_the_model(rng, names):
     w = noise_weights(obs, obs.counts)
     dsg = M.design(obs, params)
     images = M.solve_images(obs, dsg, w, keep_inverse=True)
-    plain, corr = K.fisher(obs, dsg.channels, w, images.coef, images.inverse, M.component_table(names)[:3])
+    plain, corr = FP.fisher(obs, dsg.channels, w, images.coef, images.inverse, M.component_table(names)[:3])
     close(plain, M.fisher_matrix(obs, dsg, images, w, names, profiled=False)[0])
     close(corr, correction_oracle(obs, dsg, images, w, names))
 
