@@ -161,14 +161,17 @@ SCHEMA: dict[str, dict[str, Option]] = {
     "fit": {
         "method": Option("ml", "vibration estimator: ml (this paper), alternating, correlation, none", str,
                          choices=METHODS),
-        "subsample": Option("auto", "fit on every n-th detector column (paper Sec. II-D.1); auto: the fewest "
-                                    "columns predicted (from a pilot's Fisher information) to reach "
-                                    "fit.target_uncertainty, or the most within fit.time_budget (never beyond "
-                                    "fit.max_samples nor the alias limit W / 4)", (int, str),
+        "subsample": Option("auto", "fit on every n-th detector column (paper Sec. II-D.1); auto: the most "
+                                    "columns fit.max_samples holds, or the fewest predicted (from a pilot's Fisher "
+                                    "information) to reach fit.target_uncertainty, or the most within "
+                                    "fit.time_budget (never beyond fit.max_samples nor the alias limit W / 4)",
+                            (int, str),
                             check=lambda v: None if v == "auto" or (not isinstance(v, str) and 0 < v <= 10 ** 6)
                             else "must be auto or an integer in [1, 1e6]"),
-        "target_uncertainty": Option(0.0025, "subsample auto: predicted median one-sigma uncertainty of phi0 and "
-                                              "phi1 (rad) to reach", _NUM, check=_within(1e-9, 10)),
+        "target_uncertainty": Option(None, "subsample auto: predicted median one-sigma uncertainty of phi0 and "
+                                            "phi1 (rad) to reach, the fit ending there; null: the Cramer-Rao level "
+                                            "of the scan, every column fit.max_samples holds", _NUM,
+                                     check=_within(1e-9, 10), nullable=True),
         "time_budget": Option(None, "subsample auto: instead of fit.target_uncertainty, the most columns whose "
                                     "fit is predicted to take at most this many seconds", _NUM,
                               check=_within(1e-3, 1e7),

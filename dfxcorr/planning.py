@@ -149,9 +149,9 @@ def row_blocks(store: LitStore, budget_mb: float) -> list[tuple[int, int]]:
 #: Fisher information costs a fraction of a second even at full resolution.
 PILOT_COLUMNS = 16
 #: Wall seconds of the vibration fit per sample it holds, all stages and the uncertainty included (the predicted
-#: time): 1.7 us on the paper study at every column, 2.2 on a binned and 3.2 on a full-resolution clinical scan
-#: (the Hessians' share grows with the rows), on the 2-core machine under load 1.5-2.5.
-FIT_SECONDS_PER_SAMPLE = 2.5e-6
+#: time): 1.5 us on the paper study at 39 columns, idle 2-core machine with the vectorised kernels (was 2.5 on an
+#: older machine under load 1.5-2.5).
+FIT_SECONDS_PER_SAMPLE = 1.7e-6
 #: Samples of the motion mask's pilot vibration estimate (its columns need not be the fit's).
 MASK_PILOT_SAMPLES = 2_000_000
 #: Samples of the coarse first pass of a fit of more columns (``fit.coarse: auto``; at least
@@ -159,9 +159,9 @@ MASK_PILOT_SAMPLES = 2_000_000
 COARSE_SAMPLES = 1_000_000
 COARSE_MIN_COLUMNS = 16
 #: Wall seconds per sample of the fit's last stages on all its columns after a coarse pass (the predicted time
-#: adds :data:`FIT_SECONDS_PER_SAMPLE` per sample of the coarse pass): 0.53 us on the paper study at every column
-#: with both cores free (fit 5.7 s, its coarse pass on every 7th column about 2 s).
-POLISH_SECONDS_PER_SAMPLE = 0.5e-6
+#: adds :data:`FIT_SECONDS_PER_SAMPLE` per sample of the coarse pass): 0.17 us on the paper study at every column,
+#: 0.23 and 0.26 on the binned and full-resolution clinical scans at fit.max_samples (fits 2.7, 3.0, 3.9 s; idle).
+POLISH_SECONDS_PER_SAMPLE = 0.25e-6
 #: Wall seconds of a reconstruction's other stages (alignment, motion mask, retrieval of every pixel) per lit sample
 #: of the scan: what ``fit.time_floor`` leaves to the fit (0.076 us on the binned and 0.077 on the full-resolution
 #: clinical scan, 0.11 on the paper study; docs/benchmark.json, load 3.4-4.1).
@@ -270,14 +270,15 @@ def pilot_estimate(prep: Prepared) -> dict:
 
 
 def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report: bool = True) -> ColumnPlan:
-    """Columns entering the vibration fit: ``fit.subsample``, or for ``auto`` those a target precision needs, with the
-    uncertainty and time predicted for them.
+    """Columns entering the vibration fit: ``fit.subsample``, or for ``auto`` the most the fit may hold or those a
+    target precision needs, with the uncertainty and time predicted for them.
 
     The uncertainty is predicted from a pilot: the profiled Fisher information of :data:`PILOT_COLUMNS`
     evenly spread columns at the vibrations ``pilot`` (default :func:`pilot_estimate`) by
     :func:`dfxcorr.fit.pilot_uncertainty`; columns add information independently, so n columns give
-    sigma_pilot sqrt(pilot columns / n). It takes the fewest evenly spaced columns predicted to reach
-    ``fit.target_uncertainty``, or more where the whole run is predicted to take at most ``fit.time_floor``
+    sigma_pilot sqrt(pilot columns / n). Without ``fit.target_uncertainty`` (the default) it takes the most evenly
+    spaced columns ``fit.max_samples`` holds (the scan's Cramer-Rao level where they are all of them); with one, the
+    fewest predicted to reach it, or more where the whole run is predicted to take at most ``fit.time_floor``
     seconds with them if one is set (the fit's :func:`fit_seconds` and the other stages'
     :data:`REST_SECONDS_PER_SAMPLE` per sample of the scan), or with ``fit.time_budget`` the most predicted to fit
     in that time (:func:`fit_seconds`); never more than
@@ -300,6 +301,8 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
         if f["time_budget"] is not None:
             n = max(within_seconds(cfg, W, per_column, f["time_budget"]), cap)
             why = f"the most columns within fit.time_budget={f['time_budget']:g} s"
+        elif f["target_uncertainty"] is None:
+            n, why = cap, "the most columns the fit holds (fit.target_uncertainty=null)"
         else:
             need = size * (sigma / f["target_uncertainty"]) ** 2
             # the widest spacing whose columns reach that many: from the offset, fewer than W / n of them
