@@ -596,6 +596,9 @@ def parallax_section(par: dict) -> list[str]:
                      f"{d['reduced_chi2'][0]:.3f} -> {d['reduced_chi2'][1]:.3f}", ", ".join(d["unexplained"]) or "-",
                      cell(r["defaults"]), cell(r["recommended"]), cell(r["twin"])])
     floor = ", ".join(f"{k} row: {v:.2f}" for k, v in par["interpolation_z2"].items())
+    if "interpolation_z2_cubic" in par:
+        floor += " (linear, the model's); with cubic convolution between four rows " + ", ".join(
+            f"{k} row: {v:.2f}" for k, v in par["interpolation_z2_cubic"].items())
     scale = [f"Displacements of up to 0.3 rows as the interpolation between rows predicts them, against the exact "
              f"pixels: x{par['interpolation_scale']['linear']:.3f} (linear, the model's: a kappa whose displacements "
              f"stay within a fraction of a row is found about that factor low), "

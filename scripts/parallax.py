@@ -11,7 +11,8 @@ against the truth, and the seconds it took, are recorded.
 The floor: images on the pixel grid describe what a pixel sees between two rows by interpolating their images.
 The record gives, for displacements of a tenth and three tenths of a row, the mean squared difference between the
 phantom evaluated displaced and that interpolation, in photon-noise units at the scan's flux, over the rows where
-the phantom is (``interpolation_z2``): what no model on the pixel grid removes; and the factor by which the
+the phantom is (``interpolation_z2``; with cubic convolution between four rows ``interpolation_z2_cubic``): what
+no model on the pixel grid removes; and the factor by which the
 interpolation's change of the pixels under a displacement stands to the exact change (``interpolation_scale``, for
 linear interpolation, the model's, and for cubic convolution): a kappa whose displacements stay within a fraction
 of a row is found about that factor times the true one (whole rows of displacement the interpolation reads
@@ -79,13 +80,14 @@ def _cubic_convolution(x: np.ndarray) -> np.ndarray:
                     np.where(x < 2, -0.5 * x ** 3 + 2.5 * x ** 2 - 4 * x + 2, 0.0))
 
 
-def interpolation_floor(cfg: dict, shape: tuple[int, int]) -> tuple[dict[str, float], dict[str, float]]:
+def interpolation_floor(cfg: dict, shape: tuple[int, int]) -> tuple[dict[str, dict[str, float]], dict[str, float]]:
     """What images on the pixel grid miss of a displaced phantom (its transmission), from its exact evaluation.
 
     Returns
     -------
     z2 : dict
-        Mean squared (exact displaced - linearly interpolated) in photon-noise units, per displacement (0.1, 0.3).
+        Mean squared (exact displaced - interpolated) in photon-noise units, per displacement (0.1, 0.3), for linear
+        interpolation (the model's) and for cubic convolution.
     scale : dict
         The least-squares factor between the exact change of the pixels and the change the interpolation predicts,
         over displacements of -0.3 to 0.3 rows, for linear interpolation (the model's) and for cubic convolution: a
@@ -97,12 +99,14 @@ def interpolation_floor(cfg: dict, shape: tuple[int, int]) -> tuple[dict[str, fl
     kw = {"shape": (H, W), "pixel_mm": s["pixel_mm"], "magnification": s["magnification"],
           "supersample": s["supersample"]}
     still = phantom.thorax(**kw)["transmission"]
-    z2 = {}
+    z2: dict[str, dict[str, float]] = {"linear": {}, "cubic convolution": {}}
     for d in (0.1, 0.3):
         seen = phantom.thorax(rows=rows, shift=d, **kw)["transmission"]
-        between = (1 - d) * still[rows] + d * still[rows + 1]
+        between = {"linear": (1 - d) * still[rows] + d * still[rows + 1],
+                   "cubic convolution": sum(_cubic_convolution(d - m) * still[rows + m] for m in (-1, 0, 1, 2))}
         inside = seen > 0.05
-        z2[f"{d:g}"] = float(np.mean(((seen - between) ** 2 / (seen / s["flux"]))[inside]))
+        for name, x in between.items():
+            z2[name][f"{d:g}"] = float(np.mean(((seen - x) ** 2 / (seen / s["flux"]))[inside]))
     sums = {"linear": [0.0, 0.0], "cubic convolution": [0.0, 0.0]}
     for d in np.linspace(-0.3, 0.3, 13):
         if d == 0:
@@ -149,7 +153,8 @@ def main() -> None:
     z2, scale = interpolation_floor(sim_config(args.pixel_mm), (H, W))
     record = {"machine": machine(), "load_average_after": os.getloadavg()[0], "pixel_mm": args.pixel_mm,
               "flux": sim_config(args.pixel_mm)["simulate"]["flux"],
-              "interpolation_z2": z2, "interpolation_scale": scale, "runs": rows}
+              "interpolation_z2": z2["linear"], "interpolation_z2_cubic": z2["cubic convolution"],
+              "interpolation_scale": scale, "runs": rows}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "parallax.json").write_text(json.dumps(record, indent=2) + "\n")
 
