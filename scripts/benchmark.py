@@ -16,7 +16,8 @@ Target ``clinical`` simulates (once, into ``--dir``; never into the repository) 
 full resolution (configs/clinical.yaml: 195 frames of 2880 x 2880 uint16, 3.2 GB) and binned
 (configs/clinical-binned.yaml: 1440 x 1440), then runs ``dfxcorr reconstruct`` on each file in a
 subprocess under ``/usr/bin/time -v`` for wall time and peak resident memory, and the phi0 / phi1 /
-v^s RMSE against the truth (median gauge over frames lighting half the active area), with the fit's
+v^s RMSE against the truth (median gauge over frames lighting half the active area) and their pulls (RMS of
+error / reported standard error, 1 where the error bars are right), with the fit's
 iterations and cost evaluations from its log. Targets: full resolution under 30 s and 1.6 GB,
 binned under 10 s, both within 0.004 rad.
 
@@ -59,7 +60,7 @@ import numpy as np
 from dfxcorr import config as C
 from dfxcorr import pipeline
 from dfxcorr.analysis.compare import machine
-from dfxcorr.analysis.evaluate import frames_lighting, vibration_rmse
+from dfxcorr.analysis.evaluate import frames_lighting, vibration_pulls, vibration_rmse
 from dfxcorr.export import SPEC_EFFECTS, read_result_h5
 from dfxcorr.io import read_scan
 from dfxcorr.sim import simulate as S
@@ -146,12 +147,14 @@ def clinical(args) -> dict:
         res = read_result_h5(result_path)
         # the file names effects as the results spec does (visibility), one value per frame
         params = {SPEC_EFFECTS.get(k, k): np.asarray(v).reshape(scan.shape[0], -1) for k, v in res["vibration"].items()}
+        unc = {SPEC_EFFECTS.get(k, k): np.asarray(v).reshape(scan.shape[0], -1) for k, v in res["uncertainty"].items()}
         truth = dict(np.load(truth_path))
         good = frames_lighting(scan.position, scan.active_rows, scan.shape[1])
         entry.update(seconds=round(wall, 1), cpu_seconds=cpu_seconds(log_text), peak_rss_mb=round(rss),
                      stages={k: round(v, 2) for k, v in res["timings"].items()},
                      reduced_chi2=round(res["reduced_chi2"], 4),
                      rmse={k: round(v, 5) for k, v in vibration_rmse(params, truth, good).items()},
+                     pulls={k: round(v, 2) for k, v in vibration_pulls(params, unc, truth, good).items()},
                      sets=args.set, load_average=[round(v, 2) for v in os.getloadavg()], **fit_counts(log_text))
         out[case] = entry
         print(case, json.dumps(entry), flush=True)
@@ -291,6 +294,13 @@ def targets(folder: Path) -> None:
                      f"{d['rmse']['phase_offset']} / {d['rmse']['tilt']} rad against {e['rmse']['phase_offset']} / "
                      f"{e['rmse']['tilt']} (x{ratio:.2f}), {d['seconds']} s in memory, {d.get('iterations')} "
                      f"iterations, {d.get('evaluations')} evaluations", ratio <= 1.1))
+    pulls = [(name, c["pulls"]) for name, c in (("paper study", cases.get("default", {})),
+                                                 *((f"clinical {k}", v) for k, v in clin.items())) if "pulls" in c]
+    if pulls:
+        worst = [c[k] for _, c in pulls for k in ("phase_offset", "tilt")]
+        rows.append(("pulls of phi0 / phi1 at defaults (RMS of error / reported standard error) within 0.8-1.25",
+                     "; ".join(f"{name} {c['phase_offset']} / {c['tilt']}" for name, c in pulls),
+                     min(worst) >= 0.8 and max(worst) <= 1.25))
     anc = bench.get("anchor")
     if anc:
         med, runs = anc["median_seconds"], anc["runs"]
@@ -358,6 +368,8 @@ def paper(args, info: dict) -> dict:
                 best = {"seconds": round(seconds, 2), "stages": {k: round(v, 2) for k, v in result.timings.items()},
                         **fit_counts("\n".join(records)), "reduced_chi2": round(result.reduced_chi2, 4),
                         "rmse": {k: round(v, 5) for k, v in vibration_rmse(result.params, truth, good).items()},
+                        "pulls": {k: round(v, 2) for k, v in vibration_pulls(result.params, result.uncertainty,
+                                                                             truth, good).items()},
                         "load_average": [round(v, 2) for v in os.getloadavg()]}
         out["cases"][name] = best
         print(name, json.dumps(best), flush=True)

@@ -41,6 +41,12 @@ def g(x: float, digits: int = 2) -> str:
     return f"{x:.{digits}g}" if 1e-4 <= abs(x) < 1e6 or x == 0 else f"{x:.{digits}e}"
 
 
+def pulls_text(case: dict) -> str:
+    """The pulls of phi0 / phi1 of a benchmark case (RMS of error / reported standard error), where recorded."""
+    p = case.get("pulls")
+    return f"; pulls {p['phase_offset']:.2f} / {p['tilt']:.2f}" if p else ""
+
+
 def rmse3(r: dict) -> str:
     """phi0 / phi1 / v^s RMSE of a ``rmse`` mapping."""
     return " / ".join(f"{r[k]:.2g}" for k in ("phase_offset", "tilt", "visibility_loss"))
@@ -719,11 +725,11 @@ def readme_table(docs: Path) -> str:
         if every and any(d["rmse"][k] > 1.1 * every["rmse"][k] for k in ("phase_offset", "tilt")):
             level = f"fit.target_uncertainty; every column: {rmse3(every['rmse'])}, the Cramer-Rao level"
         rows.append(["paper's study, 209 x 450 x 510, defaults", f"RMSE phi0 / phi1 / v^s {rmse3(d['rmse'])} "
-                     f"({level}), reduced chi2 {d['reduced_chi2']:.4f}", speed, script])
+                     f"({level}){pulls_text(d)}, reduced chi2 {d['reduced_chi2']:.4f}", speed, script])
     for name, c in bench.get("clinical", {}).get("cases", {}).items():
         size = " x ".join(str(s) for s in c["size"])
         rows.append([f"clinical {'full resolution' if name == 'full' else name}, {size}, defaults",
-                     f"RMSE {rmse3(c['rmse'])}",
+                     f"RMSE {rmse3(c['rmse'])}{pulls_text(c)}",
                      f"{c['seconds']:g} s, {c['peak_rss_mb']} MB (load {load_text(c.get('load_average'))})",
                      "`benchmark.py clinical`"])
     if real:
