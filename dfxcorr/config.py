@@ -176,10 +176,11 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                     "fit is predicted to take at most this many seconds", _NUM,
                               check=_within(1e-3, 1e7),
                               nullable=True),
-        "time_floor": Option(None, "subsample auto: at least the columns with which the whole reconstruction is "
-                                   "predicted to take this many seconds (the fit and, at their cost per sample of "
-                                   "the scan, the other stages), for precision beyond fit.target_uncertainty where "
-                                   "it is cheap; null: none, the fit ends at the target", _NUM,
+        "time_floor": Option(None, "subsample auto with fit.target_uncertainty set: at least the columns with which "
+                                   "the whole reconstruction is predicted to take this many seconds (the fit and, "
+                                   "at their cost per sample of the scan, the other stages), for precision beyond "
+                                   "the target where it is cheap; null: none, the fit ends at the target (without "
+                                   "a target the fit already takes the most columns)", _NUM,
                              check=_within(0, 1e7), nullable=True),
         "coarse": Option("auto", "run the fit's stages on every n-th of its columns first, then only its last "
                                  "stages on all of them from there (the same minimum in fewer passes over all); "

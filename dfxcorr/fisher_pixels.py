@@ -42,7 +42,12 @@ def _fisher_rows(tf, fc, fs, w, frame, y, bounds, first, last, cos_p, sin_p, vis
     Pf, Pg = n_per_frame, Q - n_per_frame
     hc, hs = harm[0], harm[1]
     corr[:, :] = 0.0
-    acc = np.zeros((n_frames, Q * (Q + 1) // 2, C))
+    # the chunk's rows see a window of the frames: its sums hold those alone (every frame's, in every thread, was
+    # J Q (Q + 1) / 2 C numbers per thread: 67 MB each with every effect on the paper study's 510 columns)
+    lo_frame, hi_frame = n_frames, 0
+    for k in range(bounds[first], bounds[last]):
+        lo_frame, hi_frame = min(lo_frame, frame[k]), max(hi_frame, frame[k] + 1)
+    acc = np.zeros((max(hi_frame - lo_frame, 0), Q * (Q + 1) // 2, C))
     # one 1-d array per quantity: the compiler cannot tell rows of one 2-d array apart and would keep loops scalar
     basis = (np.empty(C), np.empty(C), np.empty(C), np.empty(C), np.empty(C))
     X = (np.empty(C), np.empty(C), np.empty(C))  # the images' columns a, xc, xs
@@ -85,7 +90,7 @@ def _fisher_rows(tf, fc, fs, w, frame, y, bounds, first, last, cos_p, sin_p, vis
             p = 0
             for q1 in range(Q):
                 for q2 in range(q1, Q):
-                    a12, F1, F2 = acc[j, p], F[q1], F[q2]
+                    a12, F1, F2 = acc[j - lo_frame, p], F[q1], F[q2]
                     for c in range(C):
                         a12[c] += w[k, c] * F1[c] * F2[c]
                     p += 1
@@ -127,10 +132,11 @@ def _fisher_rows(tf, fc, fs, w, frame, y, bounds, first, last, cos_p, sin_p, vis
     p = 0
     for q1 in range(Q):
         for q2 in range(q1, Q):
-            for jj in range(n_frames):
+            for jw in range(acc.shape[0]):
                 v = 0.0
                 for c in range(C):
-                    v += acc[jj, p, c]
+                    v += acc[jw, p, c]
+                jj = jw + lo_frame
                 s1 = jj * Pf + q1 if q1 < Pf else n_frames * Pf + q1 - Pf
                 s2 = jj * Pf + q2 if q2 < Pf else n_frames * Pf + q2 - Pf
                 plain[s1, s2] += v
@@ -182,7 +188,7 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, inverse: np.ndarray |
     channel, power, n_per_frame = table
     bounds = _bounds(obs)
     inv = np.zeros((0, 0, 3, 3)) if inverse is None else inverse
-    # one chunk per thread: the accumulators are (P, P) each
+    # one chunk per thread: each holds (P, P) accumulators and the sums of its rows' frames, (frames, pairs, C)
     weights = _c(weights, np.float64)  # one compiled specialisation whatever the caller's dtype
     fc, fs = obs.fringe
     channel, power = np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64)

@@ -180,8 +180,8 @@ def _normal(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used):
     coefficients (3) and the inverse normal matrix's entries i00, i01, i02, i11, i12, i22 (zeros where invalid).
 
     A column with zero diagonal is not an unknown; valid needs the first column, as many used samples as unknowns and
-    |det| > 1e-10 of the unit-diagonal matrix. Called where it runs once per pixel outside the hot loops;
-    :data:`_normal_inlined` where a loop over a tile's columns solves every pixel of the tile.
+    |det| > 1e-10 of the unit-diagonal matrix. Called where its loop over a tile's columns only keeps the inverse
+    (the retrieval's ``keep_inverse``); :data:`_normal_inlined` where that loop solves the tile's pixels.
     """
     p0, p1, p2 = n00 > 0, n11 > 0, n22 > 0
     s0 = np.sqrt(n00) if p0 else 1.0

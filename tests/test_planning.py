@@ -156,3 +156,20 @@ def test_max_samples_holds_the_columns_of_auto(planned):
                                                max_samples=per_column * plan.columns.size // 2), pilot=pilot)
     assert held.columns.size * per_column <= per_column * plan.columns.size // 2
     assert "held at fit.max_samples" in held.why
+
+
+def test_without_a_target_auto_fits_the_most_columns_max_samples_holds(planned):
+    prep, pilot, plan = planned
+    W, per_column = prep.shape[2], prep.store.samples_per_column()
+    # the default: no target, every column where they fit in fit.max_samples (the scan's Cramer-Rao level)
+    every = planning.plan_columns(prep, fit_cfg(), pilot=pilot)
+    assert W * per_column <= C.defaults()["fit"]["max_samples"]
+    assert every.columns.size == W and "fit.target_uncertainty=null" in every.why
+    assert every.uncertainty < plan.uncertainty
+    # fewer samples allowed: the widest spacing whose columns fit, said so; a time floor changes nothing
+    most = per_column * W // 3
+    for extra in ({}, {"time_floor": 1e6}):
+        held = planning.plan_columns(prep, fit_cfg(max_samples=most, **extra), pilot=pilot)
+        assert held.columns.size * per_column <= most
+        assert held.columns.size == subsample_columns(W, planning.column_step(W, per_column, most=most)).size
+        assert "held at fit.max_samples" in held.why
