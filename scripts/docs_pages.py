@@ -145,8 +145,8 @@ Whole `dfxcorr reconstruct` processes under `/usr/bin/time -v` (wall time, CPU t
 start-up included) on the clinical scanner's geometry (`configs/clinical.yaml`: 195 frames of 2880 x 2880 uint16,
 active area 440 rows; `configs/clinical-binned.yaml`: 1440 x 1440), simulated by the script, with the RMSE of
 phi0 / phi1 / v^s against the truth and the pulls of phi0 / phi1 (RMS of error / reported standard error: 1 where
-the error bars a user reads are right; on these scans they are larger, at any column setting, and the errors drift
-slowly along the scan: a cause not found yet). The frames stay in the file and only their lit rows are held
+the error bars a user reads are right; one scan's pulls vary much between noise realisations, as the next section
+measures). The frames stay in the file and only their lit rows are held
 (`retrieve.block_mb` bounds the retrieval's blocks, `fit.max_samples` the fit)."""
 
 PAPER_CASES = """\
@@ -684,6 +684,28 @@ def _shared_table(docs: Path) -> dict:
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
+PULLS = """\
+The pull of a frame is its phi0 (or phi1) error against the truth over the standard error the fit reports, both in
+the median gauge over the frames lighting half the active area; the RMS of the pulls is 1 where the error bars are
+right. Neighbouring frames share pixels, so their errors are correlated and one scan's RMS varies much between
+noise realisations: each case is simulated with several seeds and the pulls are pooled over all their frames."""
+
+
+def pulls_section(rec: dict) -> list[str]:
+    if not rec:
+        return []
+    rows = []
+    for case, settings in rec["cases"].items():
+        for label, r in settings.items():
+            per = ", ".join(f"{p['phase_offset']:.2f} / {p['tilt']:.2f}" for p in r["per_seed"])
+            rmse = " / ".join(f"{median([e[k] for e in r['rmse']]):.5f}" for k in ("phase_offset", "tilt"))
+            rows.append([case, label, f"{r['pooled']['phase_offset']:.2f} / {r['pooled']['tilt']:.2f}", per, rmse])
+    return ["", "### Error bars: pulls over noise realisations", "",
+            f"`scripts/pulls.py` -> `docs/pulls.json`. Machine: {rec['machine']}. Seeds {rec['seeds']}.", "",
+            PULLS, "",
+            *table(["case", "setting", "pooled pulls phi0 / phi1", "per seed", "median RMSE phi0 / phi1 (rad)"], rows)]
+
+
 def measurements(docs: Path) -> str:
     """The text of docs/measurements.md."""
     bench, base = read(docs, "benchmark.json"), read(docs, "bench-baseline.json")
@@ -691,6 +713,7 @@ def measurements(docs: Path) -> str:
     lines = [INTRO]
     lines += paper_study_section(read(docs, "paper-study.json"))
     lines += speed_section(bench, base, kern)
+    lines += pulls_section(read(docs, "pulls.json"))
     lines += real_section(read(docs, "real-ipp.json"))
     lines += diagnosis_section(read(docs, "diagnosis-study.json"))
     lines += cost_section(read(docs, "diagnose-cost.json"))
