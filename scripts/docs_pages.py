@@ -145,9 +145,9 @@ Whole `dfxcorr reconstruct` processes under `/usr/bin/time -v` (wall time, CPU t
 start-up included) on the clinical scanner's geometry (`configs/clinical.yaml`: 195 frames of 2880 x 2880 uint16,
 active area 440 rows; `configs/clinical-binned.yaml`: 1440 x 1440), simulated by the script, with the RMSE of
 phi0 / phi1 / v^s against the truth and the pulls of phi0 / phi1 (RMS of error / reported standard error: 1 where
-the error bars a user reads are right; one scan's pulls vary much between noise realisations, as the next section
-measures). The frames stay in the file and only their lit rows are held
-(`retrieve.block_mb` bounds the retrieval's blocks, `fit.max_samples` the fit)."""
+the error bars a user reads are right; pooled over noise realisations in the next section). The frames stay in
+the file and only their lit rows are held (`retrieve.block_mb` bounds the retrieval's blocks, `fit.max_samples` the
+fit)."""
 
 PAPER_CASES = """\
 The paper's study, reconstructed in memory at the defaults and at other settings (one process, the scan
@@ -685,10 +685,13 @@ def _shared_table(docs: Path) -> dict:
 
 
 PULLS = """\
-The pull of a frame is its phi0 (or phi1) error against the truth over the standard error the fit reports, both in
-the median gauge over the frames lighting half the active area; the RMS of the pulls is 1 where the error bars are
-right. Neighbouring frames share pixels, so their errors are correlated and one scan's RMS varies much between
-noise realisations: each case is simulated with several seeds and the pulls are pooled over all their frames."""
+The pull of a frame is its phi0 (or phi1) error against the truth over the standard error the fit reports, the
+truth carried into the estimate's gauge by their median difference over the frames lighting half the active area;
+the RMS of the pulls is 1 where the error bars are right. Each put in its own median gauge instead (as the RMSE
+figures of these pages are), both medians fall on one frame, whose error every other frame then carries: pulls of
+1.16-1.38 on these scans, from the comparison, not from the error bars. Neighbouring frames share pixels, so their
+errors are correlated and one scan's RMS varies between noise realisations: each case is simulated with several
+seeds and the pulls are pooled over all their frames."""
 
 
 def pulls_section(rec: dict) -> list[str]:

@@ -43,12 +43,33 @@ def vibration_rmse(params: dict[str, Any], truth: dict[str, Any], good: np.ndarr
     return {name: float(np.sqrt(np.mean(err[good] ** 2))) for name, err in _gauged_errors(params, truth, good).items()}
 
 
+def _aligned_errors(params: dict[str, Any], truth: dict[str, Any], good: np.ndarray) -> dict[str, np.ndarray]:
+    """Estimate - truth of each per-frame effect that has a truth key, the truth carried into the estimate's gauge by
+    the median over the frames ``good`` of their difference (shift effects) or ratio (scale effects), shape (J,).
+
+    Not each put in its own median gauge (:func:`_gauged_errors`): the errors are far smaller than the spread of
+    the values, so both medians fall on the same frame and that frame's error would be subtracted from every other
+    (doubling the variance of the errors the standard errors describe)."""
+    out = {}
+    for name, key in TRUTH_KEYS.items():
+        if name not in params or key not in truth:
+            continue
+        est, tru = np.asarray(params[name], dtype=float)[:, 0], np.asarray(truth[key], dtype=float)
+        if effect(name).gauge == "scale":
+            with np.errstate(divide="ignore", invalid="ignore"):
+                out[name] = est - np.median((est / tru)[good]) * tru
+        else:
+            out[name] = est - tru - np.median((est - tru)[good])
+    return out
+
+
 def vibration_pulls(params: dict[str, Any], uncertainty: dict[str, Any], truth: dict[str, Any], good: np.ndarray
                     ) -> dict[str, float]:
     """RMS of (estimate - truth) / reported standard error of each per-frame effect over the ``good`` frames whose
-    error is finite and positive, both in the median gauge (1 where the reported errors are right)."""
+    error is finite and positive, the truth in the estimate's gauge (:func:`_aligned_errors`; 1 where the reported
+    errors are right)."""
     out = {}
-    for name, err in _gauged_errors(params, truth, good).items():
+    for name, err in _aligned_errors(params, truth, good).items():
         if name not in uncertainty:
             continue
         se = np.asarray(uncertainty[name])[:, 0]

@@ -5,7 +5,7 @@ import pytest
 from dfxcorr.analysis.evaluate import vibration_pulls, vibration_rmse
 
 
-def test_pulls_are_errors_in_units_of_their_standard_errors_in_the_median_gauge():
+def test_pulls_are_errors_in_units_of_their_standard_errors_in_the_estimates_gauge():
     rng = np.random.default_rng(5)
     J = 40
     good = np.ones(J, bool)
@@ -28,3 +28,18 @@ def test_pulls_are_errors_in_units_of_their_standard_errors_in_the_median_gauge(
     assert pulls["phase_offset"] == pytest.approx(np.sqrt((good.sum() - 1) / good.sum()), rel=1e-9)
     assert vibration_rmse(off, truth, good)["phase_offset"] == pytest.approx(
         np.sqrt(np.mean((sign * se["phase_offset"][:, 0])[good] ** 2)), rel=1e-9)
+
+
+def test_pulls_of_errors_drawn_with_the_stated_standard_errors_are_one():
+    # errors far below the spread of the values: both medians of a per-value gauge would fall on one frame, whose
+    # error every other would then carry (a pull RMS of about sqrt 2); the truth is carried into the estimate's gauge
+    rng = np.random.default_rng(11)
+    J = 800
+    good = np.ones(J, bool)
+    truth = {"vib_phase_offset": rng.normal(0.0, 0.4, J), "vib_visibility": rng.uniform(0.8, 1.0, J)}
+    se = {"phase_offset": rng.uniform(1e-3, 2e-3, (J, 1)), "visibility_loss": rng.uniform(1e-3, 2e-3, (J, 1))}
+    est = {"phase_offset": (truth["vib_phase_offset"] + 0.3)[:, None] + rng.normal(0.0, se["phase_offset"]),
+           "visibility_loss": (1.1 * truth["vib_visibility"])[:, None] + rng.normal(0.0, se["visibility_loss"])}
+    pulls = vibration_pulls(est, se, truth, good)
+    # the RMS of J unit normals has a standard deviation of about 1 / sqrt(2 J) = 0.025: 4 of them
+    assert pulls == pytest.approx({"phase_offset": 1.0, "visibility_loss": 1.0}, abs=4 / np.sqrt(2 * J))
