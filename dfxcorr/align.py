@@ -39,6 +39,15 @@ def no_lit_rows(min_frames: int) -> AlignmentError:
                           f"(dataset /entry/scan/position)")
 
 
+@njit(cache=True, inline="always")
+def reference_row(u: float, A: int) -> tuple[int, float]:
+    """The row k0 of an A-row reference map below read position ``u`` (rows; row k's centre at k + 0.5), clipped to
+    [0, A - 2], and the fraction a towards row k0 + 1 (:func:`interpolate_rows`; A at least 2)."""
+    f = u - 0.5
+    k0 = min(max(int(np.floor(f)), 0), A - 2)
+    return k0, f - k0
+
+
 @njit(cache=True, parallel=True, error_model="numpy")
 def _interpolate_rows(maps: np.ndarray, cols: np.ndarray, u: np.ndarray, add: np.ndarray, wrap: bool,
                       out: np.ndarray) -> None:
@@ -49,9 +58,7 @@ def _interpolate_rows(maps: np.ndarray, cols: np.ndarray, u: np.ndarray, add: np
     run = n > 0 and cols[n - 1] - cols[0] == n - 1
     first = cols[0] if n > 0 else 0
     for k in prange(u.size):
-        f = u[k] - 0.5
-        k0 = min(max(int(np.floor(f)), 0), A - 2)
-        a = f - k0
+        k0, a = reference_row(u[k], A)
         lo, hi, o = maps[k0], maps[k0 + 1], out[k]
         if run:
             lo, hi = lo[first:first + n], hi[first:first + n]

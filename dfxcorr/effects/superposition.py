@@ -14,6 +14,7 @@ from numba import njit
 from scipy import fft as sfft
 
 from .. import kernels as K
+from ..align import reference_row
 from ..chunks import over_chunks
 
 
@@ -82,11 +83,7 @@ def _frame_sums(maps: np.ndarray, u: np.ndarray, t: np.ndarray, row: np.ndarray,
         total = 0.0
         for n in range(bounds[j], bounds[j + 1]):
             k = order[n]
-            k0, a = 0, 0.0
-            if A > 1:
-                f = u[k] - 0.5
-                k0 = min(max(int(np.floor(f)), 0), A - 2)
-                a = f - k0
+            k0, a = reference_row(u[k], A) if A > 1 else (0, 0.0)
             k1 = min(k0 + 1, A - 1)
             below, above, tr = maps[k0], maps[k1], t[row[k]]
             o = out[j - j0, (detector_row[k] - origin[j]) // b]
