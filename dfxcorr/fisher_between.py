@@ -11,6 +11,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from .fisher_pixels import slot
 from .kernels import _c, _derivatives, _direction, _image_columns
 from .kernels_between import _add_sample, _factor, _reading, _sample
 
@@ -80,7 +81,7 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
         plain[t, :, :] = 0.0
         corr[t, :, :] = 0.0
         F = np.empty(Q)
-        slot = np.empty(Q, dtype=np.int64)
+        slots = np.empty(Q, dtype=np.int64)
         D = np.empty((R, 6, 1))
         U = np.empty((R, 6, 1))
         rhs = np.empty((R, 3, 1))
@@ -125,11 +126,11 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
                         F[q] = 1.0 if power[q] == 0 else (x[c] if power[q] == 1 else y[k])
                     else:
                         F[q] = basis[3 + power[q]]
-                    slot[q] = j * Pf + q if q < Pf else n_frames * Pf + q - Pf
+                    slots[q] = slot(j, q, Pf, n_frames)
                 for q1 in range(Q):
                     wf = wk * F[q1]
                     for q2 in range(Q):
-                        plain[t, slot[q1], slot[q2]] += wf * F[q2]
+                        plain[t, slots[q1], slots[q2]] += wf * F[q2]
                 if profiled:
                     # the images' columns: their derivatives at the images the sample reads
                     xc, xs = _image_columns(bc, bs, hcc, hcs, du, dw)
@@ -137,7 +138,7 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
                     for q in range(Q):
                         if not lead[q]:
                             continue
-                        p = rslot[slot[q]]
+                        p = rslot[slots[q]]
                         wf = wk * (basis[channel[q]] if q < Pf and channel[q] <= 1 else F[q])
                         Y[lo, 0, p] += g * wf * a
                         Y[lo, 1, p] += g * wf * xc
@@ -167,7 +168,7 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
             for q in range(Q):
                 f_q = x[c] ** power[q] if q < Pf and channel[q] <= 1 else 1.0
                 for j in range(n_frames if q < Pf else 1):
-                    factor[j * Pf + q if q < Pf else n_frames * Pf + q - Pf] = f_q
+                    factor[slot(j, q, Pf, n_frames)] = f_q
             for p1 in range(P):
                 for p2 in range(P):
                     corr[t, p1, p2] += factor[p1] * factor[p2] * cr[rslot[p1], rslot[p2]]

@@ -28,6 +28,13 @@ from .kernels import (
 )
 
 
+@njit(cache=True, inline="always")
+def slot(i: int, q: int, per_frame: int, n: int) -> int:
+    """The place of component ``q`` of frame (or row block) ``i`` among ``n`` of them in the Fisher matrices: per-frame
+    components (q < per_frame) ordered (frame, component), the global ones after all frames."""
+    return i * per_frame + q if q < per_frame else n * per_frame + q - per_frame
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def _fisher_rows(tf, fc, fs, w, frame, y, bounds, first, last, cos_p, sin_p, vis, dose, harm, coef, inverse, channel,
                  power, xq, n_per_frame, n_frames, profiled, double, plain, corr):
@@ -95,7 +102,7 @@ def _fisher_rows(tf, fc, fs, w, frame, y, bounds, first, last, cos_p, sin_p, vis
                         a12[c] += w[k, c] * F1[c] * F2[c]
                     p += 1
                 if profiled:
-                    s1 = b * Pf + q1 if q1 < Pf else nb * Pf + q1 - Pf
+                    s1 = slot(b, q1, Pf, nb)
                     for i in range(3):
                         Ys, Xi, F1 = Y[s1, i], X[i], F[q1]
                         for c in range(C):
@@ -137,8 +144,7 @@ def _fisher_rows(tf, fc, fs, w, frame, y, bounds, first, last, cos_p, sin_p, vis
                 for c in range(C):
                     v += acc[jw, p, c]
                 jj = jw + lo_frame
-                s1 = jj * Pf + q1 if q1 < Pf else n_frames * Pf + q1 - Pf
-                s2 = jj * Pf + q2 if q2 < Pf else n_frames * Pf + q2 - Pf
+                s1, s2 = slot(jj, q1, Pf, n_frames), slot(jj, q2, Pf, n_frames)
                 plain[s1, s2] += v
                 if s1 != s2:
                     plain[s2, s1] += v
