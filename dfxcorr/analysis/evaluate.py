@@ -1,6 +1,7 @@
 """Comparison with ground truth: vibration-parameter and image errors in the gauge of paper eq. 22."""
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -25,17 +26,20 @@ def frames_lighting(position: np.ndarray, active_rows: int, height: int, fractio
     return gauge_frames(np.bincount(frame, minlength=np.size(position)), fraction)
 
 
+def _estimated(params: dict[str, Any], truth: dict[str, Any]) -> Iterator[tuple[str, np.ndarray, np.ndarray, bool]]:
+    """Each per-frame effect that has a truth key: its name, estimate and truth (J,), and whether its gauge is a
+    scale (else a shift)."""
+    for name, key in TRUTH_KEYS.items():
+        if name in params and key in truth:
+            yield (name, np.asarray(params[name], dtype=float)[:, 0], np.asarray(truth[key], dtype=float),
+                   effect(name).gauge == "scale")
+
+
 def _gauged_errors(params: dict[str, Any], truth: dict[str, Any], good: np.ndarray) -> dict[str, np.ndarray]:
     """Estimate - truth of each per-frame effect that has a truth key, each first put in the median gauge over the
     frames ``good`` (:func:`gauge_median`), shape (J,)."""
-    out = {}
-    for name, key in TRUTH_KEYS.items():
-        if name not in params or key not in truth:
-            continue
-        scale = effect(name).gauge == "scale"
-        est = gauge_median(np.asarray(params[name])[:, 0], good, scale=scale)
-        out[name] = est - gauge_median(np.asarray(truth[key], dtype=float), good, scale=scale)
-    return out
+    return {name: gauge_median(est, good, scale=scale) - gauge_median(tru, good, scale=scale)
+            for name, est, tru, scale in _estimated(params, truth)}
 
 
 def vibration_rmse(params: dict[str, Any], truth: dict[str, Any], good: np.ndarray) -> dict[str, float]:
@@ -51,11 +55,8 @@ def _aligned_errors(params: dict[str, Any], truth: dict[str, Any], good: np.ndar
     the values, so both medians fall on the same frame and that frame's error would be subtracted from every other
     (doubling the variance of the errors the standard errors describe)."""
     out = {}
-    for name, key in TRUTH_KEYS.items():
-        if name not in params or key not in truth:
-            continue
-        est, tru = np.asarray(params[name], dtype=float)[:, 0], np.asarray(truth[key], dtype=float)
-        if effect(name).gauge == "scale":
+    for name, est, tru, scale in _estimated(params, truth):
+        if scale:
             with np.errstate(divide="ignore", invalid="ignore"):
                 out[name] = est - np.median((est / tru)[good]) * tru
         else:
