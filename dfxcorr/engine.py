@@ -11,7 +11,7 @@ define what every compiled path computes. The signatures and returned values are
 """
 from __future__ import annotations
 
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Iterator, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -71,6 +71,21 @@ def model_retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | N
     return {"coef": images.coef, "valid": images.valid, "inverse": images.inverse if keep_inverse else None,
             "coupling": images.coupling if keep_inverse else None, "expected": ibar if keep else empty,
             "weights": w_out if keep else empty, "chi2": chi2, "samples": int(sel.sum())}
+
+
+def expected_by_columns(obs: Observations, params: dict, images: M.Images, *, samples: float = 1e6
+                        ) -> Iterator[tuple[np.ndarray, Observations, M.Images, np.ndarray]]:
+    """The expected counts of ``obs`` at ``params`` and ``images``, a run of about ``samples`` samples' columns at a
+    time (:meth:`Observations.column_chunks`): each run's column positions, samples (a copy: the compiled loops walk
+    them a row at a time), images and expected counts (K, c), from the compiled kernel where it takes the channels
+    and each sample reads its own pixel (a fifth of the model's time: no design per sample), else from the model's
+    design (:func:`dfxcorr.model.expected_by_columns` also yields that design)."""
+    K.set_threads()
+    for cols in obs.column_chunks(samples):
+        sub, im = obs.subset(cols), images.subset(cols)
+        ch = M.channels(params, x=sub.x, n_frames=sub.n_frames)
+        fast = compiled(ch) and sub.reading is None
+        yield cols, sub, im, K.expected(sub, ch, im.coef) if fast else M.expected(sub, M.design_channels(sub, ch), im)
 
 
 def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, *, phase: float | None = None,

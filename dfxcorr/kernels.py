@@ -532,6 +532,49 @@ def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, 
     return coef, valid, inverse, ibar, w_out, chi2, n_sel
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _expected_rows(tf, fc, fs, dark, frame, y, x, bounds, cos_p, sin_p, vis, dose, bg, harm, coef, first, last, ibar):
+    """Expected counts of the samples of rows ``first`` to ``last`` into ibar (K, C): the retrieval's expected counts
+    at given images."""
+    hc, hs = harm[0], harm[1]
+    harmonic = hc != 0.0 or hs != 0.0
+    for r in range(first, last):
+        for k in range(bounds[r], bounds[r + 1]):
+            j = frame[k]
+            dj, yk, out = dose[j], y[k], ibar[k]
+            for c in range(x.size):
+                Fc, Fs = _turned(fc[k, c], fs[k, c], cos_p[j, c], sin_p[j, c])
+                _, _, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tf[k, c], dj * vis[j, c], hc, hs, harmonic)
+                t, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
+                m = dark[k, c] + bg[0] + bg[1] * x[c] + bg[2] * yk + t * a + cs * bc + ss * bs
+                if harmonic:
+                    _, _, e, f = _direction(cs, ss)
+                    m += hcc * e - hcs * f
+                out[c] = m
+
+
+def expected(obs, ch, coef: np.ndarray) -> np.ndarray:
+    """Expected counts at given images, shape (K, C): :func:`dfxcorr.model.expected` of the model's design.
+
+    Parameters
+    ----------
+    obs : Observations
+    ch : Channels
+        Channel values (:func:`dfxcorr.model.channels`) at ``obs``' columns.
+    coef : ndarray, shape (R, C, 3)
+        Images t, c, s of every pixel held.
+    """
+    _per_pixel(obs)
+    bounds = _bounds(obs)
+    ibar = np.empty(obs.counts.shape)
+    fc, fs = obs.fringe
+    samples = (_c(obs.tf), fc, fs, _c(obs.dark), obs.frame, obs.y, obs.x, bounds)
+    over_chunks(_expected_rows, row_chunks(bounds[:-1], obs.frame.size),
+                (*samples, *_turning(obs, ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic,
+                 _c(coef, np.float64)), (ibar,), ())
+    return ibar
+
+
 def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1, gain: float | None = None,
              keep_inverse: bool = False, keep_expected: bool = True, next_weights: bool = False) -> dict:
     """Closed-form images of every pixel, the expected counts and the Pearson chi-square.

@@ -316,10 +316,15 @@ class Observations:
         (the copies were a fifth of the per-pixel tests' time).
         """
         idx = np.asarray(columns)
-        run = not copy and idx.size > 0 and np.array_equal(idx, np.arange(idx[0], idx[0] + idx.size))
+        run = idx.size > 0 and np.array_equal(idx, np.arange(idx[0], idx[0] + idx.size))
 
         def cut(a: np.ndarray) -> np.ndarray:
-            return a[:, idx[0]:idx[0] + idx.size] if run else np.ascontiguousarray(a[:, idx])
+            # a run's slice copied row by row, other positions taken: a fancy index along the columns was 28x slower
+            # (12 ms against 0.43 for 390 of 1536 columns of 2560 rows)
+            if run:
+                view = a[:, idx[0]:idx[0] + idx.size]
+                return view if not copy else np.ascontiguousarray(view)
+            return np.take(a, idx, axis=1)
 
         out = Observations(cut(self.counts), cut(self.tf), cut(self.vf), cut(self.phif), cut(self.dark), cut(self.use),
                            self.row, self.frame, self.columns[idx], self.shape, self.gain, self.electronic,

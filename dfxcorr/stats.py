@@ -95,6 +95,23 @@ def binomial_log_tail(k: int, n: int, p: float) -> float:
     return log_beta_i(k, n - k + 1, p)
 
 
+def digitize(value: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """``np.digitize(value, edges)`` for a few increasing ``edges`` (at most 126): the number of edges at or below
+    each value, NaN past the last, as numpy's, in int8 of the shape of ``value``.
+
+    Counted by one comparison per edge: numpy's binary search per value mispredicts its branches on unsorted
+    values (24 against 2.6 ms for a million values and 17 edges), and the residual signatures bin every sample.
+    """
+    edges = np.asarray(edges)
+    if edges.size > 126:
+        raise ValueError(f"{edges.size} edges: at most 126 fit the int8 bins")
+    value = np.asarray(value)
+    idx = np.zeros(value.shape, np.int8)
+    for e in edges:
+        idx += value >= e
+    return np.where(np.isnan(value), np.int8(edges.size), idx)
+
+
 def normal_log_tail(z: np.ndarray) -> np.ndarray:
     """log P(Z > z) of a standard normal Z, elementwise, exact far into the tail."""
     return special.log_ndtr(-np.asarray(z, dtype=float))

@@ -274,3 +274,14 @@ def test_a_row_term_is_tested_fitted_and_recovered_within_its_errors(toy):
     # 23 pulls: their RMS scatters about 1 by 0.15 (one standard deviation) where the errors are right
     # (0.5-1.5: more than 3 of them either way)
     assert good.all() and 0.5 < np.sqrt(np.mean(pull ** 2)) < 1.5, pull
+
+
+def test_expected_counts_by_runs_of_columns_on_every_path(rng, toy):
+    obs = tiny_obs(rng, J=14, H=8, W=5)
+    images = random_images(rng, obs)
+    plain = random_params(rng, obs.n_frames, NAMES)
+    for o, params in ((obs, plain), (displaced(rng, obs), plain), (obs, random_params(rng, obs.n_frames, (toy,)))):
+        runs = list(E.expected_by_columns(o, params, images, samples=2 * o.frame.size))
+        assert [c.tolist() for c, *_ in runs] == [[0, 1], [2, 3], [4]]
+        np.testing.assert_allclose(np.concatenate([ibar for *_, ibar in runs], axis=1),
+                                   M.expected(o, M.design(o, params), images), rtol=1e-12)

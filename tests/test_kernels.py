@@ -119,6 +119,19 @@ def test_retrieval_matches_the_model(rng, masked, iterations):
     assert np.array_equal(ahead, K.retrieve(obs, dsg.channels, iterations=iterations + 1)["weights"])
 
 
+@pytest.mark.parametrize("masked", [False, True], ids=["all", "masked"])
+def test_expected_counts_at_given_images_match_the_model(rng, masked):
+    obs = prepared(rng, masked=masked)
+    params = random_params(rng, obs.n_frames, ALL)
+    dsg = M.design(obs, params)
+    images = M.solve_images(obs, dsg, noise_weights(obs, obs.counts))
+    ibar = M.expected(obs, dsg, images)
+    close(K.expected(obs, dsg.channels, images.coef), ibar)
+    # the retrieval's own expected counts, to the last bit: one expression in both kernels
+    out = K.retrieve(obs, dsg.channels)
+    assert np.array_equal(K.expected(obs, dsg.channels, out["coef"]), out["expected"])
+
+
 def correction_oracle(obs, dsg, images, w, names):
     """sum over pixels of Y^T N^-1 Y, Y = X^T W D (the profiled part of model.fisher_matrix), row by row."""
     J = obs.n_frames

@@ -66,3 +66,15 @@ def test_elementwise_log_tails_are_scipys_and_continue_beyond_it():
     # the last underflows in scipy; Q(2, z) = (1 + z) e^-z
     assert out[5] == pytest.approx(np.log1p(4.5e4) - 4.5e4, rel=1e-13)
     assert out[5] == pytest.approx(S.chi2_tail(9e4, 4)[1], rel=1e-15)
+
+
+def test_digitize_is_numpys_for_a_few_edges():
+    rng = np.random.default_rng(5)
+    edges = np.sort(rng.uniform(-2, 2, 12))
+    # values on the edges, between and beyond them, and NaN
+    value = np.concatenate([edges, rng.uniform(-3, 3, 500), [np.nan, -np.inf, np.inf]]).reshape(-1, 5)
+    got = S.digitize(value, edges)
+    assert got.shape == value.shape
+    np.testing.assert_array_equal(got, np.digitize(value, edges))
+    with pytest.raises(ValueError, match="126"):
+        S.digitize(value, np.arange(127.0))

@@ -38,8 +38,8 @@ from ..retrieve import Retrieval, retrieve
 from . import loop
 from .loop import GROSS
 from .replication import Part, replicate
-from .report import Diagnosis, EffectReport, Verdict, change_picture, residuals
-from .signatures import Residuals, signatures
+from .report import Diagnosis, EffectReport, Verdict, change_picture, residual_map, residuals
+from .signatures import signatures
 
 log = logging.getLogger(__name__)
 
@@ -260,6 +260,19 @@ def _not_added(name: str, test: Test[Any], out: loop.Outcome, *, alpha: float, t
                         shared=test.shared)
 
 
+def _once_per_state(make: Callable[[State], T]) -> Callable[[State], T]:
+    """``make`` of a fit, made once per fit: the report draws a step's fit after as the next one's before."""
+    kept: dict[int, T] = {}
+
+    def once(state: State) -> T:
+        # the states live in the outcome until the report is made: their ids stay theirs
+        if id(state) not in kept:
+            kept[id(state)] = make(state)
+        return kept[id(state)]
+
+    return once
+
+
 def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = None, *, base: str = "configured",
              registry: Mapping[str, EffectBase[Any]] = REGISTRY) -> Diagnosis:
     """Locate model-data mismatch, name the missing effects, add them and refit until nothing is left.
@@ -291,14 +304,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = No
     model = list(resolve_effects(cfg, prep.scan, prep.reference, session.fit_base)) if base == "configured" else []
     start = Hypothesis(tuple(model), prep.noise, np.zeros((H, W), bool), np.zeros(J))
     first = session.fit(start, {}, "round 0")
-    located: dict[int, Residuals] = {}
-
-    def located_once(state: State) -> Residuals:
-        # the states live in the outcome until the report is made: their ids stay theirs
-        if id(state) not in located:
-            located[id(state)] = residuals(state)
-        return located[id(state)]
-
+    located_once, mapped_once = _once_per_state(residuals), _once_per_state(residual_map)
     if session.held_columns.size < W:
         log.info("per-pixel tests on columns %d-%d of %d (diagnose.max_held_samples=%g); the fit on %d columns "
                  "spread over the detector", session.held_columns[0], session.held_columns[-1], W,
@@ -342,7 +348,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = No
                                  "added", delta_chi2=step.before.chi2 - step.after.chi2,
                                  reduced_chi2_after=step.after.reduced_chi2, finding=f, replication=replicated.get(n))
                     for n, f in beside]
-        changes.append(change_picture(e, step.before, step.after, finding, located=located_once))
+        changes.append(change_picture(e, step.before, step.after, finding, mapped=mapped_once))
     added = {n for s in out.steps for n in s.names}
     named_with = {n: s.name for s in out.steps for n, _ in s.alternatives}
     for n, t in sorted(out.tests.items(), key=lambda kv: -kv[1].statistic):

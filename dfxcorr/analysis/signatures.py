@@ -17,7 +17,7 @@ from .. import model as M
 from ..noise import pearson, variance
 from ..observations import Observations
 from ..retrieve import Retrieval, retrieve
-from ..stats import chi2_tail, holm, ranges
+from ..stats import chi2_tail, digitize, holm, ranges
 
 
 @dataclass
@@ -90,7 +90,7 @@ def locate(obs: Observations, params: dict[str, Any], images: M.Images, *, count
 def _binned(value: np.ndarray, z2: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Sum of the finite ``z2`` and their number in each bin of ``value`` between ``edges``, shape (2, bins)."""
     nb = edges.size - 1
-    idx = np.digitize(value, edges).ravel() - 1
+    idx = digitize(value, edges).ravel().astype(np.intp) - 1
     # the samples outside every bin, or without a finite z2, go to one more bin, dropped: no copies of the rest
     idx[~np.isfinite(z2.ravel()) | (idx < 0) | (idx >= nb)] = nb
     return np.stack([np.bincount(idx, weights=np.where(idx < nb, z2.ravel(), 0.0), minlength=nb + 1)[:nb],
@@ -188,8 +188,8 @@ def signatures(obs: Observations, params: dict[str, Any], *, alpha: float,
         "row": (np.broadcast_to(obs.row[:, None], (K, C_)), np.arange(obs.shape[1])),
         "column": (np.broadcast_to(np.arange(C_)[None, :], (K, C_)), obs.columns),
         "frame_row": (np.broadcast_to(np.arange(K)[:, None], (K, C_)), np.arange(K)),
-        "phase": (np.clip(np.digitize(psi, pedges) - 1, 0, 15), 0.5 * (pedges[1:] + pedges[:-1])),
-        "count": (np.clip(np.digitize(ibar, cedges[1:-1]), 0, 11), np.sqrt(np.abs(cedges[1:] * cedges[:-1]))),
+        "phase": (np.clip(digitize(psi, pedges) - 1, 0, 15), 0.5 * (pedges[1:] + pedges[:-1])),
+        "count": (np.clip(digitize(ibar, cedges[1:-1]), 0, 11), np.sqrt(np.abs(cedges[1:] * cedges[:-1]))),
     }
     kinds = ([(a, "variance") for a in ("frame", "row", "column", "phase", "count")]
              + [(a, "mean") for a in ("frame", "frame_row")])

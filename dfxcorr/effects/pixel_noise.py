@@ -18,7 +18,7 @@ from ..errors import DfxcorrError
 from ..noise import pearson
 from ..observations import Observations
 from ..preparation import Correctable
-from ..stats import holm, normal_log_tail, ranges
+from ..stats import digitize, holm, normal_log_tail, ranges
 from .base import Consistency, Context, EffectBase, Finding, Hypothesis, Option, Params, Policy, State, Test, chi2_test
 from .residuals import fit_counts, line_consistency, pixel_chi2, squared_residuals
 
@@ -107,7 +107,7 @@ def pixel_noise_test(obs: Observations, params: Params, images: M.Images, *, alp
                                                    / np.maximum(sub.photons(ibar), 1e-3), 0.0))
         # one bincount per sum over (pixel, count bin) cells, not a segment sum per bin
         cell = ((sub.pixel[:, None] * cols.size + np.arange(cols.size)) * (edges.size + 1)
-                + np.digitize(ibar, edges)).ravel()
+                + digitize(ibar, edges)).ravel()
         for out, values in ((Z, z2), (N, sel)):
             out[:, cols] = np.bincount(cell, weights=values.ravel(), minlength=R * cols.size * (edges.size + 1)
                                        ).reshape(R, cols.size, edges.size + 1)

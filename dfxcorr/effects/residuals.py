@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from .. import engine as E
 from .. import model as M
 from ..noise import pearson
 from ..observations import Noise, Observations
@@ -28,12 +29,12 @@ def fit_counts(state: State) -> np.ndarray:
 def squared_residuals(obs: Observations, params: Params, images: M.Images, exclude: np.ndarray | None = None, *,
                       samples: float = 2.5e5
                       ) -> Iterator[tuple[np.ndarray, Observations, np.ndarray, np.ndarray, np.ndarray]]:
-    """A run of about ``samples`` samples' columns at a time (:func:`dfxcorr.model.expected_by_columns`): its
+    """A run of about ``samples`` samples' columns at a time (:func:`dfxcorr.engine.expected_by_columns`): its
     positions, samples, expected counts (from ``images`` and the model at ``params``), the samples that count (used,
     of solved pixels, not in ``exclude`` (H, W)) and their squared Pearson residuals (0 elsewhere). Runs of a
     quarter of the model's usual size: the per-pixel tests read them beside per-pixel sums of every held column,
     at the diagnosis's peak memory."""
-    for cols, sub, im, _, ibar in M.expected_by_columns(obs, params, images, samples=samples):
+    for cols, sub, im, ibar in E.expected_by_columns(obs, params, images, samples=samples):
         sel = sub.use & im.valid[sub.pixel]
         if exclude is not None:
             sel &= ~sub.pixel_mask(exclude)
