@@ -76,13 +76,13 @@ def model_retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | N
 def expected_by_columns(obs: Observations, params: dict, images: M.Images, *, samples: float = 1e6
                         ) -> Iterator[tuple[np.ndarray, Observations, M.Images, np.ndarray]]:
     """The expected counts of ``obs`` at ``params`` and ``images``, a run of about ``samples`` samples' columns at a
-    time (:meth:`Observations.column_chunks`): each run's column positions, samples (a copy: the compiled loops walk
-    them a row at a time), images and expected counts (K, c), from the compiled kernel where it takes the channels
-    and each sample reads its own pixel (a fifth of the model's time: no design per sample), else from the model's
-    design (:func:`dfxcorr.model.expected_by_columns` also yields that design)."""
+    time (:meth:`Observations.column_chunks`): each run's column positions, samples (views, for numpy work: the
+    kernel copies the few it reads), images and expected counts (K, c), from the compiled kernel where it takes the
+    channels and each sample reads its own pixel (a fifth of the model's time: no design per sample), else from the
+    model's design (:func:`dfxcorr.model.expected_by_columns` also yields that design)."""
     K.set_threads()
     for cols in obs.column_chunks(samples):
-        sub, im = obs.subset(cols), images.subset(cols)
+        sub, im = obs.subset(cols, copy=False), images.subset(cols)
         ch = M.channels(params, x=sub.x, n_frames=sub.n_frames)
         fast = compiled(ch) and sub.reading is None
         yield cols, sub, im, K.expected(sub, ch, im.coef) if fast else M.expected(sub, M.design_channels(sub, ch), im)
@@ -97,6 +97,23 @@ def reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, *, phas
         cost, grads = kernel(obs, ch, weights, phase=phase, square=square, channels=channels)
         return cost, M.Channels(grads[0], grads[1], grads[2], grads[3], grads[4])
     return model_reduced_cost(obs, ch, weights, phase=phase, square=square, channels=channels)
+
+
+def parameter_sums(obs: Observations, ch: M.Channels, weights: np.ndarray, names: Sequence[str], *,
+                   phase: float | None = None, square: bool = False) -> tuple[float, dict[str, np.ndarray]]:
+    """Reduced cost and its gradient in the parameters of ``names`` (``square``: the diagonal of their Gauss-Newton
+    sums): :func:`reduced_cost`'s channel sums pulled back by :func:`dfxcorr.model.channel_adjoint`. At images solved
+    with ``weights`` the gradient is :func:`dfxcorr.model.gradient`'s (the envelope theorem, paper eq. 25)."""
+    cost, g = reduced_cost(obs, ch, weights, phase=phase, square=square,
+                           channels={c for n in names if (c := effect(n).channel) is not None})
+    return cost, M.channel_adjoint(names, g, x=obs.x, square=square)
+
+
+def solved(obs: Observations, ch: M.Channels, weights: np.ndarray) -> tuple[M.Images, np.ndarray]:
+    """Images solved with ``weights`` (with their inverse normal matrices) and the residuals I - Ibar (K, C):
+    :func:`dfxcorr.model.solve_images` and :func:`dfxcorr.model.expected`'s values from :func:`retrieve`."""
+    out = retrieve(obs, ch, weights=weights, keep_inverse=True)
+    return M.Images(out["coef"], out["valid"], out["inverse"], out["coupling"]), obs.counts - out["expected"]
 
 
 def model_reduced_cost(obs: Observations, ch: M.Channels, weights: np.ndarray, *, phase: float | None = None,

@@ -239,10 +239,8 @@ class _Problem:
     def _channel_sums(self, params: dict[str, np.ndarray], *, square: bool) -> tuple[float, np.ndarray]:
         """Reduced cost and the per-parameter sums of the kernel (gradient, or sum w F^2 if ``square``)."""
         self.evaluations += 1
-        cost, g = E.reduced_cost(self.obs, _channels(self.obs, params), self.weights, phase=self.phase,
-                                 square=square,
-                                 channels={c for n in self.names if (c := effect(n).channel) is not None})
-        sums = M.channel_adjoint(self.names, g, x=self.obs.x, square=square)
+        cost, sums = E.parameter_sums(self.obs, _channels(self.obs, params), self.weights, self.names,
+                                      phase=self.phase, square=square)
         return cost, np.concatenate([sums[n].ravel() for n in self.names])
 
     def _curvature(self, params: dict[str, np.ndarray]) -> np.ndarray:

@@ -22,6 +22,7 @@ from . import engine as E
 from . import kernels as K
 from . import model as M
 from .catalogue import PAPER_MODEL, neutral_params
+from .chunks import row_counts
 from .noise import noise_weights
 from .observations import Observations
 from .stats import chi2_log_tails
@@ -61,7 +62,7 @@ def motion_statistics(obs: Observations, params: dict) -> tuple[np.ndarray, np.n
     # model predicts, not with the data's own scatter
     solved = E.retrieve(obs, ch, iterations=2)
     weights, ibar = solved["weights"], solved["expected"]
-    n = obs.segment_sum((weights > 0).astype(float))
+    n = row_counts(obs, weights > 0)
     # the fringe's amplitude per unit image modulation, |(Bc, Bs)| = D tf vf V of model.design
     fringe_amp = ch.dose[obs.frame][:, None] * obs.tf * obs.vf * ch.vis_at(obs)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -104,12 +105,14 @@ def deviance(obs: Observations, ibar: np.ndarray) -> np.ndarray:
     With electronic noise it is scaled by g mu / (g mu + sigma_e^2), the photon share of the variance; g is
     each pixel's gain (times its ``pixel_noise`` factor).
     """
-    g = obs.pixel_gain()[obs.pixel]
+    # one gain where no pixel has a factor of its own, and no photon share without electronic noise (it is 1): the
+    # same values without (K, C) passes that were half of a stepping scan's motion test
+    g = obs.gain if obs.noise is None else obs.pixel_gain()[obs.pixel]
     mu = np.maximum(obs.photons(ibar), 1e-6) / g
     y = np.maximum(obs.photons(obs.counts), 0.0) / g
     with np.errstate(divide="ignore", invalid="ignore"):
         d = 2.0 * (np.where(y > 0, y * np.log(np.where(y > 0, y, 1.0) / mu), 0.0) - (y - mu))
-    return d * (g * mu / (g * mu + obs.electronic))
+    return d * (g * mu / (g * mu + obs.electronic)) if obs.electronic else d
 
 
 def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, tol: float = 3e-3) -> dict:

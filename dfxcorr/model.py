@@ -288,7 +288,7 @@ def design_channels(obs: Observations, ch: Channels) -> Design:
     offset = (sum(ch.background[m] * b for m, b in enumerate(background_basis(obs))) + obs.dark
               if np.any(ch.background) else obs.dark.astype(np.float64))
     hc, hs = float(ch.harmonic[0]), float(ch.harmonic[1])
-    theta = obs.phif + ch.phase_at(obs)
+    theta = fringe_phase(obs, ch)
     # the fringe at theta by the angle sum from the flat field's quadratures (made once per observations) and Φ's
     # (on the (frame, column) grid): no trigonometry per sample, as in the compiled kernels
     fc, fs = obs.fringe
@@ -303,6 +303,11 @@ def design_channels(obs: Observations, ch: Channels) -> Design:
         Hc, Hs = Bv * (hc * c2 - hs * s2), Bv * (hc * s2 + hs * c2)
     return Design(A=amp, Bc=dose * vis * Fc, Bs=-dose * vis * Fs, Hc=Hc, Hs=Hs, offset=offset, theta=theta, Fc=Fc,
                   Fs=Fs, dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
+
+
+def fringe_phase(obs: Observations, ch: Channels) -> np.ndarray:
+    """theta = phi^f + Φ, the phase of the fringe each sample sees (rad), shape (K, C)."""
+    return obs.phif + ch.phase_at(obs)
 
 
 def background_basis(obs: Observations) -> list[np.ndarray]:
@@ -519,9 +524,10 @@ def expected_by_columns(obs: Observations, params: dict, images: Images, *, samp
 
 
 def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """Angles (rad) wrapped to [-pi, pi), same shape: by a modulo (the complex exp and angle cost a per-sample pass
-    of the residual signatures several times over)."""
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+    """Angles (rad) wrapped to [-pi, pi), same shape: less the whole turns (the complex exp and angle cost a per-sample
+    pass of the residual signatures several times over, numpy's float modulo three times the floor)."""
+    t = np.asarray(a) + np.pi
+    return t - (2 * np.pi) * np.floor(t / (2 * np.pi)) - np.pi
 
 
 def circular_mean(phi: np.ndarray, weights: np.ndarray | None = None) -> float:

@@ -197,3 +197,13 @@ def test_profiled_fisher_is_smaller_than_plain_and_positive(rng):
 def test_unknown_effect_is_refused():
     with pytest.raises(ValueError, match="unknown effect 'tilted'"):
         effect("tilted")
+
+
+def test_wrap_angle_is_the_angle_of_the_phasor():
+    a = np.random.default_rng(11).uniform(-40.0, 40.0, 10000)
+    w = M.wrap_angle(a)
+    assert np.all((w >= -np.pi) & (w < np.pi))
+    # the same angle: whole turns apart, and the phasor's own angle away from the cut at pi
+    np.testing.assert_allclose((a - w) / (2 * np.pi), np.round((a - w) / (2 * np.pi)), atol=1e-12)
+    inside = np.abs(np.abs(w) - np.pi) > 1e-9
+    np.testing.assert_allclose(w[inside], np.angle(np.exp(1j * a))[inside], atol=1e-12)

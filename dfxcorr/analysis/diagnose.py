@@ -27,6 +27,7 @@ from ..align import realign, subsample_columns
 from ..check import require_residuals
 from ..effects import REGISTRY
 from ..effects.base import Consistency, EffectBase, Hypothesis, Params, Realign, State, Test, Unexplained
+from ..effects.residuals import image_leverage
 from ..fit import fit_vibrations
 from ..frames import well_determined
 from ..io import Scan
@@ -85,7 +86,8 @@ class Fitted:
 
 
 def _signatures(state: Fitted) -> list[dict[str, Any]]:
-    return signatures(state.fit_obs, state.params, alpha=state.alpha, rec=state.fit_rec)
+    return signatures(state.fit_obs, state.params, alpha=state.alpha, rec=state.fit_rec,
+                      leverage=image_leverage(state))
 
 
 def _release(state: State) -> None:

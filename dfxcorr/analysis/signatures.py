@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import engine as E
 from .. import model as M
 from ..noise import pearson, variance
 from ..observations import Observations
@@ -51,7 +52,7 @@ def locate(obs: Observations, params: dict[str, Any], images: M.Images, *, count
            chunk: float = 5e5) -> Residuals:
     """Mean squared standardized residual per pixel, frame, lateral position, fringe phase and count.
 
-    Computed a run of columns at a time (about ``chunk`` samples: :func:`dfxcorr.model.expected_by_columns`), the
+    Computed a run of columns at a time (about ``chunk`` samples: :func:`dfxcorr.engine.expected_by_columns`), the
     expected counts from ``images`` and the model at ``params``, so that a scan of every column holds one run's
     temporaries. ``counts``: expected counts whose 0.5 and 99.5 percentiles bound the count bins (the fit's
     columns' do: the bins need not see every sample).
@@ -66,7 +67,7 @@ def locate(obs: Observations, params: dict[str, Any], images: M.Images, *, count
     cedges = np.geomspace(max(lo, 1e-3), max(hi, 2 * max(lo, 1e-3)), 13)
     phase = np.zeros((2, edges.size - 1))
     count = np.zeros((2, cedges.size - 1))
-    for cols, sub, im, dsg, ibar in M.expected_by_columns(obs, params, images, samples=chunk):
+    for cols, sub, im, ibar in E.expected_by_columns(obs, params, images, samples=chunk):
         z2 = np.where(sub.use, pearson(sub, ibar), np.nan)
         used = sub.use.astype(float)
         n[:, cols] = sub.segment_sum(used)
@@ -75,7 +76,8 @@ def locate(obs: Observations, params: dict[str, Any], images: M.Images, *, count
         frame_n += sub.frame_sum(used.sum(axis=1))
         with np.errstate(invalid="ignore", divide="ignore"):
             xs[cols] = np.nansum(z2, axis=0) / used.sum(axis=0)
-        phase += _binned(M.wrap_angle(dsg.theta + im.phi[sub.pixel]), z2, edges)
+        theta = M.fringe_phase(sub, M.channels(params, x=sub.x, n_frames=sub.n_frames))
+        phase += _binned(M.wrap_angle(theta + im.phi[sub.pixel]), z2, edges)
         count += _binned(ibar, z2, cedges)
     with np.errstate(invalid="ignore", divide="ignore"):
         pixel = obs.to_image(z2_pixel / (n - 3))
@@ -101,8 +103,8 @@ def _binned(value: np.ndarray, z2: np.ndarray, edges: np.ndarray) -> np.ndarray:
 SIGNATURE_AXES = ("frame", "row", "column", "frame_row", "phase", "count", "pixel")
 
 
-def signatures(obs: Observations, params: dict[str, Any], *, alpha: float,
-               min_photons: float = 25.0, rec: Retrieval | None = None) -> list[dict[str, Any]]:
+def signatures(obs: Observations, params: dict[str, Any], *, alpha: float, min_photons: float = 25.0,
+               rec: Retrieval | None = None, leverage: np.ndarray | None = None) -> list[dict[str, Any]]:
     """Residual signatures of a fit, each tested against noise.
 
     On the fit's own samples (its columns: there the share of the residual that the per-frame
@@ -140,6 +142,9 @@ def signatures(obs: Observations, params: dict[str, Any], *, alpha: float,
         The mean signatures use only samples expecting at least this many photons.
     rec : Retrieval, optional
         The retrieval of ``obs`` with ``params`` that keeps the inverse normal matrices (default: made here).
+    leverage : ndarray, shape (K, C), optional
+        The samples' leverage in their pixels' images at ``rec`` (:func:`dfxcorr.model.leverage`), where the caller
+        holds it (default: made here).
 
     Returns
     -------
@@ -157,7 +162,7 @@ def signatures(obs: Observations, params: dict[str, Any], *, alpha: float,
     # the fit's per-frame parameters take their share too, largest where a frame's information is
     # (edge columns for the tilt, bright modulated samples for the phase)
     h_par, info_inv, Dn = M.frame_leverage(obs, dsg, images, w, params)
-    h = np.where(sel, M.leverage(obs, dsg, images, rec.weights) + h_par, 0.0)
+    h = np.where(sel, (M.leverage(obs, dsg, images, rec.weights) if leverage is None else leverage) + h_par, 0.0)
     keep = np.where(sel, np.clip(1.0 - h, 0.0, 1.0), 0.0)
     var = variance(obs, ibar)
     z = np.where(sel, (obs.counts - ibar) / np.sqrt(var), 0.0)

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import engine as E
 from .. import identify
 from .. import model as M
 from ..catalogue import CATALOGUE, Effect, effect, neutral_params
@@ -110,11 +111,10 @@ def score_tests(obs: Observations, params: Params, weights: np.ndarray, model: S
     """
     names = list(model) + [c for c in candidates if c not in model]
     full = {**neutral_params(names, obs.n_frames), **params}
-    dsg = M.design(obs, full)
-    images = M.solve_images(obs, dsg, weights, keep_inverse=True)
-    resid = obs.counts - M.expected(obs, dsg, images)
-    inf = identify.information(obs, dsg.channels, images, weights, names)
-    U = _score(inf, M.gradient(obs, dsg, images, weights, resid, names))
+    ch = M.channels(full, x=obs.x, n_frames=obs.n_frames)
+    images, _ = E.solved(obs, ch, weights)
+    inf = identify.information(obs, ch, images, weights, names)
+    U = _score(inf, E.parameter_sums(obs, ch, weights, names)[1])
     out = {}
     for name in candidates:
         cond = identify.conditional(inf, name, model)
@@ -212,20 +212,19 @@ def heterogeneity(obs: Observations, params: Params, weights: np.ndarray, model:
         The axis that decided, and the size of the effect in each of its strata under the contrast that decided,
         relative to the shared fit's (1; one step from it), in the strata's order.
     """
-    dsg = M.design(obs, params)
-    images = M.solve_images(obs, dsg, weights, keep_inverse=True)
-    resid = obs.counts - M.expected(obs, dsg, images)
-    found = {axis: _heterogeneity(obs, dsg, images, resid, params, weights, model, name, labels=lab)
+    ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
+    images, resid = E.solved(obs, ch, weights)
+    found = {axis: _heterogeneity(obs, ch, images, resid, params, weights, model, name, labels=lab)
              for axis, lab in labels.items()}
     axis, t = strongest(found)
     return Consistency(t.statistic, t.dof, t.p_value, t.log_p, axis, t.payload)
 
 
-def _heterogeneity(obs: Observations, dsg: M.Design, images: M.Images, resid: np.ndarray, params: Params,
+def _heterogeneity(obs: Observations, ch: M.Channels, images: M.Images, resid: np.ndarray, params: Params,
                    weights: np.ndarray, model: Sequence[str], name: str, *, labels: np.ndarray
                    ) -> Test[tuple[float, ...]]:
-    """:func:`heterogeneity` along one axis, at the fit's design, images and residuals (K, C); the payload is the
-    strata's sizes."""
+    """:func:`heterogeneity` along one axis, at the fit's channels, images and residuals (K, C); the payload is the
+    strata's sizes. A stratum holds whole pixels: the gradient of its reduced cost is that at the fit's images."""
     n = int(labels.max()) + 1
     if n < 2:
         return chi2_test(0.0, 0, ())
@@ -240,11 +239,11 @@ def _heterogeneity(obs: Observations, dsg: M.Design, images: M.Images, resid: np
         dof = float(np.sum(np.maximum(obs.segment_sum(inside.astype(float)) - 3, 0)))
         phi = max(float(np.sum(np.where(inside, weights * resid ** 2, 0.0))) / max(dof, 1.0), 1e-12)
         wk = np.where(inside, weights, 0.0)
-        inf = identify.information(obs, dsg.channels, images, wk, names)
+        inf = identify.information(obs, ch, images, wk, names)
         # quasi-likelihood: the stratum's score and information over its own dispersion (the images' profile
         # uses every weight as it is, so the weights themselves are not rescaled)
         matrix = inf.matrix / phi
-        score = _score(inf, M.gradient(obs, dsg, images, wk, resid, names)) / phi
+        score = _score(inf, E.parameter_sums(obs, ch, wk, names)[1]) / phi
         live, sel = inf.live, inf.live & (inf.owner == name)  # the same for every stratum: frames, not weights
         # the alternative: the effect as fitted, of another size in each stratum (theta_k = (1 + gamma_k) theta):
         # a parameter per stratum, however many the effect has, so a per-frame effect is tested with a few dof

@@ -36,7 +36,7 @@ from .base import (
     Test,
     chi2_test,
 )
-from .residuals import line_consistency, pixel_chi2
+from .residuals import image_leverage, line_consistency, pixel_chi2
 
 #: The least gain the regression returns (detector units per photon): a variance needs a photon term.
 MIN_GAIN = 1e-6
@@ -221,7 +221,7 @@ def state_noise(state: State, flagged: np.ndarray) -> NoiseFit:
     obs, params, rec = state.fit_obs, state.params, state.fit_rec
     dsg = M.design(obs, params)
     w = np.where(obs.use & obs.gather_valid(rec.images.valid), rec.weights, 0.0)
-    h = M.leverage(obs, dsg, rec.images, rec.weights) + M.frame_leverage(obs, dsg, rec.images, w, params)[0]
+    h = image_leverage(state) + M.frame_leverage(obs, dsg, rec.images, w, params)[0]
     return noise_model(obs, rec.expected, h, exclude=obs.pixel_mask(ndimage.binary_dilation(flagged)))
 
 

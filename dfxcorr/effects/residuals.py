@@ -9,6 +9,7 @@ import numpy as np
 
 from .. import engine as E
 from .. import model as M
+from ..chunks import row_counts
 from ..noise import pearson
 from ..observations import Noise, Observations
 from ..stats import bonferroni, one_way_anova
@@ -24,6 +25,17 @@ def fit_counts(state: State) -> np.ndarray:
     # a band narrower than the fit's column step holds none of its columns (a full-resolution clinical scan's band of
     # 93 columns, the fit's every 434th): the bins from every column of the fit
     return rec.expected[held if held.any() else solved]
+
+
+def image_leverage(state: State) -> np.ndarray:
+    """The leverage of each of the fit's own samples in its pixel's images (:func:`dfxcorr.model.leverage`), shape
+    (K, C): made once per fit (the residual signatures and the noise model's fit read it)."""
+    return state.cached(_image_leverage)
+
+
+def _image_leverage(state: State) -> np.ndarray:
+    obs, rec = state.fit_obs, state.fit_rec
+    return M.leverage(obs, M.design(obs, state.params), rec.images, rec.weights)
 
 
 def squared_residuals(obs: Observations, params: Params, images: M.Images, exclude: np.ndarray | None = None, *,
@@ -49,7 +61,7 @@ def pixel_chi2(obs: Observations, params: Params, images: M.Images, *, under: No
     X, n = np.zeros((obs.starts.size, obs.columns.size)), np.zeros((obs.starts.size, obs.columns.size))
     total = 0.0 if under is not None else np.nan
     for cols, sub, ibar, sel, z2 in squared_residuals(obs, params, images):
-        X[:, cols], n[:, cols] = sub.segment_sum(z2), sub.segment_sum(sel, dtype=np.float64)
+        X[:, cols], n[:, cols] = sub.segment_sum(z2), row_counts(sub, sel)
         if under is not None:
             total += float(np.sum(pearson(sub.with_noise(under), ibar), where=sel))
     return obs.to_image(X, fill=0.0), obs.to_image(np.maximum(n - 3, 0.0), fill=0.0), total
