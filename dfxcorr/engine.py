@@ -109,10 +109,12 @@ def parameter_sums(obs: Observations, ch: M.Channels, weights: np.ndarray, names
     return cost, M.channel_adjoint(names, g, x=obs.x, square=square)
 
 
-def solved(obs: Observations, ch: M.Channels, weights: np.ndarray) -> tuple[M.Images, np.ndarray]:
-    """Images solved with ``weights`` (with their inverse normal matrices) and the residuals I - Ibar (K, C):
-    :func:`dfxcorr.model.solve_images` and :func:`dfxcorr.model.expected`'s values from :func:`retrieve`."""
-    out = retrieve(obs, ch, weights=weights, keep_inverse=True)
+def solved(obs: Observations, ch: M.Channels, weights: np.ndarray, *, keep_inverse: bool = True
+           ) -> tuple[M.Images, np.ndarray]:
+    """Images solved with ``weights`` (with their inverse normal matrices where ``keep_inverse``) and the residuals
+    I - Ibar (K, C): :func:`dfxcorr.model.solve_images` and :func:`dfxcorr.model.expected`'s values from
+    :func:`retrieve`."""
+    out = retrieve(obs, ch, weights=weights, keep_inverse=keep_inverse)
     return M.Images(out["coef"], out["valid"], out["inverse"], out["coupling"]), obs.counts - out["expected"]
 
 

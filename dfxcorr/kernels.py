@@ -568,7 +568,7 @@ def expected(obs, ch, coef: np.ndarray) -> np.ndarray:
     bounds = _bounds(obs)
     ibar = np.empty(obs.counts.shape)
     fc, fs = obs.fringe
-    samples = (_c(obs.tf), fc, fs, _c(obs.dark), obs.frame, obs.y, obs.x, bounds)
+    samples = (_c(obs.tf), _c(fc), _c(fs), _c(obs.dark), obs.frame, obs.y, obs.x, bounds)
     over_chunks(_expected_rows, row_chunks(bounds[:-1], obs.frame.size),
                 (*samples, *_turning(obs, ch.phase), _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic,
                  _c(coef, np.float64)), (ibar,), ())

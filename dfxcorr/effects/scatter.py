@@ -62,6 +62,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import engine as E
 from .. import model as M
 from ..align import LitStore, pixel_mm, realign
 from ..catalogue import Effect
@@ -276,7 +277,7 @@ def profiler(prep: Prepared, state: State) -> Callable[[ScatterField], tuple[flo
     # On the fit's columns, as its test: every held column's solve was (K, C) float64 arrays times seven
     weights = state.fit_rec.weights
     obs = realign(prep.store, prep.reference, state.fit_obs, state.hypothesis.shift)
-    images = M.solve_images(obs, M.design(obs, state.params), weights)
+    images, _ = E.solved(obs, M.channels(state.params, x=obs.x, n_frames=obs.n_frames), weights, keep_inverse=False)
 
     def fitted(F: ScatterField) -> tuple[float, float, float]:
         U, info, _, cost = score(obs, state.params, images, weights, F.take(columns=obs.columns).astype(np.float64))
@@ -318,7 +319,7 @@ def refitted(prep: Prepared, state: State, fit: dict[str, Any], F: ScatterField,
                                 visibility_gauge=fit["visibility_gauge"],
                                 visibility_quantile=fit["visibility_quantile"], gauge_fraction=fit["gauge_fraction"])
         params = {k: v for k, v in fitted.params.items() if k in params}
-    images = M.solve_images(held, M.design(held, params), weights)
+    images, _ = E.solved(held, M.channels(params, x=held.x, n_frames=held.n_frames), weights, keep_inverse=False)
     U, info, _, _ = score(held, params, images, weights, S)
     return (max(s + U / info, 0.0) if info > 0 else s), F.share()
 
