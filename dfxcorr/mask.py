@@ -105,9 +105,8 @@ def deviance(obs: Observations, ibar: np.ndarray) -> np.ndarray:
     With electronic noise it is scaled by g mu / (g mu + sigma_e^2), the photon share of the variance; g is
     each pixel's gain (times its ``pixel_noise`` factor).
     """
-    # one gain where no pixel has a factor of its own, and no photon share without electronic noise (it is 1): the
-    # same values without (K, C) passes that were half of a stepping scan's motion test
-    g = obs.gain if obs.noise is None else obs.pixel_gain()[obs.pixel]
+    # no photon share without electronic noise (it is 1): the same values without (K, C) passes
+    g = obs.sample_gain()
     mu = np.maximum(obs.photons(ibar), 1e-6) / g
     y = np.maximum(obs.photons(obs.counts), 0.0) / g
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -22,10 +22,7 @@ MIN_SIGNAL = 1.0
 def variance(obs: Observations, ibar: np.ndarray, *, gain: float | None = None) -> np.ndarray:
     """Noise variance of each sample, f g max(photons, 1) + electronic (f g: :meth:`Observations.pixel_gain`; the
     photon signal Ibar minus the detector's dark: :meth:`Observations.photons`)."""
-    g: np.ndarray | float = obs.gain if gain is None else gain
-    if obs.noise is not None:
-        g = obs.pixel_gain(gain)[obs.pixel]
-    return g * np.maximum(obs.photons(ibar), MIN_SIGNAL) + obs.electronic
+    return obs.sample_gain(gain) * np.maximum(obs.photons(ibar), MIN_SIGNAL) + obs.electronic
 
 
 def pearson(obs: Observations, ibar: np.ndarray, *, gain: float | None = None) -> np.ndarray:

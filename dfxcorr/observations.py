@@ -24,6 +24,11 @@ def lateral_coordinate(columns: np.ndarray, width: int) -> np.ndarray:
     return (2.0 * np.asarray(columns, dtype=np.float64) + 1.0) / width - 1.0
 
 
+def _is_run(idx: np.ndarray) -> bool:
+    """Whether integer positions are consecutive and increasing (at least one)."""
+    return idx.size > 0 and idx[-1] - idx[0] == idx.size - 1 and bool(np.all(np.diff(idx) == 1))
+
+
 def quadratures(tf: np.ndarray, vf: np.ndarray, phif: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """t^f v^f cos phi^f and t^f v^f sin phi^f, each of ``tf``'s shape (K, C) and dtype, in chunks of rows on the
     kernels' threads (numpy's cos and sin release the GIL; on one thread they were 40 % of a scatter correction's
@@ -295,11 +300,18 @@ class Observations:
 
     def place(self, image: np.ndarray, values: np.ndarray) -> None:
         """Write per-pixel values (R, C) into a detector image (H, W) in place (a block of a larger image)."""
-        image[np.ix_(self.rows, self.columns)] = values
+        image[self._window()] = values
 
     def held(self, image: np.ndarray) -> np.ndarray:
         """The values (R, C) of the held pixels in a detector image (H, W)."""
-        return image[np.ix_(self.rows, self.columns)]
+        return image[self._window()]
+
+    def _window(self) -> tuple[slice | np.ndarray, ...]:
+        """The index of the held pixels in a detector image: slices where the rows and the columns are runs (25 times
+        faster than the open mesh of their indices, which it is otherwise)."""
+        if all(_is_run(a) for a in (self.rows, self.columns)):
+            return slice(self.rows[0], self.rows[-1] + 1), slice(self.columns[0], self.columns[-1] + 1)
+        return np.ix_(self.rows, self.columns)
 
     def pixel_mask(self, image: np.ndarray) -> np.ndarray:
         """A detector image of booleans (H, W) at every sample, shape (K, C)."""
@@ -316,7 +328,7 @@ class Observations:
         (the copies were a fifth of the per-pixel tests' time).
         """
         idx = np.asarray(columns)
-        run = idx.size > 0 and np.array_equal(idx, np.arange(idx[0], idx[0] + idx.size))
+        run = _is_run(idx)
 
         def cut(a: np.ndarray) -> np.ndarray:
             # a run's slice copied row by row, other positions taken: a fancy index along the columns was 28x slower
@@ -357,6 +369,12 @@ class Observations:
         """
         g = self.gain if gain is None else gain
         return g * (np.ones((self.rows.size, self.columns.size)) if self.noise is None else self.noise)
+
+    def sample_gain(self, gain: float | None = None) -> np.ndarray | float:
+        """:meth:`pixel_gain` at every sample (K, C), or the one gain where no pixel has a factor of its own (a (K, C)
+        array of one value was several passes of each per-sample noise evaluation)."""
+        g = self.gain if gain is None else gain
+        return g if self.noise is None else self.pixel_gain(gain)[self.pixel]
 
     @property
     def quiet(self) -> np.ndarray:

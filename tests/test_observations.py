@@ -61,3 +61,16 @@ def test_a_slot_that_does_not_keep_makes_the_same_quadratures_at_every_call():
         np.testing.assert_allclose(a, c, rtol=1e-14, atol=0)
         np.testing.assert_array_equal(a, b)
     assert first[0] is not again[0] and passing.quadratures.value is None
+
+
+def test_held_pixels_are_placed_and_read_where_they_are_runs_or_not():
+    obs = tiny_obs(np.random.default_rng(6))
+    H, W = obs.shape[1:]
+    image = np.arange(float(H * W)).reshape(H, W)
+    for cols in (np.arange(1, 4), np.array([0, 2, 5])):
+        sub = obs.subset(cols)
+        np.testing.assert_array_equal(sub.held(image), image[np.ix_(sub.rows, sub.columns)])
+        out = np.zeros((H, W))
+        sub.place(out, sub.held(image))
+        np.testing.assert_array_equal(out[np.ix_(sub.rows, sub.columns)], image[np.ix_(sub.rows, sub.columns)])
+        assert out.sum() == image[np.ix_(sub.rows, sub.columns)].sum()

@@ -167,7 +167,7 @@ def signatures(obs: Observations, params: dict[str, Any], *, alpha: float, min_p
     var = variance(obs, ibar)
     z = np.where(sel, (obs.counts - ibar) / np.sqrt(var), 0.0)
     c = float(np.sum(z ** 2) / np.sum(keep))
-    g_true = c * obs.pixel_gain()[obs.pixel]
+    g_true = c * obs.sample_gain()
     kurt = g_true ** 3 * np.maximum(obs.photons(ibar), 1e-3) / (c * var) ** 2
     e = np.where(sel, z ** 2 - c * keep, 0.0)
     # at a few photons the weighted fit's mean is biased towards low counts: dim samples would give the

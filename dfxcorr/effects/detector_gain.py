@@ -210,7 +210,7 @@ def noise_model(obs: Observations, ibar: np.ndarray, h: np.ndarray, *, exclude: 
         sel &= ~exclude
     r2 = ((obs.counts - ibar) ** 2 / (1 - h))[sel]
     # the photon variance per unit gain: the mean times the pixel's variance factor (pixel_noise)
-    mu = (np.maximum(obs.photons(ibar), MIN_SIGNAL) * obs.pixel_gain(1.0)[obs.pixel])[sel]
+    mu = (np.maximum(obs.photons(ibar), MIN_SIGNAL) * obs.sample_gain(1.0))[sel]
     fit = NoiseFit(r2, mu, variance(obs, ibar)[sel], obs.gain, obs.electronic, (obs.gain, obs.electronic))
     return replace(fit, joint=fit.regression())
 

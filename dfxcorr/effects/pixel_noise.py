@@ -103,7 +103,7 @@ def pixel_noise_test(obs: Observations, params: Params, images: M.Images, *, alp
     Z, N = np.zeros((R, C, edges.size + 1), np.float32), np.zeros((R, C, edges.size + 1), np.float32)
     kv_sum = np.zeros((R, C))
     for cols, sub, ibar, sel, z2 in squared_residuals(obs, params, images, exclude):
-        kv_sum[:, cols] = sub.segment_sum(np.where(sel, 2.0 + sub.pixel_gain()[sub.pixel]
+        kv_sum[:, cols] = sub.segment_sum(np.where(sel, 2.0 + sub.sample_gain()
                                                    / np.maximum(sub.photons(ibar), 1e-3), 0.0))
         # one bincount per sum over (pixel, count bin) cells, not a segment sum per bin
         cell = ((sub.pixel[:, None] * cols.size + np.arange(cols.size)) * (edges.size + 1)
