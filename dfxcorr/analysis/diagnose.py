@@ -306,7 +306,7 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = No
     model = list(resolve_effects(cfg, prep.scan, prep.reference, session.fit_base)) if base == "configured" else []
     start = Hypothesis(tuple(model), prep.noise, np.zeros((H, W), bool), np.zeros(J))
     first = session.fit(start, {}, "round 0")
-    located_once, mapped_once = _once_per_state(residuals), _once_per_state(residual_map)
+    located_once = _once_per_state(residuals)
     if session.held_columns.size < W:
         log.info("per-pixel tests on columns %d-%d of %d (diagnose.max_held_samples=%g); the fit on %d columns "
                  "spread over the detector", session.held_columns[0], session.held_columns[-1], W,
@@ -316,6 +316,13 @@ def diagnose(scan: Scan | str | Path | Prepared, cfg: dict[str, Any] | None = No
                    proxy_spread=d["proxy_spread"], max_rounds=d["max_rounds"], timings=timings,
                    noise_first=d["order"] == "noise-first", superseded=_release)
     final = out.state
+
+    def mapped(state: State) -> np.ndarray:
+        # the first and the last fit are located for the report's residual pictures: their maps come with it
+        located = state is first or state is final
+        return located_once(state).pixel.astype(np.float32) if located else residual_map(state)
+
+    mapped_once = _once_per_state(mapped)
     replicated = {}
     if d["replicate"] and out.steps:
         with stage("replication on halves of the detector", timings):

@@ -20,7 +20,7 @@ from .. import plots
 from ..catalogue import CATALOGUE, effect
 from ..effects import REGISTRY
 from ..effects.base import Consistency, EffectBase, Finding, Hypothesis, Params, State, Unexplained
-from ..effects.residuals import fit_counts, pixel_chi2
+from ..effects.residuals import fit_counts, pixel_chi2, reduced_map
 from ..io import atomic_folder
 from ..retrieve import image_maps
 from .loop import GROSS, Blind, Rejection
@@ -255,8 +255,7 @@ def residual_map(state: State) -> np.ndarray:
     step in float64 would be the largest item of a diagnosis's peak memory), NaN where nothing counts: the per-pixel
     map of :func:`residuals` from :func:`dfxcorr.effects.residuals.pixel_chi2` alone (a third of its time)."""
     X, dof, _ = pixel_chi2(state.obs, state.params, state.rec.images)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(dof > 0, X / dof, np.nan).astype(np.float32)
+    return reduced_map(X, dof + 3).astype(np.float32)
 
 
 def change_picture(effect: EffectBase[Any], before: State, after: State, finding: Finding, *,

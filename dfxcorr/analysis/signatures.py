@@ -13,9 +13,10 @@ from typing import Any
 
 import numpy as np
 
-from .. import engine as E
 from .. import model as M
-from ..noise import pearson, variance
+from ..chunks import row_counts
+from ..effects.residuals import reduced_map, squared_residuals
+from ..noise import variance
 from ..observations import Observations
 from ..retrieve import Retrieval, retrieve
 from ..stats import chi2_tail, digitize, holm, ranges
@@ -50,10 +51,11 @@ class Residuals:
 
 def locate(obs: Observations, params: dict[str, Any], images: M.Images, *, counts: np.ndarray,
            chunk: float = 5e5) -> Residuals:
-    """Mean squared standardized residual per pixel, frame, lateral position, fringe phase and count.
+    """Mean squared standardized residual per pixel, frame, lateral position, fringe phase and count, over the used
+    samples of solved pixels (the per-pixel map is :func:`dfxcorr.effects.residuals.reduced_map`'s).
 
-    Computed a run of columns at a time (about ``chunk`` samples: :func:`dfxcorr.engine.expected_by_columns`), the
-    expected counts from ``images`` and the model at ``params``, so that a scan of every column holds one run's
+    Computed a run of columns at a time (about ``chunk`` samples: :func:`dfxcorr.effects.residuals.squared_residuals`),
+    the expected counts from ``images`` and the model at ``params``, so that a scan of every column holds one run's
     temporaries. ``counts``: expected counts whose 0.5 and 99.5 percentiles bound the count bins (the fit's
     columns' do: the bins need not see every sample).
     """
@@ -67,20 +69,20 @@ def locate(obs: Observations, params: dict[str, Any], images: M.Images, *, count
     cedges = np.geomspace(max(lo, 1e-3), max(hi, 2 * max(lo, 1e-3)), 13)
     phase = np.zeros((2, edges.size - 1))
     count = np.zeros((2, cedges.size - 1))
-    for cols, sub, im, ibar in E.expected_by_columns(obs, params, images, samples=chunk):
-        z2 = np.where(sub.use, pearson(sub, ibar), np.nan)
-        used = sub.use.astype(float)
-        n[:, cols] = sub.segment_sum(used)
-        z2_pixel[:, cols] = sub.segment_sum(np.nan_to_num(z2))
-        frame_z2 += sub.frame_sum(np.nansum(z2, axis=1))
-        frame_n += sub.frame_sum(used.sum(axis=1))
+    phi = images.phi
+    for cols, sub, ibar, sel, z2 in squared_residuals(obs, params, images, samples=chunk):
+        used = sel.sum(axis=0)
+        n[:, cols] = row_counts(sub, sel)
+        z2_pixel[:, cols] = sub.segment_sum(z2)
+        frame_z2 += sub.frame_sum(z2.sum(axis=1))
+        frame_n += sub.frame_sum(sel.sum(axis=1))
         with np.errstate(invalid="ignore", divide="ignore"):
-            xs[cols] = np.nansum(z2, axis=0) / used.sum(axis=0)
+            xs[cols] = z2.sum(axis=0) / used
         theta = M.fringe_phase(sub, M.channels(params, x=sub.x, n_frames=sub.n_frames))
-        phase += _binned(M.wrap_angle(theta + im.phi[sub.pixel]), z2, edges)
-        count += _binned(ibar, z2, cedges)
+        phase += _binned(M.wrap_angle(theta + phi[:, cols][sub.pixel]), z2, sel, edges)
+        count += _binned(ibar, z2, sel, cedges)
     with np.errstate(invalid="ignore", divide="ignore"):
-        pixel = obs.to_image(z2_pixel / (n - 3))
+        pixel = obs.to_image(reduced_map(z2_pixel, n))
         frame, phase_mean, count_mean = frame_z2 / frame_n, phase[0] / phase[1], count[0] / count[1]
     # a retrieval with 3 unknowns per pixel leaves (n - 3) / n of the variance in the residuals
     scale = float(np.nansum(n) / np.nansum(np.maximum(n - 3, 0)))
@@ -89,12 +91,12 @@ def locate(obs: Observations, params: dict[str, Any], images: M.Images, *, count
                      count_value=np.sqrt(cedges[1:] * cedges[:-1]))
 
 
-def _binned(value: np.ndarray, z2: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """Sum of the finite ``z2`` and their number in each bin of ``value`` between ``edges``, shape (2, bins)."""
+def _binned(value: np.ndarray, z2: np.ndarray, sel: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Sum of the selected ``z2`` and their number in each bin of ``value`` between ``edges``, shape (2, bins)."""
     nb = edges.size - 1
     idx = digitize(value, edges).ravel().astype(np.intp) - 1
-    # the samples outside every bin, or without a finite z2, go to one more bin, dropped: no copies of the rest
-    idx[~np.isfinite(z2.ravel()) | (idx < 0) | (idx >= nb)] = nb
+    # the samples outside every bin, or not selected, go to one more bin, dropped: no copies of the rest
+    idx[~sel.ravel() | (idx < 0) | (idx >= nb)] = nb
     return np.stack([np.bincount(idx, weights=np.where(idx < nb, z2.ravel(), 0.0), minlength=nb + 1)[:nb],
                      np.bincount(idx, minlength=nb + 1)[:nb]])
 

@@ -67,6 +67,13 @@ def pixel_chi2(obs: Observations, params: Params, images: M.Images, *, under: No
     return obs.to_image(X, fill=0.0), obs.to_image(np.maximum(n - 3, 0.0), fill=0.0), total
 
 
+def reduced_map(X: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Reduced chi-square of each pixel, X / (n - 3) from its chi-square X and samples n (any shape, the same), NaN
+    where fewer than four samples count (3 images per pixel)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(n > 3, X / (n - 3), np.nan)
+
+
 def line_consistency(factors: np.ndarray, X: np.ndarray, dof: np.ndarray, *, strata: int = 6,
                      min_pixels: int = 24) -> Consistency | None:
     """Whether each pixel class of a factor map has one variance factor along its detector lines.

@@ -8,7 +8,9 @@ from scipy import stats
 
 from dfxcorr import model as M
 from dfxcorr.align import build_observations
-from dfxcorr.analysis.signatures import signatures
+from dfxcorr.analysis.signatures import locate, signatures
+from dfxcorr.effects.residuals import pixel_chi2, reduced_map
+from dfxcorr.retrieve import retrieve
 from dfxcorr.io import Reference, Scan
 from dfxcorr.stats import ranges
 
@@ -99,3 +101,20 @@ def test_ranges_reads_runs_of_sorted_integers():
     assert ranges([]) == ""
     assert ranges([1, 3, 5, 6], limit=2) == "1, 3, ..."
     assert ranges([1, 3, 5, 6], limit=3) == "1, 3, 5-6"
+
+
+def test_located_pixels_are_the_reduced_chi_square_of_their_solved_samples(model_scan):
+    obs = drawn(model_scan, 7)
+    # a pixel without enough samples and a few samples not used: left out of every bin, NaN in the map
+    use = obs.use.copy()
+    use[obs.pixel == 3, 5] = False
+    use[::17] = False
+    obs = replace(obs, use=use)
+    rec = retrieve(obs, {})
+    located = locate(obs, {}, rec.images, counts=obs.counts[use], chunk=3 * obs.frame.size)
+    X, dof, _ = pixel_chi2(obs, {}, rec.images)
+    np.testing.assert_allclose(located.pixel, reduced_map(X, dof + 3), rtol=1e-12)
+    assert np.isnan(located.pixel[obs.rows[3], obs.columns[5]])
+    # data drawn from the model: about 1 along every axis
+    assert np.nanmean(located.pixel) == pytest.approx(1.0, abs=0.1)
+    assert np.nanmean(located.frame) == pytest.approx(1.0, abs=0.1)
