@@ -200,31 +200,36 @@ def signatures(obs: Observations, params: dict[str, Any], *, alpha: float, min_p
     }
     kinds = ([(a, "variance") for a in ("frame", "row", "column", "phase", "count")]
              + [(a, "mean") for a in ("frame", "frame_row")])
+    # the selected samples' weights of every axis's sums, taken out once (each axis's bins are a bincount of them)
+    weights = {"e": e[sel], "kappa": kappa[sel], "kappa_pixels": kappa_pixels[sel], "keep": keep[sel],
+               "z_bright": np.where(bright, z, 0.0)[sel], "keep_bright": np.where(bright, keep, 0.0)[sel],
+               "bright": bright[sel].astype(float), "frame": frame[sel]}
+    D_bright = [np.where(bright, Dn[..., a], 0.0)[sel] for a in range(Dn.shape[-1])]
     out = []
     for axis, kind in kinds:
         lab, value = labels[axis]
         nb = value.size
         lab = lab[sel]
-        use = sel if kind == "variance" else bright
         S: np.ndarray
         V: np.ndarray
         expect: np.ndarray
         if kind == "variance":
-            S = np.bincount(lab, weights=e[sel], minlength=nb)
-            V = np.bincount(lab, weights=(kappa_pixels if axis in ("row", "column") else kappa)[sel], minlength=nb)
-            expect = c * np.bincount(lab, weights=keep[sel], minlength=nb)
+            S = np.bincount(lab, weights=weights["e"], minlength=nb)
+            V = np.bincount(lab, weights=weights["kappa_pixels" if axis in ("row", "column") else "kappa"],
+                            minlength=nb)
+            expect = c * np.bincount(lab, weights=weights["keep"], minlength=nb)
             lost = 1.0
         else:
-            S = np.bincount(lab, weights=np.where(use, z, 0.0)[sel], minlength=nb)
-            V = c * np.bincount(lab, weights=np.where(use, keep, 0.0)[sel], minlength=nb)
-            expect = np.bincount(lab, weights=use[sel].astype(float), minlength=nb)
+            S = np.bincount(lab, weights=weights["z_bright"], minlength=nb)
+            V = c * np.bincount(lab, weights=weights["keep_bright"], minlength=nb)
+            expect = np.bincount(lab, weights=weights["bright"], minlength=nb)
             # what the per-frame parameters took of each bin's sum: g^T I^-1 g with g = sum of the bin's
             # standardized derivatives (a bin lies within one frame on these axes)
             g = np.zeros((nb, Dn.shape[-1]))
-            for a in range(Dn.shape[-1]):
-                g[:, a] = np.bincount(lab, weights=np.where(use, Dn[..., a], 0.0)[sel], minlength=nb)
+            for a, Da in enumerate(D_bright):
+                g[:, a] = np.bincount(lab, weights=Da, minlength=nb)
             first = np.zeros(nb, int)
-            first[lab] = frame[sel]
+            first[lab] = weights["frame"]
             # at most the bin's own one: a frame the fit cannot determine (its inverse information infinite, on a fit
             # of a few columns) takes all of its bins
             with np.errstate(divide="ignore", invalid="ignore"):

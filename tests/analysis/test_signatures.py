@@ -10,8 +10,8 @@ from dfxcorr import model as M
 from dfxcorr.align import build_observations
 from dfxcorr.analysis.signatures import locate, signatures
 from dfxcorr.effects.residuals import pixel_chi2, reduced_map
-from dfxcorr.retrieve import retrieve
 from dfxcorr.io import Reference, Scan
+from dfxcorr.retrieve import retrieve
 from dfxcorr.stats import ranges
 
 
