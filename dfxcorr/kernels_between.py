@@ -57,10 +57,17 @@ def _reading(obs) -> tuple[np.ndarray, np.ndarray]:
 @njit(cache=True, inline="always")
 def _sample(fc, fs, cos_p, sin_p, tf, vis, dose, k, c, j, hc, hs, harm):
     """Sample (k, c) of frame j: its fringe turned by the phase channel (Fc, Fs), D tf, the double angle (zeros
-    unless ``harm``) and the design columns (:func:`dfxcorr.kernels._turned`, :func:`dfxcorr.kernels._design`)."""
-    Fc, Fs = _turned(np.float64(fc[k, c]), np.float64(fs[k, c]), cos_p[j, c], sin_p[j, c])
-    amp = dose[j] * tf[k, c]
-    c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, amp, dose[j] * vis[j, c], hc, hs, harm)
+    unless ``harm``) and the design columns (:func:`_sample_values` of its entries)."""
+    return _sample_values(fc[k, c], fs[k, c], tf[k, c], cos_p[j, c], sin_p[j, c], vis[j, c], dose[j], hc, hs, harm)
+
+
+@njit(cache=True, inline="always")
+def _sample_values(fc, fs, tf, cp, sp, vis, dose, hc, hs, harm):
+    """:func:`_sample` from one sample's flat-field fringe (fc, fs) and transmission, and its frame's cos Φ, sin Φ,
+    V and D at its column (:func:`dfxcorr.kernels._turned`, :func:`dfxcorr.kernels._design`)."""
+    Fc, Fs = _turned(np.float64(fc), np.float64(fs), cp, sp)
+    amp = dose * tf
+    c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, amp, dose * vis, hc, hs, harm)
     return Fc, Fs, amp, c2, s2, a, bc, bs, hcc, hcs
 
 
