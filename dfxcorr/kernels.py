@@ -138,6 +138,16 @@ def _design(Fc, Fs, amp, dv, hc, hs, harm):
 
 
 @njit(cache=True, inline="always")
+def _sample_values(fc, fs, tf, cp, sp, vis, dose, hc, hs, harm):
+    """One sample's turned fringe (Fc, Fs), D tf, double angle and design columns (:func:`_turned`, :func:`_design`)
+    from its flat-field fringe (fc, fs) and transmission and its frame's cos Φ, sin Φ, V and D at its column."""
+    Fc, Fs = _turned(np.float64(fc), np.float64(fs), cp, sp)
+    amp = dose * tf
+    c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, amp, dose * vis, hc, hs, harm)
+    return Fc, Fs, amp, c2, s2, a, bc, bs, hcc, hcs
+
+
+@njit(cache=True, inline="always")
 def _direction(cs, ss):
     """cos phi, sin phi of images (c, s) (0 where c = s = 0) and the harmonic factors e = m cos 2phi, f = m sin 2phi.
     Without a branch: a loop over columns that calls it is vectorised."""
@@ -145,6 +155,17 @@ def _direction(cs, ss):
     some = m != 0.0
     u, w = cs / m if some else 0.0, ss / m if some else 0.0
     return u, w, cs * u - ss * w, ss * u + cs * w
+
+
+@njit(cache=True, inline="always")
+def _sample_count(dark, bg, x, y, t, cs, ss, a, bc, bs, hcc, hcs, harmonic):
+    """Expected count of one sample at images (t, c, s) from its dark, the background (bg at its x and y) and its
+    design columns (:func:`_sample_values`)."""
+    m = dark + bg[0] + bg[1] * x + bg[2] * y + t * a + cs * bc + ss * bs
+    if harmonic:
+        _, _, e, f = _direction(cs, ss)
+        m += hcc * e - hcs * f
+    return m
 
 
 @njit(cache=True, inline="always")
@@ -543,14 +564,10 @@ def _expected_rows(tf, fc, fs, dark, frame, y, x, bounds, cos_p, sin_p, vis, dos
             j = frame[k]
             dj, yk, out = dose[j], y[k], ibar[k]
             for c in range(x.size):
-                Fc, Fs = _turned(fc[k, c], fs[k, c], cos_p[j, c], sin_p[j, c])
-                _, _, a, bc, bs, hcc, hcs = _design(Fc, Fs, dj * tf[k, c], dj * vis[j, c], hc, hs, harmonic)
-                t, cs, ss = coef[r, c, 0], coef[r, c, 1], coef[r, c, 2]
-                m = dark[k, c] + bg[0] + bg[1] * x[c] + bg[2] * yk + t * a + cs * bc + ss * bs
-                if harmonic:
-                    _, _, e, f = _direction(cs, ss)
-                    m += hcc * e - hcs * f
-                out[c] = m
+                _, _, _, _, _, a, bc, bs, hcc, hcs = _sample_values(fc[k, c], fs[k, c], tf[k, c], cos_p[j, c],
+                                                                    sin_p[j, c], vis[j, c], dj, hc, hs, harmonic)
+                out[c] = _sample_count(dark[k, c], bg, x[c], yk, coef[r, c, 0], coef[r, c, 1], coef[r, c, 2], a, bc,
+                                       bs, hcc, hcs, harmonic)
 
 
 def expected(obs, ch, coef: np.ndarray) -> np.ndarray:

@@ -30,6 +30,8 @@ from .kernels import (
     _direction,
     _gradient,
     _image_columns,
+    _sample_count,
+    _sample_values,
     _turned,
     _variance,
     weights_dtype,
@@ -57,18 +59,8 @@ def _reading(obs) -> tuple[np.ndarray, np.ndarray]:
 @njit(cache=True, inline="always")
 def _sample(fc, fs, cos_p, sin_p, tf, vis, dose, k, c, j, hc, hs, harm):
     """Sample (k, c) of frame j: its fringe turned by the phase channel (Fc, Fs), D tf, the double angle (zeros
-    unless ``harm``) and the design columns (:func:`_sample_values` of its entries)."""
+    unless ``harm``) and the design columns (:func:`dfxcorr.kernels._sample_values` of its entries)."""
     return _sample_values(fc[k, c], fs[k, c], tf[k, c], cos_p[j, c], sin_p[j, c], vis[j, c], dose[j], hc, hs, harm)
-
-
-@njit(cache=True, inline="always")
-def _sample_values(fc, fs, tf, cp, sp, vis, dose, hc, hs, harm):
-    """:func:`_sample` from one sample's flat-field fringe (fc, fs) and transmission, and its frame's cos Φ, sin Φ,
-    V and D at its column (:func:`dfxcorr.kernels._turned`, :func:`dfxcorr.kernels._design`)."""
-    Fc, Fs = _turned(np.float64(fc), np.float64(fs), cp, sp)
-    amp = dose * tf
-    c2, s2, a, bc, bs, hcc, hcs = _design(Fc, Fs, amp, dose * vis, hc, hs, harm)
-    return Fc, Fs, amp, c2, s2, a, bc, bs, hcc, hcs
 
 
 # --------------------------------------------------------------------------------------------------
@@ -408,11 +400,7 @@ def _count(fc, fs, cos_p, sin_p, tf, vis, dose, dark, bg, y, x, hc, hs, harmonic
     """Expected count of sample (k, c) at the images it reads."""
     _, _, _, _, _, a, bc, bs, hcc, hcs = _sample(fc, fs, cos_p, sin_p, tf, vis, dose, k, c, j, hc, hs, harmonic)
     tt, cs, ss = _read(coef, lo, hi, f, i)
-    m = dark[k, c] + bg[0] + bg[1] * x[c] + bg[2] * y[k] + tt * a + cs * bc + ss * bs
-    if harmonic:
-        _, _, e, ff = _direction(cs, ss)
-        m += hcc * e - hcs * ff
-    return m
+    return _sample_count(dark[k, c], bg, x[c], y[k], tt, cs, ss, a, bc, bs, hcc, hcs, harmonic)
 
 
 # --------------------------------------------------------------------------------------------------
