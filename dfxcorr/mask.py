@@ -105,12 +105,12 @@ def deviance(obs: Observations, ibar: np.ndarray) -> np.ndarray:
     With electronic noise it is scaled by g mu / (g mu + sigma_e^2), the photon share of the variance; g is
     each pixel's gain (times its ``pixel_noise`` factor).
     """
-    # no photon share without electronic noise (it is 1): the same values without (K, C) passes
     g = obs.sample_gain()
     mu = np.maximum(obs.photons(ibar), 1e-6) / g
     y = np.maximum(obs.photons(obs.counts), 0.0) / g
     with np.errstate(divide="ignore", invalid="ignore"):
         d = 2.0 * (np.where(y > 0, y * np.log(np.where(y > 0, y, 1.0) / mu), 0.0) - (y - mu))
+    # no photon share without electronic noise (it is 1): the same values without (K, C) passes
     return d * (g * mu / (g * mu + obs.electronic)) if obs.electronic else d
 
 

@@ -255,7 +255,7 @@ def residual_map(state: State) -> np.ndarray:
     step in float64 would be the largest item of a diagnosis's peak memory), NaN where nothing counts: the per-pixel
     map of :func:`residuals` from :func:`dfxcorr.effects.residuals.pixel_chi2` alone (a third of its time)."""
     X, dof, _ = pixel_chi2(state.obs, state.params, state.rec.images)
-    return reduced_map(X, dof + 3).astype(np.float32)
+    return reduced_map(X, dof).astype(np.float32)
 
 
 def change_picture(effect: EffectBase[Any], before: State, after: State, finding: Finding, *,

@@ -82,7 +82,7 @@ def locate(obs: Observations, params: dict[str, Any], images: M.Images, *, count
         phase += _binned(M.wrap_angle(theta + phi[:, cols][sub.pixel]), z2, sel, edges)
         count += _binned(ibar, z2, sel, cedges)
     with np.errstate(invalid="ignore", divide="ignore"):
-        pixel = obs.to_image(reduced_map(z2_pixel, n))
+        pixel = obs.to_image(reduced_map(z2_pixel, n - 3))
         frame, phase_mean, count_mean = frame_z2 / frame_n, phase[0] / phase[1], count[0] / count[1]
     # a retrieval with 3 unknowns per pixel leaves (n - 3) / n of the variance in the residuals
     scale = float(np.nansum(n) / np.nansum(np.maximum(n - 3, 0)))
@@ -200,16 +200,17 @@ def signatures(obs: Observations, params: dict[str, Any], *, alpha: float, min_p
     }
     kinds = ([(a, "variance") for a in ("frame", "row", "column", "phase", "count")]
              + [(a, "mean") for a in ("frame", "frame_row")])
-    # the selected samples' weights of every axis's sums, taken out once (each axis's bins are a bincount of them)
+    # the selected samples' labels and weights of every axis's sums, taken out once (each axis's bins are a bincount
+    # of them)
+    selected = {axis: lab[sel] for axis, (lab, _) in labels.items()}
     weights = {"e": e[sel], "kappa": kappa[sel], "kappa_pixels": kappa_pixels[sel], "keep": keep[sel],
                "z_bright": np.where(bright, z, 0.0)[sel], "keep_bright": np.where(bright, keep, 0.0)[sel],
-               "bright": bright[sel].astype(float), "frame": frame[sel]}
+               "bright": bright[sel].astype(float)}
     D_bright = [np.where(bright, Dn[..., a], 0.0)[sel] for a in range(Dn.shape[-1])]
     out = []
     for axis, kind in kinds:
-        lab, value = labels[axis]
+        lab, value = selected[axis], labels[axis][1]
         nb = value.size
-        lab = lab[sel]
         S: np.ndarray
         V: np.ndarray
         expect: np.ndarray
@@ -229,7 +230,7 @@ def signatures(obs: Observations, params: dict[str, Any], *, alpha: float, min_p
             for a, Da in enumerate(D_bright):
                 g[:, a] = np.bincount(lab, weights=Da, minlength=nb)
             first = np.zeros(nb, int)
-            first[lab] = weights["frame"]
+            first[lab] = selected["frame"]
             # at most the bin's own one: a frame the fit cannot determine (its inverse information infinite, on a fit
             # of a few columns) takes all of its bins
             with np.errstate(divide="ignore", invalid="ignore"):

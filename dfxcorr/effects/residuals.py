@@ -67,11 +67,11 @@ def pixel_chi2(obs: Observations, params: Params, images: M.Images, *, under: No
     return obs.to_image(X, fill=0.0), obs.to_image(np.maximum(n - 3, 0.0), fill=0.0), total
 
 
-def reduced_map(X: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Reduced chi-square of each pixel, X / (n - 3) from its chi-square X and samples n (any shape, the same), NaN
-    where fewer than four samples count (3 images per pixel)."""
+def reduced_map(X: np.ndarray, dof: np.ndarray) -> np.ndarray:
+    """Reduced chi-square of each pixel, X / dof from its chi-square X and degrees of freedom (samples - 3; any shape,
+    the same), NaN where it has none."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(n > 3, X / (n - 3), np.nan)
+        return np.where(dof > 0, X / dof, np.nan)
 
 
 def line_consistency(factors: np.ndarray, X: np.ndarray, dof: np.ndarray, *, strata: int = 6,
