@@ -198,6 +198,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "circmean_iterations": Option(10, "first iterations with the phase image at its circular mean (eq. 36)",
                                       int, check=_within(0, 1e5)),
         "staged": Option(True, "fit phases first, add visibility and other effects afterwards (Sec. II-E)", bool),
+        "start": Option("pilot", "pilot: start at the motion mask's pilot estimate where every well-determined "
+                                 "frame fits there within noise (the stages of fit.staged are then skipped: it is "
+                                 "in the basin of the minimum), else at the neutral values; neutral: always there",
+                        str, choices=("pilot", "neutral")),
         "precondition": Option(True, "rescale the fit's variables by the Fisher information", bool),
         "preconditioner": Option("profiled", "profiled: whiten by the whole profiled Fisher information (same "
                                              "minimum, far fewer iterations); diagonal: its plain diagonal, the "

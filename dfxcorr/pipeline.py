@@ -33,7 +33,7 @@ from .estimators import ESTIMATORS
 from .faults import MIN_KEPT_SHARE
 from .fit import FitResult
 from .io import Scan
-from .mask import motion_mask
+from .mask import START_CHI2, motion_mask, start_misfit
 from .observations import Observations
 from .planning import ColumnPlan, pilot_estimate, plan_columns, resolve_effects, row_blocks
 from .preparation import Prepared, prepare
@@ -90,7 +90,8 @@ def reconstruct(scan: Scan | str | Path | Prepared, cfg: dict | None = None, *, 
             moving = fit_motion_mask(prep, cfg, plan, blocks)
     with stage("fit", timings):
         fitted, fit_mask, effects = run_fit(prep, cfg, moving, columns=columns, progress=progress,
-                                            coarse=1 if plan is None else plan.coarse)
+                                            coarse=1 if plan is None else plan.coarse,
+                                            pilot=None if plan is None else plan.pilot)
     with stage("retrieve", timings):
         iterations = cfg["retrieve"]["iterations"]
         n_par = sum(np.size(p) for p in fitted.params.values())
@@ -210,12 +211,28 @@ def fit_observations(prep: Prepared, columns: np.ndarray, moving: np.ndarray) ->
     return replace(obs, use=obs.use & ~obs.pixel_mask(moving))
 
 
+def pilot_start(obs: Observations, pilot: dict, *, effects: tuple[str, ...], gauge_fraction: float) -> dict:
+    """The maximum-likelihood fit's options that start it at ``pilot`` (unstaged) where every well-determined frame
+    fits there within noise (:data:`dfxcorr.mask.START_CHI2`), else none (neutral start, staged); logged."""
+    worst = start_misfit(obs, pilot, effects=effects, gauge_fraction=gauge_fraction)
+    if worst <= START_CHI2:
+        log.info("vibration fit starts at the pilot estimate (largest reduced chi-square of a well-determined frame "
+                 "there %.3g)", worst)
+        return {"start": pilot, "staged": False}
+    log.info("vibration fit starts at the neutral values: at the pilot estimate a well-determined frame's reduced "
+             "chi-square is %.3g (above %g)", worst, START_CHI2)
+    return {}
+
+
 def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarray, progress: bool | None = None,
-            coarse: int = 1) -> tuple[FitResult, np.ndarray, tuple[str, ...]]:
+            coarse: int = 1, pilot: dict | None = None) -> tuple[FitResult, np.ndarray, tuple[str, ...]]:
     """Estimate the per-frame parameters with the configured method.
 
     The fit holds observations of ``columns`` only (:func:`plan_columns`), in float32; its stages run on every
-    ``coarse``-th of them first (:attr:`ColumnPlan.coarse`).
+    ``coarse``-th of them first (:attr:`ColumnPlan.coarse`). With ``fit.start: pilot`` the maximum-likelihood fit
+    starts at ``pilot`` (the motion mask's estimate, :attr:`ColumnPlan.pilot`) where every well-determined frame fits
+    there within noise (:func:`dfxcorr.mask.start_misfit`), without the stages that bring a neutral start into the
+    basin of the minimum.
 
     Returns
     -------
@@ -247,8 +264,10 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
         def tick(stage_name, cost):
             bar.update(1, status=f"{stage_name} cost {cost:.6g}")
         estimator = ESTIMATORS[method]
-        result = estimator.fit(fit_obs, effects=effects, **estimator.options({**f, "coarse": coarse},
-                                                                             on_iteration=tick))
+        options = estimator.options({**f, "coarse": coarse}, on_iteration=tick)
+        if method == "ml" and f["start"] == "pilot" and pilot is not None:
+            options.update(pilot_start(fit_obs, pilot, effects=effects, gauge_fraction=f["gauge_fraction"]))
+        result = estimator.fit(fit_obs, effects=effects, **options)
     if "tilt" in result.params and result.well_determined is not None:
         step = int(cols[1] - cols[0]) if cols.size > 1 else 1
         period = tilt_alias_period(W, step)

@@ -1,11 +1,14 @@
 """Motion-pixel masking (paper Sec. II-E) on a region that moves during the scan."""
+import logging
+
 import numpy as np
 import pytest
 
 from dfxcorr import config as C
 from dfxcorr import pipeline, planning
 from dfxcorr.align import build_observations
-from dfxcorr.mask import motion_mask, pilot_vibrations
+from dfxcorr.analysis.evaluate import frames_lighting, gauge_median
+from dfxcorr.mask import START_CHI2, motion_mask, pilot_vibrations, start_misfit
 from dfxcorr.reference import resolve_reference
 
 from conftest import prepare
@@ -94,3 +97,39 @@ def test_row_blocks_give_the_mask_of_one_pass(small_scan):
     np.testing.assert_array_equal(whole[0], blocks[0])
     np.testing.assert_allclose(whole[1], blocks[1], rtol=1e-12, equal_nan=True)
     assert whole[2] == blocks[2]
+
+
+def truth_params(truth) -> dict:
+    return {"phase_offset": truth["vib_phase_offset"][:, None], "tilt": truth["vib_tilt"][:, None],
+            "visibility_loss": truth["vib_visibility"][:, None]}
+
+
+def test_a_start_in_the_basin_fits_every_frame_within_noise_and_one_frame_off_does_not(small_scan):
+    scan, truth = small_scan()
+    obs = build_observations(scan, resolve_reference(scan))
+    at_truth = start_misfit(obs, truth_params(truth))
+    # the largest of ~100 frames' reduced chi-squares, each over >= ~700 samples (sd 0.05): within 5 sd of 1
+    assert at_truth == pytest.approx(1.0, abs=0.25)
+    off = truth_params(truth)
+    j = int(np.flatnonzero(frames_lighting(scan.position, scan.active_rows, scan.shape[1]))[10])
+    off["phase_offset"] = off["phase_offset"].copy()
+    off["phase_offset"][j] += np.pi / 2  # a quarter fringe: another basin for that frame
+    assert start_misfit(obs, off) > 3 * START_CHI2
+    assert start_misfit(obs, off, gauge_fraction=1.01) == np.inf  # no frame well determined: never a start
+
+
+def test_the_fit_from_the_pilot_reaches_the_minimum_of_the_staged_fit(small_scan, caplog):
+    scan, truth = small_scan()
+    with caplog.at_level(logging.INFO, logger="dfxcorr"):
+        fast = pipeline.reconstruct(scan, C.load([], ["fit.subsample=3"]))
+    assert any("starts at the pilot estimate" in r.getMessage() for r in caplog.records)
+    staged = pipeline.reconstruct(scan, C.load([], ["fit.subsample=3", "fit.start=neutral"]))
+    assert len(fast.cost) < len(staged.cost)
+    good = frames_lighting(scan.position, scan.active_rows, scan.shape[1])
+    for name in ("phase_offset", "tilt"):
+        a = gauge_median(fast.params[name][:, 0], good, scale=False)
+        b = gauge_median(staged.params[name][:, 0], good, scale=False)
+        # the same minimum: apart by a small fraction of the reported standard error
+        assert np.all(np.abs(a - b)[good] < 0.05 * staged.uncertainty[name][good, 0]), name
+    # and of the whole model: its chi-squares within one unit (a likelihood ratio of e^0.5)
+    assert abs(fast.reduced_chi2 - staged.reduced_chi2) * staged.dof < 1.0
