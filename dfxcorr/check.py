@@ -262,7 +262,16 @@ def memory_estimate(shape, *, itemsize: int, lit_samples: int, fit_samples: int,
 
 
 def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, prep: Prepared | None) -> ColumnPlan:
-    from .planning import ColumnPlan, coarse_step, column_step, fit_columns, fit_seconds, plan_columns, slowdown
+    from .planning import (
+        ColumnPlan,
+        coarse_step,
+        column_step,
+        fit_columns,
+        fit_seconds,
+        plan_columns,
+        slowdown,
+        start_seconds,
+    )
 
     W = scan.shape[2]
     n = cfg["fit"]["subsample"]
@@ -275,7 +284,7 @@ def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, prep: Prepare
         return ColumnPlan(columns=cols, why="fit.subsample" if n != "auto" else
                           "at most; auto chooses at run time from a pilot, which dfxcorr check runs",
                           seconds=fit_seconds(cols.size, samples_per_column, coarse, slowdown=slowdown(cfg)),
-                          coarse=coarse)
+                          start_seconds=start_seconds(cfg, cols.size, samples_per_column, coarse), coarse=coarse)
     except ValueError as exc:
         if isinstance(exc, DfxcorrError):
             raise

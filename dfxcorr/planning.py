@@ -185,7 +185,10 @@ class ColumnPlan:
         Predicted median one-sigma uncertainty of the phase effects (phi0, phi1; rad) over the well-determined
         frames, from the pilot's Fisher information at the neutral model (NaN without a pilot).
     seconds : float
-        Predicted wall time of the fit (:func:`fit_seconds`).
+        Predicted wall time of the fit (:func:`fit_seconds`) from the neutral values, through its stages.
+    start_seconds : float
+        Predicted wall time of the fit from the pilot estimate (``fit.start: pilot``, where it fits within noise:
+        :func:`fit_seconds` with ``from_pilot``); NaN where the fit always starts at the neutral values.
     pilot : dict or None
         The pilot vibration estimate the prediction used (:func:`pilot_estimate`), for the motion mask.
     coarse : int
@@ -196,6 +199,7 @@ class ColumnPlan:
     why: str
     uncertainty: float = float("nan")
     seconds: float = float("nan")
+    start_seconds: float = float("nan")
     pilot: dict | None = None
     coarse: int = 1
 
@@ -205,7 +209,9 @@ class ColumnPlan:
         every = f"every {cols[1] - cols[0]}-th column from column {cols[0]}" if cols.size > 1 else f"column {cols}"
         unc = "" if np.isnan(self.uncertainty) else f", predicted phi0/phi1 uncertainty {self.uncertainty:.2g} rad"
         first = f", its stages first on every {self.coarse}-th of them" if self.coarse > 1 else ""
-        return f"{cols.size} columns ({every}){unc}, predicted fit time {self.seconds:.1f} s{first} ({self.why})"
+        time = (f"{self.seconds:.1f} s" if np.isnan(self.start_seconds) else
+                f"{self.start_seconds:.1f} s from the pilot estimate ({self.seconds:.1f} s from the neutral values)")
+        return f"{cols.size} columns ({every}){unc}, predicted fit time {time}{first} ({self.why})"
 
 
 def coarse_step(cfg: dict, n_columns: int, samples_per_column: int, *, step: int, width: int) -> int:
@@ -218,13 +224,26 @@ def coarse_step(cfg: dict, n_columns: int, samples_per_column: int, *, step: int
     return max(1, min(int(c), max(width // 4, 1) // max(step, 1)))
 
 
-def fit_seconds(n_columns: int, samples_per_column: int, coarse: int, *, slowdown: float = 1.0) -> float:
+def fit_seconds(n_columns: int, samples_per_column: int, coarse: int, *, slowdown: float = 1.0,
+                from_pilot: bool = False) -> float:
     """Predicted wall time (s) of a fit of ``n_columns`` columns whose stages run on every ``coarse``-th first,
-    ``slowdown`` times that of the compiled kernels (:func:`slowdown`)."""
+    ``slowdown`` times that of the compiled kernels (:func:`slowdown`); ``from_pilot``: started at the pilot estimate,
+    whose passes (the coarse one too) take the last stages' few steps (:data:`POLISH_SECONDS_PER_SAMPLE`)."""
+    if from_pilot:
+        first = -(-n_columns // coarse) if coarse > 1 else 0
+        return slowdown * POLISH_SECONDS_PER_SAMPLE * (first + n_columns) * samples_per_column
     if coarse <= 1:
         return slowdown * FIT_SECONDS_PER_SAMPLE * n_columns * samples_per_column
     return (slowdown * (FIT_SECONDS_PER_SAMPLE * -(-n_columns // coarse) + POLISH_SECONDS_PER_SAMPLE * n_columns)
             * samples_per_column)
+
+
+def start_seconds(cfg: dict, n_columns: int, samples_per_column: int, coarse: int) -> float:
+    """The predicted fit time from the pilot estimate where ``fit.start`` is ``pilot`` (:func:`fit_seconds`), else
+    NaN."""
+    if cfg["fit"]["start"] != "pilot":
+        return float("nan")
+    return fit_seconds(n_columns, samples_per_column, coarse, slowdown=slowdown(cfg), from_pilot=True)
 
 
 def slowdown(cfg: dict) -> float:
@@ -322,8 +341,8 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
     cols = fit_columns(W, cfg, n)
     coarse = coarse_step(cfg, cols.size, per_column, step=n, width=W)
     out = ColumnPlan(columns=cols, why=why, uncertainty=sigma * np.sqrt(size / cols.size),
-                     seconds=fit_seconds(cols.size, per_column, coarse, slowdown=slowdown(cfg)), pilot=pilot,
-                     coarse=coarse)
+                     seconds=fit_seconds(cols.size, per_column, coarse, slowdown=slowdown(cfg)),
+                     start_seconds=start_seconds(cfg, cols.size, per_column, coarse), pilot=pilot, coarse=coarse)
     if report:
         log.info("vibration fit columns: %s", out.summary())
     return out
