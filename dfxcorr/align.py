@@ -123,6 +123,21 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
     return out
 
 
+def column_index(columns: np.ndarray | None) -> slice | np.ndarray:
+    """``columns`` (default all) as a slice where they are evenly spaced (a run of columns, every n-th of a fit's):
+    a strided view copies many times faster than the same columns by an index array (13500 x 510 uint16 samples to
+    float32: 1.4 against 21 ms); the array otherwise."""
+    if columns is None:
+        return slice(None)
+    c = np.asarray(columns)
+    if c.size == 1:
+        return slice(int(c[0]), int(c[0]) + 1)
+    step = int(c[1] - c[0]) if c.size > 1 else 0
+    if step > 0 and np.all(np.diff(c) == step):
+        return slice(int(c[0]), int(c[-1]) + 1, step)
+    return c
+
+
 def pixel_mm(scan: Scan) -> tuple[float, float] | None:
     """The detector's pixel pitch (mm; between rows, along a row) where the scan file states it, else None."""
     return None if scan.pixel_size is None else (1e3 * scan.pixel_size[0], 1e3 * scan.pixel_size[1])
@@ -289,13 +304,13 @@ class LitStore:
                     ) -> tuple[np.ndarray, np.ndarray | None]:
         """The unmodulated counts of blocks [lo, hi) at ``columns`` (default all): the dark, the offset included,
         and the offset alone (None without one), each (hi - lo, C) in ``dtype``."""
-        row = self.row[lo:hi]
+        row, at = self.row[lo:hi], column_index(columns)
         # whole rows are taken by row (a 2-d fancy index of every column was most of a block's own time)
-        dark = (self.dark[row] if columns is None else self.dark[row[:, None], columns[None, :]]).astype(dtype,
-                                                                                                         copy=False)
+        dark = (self.dark[row, at] if isinstance(at, slice) else self.dark[row[:, None], at[None, :]]).astype(
+            dtype, copy=False)
         offset = None
         if isinstance(self.offset, np.ndarray):
-            offset = (self.offset[lo:hi] if columns is None else self.offset[lo:hi, columns]).astype(dtype, copy=False)
+            offset = self.offset[lo:hi, at].astype(dtype, copy=False)
         elif self.offset is not None:
             offset = self.offset.take(lo, hi, columns).astype(dtype, copy=False)
         return (dark if offset is None else dark + offset), offset
@@ -357,12 +372,13 @@ class LitStore:
         phif = interpolate_rows(phase, u, columns=cols, dtype=dtype, add=self.phase_step[frame], wrap=True)
         # C order whatever the store's: the kernels walk a sample row at a time (a Fortran-ordered copy made
         # every cost evaluation about 1.7x slower)
-        counts = (self.counts[lo:hi] if columns is None else self.counts[lo:hi, cols]).astype(dtype, order="C")
+        at = column_index(columns)
+        counts = self.counts[lo:hi, at].astype(dtype, order="C")
         dark, offset = self.unmodulated(lo, hi, None if columns is None else cols, dtype=dtype)
         use = np.ones(counts.shape, bool)
         held = np.ix_(np.unique(row), cols)
         if self.good is not None:
-            use &= self.good[lo:hi] if columns is None else self.good[lo:hi, cols]
+            use &= self.good[lo:hi, at]
         reading = None
         if self.parallax:
             shift = self.parallax / (1.0 + self.parallax) * self.centred()[lo:hi]

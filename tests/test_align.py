@@ -2,9 +2,10 @@
 import dataclasses
 
 import numpy as np
+import pytest
 
 from dfxcorr import config as C
-from dfxcorr.align import build_observations, interpolate_rows, lit_blocks, realign
+from dfxcorr.align import build_observations, column_index, interpolate_rows, lit_blocks, realign
 from dfxcorr.io import Reference, Scan, SteppingReference
 from dfxcorr.reference import fit_reference
 from dfxcorr.sim import simulate as S
@@ -115,3 +116,15 @@ def test_realigning_with_the_base_store_shares_only_what_the_correction_left_alo
     moved = realign(store, ref, like, 0.3, base=store)
     assert _same_observations(moved, realign(store, ref, like, 0.3))
     assert not np.array_equal(moved.phif, like.phif)
+
+
+@pytest.mark.parametrize("columns", [None, np.arange(40), np.arange(3, 40, 7), np.array([5]), np.array([1, 2, 4]),
+                                     np.array([9, 4, 0]), np.array([3, 3])])
+def test_column_index_takes_the_columns_of_the_index_array(columns):
+    a = np.arange(6 * 40).reshape(6, 40)
+    at = column_index(columns)
+    expected = a if columns is None else a[:, columns]
+    assert np.array_equal(a[:, at], expected)
+    # evenly spaced, ascending columns are a slice (a view); others stay an index array
+    assert isinstance(at, slice) == (columns is None or columns.size == 1 or bool(np.all(np.diff(columns) == 7))
+                                     or bool(np.all(np.diff(columns) == 1)))
