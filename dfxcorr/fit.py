@@ -659,11 +659,16 @@ def pilot_uncertainty(obs: Observations, *, params: dict | None = None, effects:
     return max(float(np.median(unc[n][good])) for n in names if effect(n).channel == "phase")
 
 
+def spread_indices(n: int, most: int) -> np.ndarray:
+    """Positions of at most ``most`` evenly spread of ``n`` columns (all if fewer)."""
+    return np.arange(n) if n <= most else np.unique(np.linspace(0, n - 1, most).astype(int))
+
+
 def spread_columns(obs: Observations, weights: np.ndarray, *, most: int) -> tuple[Observations, np.ndarray]:
     """At most ``most`` evenly spread columns of the observations and their weights (K, C); all if fewer."""
     if obs.columns.size <= most:
         return obs, weights
-    keep = np.unique(np.linspace(0, obs.columns.size - 1, most).astype(int))
+    keep = spread_indices(obs.columns.size, most)
     # C-ordered once here (as the subset's samples), rather than by the kernels at every refresh of the Hessian
     return obs.subset(keep), np.ascontiguousarray(weights[:, keep])
 

@@ -22,7 +22,7 @@ from . import engine as E
 from . import kernels as K
 from . import model as M
 from .catalogue import effect, neutral_params
-from .fit import spread_columns
+from .fit import initial_weights, spread_indices
 from .observations import Observations
 
 
@@ -151,16 +151,19 @@ def conditional(inf: Information, name: str | tuple[str, ...], base) -> Conditio
                                                                           max(excess, 0)))
 
 
-def select(obs: Observations, weights: np.ndarray, names, *, max_columns: int = 64) -> list[Identifiability]:
+def select(obs: Observations, names, *, max_columns: int = 64) -> list[Identifiability]:
     """Judge effects in turn, each given the identifiable ones before it, at their neutral values.
 
     Identifiability is structural, so at most ``max_columns`` evenly spread columns are used. The images
-    come from the compiled retrieval (:func:`dfxcorr.kernels.retrieve`) with the given weights.
+    come from the compiled retrieval (:func:`dfxcorr.kernels.retrieve`) with the noise weights of the model without
+    per-frame effects (:func:`dfxcorr.fit.initial_weights`), made for those columns only.
     """
     names = list(names)
     if not names:
         return []
-    obs, weights = spread_columns(obs, weights, most=max_columns)
+    keep = spread_indices(obs.columns.size, max_columns)
+    obs = obs if keep.size == obs.columns.size else obs.subset(keep)
+    weights = initial_weights(obs, {})
     ch = M.channels(neutral_params(names, obs.n_frames), x=obs.x, n_frames=obs.n_frames)
     K.set_threads()
     solved = E.retrieve(obs, ch, weights=weights, keep_inverse=True)

@@ -18,7 +18,7 @@ from . import config as C
 from .align import LitStore, subsample_columns, tilt_alias_period
 from .catalogue import CATALOGUE, effect
 from .errors import DfxcorrError
-from .fit import initial_weights, pilot_uncertainty
+from .fit import pilot_uncertainty
 from .identify import select
 from .io import Scan
 from .mask import pilot_vibrations
@@ -123,7 +123,7 @@ def resolve_effects(cfg: dict, scan: Scan, reference, fit_obs: Observations) -> 
     for name, why in dropped.items():
         log.info("%s is not fitted: %s", name, why)
     chosen: list[str] = []
-    for verdict in select(fit_obs, initial_weights(fit_obs, {}), names):
+    for verdict in select(fit_obs, names):
         if verdict.identifiable:
             chosen.append(verdict.name)
         else:

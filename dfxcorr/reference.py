@@ -17,7 +17,7 @@ from . import config as C
 from . import identify
 from .align import AlignmentError, build_observations, subsample_columns
 from .catalogue import effect
-from .fit import fit_vibrations, initial_weights
+from .fit import fit_vibrations
 from .io import FrameSource, Reference, Scan, SteppingReference
 from .observations import Observations
 from .retrieve import retrieve
@@ -133,7 +133,7 @@ def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=None, op
     # unmodulated pixels (outside the gratings) have transmission as their only unknown: dose monitors
     fit_obs = replace(fit_obs, vf=np.where(roi.use[:, fit_obs.columns], fit_obs.vf, 0.0))
     chosen: list[str] = []
-    for verdict in identify.select(fit_obs, initial_weights(fit_obs, {}), effects if S > 3 else ()):
+    for verdict in identify.select(fit_obs, effects if S > 3 else ()):
         if verdict.identifiable:
             chosen.append(verdict.name)
             continue

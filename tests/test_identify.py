@@ -87,7 +87,7 @@ def test_background_over_a_uniform_flat_field_is_taken_up_by_the_transmission(rn
 
 def test_the_papers_model_in_a_scan_is_identifiable(rng):
     obs = tiny_obs(rng)
-    verdicts = I.select(obs, initial_weights(obs, {}), PAPER_MODEL)
+    verdicts = I.select(obs, PAPER_MODEL)
     assert verdicts == [I.Identifiability(n, True, 0) for n in PAPER_MODEL]
     # and each of its effects given the other two keeps every direction beyond its gauge
     inf = information(obs, list(PAPER_MODEL))
@@ -101,10 +101,10 @@ def test_select_drops_what_the_chosen_effects_leave_undetermined(rng):
     """Each effect is judged given the identifiable ones before it: in stepping the visibility loss after the
     per-step phase is dropped, and the dose after it is judged without it."""
     obs = stepping_obs(rng, steps=8)
-    verdicts = I.select(obs, initial_weights(obs, {}), ["phase_offset", "visibility_loss", "dose"])
+    verdicts = I.select(obs, ["phase_offset", "visibility_loss", "dose"])
     assert verdicts == [I.Identifiability("phase_offset", True, 0), I.Identifiability("visibility_loss", False, 4),
                         I.Identifiability("dose", False, 2)]
-    assert I.select(obs, initial_weights(obs, {}), []) == []
+    assert I.select(obs, []) == []
 
 
 def test_pinv_rank_of_known_matrices(rng):
