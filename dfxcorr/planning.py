@@ -212,9 +212,10 @@ class ColumnPlan:
         every = f"every {cols[1] - cols[0]}-th column from column {cols[0]}" if cols.size > 1 else f"column {cols}"
         unc = "" if np.isnan(self.uncertainty) else f", predicted phi0/phi1 uncertainty {self.uncertainty:.2g} rad"
         first = f", its stages first on every {self.coarse}-th of them" if self.coarse > 1 else ""
-        time = (f"{self.seconds:.1f} s" if np.isnan(self.start_seconds) else
-                f"{self.start_seconds:.1f} s from the pilot estimate ({self.seconds:.1f} s from the neutral values)")
-        return f"{cols.size} columns ({every}){unc}, predicted fit time {time}{first} ({self.why})"
+        time = (f"{self.seconds:.1f} s{first}" if np.isnan(self.start_seconds) else
+                f"{self.start_seconds:.1f} s from the pilot estimate ({self.seconds:.1f} s from the neutral values"
+                f"{first})")
+        return f"{cols.size} columns ({every}){unc}, predicted fit time {time} ({self.why})"
 
 
 def coarse_step(cfg: dict, n_columns: int, samples_per_column: int, *, step: int, width: int) -> int:
@@ -231,10 +232,10 @@ def fit_seconds(n_columns: int, samples_per_column: int, coarse: int, *, slowdow
                 from_pilot: bool = False) -> float:
     """Predicted wall time (s) of a fit of ``n_columns`` columns whose stages run on every ``coarse``-th first,
     ``slowdown`` times that of the compiled kernels (:func:`slowdown`); ``from_pilot``: started at the pilot estimate,
-    whose passes (the coarse one too) take the last stages' few steps (:data:`POLISH_SECONDS_PER_SAMPLE`)."""
+    without stages or a coarse pass (:func:`dfxcorr.pipeline.pilot_start`), the last stages' few steps on all
+    columns (:data:`POLISH_SECONDS_PER_SAMPLE`)."""
     if from_pilot:
-        first = -(-n_columns // coarse) if coarse > 1 else 0
-        return slowdown * POLISH_SECONDS_PER_SAMPLE * (first + n_columns) * samples_per_column
+        return slowdown * POLISH_SECONDS_PER_SAMPLE * n_columns * samples_per_column
     if coarse <= 1:
         return slowdown * FIT_SECONDS_PER_SAMPLE * n_columns * samples_per_column
     return (slowdown * (FIT_SECONDS_PER_SAMPLE * -(-n_columns // coarse) + POLISH_SECONDS_PER_SAMPLE * n_columns)
