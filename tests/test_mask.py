@@ -99,6 +99,20 @@ def test_row_blocks_give_the_mask_of_one_pass(small_scan):
     assert whole[2] == blocks[2]
 
 
+def test_runs_of_columns_give_the_mask_of_one_pass_where_samples_read_between_rows(small_scan):
+    scan, _ = small_scan(**{"effects.sample_motion": 0.3})
+    cfg = C.load([], ["geometry.parallax=0.02"])
+    prep = prepare(scan, cfg)
+    assert prep.store.parallax
+    columns = np.arange(1, scan.shape[2], 3)
+    plan = planning.ColumnPlan(columns=columns, why="test", pilot=pilot_vibrations(prep.observations(columns=columns)))
+    many = planning.row_blocks(prep.store, 0.05)
+    assert len(many) > 3
+    # one run of the fit's whole columns per retrieval block, or all of them at once: the same pixels
+    np.testing.assert_array_equal(pipeline.fit_motion_mask(prep, cfg, plan, many),
+                                  pipeline.fit_motion_mask(prep, cfg, plan, many[:1]))
+
+
 def truth_params(truth) -> dict:
     return {"phase_offset": truth["vib_phase_offset"][:, None], "tilt": truth["vib_tilt"][:, None],
             "visibility_loss": truth["vib_visibility"][:, None]}
