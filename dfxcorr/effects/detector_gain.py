@@ -117,9 +117,11 @@ class NoiseFit:
 
     def deviance(self, gain: float, electronic: float) -> float:
         """-2 log-likelihood of the residuals under a noise model (Gaussian), up to a constant."""
-        # unlit readout has no photon term: with no electronic variance either, its spread is impossible
+        # unlit readout has no photon term: with no electronic variance either, its spread is impossible (an infinite
+        # deviance, not a warning)
         v = np.maximum(gain * self.mean + electronic, 1e-300)
-        return float(np.sum(np.log(v) + self.r2 / v))
+        with np.errstate(over="ignore"):
+            return float(np.sum(np.log(v) + self.r2 / v))
 
     def partial_test(self, held: dict[str, float]) -> Test[NoiseEstimate]:
         """Likelihood ratio of the joint noise model against the current one with only ``held`` (the parameter
@@ -208,7 +210,7 @@ def noise_model(obs: Observations, ibar: np.ndarray, h: np.ndarray, *, exclude: 
     sel = obs.use & (h < 0.99)
     if exclude is not None:
         sel &= ~exclude
-    r2 = ((obs.counts - ibar) ** 2 / (1 - h))[sel]
+    r2 = (obs.counts - ibar)[sel] ** 2 / (1 - h[sel])
     # the photon variance per unit gain: the mean times the pixel's variance factor (pixel_noise)
     mu = (np.maximum(obs.photons(ibar), MIN_SIGNAL) * obs.sample_gain(1.0))[sel]
     fit = NoiseFit(r2, mu, variance(obs, ibar)[sel], obs.gain, obs.electronic, (obs.gain, obs.electronic))
