@@ -284,7 +284,7 @@ def _columns(scan: io.Scan, cfg: dict, samples_per_column: int, *, prep: Prepare
         return ColumnPlan(columns=cols, why="fit.subsample" if n != "auto" else
                           "at most; auto chooses at run time from a pilot, which dfxcorr check runs",
                           seconds=fit_seconds(cols.size, samples_per_column, coarse, slowdown=slowdown(cfg)),
-                          start_seconds=start_seconds(cfg, cols.size, samples_per_column, coarse), coarse=coarse)
+                          start_seconds=start_seconds(cfg, cols.size, samples_per_column), coarse=coarse)
     except ValueError as exc:
         if isinstance(exc, DfxcorrError):
             raise

@@ -182,9 +182,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
                                    "the target where it is cheap; null: none, the fit ends at the target (without "
                                    "a target the fit already takes the most columns)", _NUM,
                              check=_within(0, 1e7), nullable=True),
-        "coarse": Option("auto", "run the fit's stages on every n-th of its columns first, then only its last "
-                                 "stages on all of them from there (the same minimum in fewer passes over all); "
-                                 "auto: n for about a million samples in the first pass; 1: off", (int, str),
+        "coarse": Option("auto", "from the neutral values (fit.start), run the fit's stages on every n-th of its "
+                                 "columns first, then only its last stages on all of them from there (the same "
+                                 "minimum in fewer passes over all); auto: n for about a million samples in the "
+                                 "first pass; 1: off", (int, str),
                          check=lambda v: None if v == "auto" or (not isinstance(v, str) and 0 < v <= 10 ** 6)
                          else "must be auto or an integer in [1, 1e6]"),
         "max_samples": Option(7_000_000, "subsample auto: most lit samples (rows x frames x columns) the fit "
@@ -197,11 +198,13 @@ SCHEMA: dict[str, dict[str, Option]] = {
                        _NUM, check=_positive),
         "circmean_iterations": Option(10, "first iterations with the phase image at its circular mean (eq. 36)",
                                       int, check=_within(0, 1e5)),
-        "staged": Option(True, "fit phases first, add visibility and other effects afterwards (Sec. II-E)", bool),
-        "start": Option("pilot", "pilot: start at the motion mask's pilot estimate where every well-determined "
-                                 "frame fits there within noise (the stages of fit.staged and the first pass of "
-                                 "fit.coarse are then skipped: it is in the basin of the minimum), else at the "
-                                 "neutral values; neutral: always there",
+        "staged": Option(True, "from the neutral values (fit.start), fit phases first, add visibility and other "
+                               "effects afterwards (Sec. II-E)", bool),
+        "start": Option("pilot", "where reconstruct's maximum-likelihood fit (fit.method: ml) starts. pilot: at "
+                                 "the motion mask's pilot estimate where every well-determined frame fits there "
+                                 "within noise (the stages of fit.staged and the first pass of fit.coarse are then "
+                                 "skipped: it is in the basin of the minimum), else at the neutral values; neutral: "
+                                 "always there (diagnose's fits start there or at the previous round's estimate)",
                         str, choices=("pilot", "neutral")),
         "precondition": Option(True, "rescale the fit's variables by the Fisher information", bool),
         "preconditioner": Option("profiled", "profiled: whiten by the whole profiled Fisher information (same "

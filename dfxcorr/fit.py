@@ -652,11 +652,17 @@ def pilot_uncertainty(obs: Observations, *, params: dict | None = None, effects:
         The larger of the medians of phase_offset (rad) and tilt (rad at the detector's edge) over the
         well-determined frames.
     """
-    names = [n for n in effects if effect(n).channel is not None]
-    at = {**neutral_params(names, obs.n_frames), **{k: v for k, v in (params or {}).items() if k in names}}
+    names, at = model_at(effects, params or {}, obs.n_frames)
     unc = uncertainty(obs, at, initial_weights(obs, at))
     good = well_determined(obs, gauge_fraction)
     return max(float(np.median(unc[n][good])) for n in names if effect(n).channel == "phase")
+
+
+def model_at(effects: Sequence[str], params: dict, n_frames: int) -> tuple[list[str], dict[str, np.ndarray]]:
+    """The model's effects with a mean channel, and their parameters: those of ``params`` given for them, the others
+    neutral (:func:`dfxcorr.catalogue.neutral_params`)."""
+    names = [n for n in effects if effect(n).channel is not None]
+    return names, {**neutral_params(names, n_frames), **{k: v for k, v in params.items() if k in names}}
 
 
 def spread_indices(n: int, most: int) -> np.ndarray:

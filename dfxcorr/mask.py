@@ -22,8 +22,9 @@ from scipy.linalg import lstsq
 from . import engine as E
 from . import kernels as K
 from . import model as M
-from .catalogue import PAPER_MODEL, effect, neutral_params
+from .catalogue import PAPER_MODEL, neutral_params
 from .chunks import row_counts
+from .fit import model_at, spread_indices
 from .frames import well_determined
 from .noise import noise_weights
 from .observations import Observations
@@ -192,21 +193,20 @@ def start_misfit(obs: Observations, params: dict, *, effects: Sequence[str] = PA
     Returns
     -------
     float
-        inf where no frame is well determined (:func:`dfxcorr.frames.well_determined`) or no pixel is solved.
+        inf where no frame is well determined (:func:`dfxcorr.frames.well_determined`), no pixel is solved or the
+        residuals are not finite.
     """
-    names = [n for n in effects if effect(n).channel is not None]
-    at = {**neutral_params(names, obs.n_frames), **{k: v for k, v in params.items() if k in names}}
-    keep = np.unique(np.linspace(0, obs.columns.size - 1, min(obs.columns.size, START_COLUMNS)).astype(int))
-    sub = obs.subset(keep)
+    _, at = model_at(effects, params, obs.n_frames)
+    sub = obs.subset(spread_indices(obs.columns.size, START_COLUMNS))
     out = E.retrieve(sub, M.channels(at, x=sub.x, n_frames=sub.n_frames), iterations=2)
     w = np.where(sub.use & sub.gather_valid(out["valid"]), out["weights"], 0.0)
     z2 = sub.frame_sum(np.sum(w * (sub.counts - out["expected"]) ** 2, axis=1))
     n = sub.frame_sum(np.sum(w > 0, axis=1).astype(np.float64))
     free = n.sum() - 3.0 * np.count_nonzero(out["valid"])
     good = well_determined(sub, gauge_fraction) & (n > 0)
-    if not good.any() or free <= 0:
-        return float("inf")
-    return float(np.max(z2[good] / n[good]) * n.sum() / free)
+    worst = float(np.max(z2[good] / n[good]) * n.sum() / free) if good.any() and free > 0 else float("inf")
+    # a start with non-finite parameters leaves NaN residuals: no start either
+    return worst if np.isfinite(worst) else float("inf")
 
 
 def robust_threshold(score: np.ndarray, *, sigma: float) -> float:

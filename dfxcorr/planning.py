@@ -161,10 +161,15 @@ MASK_PILOT_SAMPLES = 2_000_000
 #: :data:`COARSE_MIN_COLUMNS` columns): its estimate is far inside the basin of the minimum on all columns.
 COARSE_SAMPLES = 1_000_000
 COARSE_MIN_COLUMNS = 16
-#: Wall seconds per sample of the fit's last stages on all its columns after a coarse pass (the predicted time
-#: adds :data:`FIT_SECONDS_PER_SAMPLE` per sample of the coarse pass): 0.17 us on the paper study at every column,
-#: 0.23 and 0.26 on the binned and full-resolution clinical scans at fit.max_samples (fits 2.7, 3.0, 3.9 s; idle).
+#: Wall seconds per sample of the fit's last stages on all its columns after a coarse pass from the neutral values
+#: (the predicted time adds :data:`FIT_SECONDS_PER_SAMPLE` per sample of the coarse pass): 0.17 us on the paper study
+#: at every column, 0.23 and 0.26 on the binned and full-resolution clinical scans at fit.max_samples (fits 2.7, 3.0,
+#: 3.9 s; idle).
 POLISH_SECONDS_PER_SAMPLE = 0.25e-6
+#: Wall seconds per sample of a fit that starts at the pilot estimate (no stages, no coarse pass; the fit stage,
+#: observations and the start's check included): 0.25-0.28 us on the paper study, 0.32 and 0.42 on the binned and
+#: full-resolution clinical scans at fit.max_samples (docs/benchmark.json, load 0.9-1.5).
+PILOT_SECONDS_PER_SAMPLE = 0.35e-6
 #: Wall seconds of a reconstruction's other stages (alignment, motion mask, retrieval of every pixel) per lit sample
 #: of the scan: what ``fit.time_floor`` leaves to the fit (0.076 us on the binned and 0.077 on the full-resolution
 #: clinical scan, 0.11 on the paper study; docs/benchmark.json, load 3.4-4.1).
@@ -195,7 +200,8 @@ class ColumnPlan:
     pilot : dict or None
         The pilot vibration estimate the prediction used (:func:`pilot_estimate`), for the motion mask.
     coarse : int
-        The fit's stages run on every ``coarse``-th of the columns first (``fit.coarse``).
+        From the neutral values, the fit's stages run on every ``coarse``-th of the columns first (``fit.coarse``;
+        not from the pilot estimate).
     """
 
     columns: np.ndarray
@@ -232,22 +238,22 @@ def fit_seconds(n_columns: int, samples_per_column: int, coarse: int, *, slowdow
                 from_pilot: bool = False) -> float:
     """Predicted wall time (s) of a fit of ``n_columns`` columns whose stages run on every ``coarse``-th first,
     ``slowdown`` times that of the compiled kernels (:func:`slowdown`); ``from_pilot``: started at the pilot estimate,
-    without stages or a coarse pass (:func:`dfxcorr.pipeline.pilot_start`), the last stages' few steps on all
-    columns (:data:`POLISH_SECONDS_PER_SAMPLE`)."""
+    without stages or a coarse pass (:func:`dfxcorr.pipeline.pilot_start`; ``coarse`` then plays no part,
+    :data:`PILOT_SECONDS_PER_SAMPLE`)."""
     if from_pilot:
-        return slowdown * POLISH_SECONDS_PER_SAMPLE * n_columns * samples_per_column
+        return slowdown * PILOT_SECONDS_PER_SAMPLE * n_columns * samples_per_column
     if coarse <= 1:
         return slowdown * FIT_SECONDS_PER_SAMPLE * n_columns * samples_per_column
     return (slowdown * (FIT_SECONDS_PER_SAMPLE * -(-n_columns // coarse) + POLISH_SECONDS_PER_SAMPLE * n_columns)
             * samples_per_column)
 
 
-def start_seconds(cfg: dict, n_columns: int, samples_per_column: int, coarse: int) -> float:
-    """The predicted fit time from the pilot estimate where ``fit.start`` is ``pilot`` (:func:`fit_seconds`), else
-    NaN."""
-    if cfg["fit"]["start"] != "pilot":
+def start_seconds(cfg: dict, n_columns: int, samples_per_column: int) -> float:
+    """The predicted fit time from the pilot estimate where the maximum-likelihood fit may start there
+    (``fit.method: ml``, ``fit.start: pilot``; :func:`fit_seconds`), else NaN."""
+    if cfg["fit"]["method"] != "ml" or cfg["fit"]["start"] != "pilot":
         return float("nan")
-    return fit_seconds(n_columns, samples_per_column, coarse, slowdown=slowdown(cfg), from_pilot=True)
+    return fit_seconds(n_columns, samples_per_column, 1, slowdown=slowdown(cfg), from_pilot=True)
 
 
 def slowdown(cfg: dict) -> float:
@@ -257,7 +263,8 @@ def slowdown(cfg: dict) -> float:
 
 
 def within_seconds(cfg: dict, width: int, samples_per_column: int, seconds: float) -> int:
-    """The smallest column spacing whose fit is predicted (:func:`fit_seconds`) to take at most ``seconds``."""
+    """The smallest column spacing whose fit is predicted (:func:`fit_seconds`) to take at most ``seconds``, from the
+    neutral values (an upper bound: the pilot, which may start it sooner, is judged only after the motion mask)."""
     for n in range(1, max(width // 4, 1) + 1):
         cols = subsample_columns(width, n, offset=cfg["fit"]["column_offset"]).size
         coarse = coarse_step(cfg, cols, samples_per_column, step=n, width=width)
@@ -346,7 +353,7 @@ def plan_columns(prep: Prepared, cfg: dict, *, pilot: dict | None = None, report
     coarse = coarse_step(cfg, cols.size, per_column, step=n, width=W)
     out = ColumnPlan(columns=cols, why=why, uncertainty=sigma * np.sqrt(size / cols.size),
                      seconds=fit_seconds(cols.size, per_column, coarse, slowdown=slowdown(cfg)),
-                     start_seconds=start_seconds(cfg, cols.size, per_column, coarse), pilot=pilot, coarse=coarse)
+                     start_seconds=start_seconds(cfg, cols.size, per_column), pilot=pilot, coarse=coarse)
     if report:
         log.info("vibration fit columns: %s", out.summary())
     return out

@@ -137,7 +137,7 @@ def clinical(args) -> dict:
         of, own = CLINICAL_SETS.get(case, (case, []))
         scan_path, result_path = folder / f"clinical-{of}.h5", folder / f"clinical-{case}.result.h5"
         truth_path = folder / f"clinical-{of}.truth.npz"
-        entry = {}
+        entry: dict = {"scan": of}
         if not (scan_path.exists() and truth_path.exists()):
             print(f"simulating {scan_path} ...", flush=True)
             wall, rss, _ = measured([*exe, "simulate", str(CLINICAL[of]), "-o", str(scan_path), "--truth",

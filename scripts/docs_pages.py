@@ -759,11 +759,12 @@ def readme_table(docs: Path) -> str:
     clinical_cases = bench.get("clinical", {}).get("cases", {})
     for name, c in clinical_cases.items():
         size = " x ".join(str(s) for s in c["size"])
-        if c.get("sets"):
-            # a setting's cost on a scan simulated without it: its accuracy says nothing
-            base_case = clinical_cases.get(name.split("-")[0])
+        scan = c.get("scan", name)
+        if scan != name:
+            # another case's scan with a setting it was simulated without: its accuracy says nothing, its cost does
+            base_case = clinical_cases.get(scan)
             if base_case:
-                rows.append([f"clinical {name.split('-')[0]}, {size}, with {', '.join(c['sets'])} (its scan has "
+                rows.append([f"clinical {scan}, {size}, with {', '.join(c.get('sets', []))} (its scan has "
                              "none: what the setting costs)", "-",
                              f"{c['seconds']:g} s against {base_case['seconds']:g} s "
                              f"(x{c['seconds'] / base_case['seconds']:.2f}), {c['peak_rss_mb']} MB",

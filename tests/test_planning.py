@@ -53,10 +53,16 @@ def test_fit_seconds_counts_the_coarse_pass_and_the_polish():
     assert coarse == pytest.approx(planning.fit_seconds(43, per_column, 1)
                                    + planning.POLISH_SECONDS_PER_SAMPLE * n * per_column)
     assert coarse < one_pass
-    # from the pilot estimate: no coarse pass, the last stages' steps on all columns
+    # from the pilot estimate: no coarse pass, its own rate on all columns, slowed where samples read between rows
     for c in (1, 7):
-        assert planning.fit_seconds(n, per_column, c, from_pilot=True) == pytest.approx(
-            planning.POLISH_SECONDS_PER_SAMPLE * n * per_column)
+        assert planning.fit_seconds(n, per_column, c, from_pilot=True, slowdown=2.5) == pytest.approx(
+            2.5 * planning.PILOT_SECONDS_PER_SAMPLE * n * per_column)
+    # predicted from the pilot only where the maximum-likelihood fit may start there
+    assert planning.start_seconds(fit_cfg(), n, per_column) == planning.fit_seconds(n, per_column, 1, from_pilot=True)
+    assert np.isnan(planning.start_seconds(fit_cfg(start="neutral"), n, per_column))
+    assert np.isnan(planning.start_seconds(C.load([], ["fit.method=correlation"]), n, per_column))
+    plan = planning.ColumnPlan(columns=np.arange(0, 300, 2), why="test", seconds=3.0, coarse=7)
+    assert "predicted fit time 3.0 s, its stages first on every 7-th" in plan.summary()
 
 
 @pytest.mark.parametrize("seconds", [0.5, 3.0, 20.0])
