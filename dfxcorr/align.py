@@ -22,7 +22,7 @@ from . import kernels as K
 from .errors import DfxcorrError
 from .faults import Faults, saturated
 from .io import Reference, Scan, frame_rows, lit_rows
-from .observations import Observations, displaced_reading
+from .observations import Observations, displaced_reading, index_slice
 from .stats import ranges
 
 log = logging.getLogger(__name__)
@@ -121,22 +121,6 @@ def interpolate_rows(maps: np.ndarray, u: np.ndarray, *, columns: np.ndarray | N
     shift = np.zeros(np.size(u)) if add is None else np.asarray(add, dtype=np.float64)
     _interpolate_rows(np.ascontiguousarray(maps, np.float64), cols, np.asarray(u, np.float64), shift, bool(wrap), out)
     return out
-
-
-def column_index(columns: np.ndarray | None, width: int) -> slice | np.ndarray:
-    """``columns`` (default all) of ``width`` as a slice where they are evenly spaced and ascending within [0, width)
-    (a run of columns, every n-th of a fit's): a strided view copies many times faster than the same columns by an
-    index array (13500 x 510 uint16 samples to float32: 1.4 against 21 ms); the array otherwise (which also refuses
-    columns beyond the detector)."""
-    if columns is None:
-        return slice(None)
-    c = np.asarray(columns)
-    if c.ndim != 1 or c.size == 0 or c[0] < 0 or c[-1] >= width:
-        return c
-    step = int(c[1] - c[0]) if c.size > 1 else 1
-    if step > 0 and np.all(np.diff(c) == step):
-        return slice(int(c[0]), int(c[-1]) + 1, step)
-    return c
 
 
 def pixel_mm(scan: Scan) -> tuple[float, float] | None:
@@ -305,7 +289,7 @@ class LitStore:
                     ) -> tuple[np.ndarray, np.ndarray | None]:
         """The unmodulated counts of blocks [lo, hi) at ``columns`` (default all): the dark, the offset included,
         and the offset alone (None without one), each (hi - lo, C) in ``dtype``."""
-        row, at = self.row[lo:hi], column_index(columns, self.shape[2])
+        row, at = self.row[lo:hi], index_slice(columns, self.shape[2])
         # whole rows are taken by row (a 2-d fancy index of every column was most of a block's own time)
         dark = (self.dark[row, at] if isinstance(at, slice) else self.dark[row[:, None], at[None, :]]).astype(
             dtype, copy=False)
@@ -373,7 +357,7 @@ class LitStore:
         phif = interpolate_rows(phase, u, columns=cols, dtype=dtype, add=self.phase_step[frame], wrap=True)
         # C order whatever the store's: the kernels walk a sample row at a time (a Fortran-ordered copy made
         # every cost evaluation about 1.7x slower)
-        at = column_index(cols, W)
+        at = index_slice(cols, W)
         counts = self.counts[lo:hi, at].astype(dtype, order="C")
         dark, offset = self.unmodulated(lo, hi, None if columns is None else cols, dtype=dtype)
         use = np.ones(counts.shape, bool)

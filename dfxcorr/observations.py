@@ -24,9 +24,20 @@ def lateral_coordinate(columns: np.ndarray, width: int) -> np.ndarray:
     return (2.0 * np.asarray(columns, dtype=np.float64) + 1.0) / width - 1.0
 
 
-def _is_run(idx: np.ndarray) -> bool:
-    """Whether integer positions are consecutive and increasing (at least one)."""
-    return idx.size > 0 and idx[-1] - idx[0] == idx.size - 1 and bool(np.all(np.diff(idx) == 1))
+def index_slice(idx: np.ndarray | None, length: int) -> slice | np.ndarray:
+    """Positions ``idx`` (default all) along an axis of ``length`` as a slice where they are evenly spaced and
+    ascending within [0, length) (a run of columns or rows, every n-th column of a fit's): a strided view is taken or
+    copied many times faster than the same positions by an index array (13500 x 510 uint16 samples to float32: 1.4
+    against 21 ms); the array otherwise (which also refuses positions beyond the axis)."""
+    if idx is None:
+        return slice(None)
+    c = np.asarray(idx)
+    if c.ndim != 1 or c.size == 0 or c[0] < 0 or c[-1] >= length:
+        return c
+    step = int(c[1] - c[0]) if c.size > 1 else 1
+    if step > 0 and np.all(np.diff(c) == step):
+        return slice(int(c[0]), int(c[-1]) + 1, step)
+    return c
 
 
 def quadratures(tf: np.ndarray, vf: np.ndarray, phif: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -307,11 +318,10 @@ class Observations:
         return image[self._window()]
 
     def _window(self) -> tuple[slice | np.ndarray, ...]:
-        """The index of the held pixels in a detector image: slices where the rows and the columns are runs (25 times
-        faster than the open mesh of their indices, which it is otherwise)."""
-        if all(_is_run(a) for a in (self.rows, self.columns)):
-            return slice(self.rows[0], self.rows[-1] + 1), slice(self.columns[0], self.columns[-1] + 1)
-        return np.ix_(self.rows, self.columns)
+        """The index of the held pixels in a detector image: slices where the rows and the columns are evenly spaced
+        (25 times faster than the open mesh of their indices, which it is otherwise)."""
+        at = tuple(index_slice(a, n) for a, n in zip((self.rows, self.columns), self.shape[1:], strict=True))
+        return at if all(isinstance(a, slice) for a in at) else np.ix_(self.rows, self.columns)
 
     def pixel_mask(self, image: np.ndarray) -> np.ndarray:
         """A detector image of booleans (H, W) at every sample, shape (K, C)."""
@@ -324,17 +334,17 @@ class Observations:
 
         The column slice of a Fortran-ordered scan stays Fortran-ordered, and the compiled kernels take C-ordered
         samples: every cost evaluation of a fit on it copied them (diagnosing a 5-step stepping scan: 892 copies,
-        7 GB). ``copy=False`` with a run of consecutive positions: views of the arrays instead, for numpy work
-        (the copies were a fifth of the per-pixel tests' time).
+        7 GB). ``copy=False`` with evenly spaced positions (a run of consecutive ones): views of the arrays instead,
+        for numpy work (the copies were a fifth of the per-pixel tests' time).
         """
         idx = np.asarray(columns)
-        run = _is_run(idx)
+        at = index_slice(idx, self.columns.size)
 
         def cut(a: np.ndarray) -> np.ndarray:
-            # a run's slice copied row by row, other positions taken: a fancy index along the columns was 28x slower
-            # (12 ms against 0.43 for 390 of 1536 columns of 2560 rows)
-            if run:
-                view = a[:, idx[0]:idx[0] + idx.size]
+            # evenly spaced positions sliced (copied row by row), others taken: a fancy index along the columns was
+            # 28x slower (12 ms against 0.43 for 390 of 1536 columns of 2560 rows)
+            if isinstance(at, slice):
+                view = a[:, at]
                 return view if not copy else np.ascontiguousarray(view)
             return np.take(a, idx, axis=1)
 

@@ -2,10 +2,9 @@
 import dataclasses
 
 import numpy as np
-import pytest
 
 from dfxcorr import config as C
-from dfxcorr.align import build_observations, column_index, interpolate_rows, lit_blocks, realign
+from dfxcorr.align import build_observations, interpolate_rows, lit_blocks, realign
 from dfxcorr.io import Reference, Scan, SteppingReference
 from dfxcorr.reference import fit_reference
 from dfxcorr.sim import simulate as S
@@ -116,22 +115,3 @@ def test_realigning_with_the_base_store_shares_only_what_the_correction_left_alo
     moved = realign(store, ref, like, 0.3, base=store)
     assert _same_observations(moved, realign(store, ref, like, 0.3))
     assert not np.array_equal(moved.phif, like.phif)
-
-
-@pytest.mark.parametrize("columns", [None, np.arange(40), np.arange(3, 40, 7), np.array([5]), np.array([1, 2, 4]),
-                                     np.array([9, 4, 0]), np.array([3, 3]), np.array([-1]), np.array([-3, -2, -1]),
-                                     np.array([-1, 0, 1]), np.zeros(0, int)])
-def test_column_index_takes_the_columns_of_the_index_array(columns):
-    a = np.arange(6 * 40).reshape(6, 40)
-    at = column_index(columns, 40)
-    expected = a if columns is None else a[:, columns]
-    assert np.array_equal(a[:, at], expected)
-    # evenly spaced, ascending columns within the detector are a slice (a view); others stay an index array
-    even = columns is not None and columns.size > 0 and columns[0] >= 0 and (
-        columns.size == 1 or bool(np.all(np.diff(columns) == columns[1] - columns[0])) and columns[1] > columns[0])
-    assert isinstance(at, slice) == (columns is None or even)
-
-
-def test_column_index_leaves_columns_beyond_the_detector_to_refuse():
-    with pytest.raises(IndexError):
-        np.zeros((2, 12))[:, column_index(np.array([10, 11, 12]), 12)]

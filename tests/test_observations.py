@@ -1,9 +1,11 @@
-"""The observations' fringe quadratures: their definition, and one set shared by the copies that keep the flat field."""
+"""The observations' fringe quadratures: their definition, and one set shared by the copies that keep the flat field;
+the positions taken as slices."""
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
-from dfxcorr.observations import Quadratures
+from dfxcorr.observations import Quadratures, index_slice
 
 from conftest import tiny_obs
 
@@ -74,3 +76,22 @@ def test_held_pixels_are_placed_and_read_where_they_are_runs_or_not():
         sub.place(out, sub.held(image))
         np.testing.assert_array_equal(out[np.ix_(sub.rows, sub.columns)], image[np.ix_(sub.rows, sub.columns)])
         assert out.sum() == image[np.ix_(sub.rows, sub.columns)].sum()
+
+
+@pytest.mark.parametrize("columns", [None, np.arange(40), np.arange(3, 40, 7), np.array([5]), np.array([1, 2, 4]),
+                                     np.array([9, 4, 0]), np.array([3, 3]), np.array([-1]), np.array([-3, -2, -1]),
+                                     np.array([-1, 0, 1]), np.zeros(0, int)])
+def test_index_slice_takes_the_positions_of_the_index_array(columns):
+    a = np.arange(6 * 40).reshape(6, 40)
+    at = index_slice(columns, 40)
+    expected = a if columns is None else a[:, columns]
+    assert np.array_equal(a[:, at], expected)
+    # evenly spaced, ascending columns within the detector are a slice (a view); others stay an index array
+    even = columns is not None and columns.size > 0 and columns[0] >= 0 and (
+        columns.size == 1 or bool(np.all(np.diff(columns) == columns[1] - columns[0])) and columns[1] > columns[0])
+    assert isinstance(at, slice) == (columns is None or even)
+
+
+def test_index_slice_leaves_positions_beyond_the_axis_to_refuse():
+    with pytest.raises(IndexError):
+        np.zeros((2, 12))[:, index_slice(np.array([10, 11, 12]), 12)]
