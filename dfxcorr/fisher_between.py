@@ -15,58 +15,82 @@ from .fisher_pixels import slot
 from .kernels import _derivatives, _direction, _image_columns
 from .kernels_between import _add_sample, _factor, _reading, _sample_values
 
-#: Frames whose rows of the Fisher correction's Y^T N^-1 Y are one matrix product: the rows of N^-1 Y their samples
-#: read are streamed once for all of them (a frame's alone: a product of three rows, bound by memory). Paper study
-#: with a parallax, 73 columns, profiled Fisher information: 1 frame 2.37 s, 8 1.13 s, 16 0.43 s, 32 0.71 s (load
-#: 3.2-3.5).
+#: Frames whose right-hand sides of the Fisher correction's Y^T N^-1 Y are one block: solved together on the rows
+#: where their N^-1 Y is not negligible, then one matrix product with each block whose rows they meet. Profiled
+#: Fisher information with a parallax, medians of 5 alternated: paper study (510 columns) 8: 0.85 s, 12: 0.92,
+#: 16: 0.93, 24: 0.99, 32: 1.23; binned clinical scan (180 columns) 8: 1.04, 12: 0.96, 16: 1.06, 24: 1.22, 32: 1.47.
 FRAME_GROUP = 16
 
 
+#: Where a block of N^-1 Y is cut off: rows past the block's own where its largest value has fallen below this
+#: fraction of its peak (N^-1 decays geometrically away from the diagonal, by about a quarter per row where the
+#: samples read evenly between rows); the products it leaves out are below this fraction of the correction's.
+DROP = 1e-14
+
+
 @njit(cache=True)
-def _solve_many(Y, scale, valid, Finv, Us, W):
-    """N^-1 Y of one column for the P right-hand sides ``Y`` (R, 3, P) into ``W``, from the column's factors
-    (``kernels_between._solve`` for many)."""
-    R, _, P = Y.shape
-    M = np.empty((3, 3))
-    v = np.empty((3, P))
-    for r in range(R):
+def _solve_block(Y, p0, p1, r0, r1, scale, valid, Finv, Us, M, W):
+    """N^-1 Y of one column for the right-hand sides ``Y[:, :, p0:p1]`` (nonzero on rows r0..r1 only) into
+    ``W[:, :, :p1 - p0]`` (``kernels_between._solve`` for many), on the rows where it is not negligible.
+
+    Above r0 the forward sweep is exactly 0; below r1 it and above r0 the backward sweep decay, and each stops at the
+    first row under :data:`DROP` of its peak (a row that cannot be solved decouples the column there: exactly 0).
+    ``M`` (R, 3, 3) holds U_{r-1}^T F_{r-1}^-1. Returns the first and last row of ``W`` that hold values; the rest
+    are 0.
+    """
+    R = Y.shape[0]
+    G = p1 - p0
+    peak = 0.0
+    last = R - 1
+    for r in range(r0, R):
+        big = 0.0
         for a in range(3):
             s = scale[r, a]
-            for p in range(P):
-                W[r, a, p] = Y[r, a, p] / s if valid[r] else 0.0
-        if r > 0:
-            # y_r -= U_{r-1}^T F_{r-1}^-1 y_{r-1}
-            for a in range(3):
-                for b in range(3):
-                    M[a, b] = Us[r - 1, 0, a] * Finv[r - 1, 0, b] + Us[r - 1, 1, a] * Finv[r - 1, 1, b] \
-                        + Us[r - 1, 2, a] * Finv[r - 1, 2, b]
-            for a in range(3):
-                m0, m1, m2 = M[a, 0], M[a, 1], M[a, 2]
-                for p in range(P):
-                    W[r, a, p] -= m0 * W[r - 1, 0, p] + m1 * W[r - 1, 1, p] + m2 * W[r - 1, 2, p]
-    for r in range(R - 1, -1, -1):
+            for p in range(G):
+                val = Y[r, a, p0 + p] / s if valid[r] and r <= r1 else 0.0
+                if r > r0:
+                    # y_r -= U_{r-1}^T F_{r-1}^-1 y_{r-1}
+                    val -= M[r, a, 0] * W[r - 1, 0, p] + M[r, a, 1] * W[r - 1, 1, p] + M[r, a, 2] * W[r - 1, 2, p]
+                W[r, a, p] = val
+                big = max(big, abs(val))
+        peak = max(peak, big)
+        if r > r1 and big <= DROP * peak:
+            last = r
+            break
+    v = np.empty((3, G))
+    peak = 0.0
+    first = 0
+    for r in range(last, -1, -1):
+        big = 0.0
         for a in range(3):
-            for p in range(P):
-                v[a, p] = W[r, a, p]
-        if r + 1 < R:
+            for p in range(G):
+                v[a, p] = W[r, a, p] if r >= r0 else 0.0
+        if r < last:
             for a in range(3):
                 u0, u1, u2 = Us[r, a, 0], Us[r, a, 1], Us[r, a, 2]
-                for p in range(P):
+                for p in range(G):
                     v[a, p] -= u0 * W[r + 1, 0, p] + u1 * W[r + 1, 1, p] + u2 * W[r + 1, 2, p]
         for a in range(3):
             f0, f1, f2 = Finv[r, a, 0], Finv[r, a, 1], Finv[r, a, 2]
-            for p in range(P):
-                W[r, a, p] = f0 * v[0, p] + f1 * v[1, p] + f2 * v[2, p]
-    for r in range(R):
+            for p in range(G):
+                val = f0 * v[0, p] + f1 * v[1, p] + f2 * v[2, p]
+                W[r, a, p] = val
+                big = max(big, abs(val))
+        peak = max(peak, big)
+        if r < r0 and big <= DROP * peak:
+            first = r
+            break
+    for r in range(first, last + 1):
         for a in range(3):
             s = scale[r, a]
-            for p in range(P):
+            for p in range(G):
                 W[r, a, p] = W[r, a, p] / s if valid[r] else 0.0
+    return first, last
 
 
 @njit(cache=True, parallel=True)
 def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm, coef, channel, power,
-            n_per_frame, n_frames, lead, rslot, block, block_rows, profiled, chunks):
+            n_per_frame, n_frames, lead, rslot, block, slots_of, block_rows, profiled, chunks):
     # every per-sample and per-frame array column-major, (C, K), (C, J) and (C, R, 3): a column's samples are
     # contiguous
     C, K = tf.shape
@@ -75,6 +99,10 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
     Pf = n_per_frame
     P = n_frames * Pf + Q - n_per_frame
     Pr = block[-1]
+    nb = block.size - 1
+    G = 1
+    for b in range(nb):
+        G = max(G, block[b + 1] - block[b])
     n = chunks.size - 1
     plain = np.empty((n, P, P))
     corr = np.empty((n, P, P))
@@ -83,26 +111,32 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
         plain[t, :, :] = 0.0
         corr[t, :, :] = 0.0
         F = np.empty(Q)
+        xq = np.empty(Q)
         slots = np.empty(Q, dtype=np.int64)
         D = np.empty((R, 6, 1))
         U = np.empty((R, 6, 1))
         rhs = np.empty((R, 3, 1))
         used = np.empty((R, 1))
         # the correction's right-hand sides: a column's per-frame components of one channel differ by a factor x^k,
-        # so one per (frame, channel) (``rslot``: where each component's is), then one per global component
-        Y = np.empty((R if profiled else 0, 3, Pr))
-        W = np.empty((R if profiled else 0, 3, Pr))
-        cr = np.empty((Pr if profiled else 0, Pr))
+        # so one per (frame, channel) (``rslot``: where each component's is), then one per global component; zeroed
+        # here, then after each column on the rows its blocks read (all of it per column: 4.5 MB at the paper study's
+        # size)
+        Y = np.zeros((R if profiled else 0, 3, Pr))
+        # N^-1 Y block by block (``block``), each on the rows ``window`` where it is not negligible
+        W = np.empty((nb if profiled else 0, R, 3, G))
+        window = np.empty((nb, 2), dtype=np.int64)
+        Mr = np.empty((R, 3, 3))
         factor = np.empty(P)
         scale = np.empty((R, 3))
         ok = np.empty(R, dtype=np.bool_)
         Finv = np.empty((R, 3, 3))
         Us = np.empty((R, 3, 3))
         for c in range(chunks[t], chunks[t + 1]):
+            for q in range(Q):
+                xq[q] = x[c] ** power[q]
             D[:] = 0.0
             U[:] = 0.0
             used[:] = 0.0
-            Y[:] = 0.0
             for k in range(K):
                 wk = w[c, k]
                 if wk == 0:
@@ -122,7 +156,7 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
                 for q in range(Q):
                     ch = channel[q]
                     if ch <= 1:
-                        F[q] = basis[ch] * x[c] ** power[q]
+                        F[q] = basis[ch] * xq[q]
                     elif ch == 2:
                         F[q] = basis[2]
                     elif ch == 3:
@@ -152,29 +186,55 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
                             Y[hi, 2, p] += f * wf * xs
             if not profiled:
                 continue
-            # sum Y^T N^-1 Y over the column's images: W = N^-1 Y, then each block of parameters' rows of Y^T W over
-            # the image rows its samples read (Y is zero elsewhere), one matrix product each
+            # sum Y^T N^-1 Y over the column's images: each block of N^-1 Y on the rows where it is not negligible,
+            # then each pair of blocks' rows of Y^T N^-1 Y over the image rows both reach (Y is zero elsewhere), one
+            # matrix product each
             _factor(D, U, used, 0, scale, ok, Finv, Us)
-            _solve_many(Y, scale, ok, Finv, Us, W)
-            for b in range(block.size - 1):
-                p0, p1 = block[b], block[b + 1]
-                r0, r1 = block_rows[b, 0], block_rows[b, 1] + 1
-                if r1 <= r0:
-                    cr[p0:p1, :] = 0.0
+            for r in range(1, R):
+                for a in range(3):
+                    for b in range(3):
+                        Mr[r, a, b] = Us[r - 1, 0, a] * Finv[r - 1, 0, b] + Us[r - 1, 1, a] * Finv[r - 1, 1, b] \
+                            + Us[r - 1, 2, a] * Finv[r - 1, 2, b]
+            for b in range(nb):
+                r0, r1 = block_rows[b, 0], block_rows[b, 1]
+                if r1 < r0:
+                    window[b, 0], window[b, 1] = 0, -1
                     continue
-                Yb = np.empty((3 * (r1 - r0), p1 - p0))
-                for r in range(r0, r1):
+                window[b, 0], window[b, 1] = _solve_block(Y, block[b], block[b + 1], r0, r1, scale, ok, Finv, Us,
+                                                          Mr, W[b])
+            # Y^T N^-1 Y is symmetric: each pair of blocks once (the pairs whose rows meet), into the upper triangle of
+            # the information's correction at once (its components: those of each (frame, channel) times x^k); the
+            # lower triangle is its mirror, made once at the end
+            for q in range(Q):
+                f_q = xq[q] if q < Pf and channel[q] <= 1 else 1.0
+                for j in range(n_frames if q < Pf else 1):
+                    factor[slot(j, q, Pf, n_frames)] = f_q
+            for b in range(nb):
+                p0, p1 = block[b], block[b + 1]
+                r0, r1 = block_rows[b, 0], block_rows[b, 1]
+                if r1 < r0:
+                    continue
+                Yb = np.empty((3 * (r1 - r0 + 1), p1 - p0))
+                for r in range(r0, r1 + 1):
                     for a in range(3):
                         for p in range(p0, p1):
                             Yb[3 * (r - r0) + a, p - p0] = Y[r, a, p]
-                cr[p0:p1, :] = np.dot(Yb.T, W[r0:r1].reshape(3 * (r1 - r0), Pr))
-            for q in range(Q):
-                f_q = x[c] ** power[q] if q < Pf and channel[q] <= 1 else 1.0
-                for j in range(n_frames if q < Pf else 1):
-                    factor[slot(j, q, Pf, n_frames)] = f_q
-            for p1 in range(P):
-                for p2 in range(P):
-                    corr[t, p1, p2] += factor[p1] * factor[p2] * cr[rslot[p1], rslot[p2]]
+                for q in range(b, nb):
+                    lo, hi = max(r0, window[q, 0]), min(r1, window[q, 1])
+                    if hi < lo:
+                        continue
+                    part = np.dot(Yb[3 * (lo - r0):3 * (hi - r0 + 1)].T,
+                                  W[q, lo:hi + 1].reshape(3 * (hi - lo + 1), G))
+                    q0 = block[q]
+                    for s1 in range(slots_of[b], slots_of[b + 1]):
+                        f1, row = factor[s1], part[rslot[s1] - p0]
+                        for s2 in range(max(s1, slots_of[q]), slots_of[q + 1]):
+                            corr[t, s1, s2] += f1 * factor[s2] * row[rslot[s2] - q0]
+            for b in range(nb):
+                Y[block_rows[b, 0]:block_rows[b, 1] + 1, :, block[b]:block[b + 1]] = 0.0
+        for p1 in range(P):
+            for p2 in range(p1):
+                corr[t, p1, p2] = corr[t, p2, p1]
     return plain, corr
 
 
@@ -225,6 +285,8 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, table: tuple, *, prof
     np.minimum.at(block_rows[:groups, 0], group, lo[counted])
     np.maximum.at(block_rows[:groups, 1], group, np.where(frac > 0, hi, lo)[counted])
     block = np.append(np.arange(groups, dtype=np.int64) * FRAME_GROUP * Pu, [J * Pu, J * Pu + Pg])
+    # the components (their slots in the information) each block's right-hand sides serve
+    slots_of = np.append(np.arange(groups, dtype=np.int64) * FRAME_GROUP * Pf, [J * Pf, J * Pf + Pg])
     C = obs.columns.size
     n = max(1, min(C, numba.get_num_threads()))
     chunks = np.linspace(0, C, n + 1).round().astype(np.int64)
@@ -239,5 +301,5 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, table: tuple, *, prof
                           obs.frame, lo, frac, obs.y, obs.x, by_column(np.cos(ch.phase)), by_column(np.sin(ch.phase)),
                           by_column(ch.vis, np.float64), ch.dose, ch.harmonic, by_column(coef, np.float64),
                           np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64), Pf, J, lead,
-                          rslot, block, block_rows, bool(profiled), chunks)
+                          rslot, block, slots_of, block_rows, bool(profiled), chunks)
     return plain.sum(axis=0), corr.sum(axis=0)

@@ -100,6 +100,44 @@ def test_fisher_information_equals_the_model(case, rng, profiled):
     assert np.any(corr) == profiled
 
 
+def test_fisher_information_of_a_tall_scan_equals_the_model(rng):
+    # 200 rows, frames in six groups (fisher_between.FRAME_GROUP): N^-1 Y of each group is cut off where it is
+    # negligible, and each pair of groups multiplied over the rows both reach
+    obs = tiny_obs(rng, J=96, H=200, W=3, A=16)
+    params = random_params(rng, obs.n_frames, NAMES)
+    obs = displaced(rng, replace(obs, counts=modelled_counts(rng, obs, params)))
+    ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
+    w = np.where(obs.use, 1.0 / np.maximum(obs.counts, 1.0), 0.0)
+    dsg = M.design_channels(obs, ch)
+    images = M.solve_images(obs, dsg, w)
+    want_plain, want_corr, _ = M.fisher_parts(obs, dsg, images, w, NAMES, profiled=True)
+    plain, corr = FB.fisher(obs, ch, w, images.coef, M.component_table(NAMES)[:3])
+    close(plain, want_plain)
+    close(corr, want_corr)
+
+
+def test_block_solve_stops_where_the_inverse_has_decayed():
+    # N block-tridiagonal with blocks 4 I on the diagonal and I beside it: N^-1 decays by about 0.27 per row
+    R, G, r0, r1 = 200, 5, 90, 95
+    D, U = 4.0 * np.eye(3), np.eye(3)
+    Finv, Us = np.empty((R, 3, 3)), np.broadcast_to(U, (R, 3, 3)).copy()
+    Us[-1] = 0.0
+    Finv[0] = np.linalg.inv(D)
+    for r in range(1, R):
+        Finv[r] = np.linalg.inv(D - U.T @ Finv[r - 1] @ U)
+    Mr = np.einsum("rpa,rpb->rab", np.roll(Us, 1, axis=0), np.roll(Finv, 1, axis=0))
+    Y = np.zeros((R, 3, G))
+    Y[r0:r1 + 1] = np.random.default_rng(3).normal(size=(r1 + 1 - r0, 3, G))
+    N = np.kron(np.eye(R), D) + np.kron(np.eye(R, k=1), U) + np.kron(np.eye(R, k=-1), U.T)
+    exact = np.linalg.solve(N, Y.reshape(3 * R, G)).reshape(R, 3, G)
+    W = np.full((R, 3, G), np.nan)
+    first, last = FB._solve_block(Y, 0, G, r0, r1, np.ones((R, 3)), np.ones(R, bool), Finv, Us, Mr, W)
+    assert 0 < first < r0 and r1 < last < R - 1
+    peak = np.abs(exact).max()
+    assert np.abs(exact[:first]).max() < 1e-13 * peak and np.abs(exact[last + 1:]).max() < 1e-13 * peak
+    np.testing.assert_allclose(W[first:last + 1], exact[first:last + 1], rtol=0, atol=1e-13 * peak)
+
+
 #: Agreement of float32 samples with the same samples in float64: the fringe's quadratures are made in the samples'
 #: dtype (single-precision cos and sin, within 1e-7 of their amplitude) and the weights are read in it.
 FRINGE32 = 1e-6
