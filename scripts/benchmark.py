@@ -272,7 +272,7 @@ def main():
         targets(args.out)
         return
     if args.target == "clinical":
-        doc["clinical"] = {"machine": info, "cases": clinical(args)}
+        doc["clinical"] = {"machine": info, "rounds": args.repeat, "cases": clinical(args)}
     elif args.target == "demo":
         doc["demo"] = {"machine": info, **demo(args)}
     else:
@@ -380,7 +380,7 @@ def paper(args, info: dict) -> dict:
                  schema=S.SCHEMA)
     scan, truth = S.simulate(sim)
     good = frames_lighting(scan.position, scan.active_rows, scan.shape[1])
-    out = {"machine": info, "size": list(scan.shape), "cases": {}}
+    out = {"machine": info, "size": list(scan.shape), "rounds": args.repeat, "cases": {}}
     records: list[str] = []
     handler = logging.Handler(level=logging.INFO)
     handler.emit = lambda record: records.append(record.getMessage())  # type: ignore[method-assign]

@@ -278,6 +278,13 @@ its misfit remains, and with tilt in the model a weakly identifiable proxy such 
 the report then lists the true cause as not identifiable and the proxy as detected."""
 
 
+def rounds_text(section: dict) -> str:
+    """How a benchmark section's times were taken: the fastest of several rounds of every case in turn."""
+    n = section.get("rounds", 1)
+    return (f" Each case's time is its fastest of {n} rounds of every case in turn (the machine's speed drifts by"
+            " 10-25 % within an hour; in turn, every case meets it alike)." if n > 1 else "")
+
+
 def paper_study_section(p: dict) -> list[str]:
     if not p:
         return []
@@ -324,7 +331,7 @@ def speed_section(bench: dict, base: dict, kern: dict) -> list[str]:
                          load_text(c.get("load_average"))])
         out += ["", "## Speed and memory", "", "### Clinical scans", "",
                 "`scripts/benchmark.py clinical` -> `docs/benchmark.json`. Machine: " + clinical["machine"] + ".", "",
-                SPEED, "",
+                SPEED + rounds_text(clinical), "",
                 *table(["scan (defaults unless set)", "columns fitted", "wall time", "peak memory",
                         "RMSE phi0 / phi1 / v^s; pulls",
                         "iterations / cost evaluations", "stages (s)", "load"], rows)]
@@ -335,7 +342,7 @@ def speed_section(bench: dict, base: dict, kern: dict) -> list[str]:
                  f"{c['reduced_chi2']:.4f}", load_text(c.get("load_average"))] for name, c in paper["cases"].items()]
         out += ["", "### The paper's study: settings and optimisers", "",
                 "`scripts/benchmark.py paper` -> `docs/benchmark.json`. Machine: " + paper["machine"] + ".", "",
-                PAPER_CASES, "",
+                PAPER_CASES + rounds_text(paper), "",
                 *table(["case", "columns fitted", "seconds", "fit (s)", "iterations / evaluations",
                         "RMSE phi0 / phi1 / v^s; pulls", "reduced chi2", "load"], rows)]
     if base:
