@@ -12,31 +12,33 @@ import numpy as np
 from numba import njit, prange
 
 from .fisher_pixels import slot
-from .kernels import _derivatives, _direction, _image_columns
+from .kernels import _derivatives, _direction, _image_columns, weights_dtype
 from .kernels_between import _add_sample, _factor, _reading, _sample_values
 
 #: Frames whose right-hand sides of the Fisher correction's Y^T N^-1 Y are one block: solved together on the rows
 #: where their N^-1 Y is not negligible, then one matrix product with each block whose rows they meet. Profiled
 #: Fisher information with a parallax, medians of 5 alternated: paper study (510 columns) 8: 0.85 s, 12: 0.92,
-#: 16: 0.93, 24: 0.99, 32: 1.23; binned clinical scan (180 columns) 8: 1.04, 12: 0.96, 16: 1.06, 24: 1.22, 32: 1.47.
+#: 16: 0.93, 24: 0.99, 32: 1.23; binned clinical scan (180 columns) 8: 1.04, 12: 0.96, 16: 1.06, 24: 1.22, 32: 1.47:
+#: 8 to 16 alike within the machine's drift, 16 kept.
 FRAME_GROUP = 16
 
 
 #: Where a block of N^-1 Y is cut off: rows past the block's own where its largest value has fallen below this
 #: fraction of its peak (N^-1 decays geometrically away from the diagonal, by about a quarter per row where the
-#: samples read evenly between rows); the products it leaves out are below this fraction of the correction's.
+#: samples read evenly between rows). What it leaves out is of this order relative to the correction (5.6e-12
+#: measured with one nearly unsolvable row, the forward sweep being judged before F^-1 scales it).
 DROP = 1e-14
 
 
 @njit(cache=True)
 def _solve_block(Y, p0, p1, r0, r1, scale, valid, Finv, Us, M, W):
     """N^-1 Y of one column for the right-hand sides ``Y[:, :, p0:p1]`` (nonzero on rows r0..r1 only) into
-    ``W[:, :, :p1 - p0]`` (``kernels_between._solve`` for many), on the rows where it is not negligible.
+    ``W`` (R, 3, p1 - p0) (``kernels_between._solve`` for many), on the rows where it is not negligible.
 
     Above r0 the forward sweep is exactly 0; below r1 it and above r0 the backward sweep decay, and each stops at the
     first row under :data:`DROP` of its peak (a row that cannot be solved decouples the column there: exactly 0).
-    ``M`` (R, 3, 3) holds U_{r-1}^T F_{r-1}^-1. Returns the first and last row of ``W`` that hold values; the rest
-    are 0.
+    ``M`` (R, 3, 3) holds U_{r-1}^T F_{r-1}^-1. Returns the first and last row of ``W`` that hold values; the
+    other rows are not written.
     """
     R = Y.shape[0]
     G = p1 - p0
@@ -88,6 +90,13 @@ def _solve_block(Y, p0, p1, r0, r1, scale, valid, Finv, Us, M, W):
     return first, last
 
 
+@njit(cache=True, inline="always")
+def _own(W, R, block, b):
+    """Block b's share of the flat buffer ``W``: its N^-1 Y, (R, 3, its width), contiguous (a product reads a run
+    of its rows as one matrix of exactly its columns)."""
+    return W[3 * R * block[b]:3 * R * block[b + 1]].reshape(R, 3, block[b + 1] - block[b])
+
+
 @njit(cache=True, parallel=True)
 def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm, coef, channel, power,
             n_per_frame, n_frames, lead, rslot, block, slots_of, block_rows, profiled, chunks):
@@ -100,9 +109,6 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
     P = n_frames * Pf + Q - n_per_frame
     Pr = block[-1]
     nb = block.size - 1
-    G = 1
-    for b in range(nb):
-        G = max(G, block[b + 1] - block[b])
     n = chunks.size - 1
     plain = np.empty((n, P, P))
     corr = np.empty((n, P, P))
@@ -123,7 +129,7 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
         # size)
         Y = np.zeros((R if profiled else 0, 3, Pr))
         # N^-1 Y block by block (``block``), each on the rows ``window`` where it is not negligible
-        W = np.empty((nb if profiled else 0, R, 3, G))
+        W = np.empty(R * 3 * Pr if profiled else 0)
         window = np.empty((nb, 2), dtype=np.int64)
         Mr = np.empty((R, 3, 3))
         factor = np.empty(P)
@@ -197,11 +203,11 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
                             + Us[r - 1, 2, a] * Finv[r - 1, 2, b]
             for b in range(nb):
                 r0, r1 = block_rows[b, 0], block_rows[b, 1]
-                if r1 < r0:
+                if r1 < r0 or block[b + 1] == block[b]:
                     window[b, 0], window[b, 1] = 0, -1
                     continue
                 window[b, 0], window[b, 1] = _solve_block(Y, block[b], block[b + 1], r0, r1, scale, ok, Finv, Us,
-                                                          Mr, W[b])
+                                                          Mr, _own(W, R, block, b))
             # Y^T N^-1 Y is symmetric: each pair of blocks once (the pairs whose rows meet), into the upper triangle of
             # the information's correction at once (its components: those of each (frame, channel) times x^k); the
             # lower triangle is its mirror, made once at the end
@@ -212,7 +218,7 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
             for b in range(nb):
                 p0, p1 = block[b], block[b + 1]
                 r0, r1 = block_rows[b, 0], block_rows[b, 1]
-                if r1 < r0:
+                if r1 < r0 or p1 == p0:
                     continue
                 Yb = np.empty((3 * (r1 - r0 + 1), p1 - p0))
                 for r in range(r0, r1 + 1):
@@ -224,7 +230,7 @@ def _fisher(tf, fc, fs, w, frame, lo_, frac, y, x, cos_p, sin_p, vis, dose, harm
                     if hi < lo:
                         continue
                     part = np.dot(Yb[3 * (lo - r0):3 * (hi - r0 + 1)].T,
-                                  W[q, lo:hi + 1].reshape(3 * (hi - lo + 1), G))
+                                  _own(W, R, block, q)[lo:hi + 1].reshape(3 * (hi - lo + 1), block[q + 1] - block[q]))
                     q0 = block[q]
                     for s1 in range(slots_of[b], slots_of[b + 1]):
                         f1, row = factor[s1], part[rslot[s1] - p0]
@@ -283,7 +289,7 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, table: tuple, *, prof
     counted = np.any(weights != 0, axis=1)
     group = obs.frame[counted] // FRAME_GROUP
     np.minimum.at(block_rows[:groups, 0], group, lo[counted])
-    np.maximum.at(block_rows[:groups, 1], group, np.where(frac > 0, hi, lo)[counted])
+    np.maximum.at(block_rows[:groups, 1], group, np.where(frac != 0, hi, lo)[counted])
     block = np.append(np.arange(groups, dtype=np.int64) * FRAME_GROUP * Pu, [J * Pu, J * Pu + Pg])
     # the components (their slots in the information) each block's right-hand sides serve
     slots_of = np.append(np.arange(groups, dtype=np.int64) * FRAME_GROUP * Pf, [J * Pf, J * Pf + Pg])
@@ -297,7 +303,7 @@ def fisher(obs, ch, weights: np.ndarray, coef: np.ndarray, table: tuple, *, prof
         # (0.30 against 0.24 s for 73 columns of the paper study with a parallax)
         return np.ascontiguousarray(np.swapaxes(a, 0, 1), dtype=dtype)
 
-    plain, corr = _fisher(by_column(obs.tf), by_column(fc), by_column(fs), by_column(weights, np.float64),
+    plain, corr = _fisher(by_column(obs.tf), by_column(fc), by_column(fs), by_column(weights, weights_dtype(obs)),
                           obs.frame, lo, frac, obs.y, obs.x, by_column(np.cos(ch.phase)), by_column(np.sin(ch.phase)),
                           by_column(ch.vis, np.float64), ch.dose, ch.harmonic, by_column(coef, np.float64),
                           np.asarray(channel, dtype=np.int64), np.asarray(power, dtype=np.int64), Pf, J, lead,

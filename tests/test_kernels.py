@@ -87,6 +87,13 @@ def test_float32_samples_give_the_float64_result(rng):
         close(grad[n], grad64[n], rtol=FRINGE32)
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
     close(K.retrieve(obs, ch, iterations=2)["coef"], K.retrieve(ref, ch, iterations=2)["coef"], rtol=FRINGE32)
+    # the Fisher information reads the weights in the samples' dtype too
+    images = K.retrieve(ref, ch, weights=w.astype(np.float64), keep_inverse=True)
+    table = M.component_table(list(ALL))[:3]
+    for got, want in zip(FP.fisher(obs, ch, w, images["coef"], images["inverse"], table),
+                         FP.fisher(ref, ch, w.astype(np.float64), images["coef"], images["inverse"], table),
+                         strict=True):
+        close(got, want, rtol=FRINGE32)
 
 
 @pytest.mark.parametrize("masked", [False, True], ids=["all", "masked"])

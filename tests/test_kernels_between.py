@@ -100,39 +100,58 @@ def test_fisher_information_equals_the_model(case, rng, profiled):
     assert np.any(corr) == profiled
 
 
-def test_fisher_information_of_a_tall_scan_equals_the_model(rng):
-    # 200 rows, frames in six groups (fisher_between.FRAME_GROUP): N^-1 Y of each group is cut off where it is
-    # negligible, and each pair of groups multiplied over the rows both reach
-    obs = tiny_obs(rng, J=96, H=200, W=3, A=16)
-    params = random_params(rng, obs.n_frames, NAMES)
+@pytest.mark.parametrize("names", [NAMES, WITH_ALL], ids=["plain", "harmonic"])
+@pytest.mark.parametrize("J", [96, 90], ids=["six groups", "a short last group"])
+def test_fisher_information_of_a_tall_scan_equals_the_model(rng, names, J):
+    # 200 rows, frames in blocks (fisher_between.FRAME_GROUP) beside the global components' block: N^-1 Y of each
+    # block is cut off where it is negligible, and each pair of blocks multiplied over the rows both reach
+    obs = tiny_obs(rng, J=J, H=200, W=3, A=16)
+    params = random_params(rng, obs.n_frames, names)
     obs = displaced(rng, replace(obs, counts=modelled_counts(rng, obs, params)))
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
     w = np.where(obs.use, 1.0 / np.maximum(obs.counts, 1.0), 0.0)
     dsg = M.design_channels(obs, ch)
     images = M.solve_images(obs, dsg, w)
-    want_plain, want_corr, _ = M.fisher_parts(obs, dsg, images, w, NAMES, profiled=True)
-    plain, corr = FB.fisher(obs, ch, w, images.coef, M.component_table(NAMES)[:3])
+    want_plain, want_corr, _ = M.fisher_parts(obs, dsg, images, w, names, profiled=True)
+    plain, corr = FB.fisher(obs, ch, w, images.coef, M.component_table(names)[:3])
     close(plain, want_plain)
     close(corr, want_corr)
 
 
 def test_block_solve_stops_where_the_inverse_has_decayed():
-    # N block-tridiagonal with blocks 4 I on the diagonal and I beside it: N^-1 decays by about 0.27 per row
-    R, G, r0, r1 = 200, 5, 90, 95
-    D, U = 4.0 * np.eye(3), np.eye(3)
-    Finv, Us = np.empty((R, 3, 3)), np.broadcast_to(U, (R, 3, 3)).copy()
-    Us[-1] = 0.0
-    Finv[0] = np.linalg.inv(D)
+    # a scaled block-tridiagonal N (random blocks, couplings not symmetric) whose row 150 cannot be solved: N^-1
+    # decays away from the right-hand sides' rows 90-95, the backward sweep stops where it has, the forward one at
+    # the unsolvable row (exactly 0 beyond it)
+    R, G, r0, r1, bad = 200, 5, 90, 95, 150
+    rng = np.random.default_rng(3)
+    Ds = np.empty((R, 3, 3))
+    for r in range(R):
+        a = rng.normal(size=(3, 3))
+        Ds[r] = 4.0 * np.eye(3) + 0.3 * (a @ a.T)
+    Us = 0.8 * rng.normal(size=(R, 3, 3)) / 3.0
+    Ds[bad], Us[bad - 1], Us[bad], Us[-1] = np.eye(3), 0.0, 0.0, 0.0
+    valid = np.ones(R, bool)
+    valid[bad] = False
+    scale = rng.uniform(0.5, 2.0, (R, 3))
+    Finv = np.empty((R, 3, 3))
+    Finv[0] = np.linalg.inv(Ds[0])
     for r in range(1, R):
-        Finv[r] = np.linalg.inv(D - U.T @ Finv[r - 1] @ U)
+        Finv[r] = np.linalg.inv(Ds[r] - Us[r - 1].T @ Finv[r - 1] @ Us[r - 1])
     Mr = np.einsum("rpa,rpb->rab", np.roll(Us, 1, axis=0), np.roll(Finv, 1, axis=0))
     Y = np.zeros((R, 3, G))
-    Y[r0:r1 + 1] = np.random.default_rng(3).normal(size=(r1 + 1 - r0, 3, G))
-    N = np.kron(np.eye(R), D) + np.kron(np.eye(R, k=1), U) + np.kron(np.eye(R, k=-1), U.T)
-    exact = np.linalg.solve(N, Y.reshape(3 * R, G)).reshape(R, 3, G)
+    Y[r0:r1 + 1] = rng.normal(size=(r1 + 1 - r0, 3, G))
+    Ns = np.zeros((3 * R, 3 * R))
+    for r in range(R):
+        Ns[3 * r:3 * r + 3, 3 * r:3 * r + 3] = Ds[r]
+        if r + 1 < R:
+            Ns[3 * r:3 * r + 3, 3 * r + 3:3 * r + 6] = Us[r]
+            Ns[3 * r + 3:3 * r + 6, 3 * r:3 * r + 3] = Us[r].T
+    s = scale.ravel()
+    exact = (np.linalg.solve(Ns, Y.reshape(3 * R, G) / s[:, None]) / s[:, None]).reshape(R, 3, G)
+    exact[bad] = 0.0
     W = np.full((R, 3, G), np.nan)
-    first, last = FB._solve_block(Y, 0, G, r0, r1, np.ones((R, 3)), np.ones(R, bool), Finv, Us, Mr, W)
-    assert 0 < first < r0 and r1 < last < R - 1
+    first, last = FB._solve_block(Y, 0, G, r0, r1, scale, valid, Finv, Us, Mr, W)
+    assert 0 < first < r0 and r1 < last <= bad
     peak = np.abs(exact).max()
     assert np.abs(exact[:first]).max() < 1e-13 * peak and np.abs(exact[last + 1:]).max() < 1e-13 * peak
     np.testing.assert_allclose(W[first:last + 1], exact[first:last + 1], rtol=0, atol=1e-13 * peak)
@@ -160,6 +179,11 @@ def test_float32_samples_read_between_rows_give_the_float64_result(case):
     for key in ("coef", "expected", "weights"):
         close(got[key], want[key], rtol=FRINGE32)
     assert got["chi2"] == pytest.approx(want["chi2"], rel=FRINGE32)
+    # the Fisher information reads the weights in the samples' dtype
+    table = M.component_table(NAMES)[:3]
+    for a, b in zip(FB.fisher(single, ch, w.astype(np.float32), want["coef"], table),
+                    FB.fisher(obs, ch, w.astype(np.float32).astype(np.float64), want["coef"], table), strict=True):
+        close(a, b, rtol=FRINGE32)
 
 
 def test_observations_without_a_reading_are_refused(rng):
