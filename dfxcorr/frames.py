@@ -88,10 +88,10 @@ def rescue_frames(obs: Observations, params: dict, weights: np.ndarray, frames: 
         sel = np.flatnonzero(obs.frame == j)
         now0 = params["phase_offset"][j, 0] if "phase_offset" in params else 0.0
         now1 = params["tilt"][j, 0] if "tilt" in params else c1
-        held = now0 + (now1 if "tilt" in params else 0.0) * obs.x
-        cost = frame_grid_cost(obs, ch, now["coef"], weights, sel, offsets, tilts, held=held).ravel() + penalty
-        here = frame_grid_cost(obs, ch, now["coef"], weights, sel, np.array([now0]),
-                               np.array([now1 if "tilt" in params else 0.0]), held=held)
+        sums = frame_cost_sums(obs, ch, now["coef"], weights, sel,
+                               held=now0 + (now1 if "tilt" in params else 0.0) * obs.x)
+        cost = grid_cost(sums, offsets, tilts, obs.x).ravel() + penalty
+        here = grid_cost(sums, np.array([now0]), np.array([now1 if "tilt" in params else 0.0]), obs.x)
         current = float(here[0, 0]) + (np.angle(np.exp(1j * (now0 - c0))) / w0) ** 2 + ((now1 - c1) / w1) ** 2
         best = int(np.argmin(cost))
         if cost[best] < current - 1.0:
@@ -131,6 +131,13 @@ def frame_grid_cost(obs: Observations, ch: M.Channels, coef: np.ndarray, weights
     -------
     ndarray, shape (n0, n1)
     """
+    return grid_cost(frame_cost_sums(obs, ch, coef, weights, blocks, held=held), offsets, tilts, obs.x)
+
+
+def frame_cost_sums(obs: Observations, ch: M.Channels, coef: np.ndarray, weights: np.ndarray, blocks: np.ndarray, *,
+                    held: np.ndarray) -> tuple[float, list[np.ndarray]]:
+    """The sums S0 and S_n (n = 1..4, each (C,), complex) of :func:`frame_grid_cost`: the cost of the blocks at any
+    phase offset and tilt is then :func:`grid_cost` of them."""
     j = obs.frame[blocks[0]]
     x = obs.x
     cf = obs.gather(coef, blocks)
@@ -147,6 +154,14 @@ def frame_grid_cost(obs: Observations, ch: M.Channels, coef: np.ndarray, weights
     # r^2 = (y - Re PE - Re QE^2)^2, expanded with Re a Re b = (Re ab + Re a b*) / 2
     S0 = float(np.sum(w * (y ** 2 + 0.5 * np.abs(P) ** 2 + 0.5 * np.abs(Q) ** 2)))
     S = [np.sum(w * s, axis=0) for s in (-2 * y * P + np.conj(P) * Q, -2 * y * Q + 0.5 * P ** 2, P * Q, 0.5 * Q ** 2)]
+    return S0, S
+
+
+def grid_cost(sums: tuple[float, list[np.ndarray]], offsets: np.ndarray, tilts: np.ndarray, x: np.ndarray
+              ) -> np.ndarray:
+    """The cost S0 + Re(sum_n E^n S_n) of :func:`frame_cost_sums` on the grid ``offsets`` x ``tilts`` (rad, rad per
+    unit of the lateral coordinate ``x`` (C,)), (n0, n1)."""
+    S0, S = sums
     return S0 + sum(np.real(np.exp(1j * n * offsets)[:, None] * (np.exp(1j * n * np.outer(tilts, x)) @ Sn)[None, :])
                     for n, Sn in enumerate(S, start=1))
 
