@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 from scipy.linalg import solve_triangular
@@ -665,18 +665,19 @@ def model_at(effects: Sequence[str], params: dict, n_frames: int) -> tuple[list[
     return names, {**neutral_params(names, n_frames), **{k: v for k, v in params.items() if k in names}}
 
 
-def spread_indices(n: int, most: int) -> np.ndarray:
-    """Positions of at most ``most`` evenly spread of ``n`` columns (all if fewer)."""
-    return np.arange(n) if n <= most else np.unique(np.linspace(0, n - 1, most).astype(int))
-
-
-def spread_columns(obs: Observations, weights: np.ndarray, *, most: int) -> tuple[Observations, np.ndarray]:
-    """At most ``most`` evenly spread columns of the observations and their weights (K, C); all if fewer."""
+@overload
+def spread_columns(obs: Observations, weights: np.ndarray, *, most: int) -> tuple[Observations, np.ndarray]: ...
+@overload
+def spread_columns(obs: Observations, weights: None = None, *, most: int) -> tuple[Observations, None]: ...
+def spread_columns(obs: Observations, weights: np.ndarray | None = None, *, most: int
+                   ) -> tuple[Observations, np.ndarray | None]:
+    """At most ``most`` evenly spread columns of the observations and of their weights (K, C) where given; all if
+    fewer."""
     if obs.columns.size <= most:
         return obs, weights
-    keep = spread_indices(obs.columns.size, most)
+    keep = np.unique(np.linspace(0, obs.columns.size - 1, most).astype(int))
     # C-ordered once here (as the subset's samples), rather than by the kernels at every refresh of the Hessian
-    return obs.subset(keep), np.ascontiguousarray(weights[:, keep])
+    return obs.subset(keep), None if weights is None else np.ascontiguousarray(weights[:, keep])
 
 
 def initial_weights(obs: Observations, params: dict) -> np.ndarray:

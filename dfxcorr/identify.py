@@ -22,7 +22,7 @@ from . import engine as E
 from . import kernels as K
 from . import model as M
 from .catalogue import effect, neutral_params
-from .fit import initial_weights, spread_indices
+from .fit import initial_weights, spread_columns
 from .observations import Observations
 
 
@@ -161,8 +161,7 @@ def select(obs: Observations, names, *, max_columns: int = 64) -> list[Identifia
     names = list(names)
     if not names:
         return []
-    keep = spread_indices(obs.columns.size, max_columns)
-    obs = obs if keep.size == obs.columns.size else obs.subset(keep)
+    obs, _ = spread_columns(obs, most=max_columns)
     weights = initial_weights(obs, {})
     ch = M.channels(neutral_params(names, obs.n_frames), x=obs.x, n_frames=obs.n_frames)
     K.set_threads()

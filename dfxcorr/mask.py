@@ -24,7 +24,7 @@ from . import kernels as K
 from . import model as M
 from .catalogue import PAPER_MODEL, neutral_params
 from .chunks import row_counts
-from .fit import model_at, spread_indices
+from .fit import model_at, spread_columns
 from .frames import well_determined
 from .noise import noise_weights
 from .observations import Observations
@@ -197,7 +197,7 @@ def start_misfit(obs: Observations, params: dict, *, effects: Sequence[str] = PA
         residuals are not finite.
     """
     _, at = model_at(effects, params, obs.n_frames)
-    sub = obs.subset(spread_indices(obs.columns.size, START_COLUMNS))
+    sub, _ = spread_columns(obs, most=START_COLUMNS)
     out = E.retrieve(sub, M.channels(at, x=sub.x, n_frames=sub.n_frames), iterations=2)
     w = np.where(sub.use & sub.gather_valid(out["valid"]), out["weights"], 0.0)
     z2 = sub.frame_sum(np.sum(w * (sub.counts - out["expected"]) ** 2, axis=1))
