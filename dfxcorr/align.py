@@ -22,8 +22,11 @@ from . import kernels as K
 from .errors import DfxcorrError
 from .faults import Faults, saturated
 from .io import Reference, Scan, frame_rows, lit_rows
-from .observations import Observations, displaced_reading, index_slice
+from .observations import Observations, displaced_reading, index_slice, quadratures
 from .stats import ranges
+
+#: samples whose v^f and phi^f are made at a time on the way to their fringe's quadratures (2 x 16 MB in float32)
+FRINGE_CHUNK = 4_000_000
 
 log = logging.getLogger(__name__)
 
@@ -351,10 +354,18 @@ class LitStore:
         row, frame, u = self.row[lo:hi], self.frame[lo:hi], self.u[lo:hi]
         phase = reference.phase if phase_unwrapped else np.unwrap(reference.phase, axis=0)
         tf = interpolate_rows(reference.transmission, u, columns=cols, dtype=dtype)
-        vf = interpolate_rows(reference.visibility, u, columns=cols, dtype=dtype)
-        # the model takes only cos and sin of it: wrapped to [-pi, pi), float32 keeps it to 2e-7 rad (unwrapped
-        # across a clinical detector's many fringes it would keep it only to |phi^f| 6e-8)
-        phif = interpolate_rows(phase, u, columns=cols, dtype=dtype, add=self.phase_step[frame], wrap=True)
+        fc, fs = np.empty_like(tf), np.empty_like(tf)
+        # v^f and phi^f a run of blocks at a time, into the fringe's quadratures: held whole they were 2 x 108 MB of
+        # a full-resolution clinical fit's samples beside the quadratures
+        step = max(int(FRINGE_CHUNK // max(cols.size, 1)), 1)
+        for a in range(0, row.size, step):
+            b = min(a + step, row.size)
+            vf = interpolate_rows(reference.visibility, u[a:b], columns=cols, dtype=dtype)
+            # the model takes only cos and sin of it: wrapped to [-pi, pi), float32 keeps it to 2e-7 rad (unwrapped
+            # across a clinical detector's many fringes it would keep it only to |phi^f| 6e-8)
+            phif = interpolate_rows(phase, u[a:b], columns=cols, dtype=dtype, add=self.phase_step[frame[a:b]],
+                                    wrap=True)
+            quadratures(tf[a:b], vf, phif, out=(fc[a:b], fs[a:b]))
         # C order whatever the store's: the kernels walk a sample row at a time (a Fortran-ordered copy made
         # every cost evaluation about 1.7x slower)
         at = index_slice(cols, W)
@@ -370,7 +381,7 @@ class LitStore:
             reading, inside = displaced_reading(row, np.unique(row), shift)
             reading = replace(reading, kappa=self.parallax)
             use &= inside[:, None]
-        return Observations(counts=counts, tf=tf, vf=vf, phif=phif, dark=dark, use=use,
+        return Observations(counts=counts, tf=tf, fc=fc, fs=fs, dark=dark, use=use,
                             row=row, frame=frame, columns=cols, shape=(J, H, W),
                             gain=self.gain if gain is None else gain, electronic=electronic,
                             noise=None if noise is None else noise[held],
@@ -481,8 +492,8 @@ def realign(store: LitStore, reference: Reference, like: Observations, shift: np
         # ``like`` may be a view of a run of columns (Observations.subset(copy=False)): the kernels read C order
         return None if a is None else np.ascontiguousarray(a)
 
-    return replace(obs, noise=own(like.noise), vf=np.where(like.in_roi, obs.vf, 0).astype(obs.vf.dtype, copy=False),
-                   use=np.ascontiguousarray(like.use), roi=own(like.roi))
+    return replace(obs.keep_fringe(like.in_roi), noise=own(like.noise), use=np.ascontiguousarray(like.use),
+                   roi=own(like.roi))
 
 
 def build_observations(scan: Scan, reference: Reference, *, min_frames: int = 3, dtype: DTypeLike = np.float64

@@ -141,13 +141,15 @@ def frame_cost_sums(obs: Observations, ch: M.Channels, coef: np.ndarray, weights
     j = obs.frame[blocks[0]]
     x = obs.x
     cf = obs.gather(coef, blocks)
-    theta = obs.phif[blocks] + ch.phase_at(obs, blocks) - held
+    # the fringe t^f v^f exp(i theta) at the frame's held offset and tilt taken out, and t^f v^f exp(2i theta)
+    F = (obs.fc[blocks] + 1j * obs.fs[blocks]) * np.exp(1j * (ch.phase_at(obs, blocks) - held))
+    F2 = M.second_harmonic(F.real, F.imag)
     amp = ch.dose[j] * obs.tf[blocks]
-    vis = ch.vis_at(obs, blocks)
-    P = amp * obs.vf[blocks] * vis * (cf[..., 1] + 1j * cf[..., 2]) * np.exp(1j * theta)
+    dv = ch.dose[j] * ch.vis_at(obs, blocks)
+    P = dv * (cf[..., 1] + 1j * cf[..., 2]) * F
     # the harmonic follows the sample: m exp(2i phi) = e + i f of the images
     _, _, e, f = M.harmonic_factors(cf[..., 1], cf[..., 2])
-    Q = amp * obs.vf[blocks] * vis * (e + 1j * f) * (ch.harmonic[0] + 1j * ch.harmonic[1]) * np.exp(2j * theta)
+    Q = dv * (e + 1j * f) * (ch.harmonic[0] + 1j * ch.harmonic[1]) * (F2[0] + 1j * F2[1])
     background = ch.background[0] + ch.background[1] * x[None, :] + ch.background[2] * obs.y[blocks, None]
     y = obs.counts[blocks] - obs.dark[blocks] - background - cf[..., 0] * amp
     w = weights[blocks]

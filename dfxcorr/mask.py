@@ -67,7 +67,7 @@ def motion_statistics(obs: Observations, params: dict) -> tuple[np.ndarray, np.n
     weights, ibar = solved["weights"], solved["expected"]
     n = row_counts(obs, weights > 0)
     # the fringe's amplitude per unit image modulation, |(Bc, Bs)| = D tf vf V of model.design
-    fringe_amp = ch.dose[obs.frame][:, None] * obs.tf * obs.vf * ch.vis_at(obs)
+    fringe_amp = ch.dose[obs.frame][:, None] * np.hypot(obs.fc, obs.fs) * ch.vis_at(obs)
     with np.errstate(divide="ignore", invalid="ignore"):
         eps = obs.segment_sum(np.where(weights > 0, deviance(obs, ibar), 0.0)) / (n - 3)
         amp = obs.gather(np.hypot(solved["coef"][..., 1], solved["coef"][..., 2]))

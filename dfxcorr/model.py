@@ -244,8 +244,9 @@ class Design:
     """Per-sample coefficients of the per-pixel model Ibar = t A + c Bc + s Bs + Hc e - Hs f + offset.
 
     e = (c^2 - s^2) / m, f = 2 c s / m (:func:`harmonic_factors`). All arrays have shape (K, C)
-    (``dose`` (K, 1)); ``theta`` is the fringe phase without the sample, ``Fc``, ``Fs`` the flat field's fringe
-    there, t^f v^f cos theta and t^f v^f sin theta; ``Hc``, ``Hs`` are zero without the harmonic. ``channels``
+    (``dose`` (K, 1)); ``Fc``, ``Fs`` are the flat field's fringe at theta, the fringe phase without the sample
+    (:func:`fringe_phase`), t^f v^f cos theta and t^f v^f sin theta; ``Hc``, ``Hs`` are zero without the harmonic.
+    ``channels``
     holds the channel values they were made from.
     """
 
@@ -255,7 +256,6 @@ class Design:
     Hc: np.ndarray
     Hs: np.ndarray
     offset: np.ndarray
-    theta: np.ndarray
     Fc: np.ndarray
     Fs: np.ndarray
     dose: np.ndarray
@@ -288,21 +288,27 @@ def design_channels(obs: Observations, ch: Channels) -> Design:
     offset = (sum(ch.background[m] * b for m, b in enumerate(background_basis(obs))) + obs.dark
               if np.any(ch.background) else obs.dark.astype(np.float64))
     hc, hs = float(ch.harmonic[0]), float(ch.harmonic[1])
-    theta = fringe_phase(obs, ch)
-    # the fringe at theta by the angle sum from the flat field's quadratures (made once per observations) and Φ's
-    # (on the (frame, column) grid): no trigonometry per sample, as in the compiled kernels
+    # the fringe at theta by the angle sum from the flat field's quadratures and Φ's (on the (frame, column) grid):
+    # no trigonometry per sample, as in the compiled kernels
     fc, fs = obs.fringe
     cp, sp = ch.phase_quadratures(obs)
     Fc, Fs = fc * cp - fs * sp, fs * cp + fc * sp
     amp = dose * obs.tf
-    Hc = Hs = np.zeros_like(theta)
+    Hc = Hs = np.zeros(Fc.shape)
     Hc.setflags(write=False)  # one array for both
     if hc or hs:
-        Bv = amp * obs.vf * vis
-        c2, s2 = np.cos(2 * theta), np.sin(2 * theta)
-        Hc, Hs = Bv * (hc * c2 - hs * s2), Bv * (hc * s2 + hs * c2)
-    return Design(A=amp, Bc=dose * vis * Fc, Bs=-dose * vis * Fs, Hc=Hc, Hs=Hs, offset=offset, theta=theta, Fc=Fc,
-                  Fs=Fs, dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
+        F2c, F2s = second_harmonic(Fc, Fs)
+        Hc, Hs = dose * vis * (hc * F2c - hs * F2s), dose * vis * (hc * F2s + hs * F2c)
+    return Design(A=amp, Bc=dose * vis * Fc, Bs=-dose * vis * Fs, Hc=Hc, Hs=Hs, offset=offset, Fc=Fc, Fs=Fs,
+                  dose=dose, vis=vis, harmonic=(hc, hs), channels=ch)
+
+
+def second_harmonic(Fc: np.ndarray, Fs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """t^f v^f cos 2 theta and t^f v^f sin 2 theta from the fringe's quadratures t^f v^f (cos theta, sin theta)
+    (counts, each (K, C)): (Fc + i Fs)^2 / |Fc + i Fs|, 0 without fringe."""
+    m = np.hypot(Fc, Fs)
+    inv = np.divide(1.0, m, out=np.zeros_like(m), where=m > 0)
+    return (Fc * Fc - Fs * Fs) * inv, 2.0 * Fc * Fs * inv
 
 
 def fringe_phase(obs: Observations, ch: Channels) -> np.ndarray:
@@ -570,32 +576,31 @@ def channel_fields(obs: Observations, dsg: Design, images: Images, cid: int, *, 
     c = obs.gather(images.coef) if at is None else at
     t, cc, ss = c[..., 0], c[..., 1], c[..., 2]
     hc, hs = dsg.harmonic
-    amp = dsg.dose * obs.tf
-    bv = amp * obs.vf * dsg.vis
-    # m cos(2 psi), m sin(2 psi) of the sample (psi = θ + phi), and the harmonic's a2 m cos, a2 m sin (2 psi + beta)
+    # t^f v^f times (G, Kh) m (cos, sin)(2 psi), psi = theta + phi, and (P2, Q2) a2 m (cos, sin)(2 psi + beta)
     ef: np.ndarray | float
     ff: np.ndarray | float
-    g: np.ndarray | float
-    k: np.ndarray | float
-    p2: np.ndarray | float
-    q2: np.ndarray | float
-    ef = ff = g = k = p2 = q2 = 0.0
+    G: np.ndarray | float
+    Kh: np.ndarray | float
+    P2: np.ndarray | float
+    Q2: np.ndarray | float
+    ef = ff = G = Kh = P2 = Q2 = 0.0
     # the harmonic's own derivatives need its factors even where it is absent (hc = hs = 0: a score test)
     if hc or hs or cid == kernels.HARMONIC:
         _, _, ef, ff = harmonic_factors(cc, ss)
-        c2, s2 = np.cos(2 * dsg.theta), np.sin(2 * dsg.theta)
-        g, k = c2 * ef - s2 * ff, s2 * ef + c2 * ff
-        p2, q2 = hc * g - hs * k, hc * k + hs * g
+        F2c, F2s = second_harmonic(dsg.Fc, dsg.Fs)
+        G, Kh = F2c * ef - F2s * ff, F2s * ef + F2c * ff
+        P2, Q2 = hc * G - hs * Kh, hc * Kh + hs * G
     if cid == kernels.PHASE:
-        return [cc * dsg.Bs - ss * dsg.Bc - 2 * bv * q2]
+        return [cc * dsg.Bs - ss * dsg.Bc - 2 * dsg.dose * dsg.vis * Q2]
     if cid == kernels.VISIBILITY:
         # t^f v^f D (c cos theta - s sin theta + the harmonic's part)
-        return [dsg.dose * (cc * dsg.Fc - ss * dsg.Fs) + amp * obs.vf * p2]
+        return [dsg.dose * (cc * dsg.Fc - ss * dsg.Fs + P2)]
     if cid == kernels.DOSE:
         return [(t * dsg.A + cc * dsg.Bc + ss * dsg.Bs + (dsg.Hc * ef - dsg.Hs * ff)) / dsg.dose]
     if cid == kernels.BACKGROUND:
         return background_basis(obs)
-    return [bv * g, -bv * k]
+    bv = dsg.dose * dsg.vis
+    return [bv * G, -bv * Kh]
 
 
 def reduce_component(obs: Observations, name: str, F: np.ndarray) -> np.ndarray:

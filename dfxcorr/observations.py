@@ -40,14 +40,15 @@ def index_slice(idx: np.ndarray | None, length: int) -> slice | np.ndarray:
     return c
 
 
-def quadratures(tf: np.ndarray, vf: np.ndarray, phif: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """t^f v^f cos phi^f and t^f v^f sin phi^f, each of ``tf``'s shape (K, C) and dtype, in chunks of rows on the
-    kernels' threads (numpy's cos and sin release the GIL; on one thread they were 40 % of a scatter correction's
-    retrieval on a binned clinical scan)."""
+def quadratures(tf: np.ndarray, vf: np.ndarray, phif: np.ndarray, *,
+                out: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """t^f v^f cos phi^f and t^f v^f sin phi^f (counts), each of ``tf``'s shape (K, C) and dtype (or written into
+    ``out``), in chunks of rows on the kernels' threads (numpy's cos and sin release the GIL; on one thread they
+    were 40 % of a scatter correction's retrieval on a binned clinical scan)."""
     # the kernels' thread count and threading layer (set_threads): numba's default layer (OpenMP), started by asking
     # numba for its thread count first, kills a process that forks later
     threads = K.set_threads()
-    fc, fs = np.empty(tf.shape, tf.dtype), np.empty(tf.shape, tf.dtype)
+    fc, fs = (np.empty(tf.shape, tf.dtype), np.empty(tf.shape, tf.dtype)) if out is None else out
 
     def rows(lo: int, hi: int) -> None:
         amp = tf[lo:hi] * vf[lo:hi]
@@ -135,21 +136,6 @@ def displaced_reading(row: np.ndarray, rows: np.ndarray, shift: np.ndarray) -> t
     return Reading(np.where(inside, lo_c, 0).astype(np.int64), frac), inside
 
 
-class Quadratures:
-    """The fringe quadratures of some observations (:attr:`Observations.fringe`) and the flat-field arrays they were
-    made from. The copies ``dataclasses.replace`` makes of observations share it: they keep the flat field's arrays, so
-    the quadratures one of them made serve every one (a diagnosis holds a dozen such copies, each 2 x 57 MB of
-    quadratures at clinical scale when each made its own)."""
-
-    __slots__ = ("keep", "source", "value")
-
-    def __init__(self, *, keep: bool = True) -> None:
-        #: False: made at every call and not held (samples a few passes read, not a fit's many)
-        self.keep = keep
-        self.source: tuple[np.ndarray, ...] = ()
-        self.value: tuple[np.ndarray, np.ndarray] | None = None
-
-
 @dataclass(frozen=True)
 class Observations:
     """Illuminated samples of a scan with their flat field, as blocks of (row, frame).
@@ -158,10 +144,15 @@ class Observations:
     ----------
     counts : ndarray, shape (K, C)
         Measured counts (detector units).
-    tf, vf, phif : ndarray, shape (K, C)
-        Flat-field transmission (counts), visibility and phase (rad, the nominal phase step included)
-        at each sample, aligned to the frame's position. v^f is 0 where the flat field carries no fringe
-        (outside the region of interest): there the model has no modulation.
+    tf : ndarray, shape (K, C)
+        Flat-field transmission (counts) at each sample, aligned to the frame's position.
+    fc, fs : ndarray, shape (K, C)
+        The flat field's fringe at each sample as its quadratures, t^f v^f cos phi^f and t^f v^f sin phi^f (counts;
+        v^f its visibility, phi^f its phase in rad with the nominal phase step), aligned like ``tf``
+        (:func:`quadratures`): the model turns them by the phase channel with products alone, so no sample needs a
+        trigonometric call in a fit's many evaluations, and they are all a fit holds of the flat field's fringe.
+        0 where the flat field carries no fringe (outside the region of interest): there the model has no
+        modulation. :attr:`vf` and :attr:`phif` are made from them where asked for.
     dark : ndarray, shape (K, C)
         The additive term of each sample, unmodulated by the gratings (counts): the detector's dark signal,
         plus any known unmodulated photons the preparation put there (``offset``); the model adds it to the
@@ -190,14 +181,12 @@ class Observations:
         variance (:meth:`photons`); the rest of ``dark`` is the detector's, without photon noise. None: none.
     reading : Reading or None
         Where each block reads the images (:class:`Reading`); None: at its own row (the paper's geometry).
-    quadratures : Quadratures
-        Where :attr:`fringe` is kept once made (shared with copies that keep the flat field's arrays).
     """
 
     counts: np.ndarray
     tf: np.ndarray
-    vf: np.ndarray
-    phif: np.ndarray
+    fc: np.ndarray
+    fs: np.ndarray
     dark: np.ndarray
     use: np.ndarray
     row: np.ndarray
@@ -210,7 +199,6 @@ class Observations:
     roi: np.ndarray | None = None
     offset: np.ndarray | None = None
     reading: Reading | None = None
-    quadratures: Quadratures = field(default_factory=Quadratures, repr=False, compare=False)
     rows: np.ndarray = field(init=False)
     starts: np.ndarray = field(init=False)
     pixel: np.ndarray = field(init=False)
@@ -240,30 +228,28 @@ class Observations:
 
     @property
     def fringe(self) -> tuple[np.ndarray, np.ndarray]:
-        """The flat field's fringe at each sample as its quadratures, t^f v^f (cos phi^f, sin phi^f) (counts), each
-        (K, C) in the samples' dtype: the compiled loops turn it by the phase channel with products alone, so no
-        sample needs a trigonometric call there. Made once per flat field held (the fit evaluates them many times;
-        :class:`Quadratures`)."""
-        held = self._held_quadratures()
-        if held is not None:
-            return held
-        slot = self.quadratures
-        if slot.value is not None:
-            # a copy with a flat field of its own: a slot of its own, the others keep theirs
-            slot = Quadratures()
-            object.__setattr__(self, "quadratures", slot)
-        value = quadratures(self.tf, self.vf, self.phif)
-        if slot.keep:
-            slot.source, slot.value = (self.tf, self.vf, self.phif), value
-        return value
+        """(:attr:`fc`, :attr:`fs`), the flat field's fringe at each sample, each (K, C) (counts)."""
+        return self.fc, self.fs
 
-    def _held_quadratures(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """The quadratures held for this flat field, or None."""
-        slot = self.quadratures
-        if slot.value is None or any(a is not b for a, b in zip(slot.source, (self.tf, self.vf, self.phif),
-                                                                 strict=True)):
-            return None
-        return slot.value
+    @property
+    def vf(self) -> np.ndarray:
+        """The flat field's visibility at each sample, |fc + i fs| / t^f, shape (K, C) (0 without fringe or
+        transmission). Made at each call: :attr:`fc` and :attr:`fs` are what is held."""
+        amp = np.hypot(self.fc, self.fs)
+        return np.divide(amp, self.tf, out=np.zeros_like(amp), where=self.tf != 0)
+
+    @property
+    def phif(self) -> np.ndarray:
+        """The flat field's phase at each sample, arg(fc + i fs) in [-pi, pi] (rad), shape (K, C) (0 without
+        fringe). Made at each call."""
+        return np.arctan2(self.fs, self.fc)
+
+    def keep_fringe(self, where: np.ndarray) -> Observations:
+        """The same samples with the flat field's fringe kept only where ``where`` (K, C) is True and 0 elsewhere
+        (v^f = 0: samples outside the region of interest, which monitor dose and background but carry no
+        modulation)."""
+        return replace(self, fc=np.where(where, self.fc, 0).astype(self.fc.dtype, copy=False),
+                       fs=np.where(where, self.fs, 0).astype(self.fs.dtype, copy=False))
 
     @property
     def in_roi(self) -> np.ndarray:
@@ -348,17 +334,11 @@ class Observations:
                 return view if not copy else np.ascontiguousarray(view)
             return np.take(a, idx, axis=1)
 
-        out = Observations(cut(self.counts), cut(self.tf), cut(self.vf), cut(self.phif), cut(self.dark), cut(self.use),
-                           self.row, self.frame, self.columns[idx], self.shape, self.gain, self.electronic,
-                           None if self.noise is None else cut(self.noise),
-                           None if self.roi is None else cut(self.roi),
-                           None if self.offset is None else cut(self.offset), self.reading)
-        held = self._held_quadratures()
-        if held is not None:
-            # the quadratures already made, cut like the rest (no trigonometry again)
-            out.quadratures.source = (out.tf, out.vf, out.phif)
-            out.quadratures.value = (cut(held[0]), cut(held[1]))
-        return out
+        return Observations(cut(self.counts), cut(self.tf), cut(self.fc), cut(self.fs), cut(self.dark),
+                            cut(self.use), self.row, self.frame, self.columns[idx], self.shape, self.gain,
+                            self.electronic, None if self.noise is None else cut(self.noise),
+                            None if self.roi is None else cut(self.roi),
+                            None if self.offset is None else cut(self.offset), self.reading)
 
     def column_chunks(self, samples: float = 1e6) -> list[np.ndarray]:
         """Positions of ``self.columns`` in consecutive runs holding about ``samples`` samples each (at least one

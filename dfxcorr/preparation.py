@@ -138,7 +138,7 @@ class Prepared:
                                       electronic=self.noise.electronic, noise=self.noise.factors, dtype=dtype,
                                       phase_unwrapped=True)
         roi = obs.vf >= self.min_visibility
-        return replace(obs, vf=np.where(roi, obs.vf, 0).astype(obs.vf.dtype, copy=False), roi=roi)
+        return replace(obs.keep_fringe(roi), roi=roi)
 
 
 def prepare(scan: Scan | str | Path, cfg: dict[str, Any], *, effects: Iterable[Correction],

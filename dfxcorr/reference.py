@@ -131,7 +131,7 @@ def fit_reference(ref: SteppingReference, *, gain: float = 1.0, effects=None, op
     params, rec = {}, nominal
     fit_obs = obs.subset(subsample_columns(obs.columns.size, subsample))
     # unmodulated pixels (outside the gratings) have transmission as their only unknown: dose monitors
-    fit_obs = replace(fit_obs, vf=np.where(roi.use[:, fit_obs.columns], fit_obs.vf, 0.0))
+    fit_obs = fit_obs.keep_fringe(roi.use[:, fit_obs.columns])
     chosen: list[str] = []
     for verdict in identify.select(fit_obs, effects if S > 3 else ()):
         if verdict.identifiable:

@@ -27,7 +27,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numba
@@ -40,7 +39,7 @@ from dfxcorr import pipeline
 from dfxcorr.align import build_observations
 from dfxcorr.catalogue import PAPER_MODEL, neutral_params
 from dfxcorr.noise import noise_weights
-from dfxcorr.observations import Observations, Quadratures
+from dfxcorr.observations import Observations, quadratures
 from dfxcorr.reference import resolve_reference
 from dfxcorr.sim import simulate as S
 
@@ -87,7 +86,8 @@ def clinical_observations(rng, *, frames: int = 195, height: int = 2880, width: 
     phif = 2 * np.pi * 2.0 * (row[:, None] / active + columns[None, :] / width) + frame[:, None] * 0.3
     counts = rng.poisson(tf * (1 + 0.8 * vf * np.cos(phif)))
     f32 = np.float32
-    return Observations(counts.astype(f32), tf.astype(f32), vf.astype(f32), phif.astype(f32),
+    fc, fs = quadratures(tf.astype(f32), vf.astype(f32), phif.astype(f32))
+    return Observations(counts.astype(f32), tf.astype(f32), fc, fs,
                         np.zeros((Kb, Cc), f32), np.ones((Kb, Cc), bool), row, frame, columns,
                         (frames, height, width))
 
@@ -112,8 +112,9 @@ def pass_numbers(obs: Observations, bandwidth: float, *, repeat: int) -> dict:
     def retrieval():
         return K.retrieve(obs, ch, iterations=2, keep_expected=False)
 
-    # a slot of its own: a copy shares the quadratures its original holds
-    fringe, fringe_cpu = _timed(lambda: replace(obs, quadratures=Quadratures()).fringe, repeat)
+    # as the alignment makes them, from the flat field's visibility and phase at each sample
+    vf, phif = obs.vf, obs.phif
+    fringe, fringe_cpu = _timed(lambda: quadratures(obs.tf, vf, phif), repeat)
     retrieval()
     cost, cost_cpu = _timed(lambda: K.reduced_cost(obs, ch, weights, channels=("phase", "visibility")), repeat)
     ret, ret_cpu = _timed(retrieval, repeat)
@@ -154,12 +155,13 @@ t0 = time.perf_counter()
 from dfxcorr import fisher_pixels as FP, kernels as K, model as M
 from dfxcorr.catalogue import PAPER_MODEL
 from dfxcorr.noise import noise_weights
-from dfxcorr.observations import Observations
+from dfxcorr.observations import Observations, quadratures
 rng = np.random.default_rng(0)
 row = np.repeat(np.arange(8), 4); frame = np.tile(np.arange(4), 8); shape = (8, 4, 6)
 a = lambda lo, hi: rng.uniform(lo, hi, (32, 6))
 f = lambda v: np.asarray(v, np.float32)  # a reconstruction's observations are float32
-obs = Observations(f(a(500, 900)), f(a(900, 1100)), f(a(0.2, 0.4)), f(a(-3, 3)), f(np.zeros((32, 6))),
+tf = f(a(900, 1100))
+obs = Observations(f(a(500, 900)), tf, *quadratures(tf, f(a(0.2, 0.4)), f(a(-3, 3))), f(np.zeros((32, 6))),
                    np.ones((32, 6), bool), row, frame, np.arange(6), (4, 8, 6))
 K.set_threads()
 ch = M.channels({}, x=obs.x, n_frames=4)

@@ -189,7 +189,9 @@ def test_a_row_term_is_a_phase_that_varies_along_the_rows(rng, toy):
     obs = tiny_obs(rng, J=14, H=8, W=5)
     params = random_params(rng, obs.n_frames, NAMES + (toy,))
     images = random_images(rng, obs)
-    shifted = replace(obs, phif=obs.phif + params[toy][obs.frame, 0, None] * obs.y[:, None])
+    turn = np.exp(1j * params[toy][obs.frame, 0, None] * obs.y[:, None])
+    fringe = (obs.fc + 1j * obs.fs) * turn
+    shifted = replace(obs, fc=fringe.real, fs=fringe.imag)
     without = {k: v for k, v in params.items() if k != toy}
     np.testing.assert_allclose(M.expected(obs, M.design(obs, params), images),
                                M.expected(shifted, M.design(shifted, without), images), rtol=1e-12)

@@ -21,22 +21,22 @@ def prepared(rng, *, masked=False, dtype=np.float64):
     """Observations with optional masked samples, a pixel without fringe and a pixel without used samples."""
     obs = tiny_obs(rng)
     if masked:
-        use, vf = rng.uniform(size=obs.use.shape) > 0.2, obs.vf.copy()
-        vf[obs.starts[1]:obs.starts[2], 2] = 0.0  # no fringe: only t is an unknown there
+        use, fringe = rng.uniform(size=obs.use.shape) > 0.2, np.ones(obs.use.shape, bool)
+        fringe[obs.starts[1]:obs.starts[2], 2] = False  # no fringe: only t is an unknown there
         use[obs.starts[2]:obs.starts[3], 3] = False  # nothing to solve for
-        obs = replace(obs, use=use, vf=vf)
-    return replace(obs, **{name: getattr(obs, name).astype(dtype) for name in ("counts", "tf", "vf", "phif", "dark")})
+        obs = replace(obs.keep_fringe(fringe), use=use)
+    return replace(obs, **{name: getattr(obs, name).astype(dtype) for name in ("counts", "tf", "fc", "fs", "dark")})
 
 
 def as_float64(obs):
     """The same samples in float64 (the oracle computes in float64)."""
-    return Observations(*(np.asarray(a, dtype=np.float64) for a in (obs.counts, obs.tf, obs.vf, obs.phif,
+    return Observations(*(np.asarray(a, dtype=np.float64) for a in (obs.counts, obs.tf, obs.fc, obs.fs,
                                                                      obs.dark)), obs.use, obs.row, obs.frame,
                         obs.columns, obs.shape, obs.gain, obs.electronic)
 
 
-#: Agreement of float32 samples with the same samples in float64: the fringe's quadratures are made in the samples'
-#: dtype (Observations.fringe; single-precision cos and sin, within 1e-7 of their amplitude), which moves the cost
+#: Agreement of float32 samples with the same samples in float64: the fringe's quadratures are held in the samples'
+#: dtype (Observations.fc, fs; single precision, within 1e-7 of their amplitude), which moves the cost
 #: and the images by about 1e-8 of their range.
 FRINGE32 = 1e-6
 

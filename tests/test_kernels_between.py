@@ -164,7 +164,7 @@ FRINGE32 = 1e-6
 
 def test_float32_samples_read_between_rows_give_the_float64_result(case):
     obs, ch = case
-    samples = ("counts", "tf", "vf", "phif", "dark")
+    samples = ("counts", "tf", "fc", "fs", "dark")
     single = replace(obs, **{n: getattr(obs, n).astype(np.float32) for n in samples})
     # the same samples in float64
     obs = replace(single, **{n: getattr(single, n).astype(np.float64) for n in samples})

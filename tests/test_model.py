@@ -42,7 +42,7 @@ def test_harmonic_follows_the_sample(rng):
     truth = random_images(rng, obs)
     t, v, phi = (a[obs.pixel] for a in (truth.t, truth.v, truth.phi))
     a2, beta = np.hypot(*params["harmonic"]), np.arctan2(params["harmonic"][1], params["harmonic"][0])
-    psi = dsg.theta + phi
+    psi = M.fringe_phase(obs, dsg.channels) + phi
     direct = dsg.dose * obs.tf * t * (1 + obs.vf * dsg.vis * v * (np.cos(psi) + a2 * np.cos(2 * psi + beta)))
     np.testing.assert_allclose(M.expected(obs, dsg, truth), direct + dsg.offset, rtol=1e-12)
 

@@ -1,68 +1,62 @@
-"""The observations' fringe quadratures: their definition, and one set shared by the copies that keep the flat field;
-the positions taken as slices."""
-from dataclasses import replace
-
+"""The observations' fringe: the flat field's quadratures, what is derived from them, and the columns cut; the
+positions taken as slices."""
 import numpy as np
 import pytest
 
-from dfxcorr.observations import Quadratures, index_slice
+import dfxcorr.align as align
+from dfxcorr.align import FRINGE_CHUNK, build_observations
+from dfxcorr.io import Reference, Scan
+from dfxcorr.observations import index_slice
 
 from conftest import tiny_obs
 
 
-def quadratures(obs):
-    amp = obs.tf * obs.vf
-    return amp * np.cos(obs.phif), amp * np.sin(obs.phif)
-
-
 def test_the_fringe_is_the_flat_fields_quadratures_in_the_samples_dtype():
-    obs = tiny_obs(np.random.default_rng(1))
-    for a, b in zip(obs.fringe, quadratures(obs), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-14, atol=0)
-    single = replace(obs, tf=obs.tf.astype(np.float32), vf=obs.vf.astype(np.float32),
-                     phif=obs.phif.astype(np.float32))
-    for a, b in zip(single.fringe, quadratures(obs), strict=True):
+    """In float32 within a few ulps of float64 (tests/test_align.py checks v^f and phi^f made from them against the
+    reference interpolated directly)."""
+    rng = np.random.default_rng(1)
+    A, W = 4, 7
+    ref = Reference(rng.uniform(500, 1500, (A, W)), rng.uniform(0.2, 0.5, (A, W)),
+                    np.cumsum(rng.uniform(0.5, 1.5, (A, W)), axis=0))
+    scan = Scan(data=rng.poisson(800, (12, 6, W)).astype(np.float64), position=-A + 1.0 + np.arange(12) * 8 / 11,
+                reference=ref)
+    obs = build_observations(scan, ref)
+    amp = np.hypot(obs.fc, obs.fs)
+    single = build_observations(scan, ref, dtype=np.float32)
+    for a, b in zip(single.fringe, obs.fringe, strict=True):
         assert a.dtype == np.float32
         # single-precision products and trigonometry: a few ulps of the amplitude
-        np.testing.assert_allclose(a, b, rtol=0, atol=1e-6 * np.abs(obs.tf * obs.vf).max())
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-6 * amp.max())
 
 
-def test_copies_keeping_the_flat_field_share_its_quadratures_and_others_make_their_own():
+def test_the_fringe_made_a_run_of_blocks_at_a_time_equals_it_made_at_once(monkeypatch):
     obs = tiny_obs(np.random.default_rng(2))
-    fc, fs = obs.fringe
-    masked = replace(obs, use=obs.use & (obs.counts > 800), dark=obs.dark + 3.0)
-    assert masked.fringe[0] is fc and masked.fringe[1] is fs
-    moved = replace(obs, phif=obs.phif + 0.3)
-    for a, b in zip(moved.fringe, quadratures(moved), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-14, atol=0)
-    # the original and the copy sharing its slot keep the quadratures of their own flat field
-    assert obs.fringe[0] is fc and masked.fringe[1] is fs
-    assert not np.allclose(moved.fringe[0], fc)
+    monkeypatch.setattr(align, "FRINGE_CHUNK", 3 * obs.columns.size)
+    assert align.FRINGE_CHUNK < FRINGE_CHUNK and obs.row.size > 3
+    chunked = tiny_obs(np.random.default_rng(2))
+    for a, b in zip(chunked.fringe, obs.fringe, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
-def test_a_subset_cuts_the_quadratures_already_made_and_equals_making_them_afresh():
+def test_keeping_the_fringe_where_asked_zeroes_visibility_elsewhere_and_leaves_the_rest():
     obs = tiny_obs(np.random.default_rng(3))
+    where = obs.counts > 800
+    kept = obs.keep_fringe(where)
+    np.testing.assert_array_equal(kept.vf[~where], 0.0)
+    np.testing.assert_array_equal(kept.fc[where], obs.fc[where])
+    np.testing.assert_array_equal(kept.fs[where], obs.fs[where])
+    assert kept.counts is obs.counts and kept.tf is obs.tf
+
+
+def test_a_subset_cuts_the_fringe_as_a_copy_or_a_view():
+    obs = tiny_obs(np.random.default_rng(4))
     cols = np.array([1, 4, 5])
-    fresh = obs.subset(cols)
-    expected = quadratures(fresh)
-    made = obs.fringe
     for copy in (True, False):
         cut = obs.subset(cols, copy=copy)
-        for a, b, c in zip(cut.fringe, expected, made, strict=True):
-            np.testing.assert_allclose(a, b, rtol=1e-14, atol=0)
-            np.testing.assert_array_equal(a, c[:, cols])
+        for a, b in zip(cut.fringe, obs.fringe, strict=True):
+            np.testing.assert_array_equal(a, b[:, cols])
     run = obs.subset(np.arange(2, 5), copy=False)
     assert np.shares_memory(run.fringe[0], obs.fringe[0])
-
-
-def test_a_slot_that_does_not_keep_makes_the_same_quadratures_at_every_call():
-    obs = tiny_obs(np.random.default_rng(4))
-    passing = replace(obs, quadratures=Quadratures(keep=False))
-    first, again = passing.fringe, replace(passing, use=~passing.use).fringe
-    for a, b, c in zip(first, again, quadratures(obs), strict=True):
-        np.testing.assert_allclose(a, c, rtol=1e-14, atol=0)
-        np.testing.assert_array_equal(a, b)
-    assert first[0] is not again[0] and passing.quadratures.value is None
 
 
 def test_held_pixels_are_placed_and_read_where_they_are_runs_or_not():

@@ -114,7 +114,7 @@ def test_observations_are_c_ordered_whatever_the_store(prepared_scan):
     prep.store.counts = np.asfortranarray(prep.store.counts)
     for columns in (None, np.arange(0, scan.shape[2], 3)):
         obs = prep.observations(columns=columns, dtype=np.float32)
-        assert all(getattr(obs, n).flags["C_CONTIGUOUS"] for n in ("counts", "tf", "vf", "phif", "dark", "use"))
+        assert all(getattr(obs, n).flags["C_CONTIGUOUS"] for n in ("counts", "tf", "fc", "fs", "dark", "use"))
 
 
 def test_row_blocks_follow_the_memory_budget(prepared_scan):
@@ -164,14 +164,14 @@ def test_diagnose_and_reconstruct_see_the_same_data(monkeypatch):
     D.diagnose(scan, cfg)
     assert len(seen) == 2
     a, b = (p.observations() for p in seen)
-    for name in ("counts", "tf", "vf", "phif", "dark", "row", "frame", "columns"):
+    for name in ("counts", "tf", "fc", "fs", "dark", "row", "frame", "columns"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     np.testing.assert_array_equal(a.roi, b.roi)
     assert a.gain == b.gain and a.electronic == b.electronic
     # the options took effect: another reference (nominal steps) and a region of interest cut by v^f
     default = prepare(scan, C.defaults())
     assert not np.allclose(default.reference.phase, seen[0].reference.phase)
-    assert 0 < a.roi.mean() < 1 and np.all(a.vf[~a.roi] == 0)
+    assert 0 < a.roi.mean() < 1 and np.all(a.fc[~a.roi] == 0) and np.all(a.fs[~a.roi] == 0)
 
 
 @pytest.mark.slow

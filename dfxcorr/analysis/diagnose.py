@@ -31,7 +31,7 @@ from ..effects.residuals import image_leverage
 from ..fit import fit_vibrations
 from ..frames import well_determined
 from ..io import Scan
-from ..observations import Observations, Quadratures
+from ..observations import Observations
 from ..planning import column_step, resolve_effects, visibility_unidentifiable
 from ..preparation import Prepared, prepare
 from ..progress import stage
@@ -108,10 +108,8 @@ class Session:
         # band of columns in the middle where they would exceed diagnose.max_held_samples
         width, per_column = prep.shape[2], prep.store.samples_per_column()
         self.held_columns = held_band(width, per_column, most=d["max_held_samples"])
-        # (their fringe quadratures made at each retrieval, not held: a few passes read them, and held they are 2 x 57
-        # MB beside them at clinical scale)
-        self.obs = replace(prep.observations(columns=None if self.held_columns.size == width else self.held_columns,
-                                             dtype=np.float32), quadratures=Quadratures(keep=False))
+        self.obs = prep.observations(columns=None if self.held_columns.size == width else self.held_columns,
+                                     dtype=np.float32)
         # the fit uses the tests' columns: a coarser fit's parameter noise would read as misfit; on a large scan
         # fewer of them (diagnose.max_samples) still hold more information than the tests need. In float64: a
         # fit under a grossly wrong noise model (reduced chi-square 100) depends on the samples' last bits

@@ -187,7 +187,7 @@ def signatures(obs: Observations, params: dict[str, Any], *, alpha: float, min_p
     K, C_ = obs.counts.shape
     frame = np.broadcast_to(obs.frame[:, None], (K, C_))
     at = obs.gather(images.coef)
-    psi = M.wrap_angle(dsg.theta + np.arctan2(at[..., 2], at[..., 1]))
+    psi = M.wrap_angle(M.fringe_phase(obs, dsg.channels) + np.arctan2(at[..., 2], at[..., 1]))
     pedges = np.linspace(-np.pi, np.pi, 17)
     cedges = np.quantile(ibar[sel], np.linspace(0, 1, 13)) if sel.any() else np.arange(13.0)
     labels = {

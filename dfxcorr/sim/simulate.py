@@ -22,7 +22,7 @@ from .. import model as M
 from ..align import lit_blocks
 from ..config import MAX_SCATTER, ConfigError, Option, _fraction, _nonneg, _positive, _within
 from ..io import Reference, Scan, SteppingReference, write_scan
-from ..observations import Observations
+from ..observations import Observations, quadratures
 from ..reference import stepping_observations
 from .flat import flat_field, pixel_flat_field
 
@@ -404,7 +404,8 @@ class Simulation:
         # the analytic field at each displaced pixel's centre, not an interpolation of the reference's rows
         tf, vf, phif = pixel_flat_field(self.cfg, u, g["A"], W, step=g["phase_step"][j])
         zeros = np.zeros((row.size, W))
-        obs = Observations(counts=zeros, tf=tf, vf=vf, phif=phif, dark=zeros,
+        fc, fs = quadratures(tf, vf, phif)
+        obs = Observations(counts=zeros, tf=tf, fc=fc, fs=fs, dark=zeros,
                            use=np.ones((row.size, W), bool), row=row, frame=np.full(row.size, j), columns=cols,
                            shape=self.shape)
         keys = ("transmission", "dark_field", "differential_phase")
