@@ -319,8 +319,8 @@ class LitStore:
 
     def observations(self, reference: Reference, *, columns: np.ndarray | None = None,
                      rows: tuple[int, int] | None = None, gain: float | None = None, electronic: float = 0.0,
-                     noise: np.ndarray | None = None, dtype: DTypeLike = np.float64, phase_unwrapped: bool = False
-                     ) -> Observations:
+                     noise: np.ndarray | None = None, dtype: DTypeLike = np.float64, phase_unwrapped: bool = False,
+                     min_visibility: float | None = None) -> Observations:
         """Align the flat field to the held samples of some columns and rows.
 
         Parameters
@@ -343,6 +343,9 @@ class LitStore:
         phase_unwrapped : bool
             The reference's phase is already unwrapped along the scan (axis 0), so it is not done again
             (a caller aligning block after block unwraps once).
+        min_visibility : float, optional
+            Samples whose flat field's visibility is below it carry no fringe (v^f = 0) and are outside the region
+            of interest (``roi``); None: every sample keeps its fringe, and there is no ``roi``.
 
         Returns
         -------
@@ -355,6 +358,7 @@ class LitStore:
         phase = reference.phase if phase_unwrapped else np.unwrap(reference.phase, axis=0)
         tf = interpolate_rows(reference.transmission, u, columns=cols, dtype=dtype)
         fc, fs = np.empty_like(tf), np.empty_like(tf)
+        roi = None if min_visibility is None else np.empty(tf.shape, bool)
         # v^f and phi^f a run of blocks at a time, into the fringe's quadratures: held whole they were 2 x 108 MB of
         # a full-resolution clinical fit's samples beside the quadratures
         step = max(int(FRINGE_CHUNK // max(cols.size, 1)), 1)
@@ -365,6 +369,9 @@ class LitStore:
             # across a clinical detector's many fringes it would keep it only to |phi^f| 6e-8)
             phif = interpolate_rows(phase, u[a:b], columns=cols, dtype=dtype, add=self.phase_step[frame[a:b]],
                                     wrap=True)
+            if min_visibility is not None and roi is not None:
+                np.greater_equal(vf, min_visibility, out=roi[a:b])
+                vf[~roi[a:b]] = 0
             quadratures(tf[a:b], vf, phif, out=(fc[a:b], fs[a:b]))
         # C order whatever the store's: the kernels walk a sample row at a time (a Fortran-ordered copy made
         # every cost evaluation about 1.7x slower)
@@ -384,7 +391,7 @@ class LitStore:
         return Observations(counts=counts, tf=tf, fc=fc, fs=fs, dark=dark, use=use,
                             row=row, frame=frame, columns=cols, shape=(J, H, W),
                             gain=self.gain if gain is None else gain, electronic=electronic,
-                            noise=None if noise is None else noise[held],
+                            noise=None if noise is None else noise[held], roi=roi,
                             offset=offset, reading=reading)
 
 

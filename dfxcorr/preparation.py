@@ -134,11 +134,9 @@ class Prepared:
         no images, but in the fit they still monitor dose and background. ``use`` is False for the detector
         faults only (saturated samples, bad frames: :mod:`dfxcorr.faults`).
         """
-        obs = self.store.observations(self._unwrapped_reference, columns=columns, rows=rows, gain=self.noise.gain,
-                                      electronic=self.noise.electronic, noise=self.noise.factors, dtype=dtype,
-                                      phase_unwrapped=True)
-        roi = obs.vf >= self.min_visibility
-        return replace(obs.keep_fringe(roi), roi=roi)
+        return self.store.observations(self._unwrapped_reference, columns=columns, rows=rows, gain=self.noise.gain,
+                                       electronic=self.noise.electronic, noise=self.noise.factors, dtype=dtype,
+                                       phase_unwrapped=True, min_visibility=self.min_visibility)
 
 
 def prepare(scan: Scan | str | Path, cfg: dict[str, Any], *, effects: Iterable[Correction],
