@@ -127,7 +127,7 @@ def _turned(fc, fs, cp, sp):
 
 @njit(cache=True, inline="always")
 def _design(Fc, Fs, amp, dv, hc, hs, harm):
-    """tf vf (cos 2θ, sin 2θ) (model.double_angle; zeros unless ``harm``), the design columns A, Bc, Bs and the
+    """tf vf (cos 2θ, sin 2θ) (model.second_harmonic; zeros unless ``harm``), the design columns A, Bc, Bs and the
     harmonic's columns Hc, Hs of one sample with turned fringe (Fc, Fs), amp = D tf and dv = D V."""
     c2, s2 = 0.0, 0.0
     if harm:

@@ -246,8 +246,7 @@ class Design:
     e = (c^2 - s^2) / m, f = 2 c s / m (:func:`harmonic_factors`). All arrays have shape (K, C)
     (``dose`` (K, 1)); ``Fc``, ``Fs`` are the flat field's fringe at theta, the fringe phase without the sample
     (:func:`fringe_phase`), t^f v^f cos theta and t^f v^f sin theta; ``Hc``, ``Hs`` are zero without the harmonic.
-    ``channels``
-    holds the channel values they were made from.
+    ``channels`` holds the channel values they were made from.
     """
 
     A: np.ndarray
@@ -312,7 +311,8 @@ def second_harmonic(Fc: np.ndarray, Fs: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def fringe_phase(obs: Observations, ch: Channels) -> np.ndarray:
-    """theta = phi^f + Φ, the phase of the fringe each sample sees (rad), shape (K, C)."""
+    """theta = phi^f + Φ, the phase of the fringe each sample sees (rad), shape (K, C); phi^f is derived from the
+    fringe's quadratures (:attr:`Observations.phif`), without meaning where a sample carries no fringe."""
     return obs.phif + ch.phase_at(obs)
 
 

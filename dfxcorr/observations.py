@@ -234,14 +234,15 @@ class Observations:
     @property
     def vf(self) -> np.ndarray:
         """The flat field's visibility at each sample, |fc + i fs| / t^f, shape (K, C) (0 without fringe or
-        transmission). Made at each call: :attr:`fc` and :attr:`fs` are what is held."""
+        transmission; its magnitude where an extrapolated v^f fell below 0). Made at each call: :attr:`fc` and
+        :attr:`fs` are what is held."""
         amp = np.hypot(self.fc, self.fs)
         return np.divide(amp, self.tf, out=np.zeros_like(amp), where=self.tf != 0)
 
     @property
     def phif(self) -> np.ndarray:
-        """The flat field's phase at each sample, arg(fc + i fs) in [-pi, pi] (rad), shape (K, C) (0 without
-        fringe). Made at each call."""
+        """The flat field's phase at each sample, arg(fc + i fs) in [-pi, pi] (rad), shape (K, C); it has no meaning
+        where the sample carries no fringe (outside the region of interest). Made at each call."""
         return np.arctan2(self.fs, self.fc)
 
     def keep_fringe(self, where: np.ndarray) -> Observations:

@@ -10,7 +10,7 @@ synthetic samples), both in float32 as a reconstruction holds them:
   (the CPU time is what counts on cores shared with other work),
 - the floor of each pass: the bytes it must stream / the np.copyto bandwidth measured here (the passes read the
   samples' fringe as its quadratures, Observations.fringe: no pass evaluates a trigonometric function per sample),
-- the cost of making those quadratures once per observations (numpy's cos and sin in the samples' dtype),
+- the cost of making those quadratures once, at alignment (numpy's cos and sin in the samples' dtype),
 then the wall time of the whole vibration fit stage of ``reconstruct`` on the paper study with
 ``fit.subsample=1`` and the default (auto), and the first-call compile cost of the kernels (fresh
 numba cache, in a subprocess) against a cached start. Writes docs/bench-kernels.json.

@@ -166,10 +166,10 @@ KERNELS = """\
 CPU nanoseconds per (pixel, frame) sample of one cost-and-gradient evaluation and of one retrieval pass, in
 float32 as a reconstruction holds the samples, against the floor of the bytes each pass must stream at the
 copy bandwidth measured in the same run ({bandwidth:g} GB/s). Neither pass evaluates a trigonometric function per
-sample: they read each sample's flat field as its transmission and the fringe's quadratures, made once per set of
-observations ({fringe} ns per sample, numpy's single-precision cos and sin) and turned by the phase channel with
-products alone. What the fit saves beyond that is cost evaluations ({evaluations} per scan at the defaults,
-above)."""
+sample: they read each sample's flat field as its transmission and the fringe's quadratures, which the alignment
+makes once in place of its visibility and phase ({fringe} ns per sample, numpy's single-precision cos and sin), turned
+by the phase channel with products alone. What the fit saves beyond that is cost evaluations ({evaluations} per
+scan at the defaults, above)."""
 
 ANCHOR = """\
 The same scan as separate processes (start-up included), this version at its defaults against the paper's method

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import dfxcorr.align as align
-from dfxcorr.align import FRINGE_CHUNK, build_observations
+from dfxcorr.align import FRINGE_CHUNK, build_observations, collect_lit_rows
 from dfxcorr.io import Reference, Scan
 from dfxcorr.observations import index_slice
 
@@ -29,13 +29,28 @@ def test_the_fringe_is_the_flat_fields_quadratures_in_the_samples_dtype():
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6 * amp.max())
 
 
-def test_the_fringe_made_a_run_of_blocks_at_a_time_equals_it_made_at_once(monkeypatch):
-    obs = tiny_obs(np.random.default_rng(2))
-    monkeypatch.setattr(align, "FRINGE_CHUNK", 3 * obs.columns.size)
-    assert align.FRINGE_CHUNK < FRINGE_CHUNK and obs.row.size > 3
-    chunked = tiny_obs(np.random.default_rng(2))
-    for a, b in zip(chunked.fringe, obs.fringe, strict=True):
+def test_the_fringe_and_region_made_a_run_of_blocks_at_a_time_equal_them_made_at_once(monkeypatch):
+    """Each frame's phase step and the visibility threshold taken with the blocks of their own run."""
+    rng = np.random.default_rng(2)
+    A, W, J = 4, 7, 12
+    ref = Reference(rng.uniform(500, 1500, (A, W)), rng.uniform(0.2, 0.5, (A, W)),
+                    np.cumsum(rng.uniform(0.5, 1.5, (A, W)), axis=0))
+    scan = Scan(data=rng.poisson(800, (J, 6, W)).astype(np.float64), position=-A + 1.0 + np.arange(J) * 8 / 11,
+                reference=ref, phase_step=rng.uniform(-np.pi, np.pi, J))
+    store = collect_lit_rows(scan)
+
+    def made():
+        return store.observations(ref, dtype=np.float32, min_visibility=0.35)
+
+    whole = made()
+    monkeypatch.setattr(align, "FRINGE_CHUNK", 3 * W)
+    assert align.FRINGE_CHUNK < FRINGE_CHUNK and whole.row.size > 9
+    chunked = made()
+    for a, b in zip((chunked.fc, chunked.fs, chunked.roi), (whole.fc, whole.fs, whole.roi), strict=True):
         np.testing.assert_array_equal(a, b)
+    assert 0 < whole.roi.mean() < 1 and np.all(whole.vf[~whole.roi] == 0)
+    # the region is where the visibility interpolated directly reaches the threshold
+    np.testing.assert_array_equal(whole.roi, store.observations(ref).vf >= 0.35)
 
 
 def test_keeping_the_fringe_where_asked_zeroes_visibility_elsewhere_and_leaves_the_rest():

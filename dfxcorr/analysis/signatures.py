@@ -195,7 +195,10 @@ def signatures(obs: Observations, params: dict[str, Any], *, alpha: float, min_p
         "row": (np.broadcast_to(obs.row[:, None], (K, C_)), np.arange(obs.shape[1])),
         "column": (np.broadcast_to(np.arange(C_)[None, :], (K, C_)), obs.columns),
         "frame_row": (np.broadcast_to(np.arange(K)[:, None], (K, C_)), np.arange(K)),
-        "phase": (np.clip(digitize(psi, pedges) - 1, 0, 15), 0.5 * (pedges[1:] + pedges[:-1])),
+        # a sample without fringe (outside the region of interest: it monitors dose and background) has no fringe
+        # phase: its label is past the last bin, whose sums leave it out
+        "phase": (np.where(obs.in_roi, np.clip(digitize(psi, pedges) - 1, 0, 15), 16),
+                  0.5 * (pedges[1:] + pedges[:-1])),
         "count": (np.clip(digitize(ibar, cedges[1:-1]), 0, 11), np.sqrt(np.abs(cedges[1:] * cedges[:-1]))),
     }
     kinds = ([(a, "variance") for a in ("frame", "row", "column", "phase", "count")]
@@ -237,6 +240,7 @@ def signatures(obs: Observations, params: dict[str, Any], *, alpha: float, min_p
                 lost = float(np.nansum(np.minimum(np.einsum("ba,bac,bc->b", g, info_inv[first], g) * c / V, 1.0)))
             if axis == "frame_row" and g.shape[1]:
                 S, lost = _without_frame_terms(S, V, g, first)
+        S, V, expect = S[:nb], V[:nb], expect[:nb]
         ok = V > 0
         if kind == "variance" and axis in ("row", "column") and ok.sum() > 10:
             # neighbouring pixels share frames, flat-field samples and the fit's per-frame parameters, so whole
