@@ -312,7 +312,7 @@ def targets(folder: Path) -> None:
                      f"({', '.join(c['sets'])}): peak <= 1.6 GB",
                      f"{c['peak_rss_mb'] / 1000:.2f} GB, {c['seconds']} s, {c.get('fit_samples')} samples fitted, "
                      "phi0 / phi1 / v^s RMSE "
-                     + " / ".join(f"{c['rmse'][k]:.5f}" for k in ("phase_offset", "tilt", "visibility")),
+                     + " / ".join(f"{c['rmse'][k]:.5f}" for k in ("phase_offset", "tilt", "visibility_loss")),
                      c["peak_rss_mb"] <= 1600))
     cases = bench.get("paper", {}).get("cases", {})
     # the coupled rows' cost: a parallax set against the same scan without, in memory (the paper study,
