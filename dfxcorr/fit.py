@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, overload
+from typing import Any
 
 import numpy as np
 from scipy.linalg import solve_triangular
@@ -38,6 +38,7 @@ from .frames import (
     wrap_phases,
 )
 from .observations import Observations
+from .subsets import information_columns
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +133,7 @@ class _Problem:
 
     def __init__(self, obs: Observations, names: Iterable[str], params: dict[str, np.ndarray], weights: np.ndarray,
                  *, phase: float | None = None, precondition: bool = True, preconditioner: str = "profiled",
-                 prior: dict | None = None) -> None:
+                 prior: dict | None = None, information: np.ndarray | None = None) -> None:
         if preconditioner not in PRECONDITIONERS:
             raise ValueError(f"preconditioner must be one of {', '.join(PRECONDITIONERS)}, got {preconditioner!r}")
         # the weights in the samples' dtype once, not converted at every evaluation (kernels.reduced_cost)
@@ -149,8 +150,10 @@ class _Problem:
         self.scale = np.ones_like(self.theta0)
         #: passes of the cost kernel over the samples (cost and gradient, or the Fisher diagonal)
         self.evaluations = 0
-        # the spread columns of the Hessian (:meth:`hessian`), by their number
+        # the spread columns of the Hessian (:meth:`hessian`), by their number, and the columns' information they are
+        # spread by (column_information; made at the first Hessian where not given)
         self._spread: dict[int, tuple[Observations, np.ndarray]] = {}
+        self.information = information
         # z = chol^T (scale theta): chol is the Cholesky factor of the profiled Hessian divided by the diagonal
         # preconditioner's scales (eq. 34), or None
         self.chol: np.ndarray | None = None
@@ -173,9 +176,9 @@ class _Problem:
         """The reduced cost's Gauss-Newton Hessian in the order of ``theta``, and its plain diagonal.
 
         The Hessian is 2 x the profiled Fisher information (plain minus the share the images take up, as
-        in :func:`uncertainty`) plus the prior's 2 / width^2, computed on at most ``columns`` evenly spread
-        columns (default: :data:`FACTOR_PIXELS` pixels' worth, at least :data:`FACTOR_MIN_COLUMNS`) and scaled
-        to all.
+        in :func:`uncertainty`) plus the prior's 2 / width^2, computed on at most ``columns`` columns spread by
+        their information, each standing for a stratum of all (:func:`information_columns`; default:
+        :func:`hessian_columns`).
 
         Returns
         -------
@@ -185,9 +188,19 @@ class _Problem:
             Its diagonal without the profiled correction (2 x the plain Fisher diagonal, eq. 27, plus the prior).
         """
         if columns is None:
-            columns = max(FACTOR_MIN_COLUMNS, FACTOR_PIXELS // max(self.obs.rows.size, 1))
+            columns = hessian_columns(self.obs)
         if columns not in self._spread:
-            obs, weights = spread_columns(self.obs, self.weights, most=columns)
+            if self.obs.columns.size <= columns:
+                obs, weights = self.obs, self.weights
+            else:
+                if self.information is None:
+                    self.evaluations += 1
+                    self.information = column_information(self.obs, params, self.weights)
+                keep, stands = information_columns(self.information, most=columns)
+                # a column's weights times the information it stands for: its pixels' images are the same, its share
+                # of the information that many times its own
+                obs = self.obs.subset(keep)
+                weights = (self.weights[:, keep] * stands).astype(self.weights.dtype)
             # the steps need a Hessian close to the reduced cost's, not its exact value (the gradient decides
             # where they end): where samples read between rows (a fraction of a row off their own), that of the
             # images solved per pixel, by the compiled kernels, rather than the block-tridiagonal solve's
@@ -199,12 +212,11 @@ class _Problem:
         where = {n: (o, shp) for n, o, shp in zip(self.names, offsets[:-1], self.shapes, strict=True)}
         order = np.array([where[n][0] + (np.ravel_multi_index((j, m), where[n][1]) if j >= 0 else m)
                           for n, j, m in M.fisher_index(self.names, self.obs.n_frames)])
-        ratio = self.obs.columns.size / obs.columns.size
         h = np.empty((order.size, order.size))
-        h[np.ix_(order, order)] = 2.0 * (plain - corr) * ratio
+        h[np.ix_(order, order)] = 2.0 * (plain - corr)
         h[np.diag_indices_from(h)] += 2.0 * self.prior_w
         d = np.empty(order.size)
-        d[order] = 2.0 * np.diag(plain) * ratio
+        d[order] = 2.0 * np.diag(plain)
         return h, d + 2.0 * self.prior_w
 
     def _profiled_factor(self, params: dict[str, np.ndarray]) -> np.ndarray | None:
@@ -378,7 +390,7 @@ OPTIMIZERS = ("gauss-newton", "lbfgs")
 def minimise(obs: Observations, names: Sequence[str], params: dict[str, np.ndarray], weights: np.ndarray, *,
              phase: float | None = None, maxiter: int = 200, gtol: float = 1e-3, precondition: bool = True,
              preconditioner: str = "profiled", optimizer: str = "gauss-newton", prior: dict | None = None,
-             on_iteration: Callable[[float], None] | None = None
+             on_iteration: Callable[[float], None] | None = None, information: np.ndarray | None = None
              ) -> tuple[dict[str, np.ndarray], list[float], str, bool, int]:
     """Minimise the reduced cost over the parameters of ``names``, the others held fixed.
 
@@ -441,7 +453,7 @@ def minimise(obs: Observations, names: Sequence[str], params: dict[str, np.ndarr
 
     size = sum(int(np.size(params[n])) for n in names)
     if optimizer == "gauss-newton" and phase is None and precondition and size <= FACTOR_MAX_PARAMETERS:
-        gn = _Problem(obs, names, params, weights, precondition=False, prior=prior)
+        gn = _Problem(obs, names, params, weights, precondition=False, prior=prior, information=information)
         theta, message, ok = gauss_newton(gn, maxiter=min(maxiter, GAUSS_NEWTON_STEPS), gtol=gtol,
                                           on_step=step)
         evaluations += gn.evaluations
@@ -460,7 +472,7 @@ def minimise(obs: Observations, names: Sequence[str], params: dict[str, np.ndarr
         step(float(intermediate_result.fun))
 
     prob = _Problem(obs, names, params, weights, phase=phase, precondition=precondition,
-                    preconditioner=preconditioner, prior=prior)
+                    preconditioner=preconditioner, prior=prior, information=information)
     lower = prob.lower()
     if np.all(prob.theta0 >= lower):
         feasible.append(prob.theta0)
@@ -579,6 +591,11 @@ def fit_vibrations(obs: Observations, *, effects: Sequence[str] = PAPER_MODEL, s
     good = well_determined(obs, gauge_fraction)
     weak = np.flatnonzero(~good & (rows_in_use(obs) > 0))
     refine = bool(prior and weak.size and np.any(good))
+    # what the stages' Hessians spread their columns by, once (the columns' shares hardly move between stages)
+    information = None
+    if obs.columns.size > hessian_columns(obs):
+        information = column_information(obs, params, weights)
+        evaluations += 1
     for i, (label, free, iters) in enumerate(stages):
         if not free:
             continue
@@ -594,7 +611,8 @@ def fit_vibrations(obs: Observations, *, effects: Sequence[str] = PAPER_MODEL, s
         tol = max(gtol, STAGE_GTOL) if i + 1 < len(stages) or refine else gtol
         params, c, msg, ok, n_eval = minimise(obs, free, params, weights, phase=phase, maxiter=iters, gtol=tol,
                                               precondition=precondition, preconditioner=preconditioner,
-                                              optimizer=optimizer, prior=wide, on_iteration=cb)
+                                              optimizer=optimizer, prior=wide, on_iteration=cb,
+                                              information=information)
         log.debug("stage %s: %d iterations, %d evaluations, %s", label, len(c), n_eval, msg)
         evaluations += n_eval
         costs += c
@@ -611,7 +629,8 @@ def fit_vibrations(obs: Observations, *, effects: Sequence[str] = PAPER_MODEL, s
         cb = None if on_iteration is None else (lambda c: on_iteration("prior", c))
         params, c, msg, ok, n_eval = minimise(obs, names, params, weights, maxiter=maxiter, gtol=gtol,
                                               precondition=precondition, preconditioner=preconditioner,
-                                              optimizer=optimizer, prior=narrow, on_iteration=cb)
+                                              optimizer=optimizer, prior=narrow, on_iteration=cb,
+                                              information=information)
         log.debug("stage prior: %d iterations, %d evaluations, %s", len(c), n_eval, msg)
         evaluations += n_eval
         costs += c
@@ -665,19 +684,19 @@ def model_at(effects: Sequence[str], params: dict, n_frames: int) -> tuple[list[
     return names, {**neutral_params(names, n_frames), **{k: v for k, v in params.items() if k in names}}
 
 
-@overload
-def spread_columns(obs: Observations, weights: np.ndarray, *, most: int) -> tuple[Observations, np.ndarray]: ...
-@overload
-def spread_columns(obs: Observations, weights: None = None, *, most: int) -> tuple[Observations, None]: ...
-def spread_columns(obs: Observations, weights: np.ndarray | None = None, *, most: int
-                   ) -> tuple[Observations, np.ndarray | None]:
-    """At most ``most`` evenly spread columns of the observations and of their weights (K, C) where given; all if
-    fewer."""
-    if obs.columns.size <= most:
-        return obs, weights
-    keep = np.unique(np.linspace(0, obs.columns.size - 1, most).astype(int))
-    # C-ordered once here (as the subset's samples), rather than by the kernels at every refresh of the Hessian
-    return obs.subset(keep), None if weights is None else np.ascontiguousarray(weights[:, keep])
+def hessian_columns(obs: Observations) -> int:
+    """Columns the Gauss-Newton Hessian is computed on: :data:`FACTOR_PIXELS` pixels' worth, at least
+    :data:`FACTOR_MIN_COLUMNS`."""
+    return max(FACTOR_MIN_COLUMNS, FACTOR_PIXELS // max(obs.rows.size, 1))
+
+
+def column_information(obs: Observations, params: dict, weights: np.ndarray) -> np.ndarray:
+    """Each column's plain Fisher information in the phase channel, the sum over its samples of w (dIbar/dΦ)^2, (C,):
+    what :func:`information_columns` spreads the Hessian's columns by. One pass of the per-pixel cost kernel (where
+    samples read between rows as well: the Hessian's images are solved per pixel)."""
+    flat = replace(obs, reading=None)
+    _, sums = E.reduced_cost(flat, _channels(flat, params), weights, square=True, channels=("phase",))
+    return np.sum(sums.phase, axis=0)
 
 
 def initial_weights(obs: Observations, params: dict) -> np.ndarray:

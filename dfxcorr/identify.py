@@ -22,8 +22,9 @@ from . import engine as E
 from . import kernels as K
 from . import model as M
 from .catalogue import effect, neutral_params
-from .fit import initial_weights, spread_columns
+from .fit import initial_weights
 from .observations import Observations
+from .subsets import spread_columns
 
 
 @dataclass
@@ -161,7 +162,7 @@ def select(obs: Observations, names, *, max_columns: int = 64) -> list[Identifia
     names = list(names)
     if not names:
         return []
-    obs, _ = spread_columns(obs, most=max_columns)
+    obs = spread_columns(obs, most=max_columns)
     weights = initial_weights(obs, {})
     ch = M.channels(neutral_params(names, obs.n_frames), x=obs.x, n_frames=obs.n_frames)
     K.set_threads()

@@ -24,11 +24,12 @@ from . import kernels as K
 from . import model as M
 from .catalogue import PAPER_MODEL, neutral_params
 from .chunks import row_counts
-from .fit import model_at, spread_columns
+from .fit import model_at
 from .frames import well_determined
 from .noise import noise_weights
 from .observations import Observations
 from .stats import chi2_log_tails
+from .subsets import spread_columns
 
 
 def motion_statistics(obs: Observations, params: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -197,7 +198,7 @@ def start_misfit(obs: Observations, params: dict, *, effects: Sequence[str] = PA
         residuals are not finite.
     """
     _, at = model_at(effects, params, obs.n_frames)
-    sub, _ = spread_columns(obs, most=START_COLUMNS)
+    sub = spread_columns(obs, most=START_COLUMNS)
     out = E.retrieve(sub, M.channels(at, x=sub.x, n_frames=sub.n_frames), iterations=2)
     w = np.where(sub.use & sub.gather_valid(out["valid"]), out["weights"], 0.0)
     z2 = sub.frame_sum(np.sum(w * (sub.counts - out["expected"]) ** 2, axis=1))

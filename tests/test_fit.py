@@ -198,6 +198,28 @@ def test_whitening_factor_is_the_profiled_fisher_information(rng):
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-9 * np.abs(expected).max())
 
 
+def test_the_hessian_of_a_few_columns_stands_for_all_where_their_information_differs():
+    """The outer columns hold up to 20x the mean information (a clinical scan's, in air): the Hessian on 8 of 48
+    columns spread by their information is the one on all of them in the mean (generalized eigenvalues about 1;
+    evenly spread columns with the outermost two gave a median of 1.0-2.6 and a 90th percentile of 3-4.9 over six
+    seeds, this 0.9-1.0 and 1.3-1.9)."""
+    from scipy.linalg import eigh
+    from test_model import random_params, tiny_obs
+
+    rng = np.random.default_rng(5)
+    obs = tiny_obs(rng, J=16, H=10, W=48, A=4)
+    gain = 0.05 + 0.6 / (1.03 - np.abs(obs.x)) ** 1.5
+    gain /= gain.mean()
+    obs = replace(obs, counts=obs.counts * gain, tf=obs.tf * gain, fc=obs.fc * gain, fs=obs.fs * gain)
+    params = random_params(rng, obs.n_frames, PAPER_MODEL)
+    w = 1.0 / np.maximum(obs.counts, 1.0)
+    prob = F._Problem(obs, PAPER_MODEL, params, w, precondition=False, prior=F.catalogue_prior(PAPER_MODEL))
+    few, _ = prob.hessian(params, columns=8)
+    every, _ = prob.hessian(params, columns=obs.columns.size)
+    ratio = eigh(few, every, eigvals_only=True)
+    assert 0.8 < np.median(ratio) < 1.2 and np.quantile(ratio, 0.9) < 2.2
+
+
 @pytest.mark.slow
 def test_a_coarse_first_pass_reaches_the_same_minimum(small_scan):
     """Every stage on every 4th column first, then the last ones on all columns from there (fit.coarse), ends
