@@ -38,7 +38,7 @@ from .frames import (
     wrap_phases,
 )
 from .observations import Observations
-from .subsets import information_columns
+from .subsets import column_information, information_columns
 
 log = logging.getLogger(__name__)
 
@@ -85,11 +85,11 @@ class FitResult:
 #: whose profiled curvature there understates what the cost shows once the images settle (paper study,
 #: every column: 0 -> 377 iterations, the 'all' stage at its limit; 0.01 -> 190; 0.1 -> 195; diagonal 426).
 RIDGE = 0.01
-#: Pixels (rows x columns) of the evenly spread columns that enter the profiled Hessian (scaled up to all): the
-#: coupling it captures is that of frames through the rows they share, which every column repeats, so a tall
-#: detector needs fewer columns (the paper study's 450 rows: 64 columns; a binned clinical scan's 1440: 21, which
-#: took its refreshes 0.33 -> 0.06 s each for 54 -> 77 cost evaluations, the fit 13.3 -> 9.4 s on the 2-core
-#: machine under load 2.4). At least :data:`FACTOR_MIN_COLUMNS`.
+#: Pixels (rows x columns) of the columns that enter the profiled Hessian (spread by their information, each standing
+#: for a stratum of all: :func:`dfxcorr.subsets.information_columns`): the coupling it captures is that of frames
+#: through the rows they share, which every column repeats, so a tall detector needs fewer columns (the paper study's
+#: 450 rows: 64 columns; a binned clinical scan's 1440: 21, which took its refreshes 0.33 -> 0.06 s each for 54 -> 77
+#: cost evaluations, the fit 13.3 -> 9.4 s on the 2-core machine under load 2.4). At least :data:`FACTOR_MIN_COLUMNS`.
 FACTOR_PIXELS = 30_000
 FACTOR_MIN_COLUMNS = 16
 #: Above this many parameters the dense profiled Hessian (P x P, per thread in the Fisher kernel) is not
@@ -430,6 +430,9 @@ def minimise(obs: Observations, names: Sequence[str], params: dict[str, np.ndarr
         broadcastable to the parameters (see :func:`catalogue_prior`, :func:`empirical_prior`).
     on_iteration : callable, optional
         Called with the cost after every iteration (accepted step).
+    information : ndarray, shape (C,), optional
+        Each column's information (:func:`dfxcorr.subsets.column_information`), which the profiled Hessian's
+        columns are spread by; made at the first Hessian where not given.
 
     Returns
     -------
@@ -452,6 +455,7 @@ def minimise(obs: Observations, names: Sequence[str], params: dict[str, np.ndarr
             on_iteration(cost)
 
     size = sum(int(np.size(params[n])) for n in names)
+    gn: _Problem | None = None
     if optimizer == "gauss-newton" and phase is None and precondition and size <= FACTOR_MAX_PARAMETERS:
         gn = _Problem(obs, names, params, weights, precondition=False, prior=prior, information=information)
         theta, message, ok = gauss_newton(gn, maxiter=min(maxiter, GAUSS_NEWTON_STEPS), gtol=gtol,
@@ -471,6 +475,8 @@ def minimise(obs: Observations, names: Sequence[str], params: dict[str, np.ndarr
                 feasible[:] = [now]
         step(float(intermediate_result.fun))
 
+    if information is None and gn is not None:
+        information = gn.information
     prob = _Problem(obs, names, params, weights, phase=phase, precondition=precondition,
                     preconditioner=preconditioner, prior=prior, information=information)
     lower = prob.lower()
@@ -593,7 +599,9 @@ def fit_vibrations(obs: Observations, *, effects: Sequence[str] = PAPER_MODEL, s
     refine = bool(prior and weak.size and np.any(good))
     # what the stages' Hessians spread their columns by, once (the columns' shares hardly move between stages)
     information = None
-    if obs.columns.size > hessian_columns(obs):
+    hessians = precondition and (optimizer == "gauss-newton" or preconditioner == "profiled")
+    size = sum(int(np.size(params[n])) for n in names)
+    if hessians and obs.columns.size > hessian_columns(obs) and size <= FACTOR_MAX_PARAMETERS:
         information = column_information(obs, params, weights)
         evaluations += 1
     for i, (label, free, iters) in enumerate(stages):
@@ -688,15 +696,6 @@ def hessian_columns(obs: Observations) -> int:
     """Columns the Gauss-Newton Hessian is computed on: :data:`FACTOR_PIXELS` pixels' worth, at least
     :data:`FACTOR_MIN_COLUMNS`."""
     return max(FACTOR_MIN_COLUMNS, FACTOR_PIXELS // max(obs.rows.size, 1))
-
-
-def column_information(obs: Observations, params: dict, weights: np.ndarray) -> np.ndarray:
-    """Each column's plain Fisher information in the phase channel, the sum over its samples of w (dIbar/dΦ)^2, (C,):
-    what :func:`information_columns` spreads the Hessian's columns by. One pass of the per-pixel cost kernel (where
-    samples read between rows as well: the Hessian's images are solved per pixel)."""
-    flat = replace(obs, reading=None)
-    _, sums = E.reduced_cost(flat, _channels(flat, params), weights, square=True, channels=("phase",))
-    return np.sum(sums.phase, axis=0)
 
 
 def initial_weights(obs: Observations, params: dict) -> np.ndarray:

@@ -1,9 +1,13 @@
-"""Subsets of the observations' columns that stand for all of them: evenly spread, or spread by their information
-(the vibration fit's Hessian, the pilot fits, the identifiability check)."""
+"""Subsets of the observations' columns that stand for all of them: evenly spread (the fit's start check, the
+identifiability check), or spread by their information (the vibration fit's Hessian)."""
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
+from . import engine as E
+from . import model as M
 from .observations import Observations
 
 
@@ -26,7 +30,9 @@ def information_columns(info: np.ndarray, *, most: int) -> tuple[np.ndarray, np.
     Parameters
     ----------
     info : ndarray, shape (C,)
-        Information of each column (any non-negative measure the estimate should be exact for).
+        Information of each column (any non-negative measure the estimate should be exact for; the fit's is that of
+        the phase channel, so a column without fringe, whose samples inform only dose and background, is never
+        taken). Non-finite entries count as 0.
     most : int
 
     Returns
@@ -36,8 +42,14 @@ def information_columns(info: np.ndarray, *, most: int) -> tuple[np.ndarray, np.
     stands : ndarray, shape (n,)
         The information each stands for over its own (C / most each where all columns hold the same).
     """
-    info = np.maximum(np.asarray(info, dtype=np.float64), 0.0)
+    if most < 1:
+        raise ValueError(f"most must be at least 1, got {most}")
+    info = np.asarray(info, dtype=np.float64)
+    # a column whose information is not a finite number (weights of inf) cannot stand for others
+    info = np.where(np.isfinite(info), np.maximum(info, 0.0), 0.0)
     C, total = info.size, float(np.sum(info))
+    if C == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0)
     if C <= most or not total > 0:
         keep = np.unique(((np.arange(min(most, C)) + 0.5) * C / min(most, C)).astype(int))
         return keep, np.full(keep.size, C / keep.size)
@@ -45,3 +57,13 @@ def information_columns(info: np.ndarray, *, most: int) -> tuple[np.ndarray, np.
     pick = np.minimum(np.searchsorted(np.cumsum(info), (np.arange(most) + 0.5) * total / most, side="right"), C - 1)
     keep, strata = np.unique(pick, return_counts=True)
     return keep, strata * (total / most) / np.maximum(info[keep], 1e-300)
+
+
+def column_information(obs: Observations, params: dict, weights: np.ndarray) -> np.ndarray:
+    """Each column's plain Fisher information in the phase channel, the sum over its samples of w (dIbar/dΦ)^2, (C,):
+    what :func:`information_columns` spreads the Hessian's columns by. One pass of the per-pixel cost kernel (where
+    samples read between rows as well: the Hessian's images are solved per pixel)."""
+    flat = replace(obs, reading=None)
+    ch = M.channels(params, x=flat.x, n_frames=flat.n_frames)
+    _, sums = E.reduced_cost(flat, ch, weights, square=True, channels=("phase",))
+    return np.sum(sums.phase, axis=0)

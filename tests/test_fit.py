@@ -131,11 +131,11 @@ def test_whitened_variables_round_trip_and_their_gradient_matches_finite_differe
 
 @pytest.mark.slow
 def test_optimizers_and_preconditioners_reach_the_same_minimum(small_scan, monkeypatch):
-    """Gauss-Newton at its default tolerance, also with its Hessian from a third of the columns (scaled to all,
-    as on large detectors), and L-BFGS under either preconditioner converged tightly find the same estimates
-    (0.01 sigma). At the default tolerance Gauss-Newton needs fewer cost evaluations than whitened L-BFGS
-    (this scan's many edge frames make it a hard case: 47 against 85), and whitened L-BFGS fewer iterations than
-    the diagonal preconditioner."""
+    """Gauss-Newton at its default tolerance, also with its Hessian from a third of the columns (each standing for a
+    stratum of the columns' information, as on large detectors), and L-BFGS under either preconditioner converged
+    tightly find the same estimates (0.01 sigma). At the default tolerance Gauss-Newton needs fewer cost evaluations
+    than whitened L-BFGS (this scan's many edge frames make it a hard case: 47 against 85), and whitened L-BFGS
+    fewer iterations than the diagonal preconditioner."""
     scan, _ = small_scan()
     obs = prepare(scan, C.load([], [])).observations(columns=np.arange(1, scan.shape[2], 2))
 

@@ -57,3 +57,14 @@ def test_evenly_spread_columns_keep_the_outermost_and_all_when_fewer():
     sub = spread_columns(obs, most=3)
     np.testing.assert_array_equal(sub.columns, obs.columns[[0, 4, 8]])
     assert spread_columns(obs, most=9) is obs
+
+
+def test_columns_without_finite_information_are_never_taken_and_nothing_asked_is_refused():
+    info = np.array([1.0, np.nan, 2.0, np.inf, 0.0, 3.0, 1.0, 1.0])
+    keep, stands = information_columns(info, most=3)
+    assert not set(keep.tolist()) & {1, 3, 4}
+    finite = np.where(np.isfinite(info), info, 0.0)
+    np.testing.assert_allclose(np.sum(stands * finite[keep]), finite.sum())
+    assert information_columns(np.zeros(0), most=4)[0].size == 0
+    with pytest.raises(ValueError, match="at least 1"):
+        information_columns(info, most=0)
