@@ -162,14 +162,16 @@ MASK_PILOT_SAMPLES = 2_000_000
 COARSE_SAMPLES = 1_000_000
 COARSE_MIN_COLUMNS = 16
 #: Wall seconds per sample of the fit's last stages on all its columns after a coarse pass from the neutral values
-#: (the predicted time adds :data:`FIT_SECONDS_PER_SAMPLE` per sample of the coarse pass): 0.17 us on the paper study
-#: at every column, 0.23 and 0.26 on the binned and full-resolution clinical scans at fit.max_samples (fits 2.7, 3.0,
-#: 3.9 s; idle).
-POLISH_SECONDS_PER_SAMPLE = 0.25e-6
+#: (the predicted time adds :data:`FIT_SECONDS_PER_SAMPLE` per sample of the coarse pass). Since the Hessian's
+#: columns are spread by their information the whole fit from the neutral values takes 2.3, 2.0 and 2.7 s on the
+#: paper study and the binned and full-resolution clinical scans at fit.max_samples (was 2.7, 3.0, 3.9 s); this and
+#: the coarse pass's rate predict 3.0, 3.0 and 3.8 s (idle).
+POLISH_SECONDS_PER_SAMPLE = 0.2e-6
 #: Wall seconds per sample of a fit that starts at the pilot estimate (no stages, no coarse pass; the fit stage,
-#: observations and the start's check included): 0.25-0.28 us on the paper study, 0.32 and 0.42 on the binned and
-#: full-resolution clinical scans at fit.max_samples (docs/benchmark.json, load 0.9-1.5).
-PILOT_SECONDS_PER_SAMPLE = 0.35e-6
+#: observations and the start's check included): 0.20 us on the paper study, 0.20 and 0.25 on the binned and
+#: full-resolution clinical scans at fit.max_samples, 0.17 with 4x the samples (docs/benchmark.json, load 1.2-1.3;
+#: 0.25-0.42 before the Hessian's columns were spread by their information).
+PILOT_SECONDS_PER_SAMPLE = 0.22e-6
 #: Wall seconds of a reconstruction's other stages (alignment, motion mask, retrieval of every pixel) per lit sample
 #: of the scan: what ``fit.time_floor`` leaves to the fit (0.076 us on the binned and 0.077 on the full-resolution
 #: clinical scan, 0.11 on the paper study; docs/benchmark.json, load 3.4-4.1).
