@@ -31,12 +31,14 @@ if TYPE_CHECKING:  # the planning (numba kernels) is imported only where a check
 NAME_MAX = 255
 #: Memory model of a streamed reconstruction: the store of lit rows (counts as stored), the images
 #: (corrected and uncorrected t, v, phi in float64: 48 bytes per pixel), the retrieval's row blocks
-#: (``retrieve.block_mb``) and the fit's samples (float32 observations, their fringe's quadratures and
-#: weights, the solves' outputs and the pilot's temporaries: FIT_BYTES each). Against the peak resident set
-#: (/usr/bin/time -v, 2 cores) it errs high: 1.50 GB for 1.35 GB measured at 195 x 2880 x 2880,
-#: 0.84 GB for 0.72 GB at 195 x 1440 x 1440 (fit.max_samples 2e6).
+#: (``retrieve.block_mb``) and the fit's samples (FIT_BYTES each: the float32 counts, t^f, the fringe's two
+#: quadratures, dark and weights, the use and region masks, and a reweighting's new weights beside the old). The
+#: stages' peaks do not coincide, so against the peak resident set (/usr/bin/time -v, 2 cores, docs/benchmark.json)
+#: it errs high: at 195 x 2880 x 2880 1.36 GiB for 1.10 measured, 1.96 GiB for 1.53 with fit.max_samples 2.8e7;
+#: 0.78 GiB for 0.58 at 195 x 1440 x 1440 (100 bytes per fit sample, the layout before the quadratures replaced
+#: v^f and phi^f and the fit got faster, said 1.80, 3.67 and 1.20 GiB).
 IMAGE_BYTES = 48
-FIT_BYTES = 100
+FIT_BYTES = 32
 #: Resident memory of the interpreter with numpy, scipy, h5py, numba and dfxcorr loaded.
 BASE_BYTES = 150 * 2 ** 20
 
