@@ -34,17 +34,26 @@ def compiled(ch: M.Channels, names: Sequence[str] = ()) -> bool:
 
 def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = None, iterations: int = 1,
              gain: float | None = None, keep_inverse: bool = False, keep_expected: bool = True,
-             next_weights: bool = False) -> dict:
+             next_weights: bool = False, out: np.ndarray | None = None) -> dict:
     """Images, expected counts, weights and Pearson chi-square: :func:`dfxcorr.kernels.retrieve`'s values.
 
     Where ``obs.reading`` is set, ``inverse`` holds each row's diagonal block of the inverse and ``coupling`` the
-    blocks between each row and the next (None otherwise).
+    blocks between each row and the next (None otherwise). ``out``: where the returned weights go (it may be
+    ``weights``; written in place by the per-pixel kernel, copied there by the others).
     """
-    kernel = model_retrieve if not compiled(ch) else K.retrieve if obs.reading is None else KB.retrieve
     K.set_threads()
-    out = kernel(obs, ch, weights=weights, iterations=iterations, gain=gain, keep_inverse=keep_inverse,
-                 keep_expected=keep_expected, next_weights=next_weights)
-    return {"coupling": None, **out}
+    if compiled(ch) and obs.reading is None:
+        return {"coupling": None, **K.retrieve(obs, ch, weights=weights, iterations=iterations, gain=gain,
+                                               keep_inverse=keep_inverse, keep_expected=keep_expected,
+                                               next_weights=next_weights, out=out)}
+    kernel = KB.retrieve if compiled(ch) else model_retrieve
+    done = {"coupling": None, **kernel(obs, ch, weights=weights, iterations=iterations, gain=gain,
+                                       keep_inverse=keep_inverse, keep_expected=keep_expected,
+                                       next_weights=next_weights)}
+    if out is not None:
+        out[...] = done["weights"]
+        done["weights"] = out
+    return done
 
 
 def model_retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = None, iterations: int = 1,

@@ -582,6 +582,8 @@ def fit_vibrations(obs: Observations, *, effects: Sequence[str] = PAPER_MODEL, s
     params = neutral_params(names, J)
     if start:
         params.update({k: np.array(v, dtype=np.float64) for k, v in start.items() if k in params})
+    # weights made here are the fit's own: a reweighting overwrites them rather than holding two sets
+    own = weights is None
     if weights is None:
         weights = initial_weights(obs, params)
     phase_names = [n for n in names if effect(n).channel == "phase"]
@@ -613,7 +615,7 @@ def fit_vibrations(obs: Observations, *, effects: Sequence[str] = PAPER_MODEL, s
             amp = np.where(images.valid, np.hypot(images.coef[..., 1], images.coef[..., 2]), 0.0)
             phase = M.circular_mean(images.phi, amp)
         if label == "reweight":
-            weights = _model_weights(obs, params, weights)
+            weights = _model_weights(obs, params, weights, out=weights if own else None)
         cb: Callable[[float], None] | None = None if on_iteration is None else (
             lambda c, _l=label: on_iteration(_l, c))
         tol = max(gtol, STAGE_GTOL) if i + 1 < len(stages) or refine else gtol
@@ -709,9 +711,12 @@ def _channels(obs: Observations, params: dict) -> M.Channels:
     return M.channels(params, x=obs.x, n_frames=obs.n_frames)
 
 
-def _model_weights(obs: Observations, params: dict, weights: np.ndarray) -> np.ndarray:
-    """Inverse noise variances of the model solved with ``weights`` (the weights of a second solve)."""
-    return E.retrieve(obs, _channels(obs, params), weights=weights, keep_expected=False, next_weights=True)["weights"]
+def _model_weights(obs: Observations, params: dict, weights: np.ndarray, *, out: np.ndarray | None = None
+                   ) -> np.ndarray:
+    """Inverse noise variances of the model solved with ``weights`` (the weights of a second solve), written into
+    ``out`` where given (which may be ``weights``)."""
+    return E.retrieve(obs, _channels(obs, params), weights=weights, keep_expected=False, next_weights=True,
+                      out=out)["weights"]
 
 
 def _solve(obs: Observations, params: dict, weights: np.ndarray, *, keep_inverse: bool = False) -> M.Images:

@@ -427,14 +427,13 @@ def _count(i, off, a, bc, bs, hcc, hcs, t, c, s, e, f, harmonic):
 @njit(cache=True, parallel=True, error_model="numpy")
 def _retrieve(counts, tf, fc, fs, dark, quiet, use, start, frame, y, x, bounds, chunks, cos_p, sin_p, vis, dose, bg,
               harm, gain, electronic, iterations, from_data, keep_inverse, keep_expected, keep_weights, next_weights,
-              tile):
+              tile, w_out):
     (K, C), R, n = counts.shape, bounds.size - 1, chunks.size - 1
     # every entry is written by its chunk: np.empty (np.zeros would be a parallel region of its own)
     coef, valid = np.empty((R, C, 3)), np.empty((R, C), dtype=np.bool_)
     inverse = np.empty((R if keep_inverse else 0, C, 3, 3))
     # per-sample outputs in the samples' dtype: float32 samples need no float64 copies of their size
     ibar = np.empty((K if keep_expected else 0, C), tf.dtype)
-    w_out = np.empty((K if keep_weights else 0, C), tf.dtype)
     chi2, n_sel = np.empty(n), np.empty(n)
     b0, b1, b2 = bg[0], bg[1], bg[2]
     hc, hs = harm[0], harm[1]
@@ -593,7 +592,8 @@ def expected(obs, ch, coef: np.ndarray) -> np.ndarray:
 
 
 def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1, gain: float | None = None,
-             keep_inverse: bool = False, keep_expected: bool = True, next_weights: bool = False) -> dict:
+             keep_inverse: bool = False, keep_expected: bool = True, next_weights: bool = False,
+             out: np.ndarray | None = None) -> dict:
     """Closed-form images of every pixel, the expected counts and the Pearson chi-square.
 
     Parameters
@@ -616,6 +616,10 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
         Return as 'weights' the inverse noise variances of the last solve's model (the weights of a further solve,
         as ``iterations + 1`` would use them, without that solve) instead of those of the last solve, whatever
         ``keep_expected`` says.
+    out : ndarray, shape (K, C), optional
+        Where the returned weights are written (C-ordered, the samples' dtype); it may be ``weights`` itself: each
+        pixel's weights are read before its new ones are written (a full-resolution fit's reweighting held both, 2 x
+        108 MB).
 
     Returns
     -------
@@ -637,11 +641,15 @@ def retrieve(obs, ch, *, weights: np.ndarray | None = None, iterations: int = 1,
     quiet = dark if obs.offset is None else _c(obs.quiet)
     fc, fs = obs.fringe
     n_c = max(obs.columns.size, 1)
+    keep_weights = keep_expected or next_weights
+    shape = (obs.counts.shape[0] if keep_weights else 0, obs.columns.size)
+    if out is not None and (out.shape != shape or out.dtype != obs.tf.dtype or not out.flags["C_CONTIGUOUS"]):
+        raise ValueError(f"out must be a C-ordered {obs.tf.dtype} array of shape {shape}, got {out.dtype} {out.shape}")
     coef, valid, inverse, ibar, w, chi2, n_sel = _retrieve(
         _c(obs.counts), _c(obs.tf), fc, fs, dark, quiet, _c(obs.use), start,
         obs.frame, obs.y, obs.x, bounds, row_chunks(bounds[:-1], obs.frame.size), *_turning(obs, ch.phase),
         _c(ch.vis, np.float64), ch.dose, ch.background, ch.harmonic, _c(g, np.float64),
         float(obs.electronic), int(iterations), weights is None, keep_inverse, keep_expected,
-        keep_expected or next_weights, next_weights, -(-n_c // -(-n_c // TILE)))
+        keep_weights, next_weights, -(-n_c // -(-n_c // TILE)), np.empty(shape, obs.tf.dtype) if out is None else out)
     return {"coef": coef, "valid": valid, "inverse": inverse if keep_inverse else None, "expected": ibar,
             "weights": w, "chi2": float(chi2.sum()), "samples": int(n_sel.sum())}

@@ -243,3 +243,21 @@ def test_frame_grid_cost_is_the_direct_cost(rng):
             trial["phase_offset"][j, 0], trial["tilt"][j, 0] = g0, g1
             r = (obs.counts - M.expected(obs, M.design(obs, trial), images))[blocks]
             assert grid[a, b] == pytest.approx(float(np.sum(w[blocks] * r ** 2)), rel=1e-10)
+
+
+@pytest.mark.parametrize("given", [False, True])
+def test_the_weights_written_over_the_given_ones_are_those_of_a_fresh_array(rng, given):
+    """A reweighting writes the next weights where the solve read its own (``out=weights``): the same values and
+    images as into a new array; a wrong output array is refused."""
+    obs = prepared(rng, masked=True, dtype=np.float32)
+    ch = M.channels(random_params(rng, obs.n_frames, PAPER_MODEL), x=obs.x, n_frames=obs.n_frames)
+    w = K.retrieve(obs, ch, next_weights=True, keep_expected=False)["weights"] if given else None
+    fresh = K.retrieve(obs, ch, weights=w, iterations=2, next_weights=True, keep_expected=False)
+    into = np.empty_like(fresh["weights"]) if w is None else w.copy()
+    done = K.retrieve(obs, ch, weights=None if w is None else into, iterations=2, next_weights=True,
+                      keep_expected=False, out=into)
+    assert done["weights"] is into
+    np.testing.assert_array_equal(into, fresh["weights"])
+    np.testing.assert_array_equal(done["coef"], fresh["coef"])
+    with pytest.raises(ValueError, match="C-ordered"):
+        K.retrieve(obs, ch, next_weights=True, out=np.empty_like(into, dtype=np.float64))

@@ -191,3 +191,14 @@ def test_observations_without_a_reading_are_refused(rng):
     ch = M.channels({}, x=obs.x, n_frames=obs.n_frames)
     with pytest.raises(ValueError, match="own row"):
         KB.retrieve(obs, ch)
+
+
+def test_the_weights_asked_into_an_array_land_there(case):
+    """The between-rows retrieval copies its weights where ``out`` says, the given weights included."""
+    obs, ch = case
+    w = np.where(obs.use, 1.0 / np.maximum(obs.counts, 1.0), 0.0)
+    plain = E.retrieve(obs, ch, weights=w, next_weights=True, keep_expected=False)
+    into = w.copy()
+    done = E.retrieve(obs, ch, weights=into, next_weights=True, keep_expected=False, out=into)
+    assert done["weights"] is into
+    np.testing.assert_array_equal(into, plain["weights"])
