@@ -41,16 +41,13 @@ def retrieve(obs: Observations, ch: M.Channels, *, weights: np.ndarray | None = 
     blocks between each row and the next (None otherwise). ``out``: where the returned weights go (it may be
     ``weights``; written in place by the per-pixel kernel, copied there by the others).
     """
+    kernel = model_retrieve if not compiled(ch) else K.retrieve if obs.reading is None else KB.retrieve
     K.set_threads()
-    if compiled(ch) and obs.reading is None:
-        return {"coupling": None, **K.retrieve(obs, ch, weights=weights, iterations=iterations, gain=gain,
-                                               keep_inverse=keep_inverse, keep_expected=keep_expected,
-                                               next_weights=next_weights, out=out)}
-    kernel = KB.retrieve if compiled(ch) else model_retrieve
+    into = {"out": out} if kernel is K.retrieve else {}
     done = {"coupling": None, **kernel(obs, ch, weights=weights, iterations=iterations, gain=gain,
                                        keep_inverse=keep_inverse, keep_expected=keep_expected,
-                                       next_weights=next_weights)}
-    if out is not None:
+                                       next_weights=next_weights, **into)}
+    if out is not None and done["weights"] is not out:
         out[...] = done["weights"]
         done["weights"] = out
     return done
