@@ -207,8 +207,9 @@ def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, ove
 
     out, cfg, outputs, dicom_export = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir,
                                                            preview, overwrite, dicom)
-    header = read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True)
-    check.plan(header, cfg, name=scan, outputs=outputs)
+    # the header is not held through the run: its reference maps (29 MiB at full resolution) and its dark
+    check.plan(read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True), cfg, name=scan,
+               outputs=outputs)
     t0 = time.perf_counter()
     result = pipeline.reconstruct(scan, cfg, command_line=_command_line())
     _write_outputs(result, out, tiff_dir=tiff_dir, preview=preview, dicom=dicom_export, overwrite=overwrite)

@@ -26,6 +26,11 @@ from .catalogue import effect
 from .noise import noise_weights, variance
 from .observations import Observations
 
+#: Samples of each run of rows on which :func:`profiled_fisher` solves the images: one run's inverse normal matrices,
+#: 72 bytes per pixel, are held at a time (a full-resolution clinical fit of 2.7e7 samples held its 1e6 pixels' 75 MB
+#: at once, at the process's peak; at its 26 samples per pixel a run holds about 11 MB).
+FISHER_SAMPLES = 4e6
+
 
 def compiled(ch: M.Channels, names: Sequence[str] = ()) -> bool:
     """Whether compiled kernels take these channels and effects (see the module's docstring)."""
@@ -175,3 +180,44 @@ def fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, coef: np.ndar
     if obs.reading is not None:
         return FB.fisher(obs, ch, weights, coef, table, profiled=profiled)
     return FP.fisher(obs, ch, weights, coef, inverse, table, profiled=profiled)
+
+
+def profiled_fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, names: Sequence[str], *,
+                    samples: float = FISHER_SAMPLES) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`fisher`'s information and profiled correction at the images solved with ``weights`` (:func:`retrieve`).
+
+    Where each pixel's images are its own (``obs.reading`` None) both are sums over the pixels: they are summed over
+    runs of rows of about ``samples`` samples (:meth:`Observations.row_runs`), each run's images solved on their own,
+    so that only one run's inverse normal matrices are held; the same values up to the order of the sums. Where the
+    samples read between rows, over all at once.
+
+    Parameters
+    ----------
+    obs : Observations
+    ch : Channels
+        Channel values on ``obs``'s (frame, column) grid (the same for every run of rows).
+    weights : ndarray, shape (K, C)
+        Inverse variances (counts^-2).
+    names : sequence of str
+        Effects whose parameters the information is of.
+    samples : float
+        Samples per run of rows.
+
+    Returns
+    -------
+    plain, correction : ndarray, shape (P, P)
+        As :func:`fisher`'s, in :func:`dfxcorr.model.fisher_index`'s order.
+    """
+    def at_images(sub: Observations, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        out = retrieve(sub, ch, weights=w, keep_inverse=True, keep_expected=False)
+        return fisher(sub, ch, w, out["coef"], out["inverse"], names)
+
+    runs = [] if obs.reading is not None else obs.row_runs(samples)
+    if len(runs) <= 1:
+        return at_images(obs, weights)
+    parts = (at_images(obs.of_rows(lo, hi), weights[obs.block_range(lo, hi)]) for lo, hi in runs)
+    plain, corr = next(parts)
+    for p, c in parts:
+        plain += p
+        corr += c
+    return plain, corr

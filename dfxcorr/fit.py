@@ -735,9 +735,7 @@ def uncertainty(obs: Observations, params: dict, weights: np.ndarray) -> dict[st
     out = {n: np.full_like(params[n], np.inf) for n in names}
     if not names:
         return out
-    K.set_threads()
-    images = _solve(obs, params, weights, keep_inverse=True)
-    plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse, names)
+    plain, corr = E.profiled_fisher(obs, _channels(obs, params), weights, names)
     info, index = plain - corr, M.fisher_index(names, obs.n_frames)
     d = np.diag(info).copy()
     has = d > 1e-12 * max(d.max(), 1e-300)

@@ -200,8 +200,13 @@ def start_misfit(obs: Observations, params: dict, *, effects: Sequence[str] = PA
     _, at = model_at(effects, params, obs.n_frames)
     sub = spread_columns(obs, most=START_COLUMNS)
     out = E.retrieve(sub, M.channels(at, x=sub.x, n_frames=sub.n_frames), iterations=2)
-    w = np.where(sub.use & sub.gather_valid(out["valid"]), out["weights"], 0.0)
-    z2 = sub.frame_sum(np.sum(w * (sub.counts - out["expected"]) ** 2, axis=1))
+    # in the retrieval's own arrays: three temporaries of the samples' size (19 MB each at full resolution with
+    # fit.max_samples=2.8e7) were then the run's peak
+    w, r2 = out["weights"], out["expected"]
+    w[~(sub.use & sub.gather_valid(out["valid"]))] = 0.0
+    np.subtract(sub.counts, r2, out=r2)
+    np.square(r2, out=r2)
+    z2 = sub.frame_sum(np.sum(np.multiply(w, r2, out=r2), axis=1))
     n = sub.frame_sum(np.sum(w > 0, axis=1).astype(np.float64))
     free = n.sum() - 3.0 * np.count_nonzero(out["valid"])
     good = well_determined(sub, gauge_fraction) & (n > 0)

@@ -348,6 +348,49 @@ class Observations:
         step = max(int(samples // max(K, 1)), 1)
         return [np.arange(a, min(a + step, C)) for a in range(0, C, step)]
 
+    def row_runs(self, samples: float = 1e6) -> list[tuple[int, int]]:
+        """Positions of :attr:`rows` in consecutive runs ``(lo, hi)`` holding about ``samples`` samples each (whole
+        rows, at least one): the rows' counterpart of :meth:`column_chunks`, for :meth:`of_rows`."""
+        K, C = self.counts.shape
+        step = max(int(samples // max(C, 1)), 1)
+        # each run from the first row that starts at or after a multiple of ``step`` blocks
+        edges = np.unique(np.append(np.searchsorted(self.starts, np.arange(0, K, step)), self.rows.size))
+        return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+
+    def block_range(self, lo: int, hi: int) -> slice:
+        """The blocks of the held rows ``lo:hi`` (positions in :attr:`rows`) along the samples' first axis (K): one run,
+        the blocks being sorted by row."""
+        if not 0 <= lo < hi <= self.rows.size:
+            raise ValueError(f"rows {lo}:{hi} are not a range of the {self.rows.size} held rows")
+        return slice(int(self.starts[lo]), int(self.starts[hi]) if hi < self.rows.size else self.frame.size)
+
+    def of_rows(self, lo: int, hi: int) -> Observations:
+        """The samples of the held rows ``lo:hi`` (positions in :attr:`rows`), without copies.
+
+        Per-pixel work whose results add over pixels (the Fisher information where each pixel's images are its own)
+        done a run of rows at a time (:meth:`row_runs`) holds only that run's per-pixel arrays.
+
+        Returns
+        -------
+        Observations
+            Its per-sample arrays (K', C) are views of :meth:`block_range`'s blocks of this one's, its noise factors
+            (hi - lo, C) a view of those rows'.
+
+        Raises
+        ------
+        ValueError
+            Where the samples read the images between rows (:attr:`reading`): a row's images then depend on its
+            neighbours', and a run of rows is not a problem of its own.
+        """
+        if self.reading is not None:
+            raise ValueError("samples that read the images between rows cannot be taken a run of rows at a time")
+        at = self.block_range(lo, hi)
+        return Observations(self.counts[at], self.tf[at], self.fc[at], self.fs[at], self.dark[at], self.use[at],
+                            self.row[at], self.frame[at], self.columns, self.shape, self.gain, self.electronic,
+                            noise=None if self.noise is None else self.noise[lo:hi],
+                            roi=None if self.roi is None else self.roi[at],
+                            offset=None if self.offset is None else self.offset[at])
+
     def with_noise(self, noise: Noise) -> Observations:
         """The same samples under another noise description (its factor map sliced to the held pixels)."""
         return replace(self, gain=noise.gain, electronic=noise.electronic,

@@ -1,11 +1,13 @@
 """Vibration fit: recovery of known parameters within the reported (Fisher) uncertainty."""
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 import pytest
 
 from dfxcorr import catalogue as catalogue_module
 from dfxcorr import config as C
+from dfxcorr import engine as E
 from dfxcorr import fit as F
 from dfxcorr import model as M
 from dfxcorr import pipeline
@@ -218,6 +220,33 @@ def test_the_hessian_of_a_few_columns_stands_for_all_where_their_information_dif
     every, _ = prob.hessian(params, columns=obs.columns.size)
     ratio = eigh(few, every, eigvals_only=True)
     assert 0.8 < np.median(ratio) < 1.2 and np.quantile(ratio, 0.9) < 2.2
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_uncertainty_summed_over_runs_of_rows_is_the_one_of_all_at_once(monkeypatch, dtype):
+    """The Fisher information and its profiled correction are sums over pixels: summed over runs of rows, each with its
+    images solved on its own (E.profiled_fisher), they and the uncertainty are those of all rows at once."""
+    from test_model import random_params, tiny_obs
+
+    rng = np.random.default_rng(21)
+    obs = tiny_obs(rng, J=16, H=10, W=12, A=4)
+    obs = replace(obs, **{k: getattr(obs, k).astype(dtype) for k in ("counts", "tf", "fc", "fs", "dark")},
+                  noise=rng.uniform(0.8, 1.25, (obs.rows.size, obs.columns.size)))
+    params = random_params(rng, obs.n_frames, PAPER_MODEL)
+    w = F.initial_weights(obs, params)
+    ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
+    samples = 3 * obs.columns.size
+    assert len(obs.row_runs(samples)) > 3 and len(obs.row_runs(obs.counts.size)) == 1
+    whole = E.profiled_fisher(obs, ch, w, PAPER_MODEL, samples=obs.counts.size)
+    runs = E.profiled_fisher(obs, ch, w, PAPER_MODEL, samples=samples)
+    for a, b in zip(runs, whole, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+    at_once = F.uncertainty(obs, params, w)
+    monkeypatch.setattr(E, "profiled_fisher", partial(E.profiled_fisher, samples=samples))
+    by_runs = F.uncertainty(obs, params, w)
+    for name in PAPER_MODEL:
+        assert np.all(np.isfinite(at_once[name])), name
+        np.testing.assert_allclose(by_runs[name], at_once[name], rtol=1e-10, err_msg=name)
 
 
 @pytest.mark.slow

@@ -1,12 +1,14 @@
 """The observations' fringe: the flat field's quadratures, what is derived from them, and the columns cut; the
-positions taken as slices."""
+positions taken as slices; runs of rows taken as views."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 import dfxcorr.align as align
 from dfxcorr.align import FRINGE_CHUNK, build_observations, collect_lit_rows
 from dfxcorr.io import Reference, Scan
-from dfxcorr.observations import index_slice
+from dfxcorr.observations import Reading, index_slice
 
 from conftest import tiny_obs
 
@@ -104,3 +106,54 @@ def test_index_slice_takes_the_positions_of_the_index_array(columns):
 def test_index_slice_leaves_positions_beyond_the_axis_to_refuse():
     with pytest.raises(IndexError):
         np.zeros((2, 12))[:, index_slice(np.array([10, 11, 12]), 12)]
+
+
+def test_the_observations_of_a_run_of_rows_are_views_of_the_whole_ones():
+    rng = np.random.default_rng(7)
+    obs = tiny_obs(rng, J=9, H=8, W=5)
+    K, C = obs.counts.shape
+    R = obs.rows.size
+    obs = replace(obs, noise=rng.uniform(0.5, 2.0, (R, C)), roi=rng.random((K, C)) > 0.2,
+                  offset=rng.uniform(0.0, 5.0, (K, C)))
+    lo, hi = 2, 5
+    part = obs.of_rows(lo, hi)
+    blocks = np.flatnonzero(np.isin(obs.pixel, np.arange(lo, hi)))
+    np.testing.assert_array_equal(part.rows, obs.rows[lo:hi])
+    np.testing.assert_array_equal(part.row, obs.row[blocks])
+    np.testing.assert_array_equal(part.frame, obs.frame[blocks])
+    np.testing.assert_array_equal(part.y, obs.y[blocks])
+    np.testing.assert_array_equal(part.columns, obs.columns)
+    for name in ("counts", "tf", "fc", "fs", "dark", "use", "roi", "offset"):
+        a, b = getattr(part, name), getattr(obs, name)
+        np.testing.assert_array_equal(a, b[blocks], err_msg=name)
+        assert np.shares_memory(a, b) and a.flags["C_CONTIGUOUS"], name
+    np.testing.assert_array_equal(part.noise, obs.noise[lo:hi])
+    np.testing.assert_array_equal(part.pixel_gain(), obs.pixel_gain()[lo:hi])
+    assert obs.block_range(lo, hi) == slice(blocks[0], blocks[-1] + 1)
+    assert obs.block_range(lo, R).stop == K
+    for bad in ((3, 3), (-1, 2), (0, R + 1)):
+        with pytest.raises(ValueError, match="range"):
+            obs.block_range(*bad)
+
+
+def test_runs_of_rows_cover_the_rows_once_in_order_near_their_budget():
+    obs = tiny_obs(np.random.default_rng(8), J=20, H=12, W=6)
+    K, C = obs.counts.shape
+    per_row = np.diff(np.append(obs.starts, K)) * C
+    for samples in (1, 3 * C, 40 * C):
+        runs = obs.row_runs(samples)
+        lo, hi = np.array(runs).T
+        assert lo[0] == 0 and hi[-1] == obs.rows.size and np.all(lo < hi) and np.array_equal(lo[1:], hi[:-1])
+        held = np.array([per_row[a:b].sum() for a, b in runs])
+        # each run starts at the first row at or after a multiple of the budget: at most a row beyond it
+        assert held.max() < max(samples, C) + per_row.max()
+        assert len(runs) <= -(-K // max(samples // C, 1))
+    assert len(obs.row_runs(3 * C)) > 2
+    assert obs.row_runs(K * C) == [(0, obs.rows.size)]
+
+
+def test_samples_that_read_between_rows_are_not_taken_a_run_of_rows_at_a_time():
+    obs = tiny_obs(np.random.default_rng(9))
+    between = replace(obs, reading=Reading(obs.pixel.copy(), np.zeros(obs.pixel.size)))
+    with pytest.raises(ValueError, match="between rows"):
+        between.of_rows(0, 1)
