@@ -11,6 +11,8 @@ synthetic samples), both in float32 as a reconstruction holds them:
 - the floor of each pass: the bytes it must stream / the np.copyto bandwidth measured here (the passes read the
   samples' fringe as its quadratures, Observations.fringe: no pass evaluates a trigonometric function per sample),
 - the cost of making those quadratures once, at alignment (numpy's cos and sin in the samples' dtype),
+- each pass on one thread over every row and over a slab of rows held in cache, repeated: how much of its time is
+  memory and how much arithmetic (arithmetic_share),
 then the wall time of the whole vibration fit stage of ``reconstruct`` on the paper study with
 ``fit.subsample=1`` and the default (auto), and the first-call compile cost of the kernels (fresh
 numba cache, in a subprocess) against a cached start. Writes docs/bench-kernels.json.
@@ -20,6 +22,7 @@ Usage: python scripts/bench_kernels.py [--repeat 5] [--skip-fit] [--out docs/]
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -136,6 +139,68 @@ def pass_numbers(obs: Observations, bandwidth: float, *, repeat: int) -> dict:
                        "cpu_ns_per_sample": round(fringe_cpu / n * 1e9, 2)}}
 
 
+@numba.njit
+def _repeat_cost(reps, *args):
+    for _ in range(reps):
+        K._cost_rows(*args)
+
+
+@numba.njit
+def _repeat_retrieve(reps, *args):
+    for _ in range(reps):
+        K._retrieve(*args)
+
+
+def arithmetic_share(obs: Observations, *, repeat: int, slab_bytes: int = 1 << 22) -> dict:
+    """Single-thread ns per sample of the two passes' compiled kernels over every row (the samples streamed from
+    memory) and over a slab of middle rows whose samples take at most ``slab_bytes``, repeated (held in cache): where
+    the two are close, a pass is bound by its arithmetic, and the memory floor is out of its reach."""
+    params = neutral_params(PAPER_MODEL, obs.n_frames)
+    ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
+    weights = np.asarray(noise_weights(obs, obs.counts), dtype=obs.counts.dtype)
+    bounds = K._bounds(obs)
+    fc, fs = obs.fringe
+    n_c, rows = obs.columns.size, obs.rows.size
+    tile = -(-n_c // -(-n_c // K.TILE))
+    turning, vis = K._turning(obs, ch.phase), K._c(ch.vis, np.float64)
+    cost_out = (np.empty(n_c), *(np.empty((obs.n_frames, n_c)) for _ in range(3)), np.empty((3, n_c)),
+                np.empty((2, n_c)))
+    need = np.isin(list(K.CHANNEL_IDS), ["phase", "visibility"])
+    slab = max(1, int(slab_bytes // (24 * obs.counts.size / rows)))
+    first = (rows - slab) // 2
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    out: dict = {"slab_rows": slab}
+
+    def rows_of(lo, hi):
+        """The samples of rows lo:hi as arrays of their own (the retrieval's outputs are per row held)."""
+        b = slice(bounds[lo], bounds[hi])
+        return ((obs.counts[b], obs.tf[b], fc[b], fs[b], obs.dark[b]), weights[b], obs.use[b],
+                (obs.frame[b], obs.y[b], obs.x, bounds[lo:hi + 1] - bounds[lo]), hi - lo)
+
+    def cost(reps, samples, w, _, blocks, n):
+        _repeat_cost(reps, *samples, w, *blocks, 0, n, *turning, vis, ch.dose, ch.background, ch.harmonic, np.eye(2),
+                     False, need, tile, *cost_out)
+
+    def retrieval(reps, samples, _, use, blocks, n):
+        _repeat_retrieve(reps, *samples, samples[-1], use, np.zeros((0, 0), obs.tf.dtype), *blocks,
+                         np.array([0, n]), *turning, vis, ch.dose, ch.background, ch.harmonic, np.ones((n, n_c)), 0.0,
+                         2, True, False, False, False, False, tile, np.empty((0, n_c), obs.tf.dtype))
+    try:
+        for name, run in (("cost_gradient", cost), ("retrieval", retrieval)):
+            numbers = {}
+            for where, lo, hi in (("streamed", 0, rows), ("in_cache", first, first + slab)):
+                args = rows_of(lo, hi)
+                reps = max(1, obs.counts.size // args[0][0].size)
+                run(1, *args)
+                best = min(_seconds(functools.partial(run, reps, *args)) for _ in range(repeat))
+                numbers[f"{where}_ns_per_sample"] = round(best / reps / args[0][0].size * 1e9, 2)
+            out[name] = numbers
+    finally:
+        numba.set_num_threads(threads)
+    return out
+
+
 def fit_times(scan) -> dict:
     """Wall time of reconstruct's stages with every column and every 20th column in the fit."""
     out = {}
@@ -199,10 +264,12 @@ def main():
     print("compile", json.dumps(out["compile"]), flush=True)
     scan, obs = paper_observations()
     out["paper_every_column"] = pass_numbers(obs, bandwidth, repeat=args.repeat)
+    out["paper_every_column"]["single_thread"] = arithmetic_share(obs, repeat=args.repeat)
     print("paper", json.dumps(out["paper_every_column"]), flush=True)
     del obs
     clinical = clinical_observations(np.random.default_rng(1))
     out["clinical_fit_columns"] = pass_numbers(clinical, bandwidth, repeat=args.repeat)
+    out["clinical_fit_columns"]["single_thread"] = arithmetic_share(clinical, repeat=args.repeat)
     print("clinical", json.dumps(out["clinical_fit_columns"]), flush=True)
     del clinical
     if not args.skip_fit:

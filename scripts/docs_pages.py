@@ -163,13 +163,20 @@ alternated, medians of {runs}. An old record of the project's own progress: the 
 after it."""
 
 KERNELS = """\
-CPU nanoseconds per (pixel, frame) sample of one cost-and-gradient evaluation and of one retrieval pass, in
-float32 as a reconstruction holds the samples, against the floor of the bytes each pass must stream at the
-copy bandwidth measured in the same run ({bandwidth:g} GB/s). Neither pass evaluates a trigonometric function per
-sample: they read each sample's flat field as its transmission and the fringe's quadratures, which the alignment
-makes once in place of its visibility and phase ({fringe} ns per sample, numpy's single-precision cos and sin), turned
-by the phase channel with products alone. What the fit saves beyond that is cost evaluations ({evaluations} per
-scan at the defaults, above)."""
+Nanoseconds per (pixel, frame) sample of one cost-and-gradient evaluation and of one retrieval pass (CPU time of
+all threads, and wall time), in float32 as a reconstruction holds the samples, against the floor of the bytes each
+pass must stream at the copy bandwidth measured in the same run ({bandwidth:g} GB/s). Neither pass evaluates a
+trigonometric function per sample: they read each sample's flat field as its transmission and the fringe's
+quadratures, which the alignment makes once in place of its visibility and phase ({fringe} ns per sample, numpy's
+single-precision cos and sin), turned by the phase channel with products alone. What the fit saves beyond that is
+cost evaluations ({evaluations} per scan at the defaults, above)."""
+
+ARITHMETIC = """\
+The same kernels on one thread, over every row (the samples streamed from memory) and over a slab of middle rows
+(at most 4 MiB of samples, held in cache), run again and again. The slab saves {saving} of the time: both passes are
+bound by their arithmetic (a cost evaluation turns, solves and differentiates each sample; a retrieval solves each
+pixel twice, reweighting in between, and sums its Pearson residuals), not by memory. Within 3x of the floor
+would need that arithmetic {need_cost} (cost) and {need_ret} (retrieval) faster than it runs from cache."""
 
 ANCHOR = """\
 The same scan as separate processes (start-up included), this version at its defaults against the paper's method
@@ -387,8 +394,8 @@ def speed_section(bench: dict, base: dict, kern: dict) -> list[str]:
                            ("clinical_fit_columns", "clinical scan, the fit's columns")):
             k = kern[key]
             cg, rt = k["cost_gradient"], k["retrieval"]
-            rows.append([label, f"{cg['cpu_ns_per_sample']:g} (floor {cg['floor_ns_per_sample']:g})",
-                         f"{rt['cpu_ns_per_sample']:g} (floor {rt['floor_ns_per_sample']:g})",
+            rows.append([label, *(f"{p['cpu_ns_per_sample']:g} / {p['ns_per_sample']:g} (floor "
+                                  f"{p['floor_ns_per_sample']:g})" for p in (cg, rt)),
                          f"{k['fringe']['cpu_ns_per_sample']:g}"])
         pk = kern["paper_every_column"]["fringe"]
         evaluations = "-"
@@ -399,13 +406,42 @@ def speed_section(bench: dict, base: dict, kern: dict) -> list[str]:
                 + f", load {load_text(kern['load_average_at_start'])}.", "",
                 KERNELS.format(bandwidth=kern["copy_bandwidth_GB_per_s"], fringe=pk["cpu_ns_per_sample"],
                                evaluations=evaluations), "",
-                *table(["samples", "cost + gradient (ns CPU)", "retrieval (ns CPU)",
+                *table(["samples", "cost + gradient (ns: CPU / wall)", "retrieval (ns: CPU / wall)",
                         "fringe quadratures, once (ns CPU)"], rows), "",
+                *arithmetic_rows(kern), "",
                 f"Compiling the kernels in a fresh numba cache: {kern['compile']['first_run_seconds']:g} s; loading "
                 f"them from the cache: {kern['compile']['cached_run_seconds']:g} s."]
     if out:
         out += ["", DESIGN]
     return out
+
+
+def arithmetic_rows(kern: dict) -> list[str]:
+    """The kernels' single-thread times streamed and from cache (bench_kernels.py's arithmetic_share), if measured."""
+    cases = [(label, kern[key]) for key, label in (("paper_every_column", "paper study, every column"),
+                                                   ("clinical_fit_columns", "clinical scan, the fit's columns"))
+             if "single_thread" in kern[key]]
+    if not cases:
+        return []
+    rows, savings, need = [], [], {"cost_gradient": [], "retrieval": []}
+    for label, k in cases:
+        one = k["single_thread"]
+        cells = [label + f" (slab of {one['slab_rows']} rows)"]
+        for name in ("cost_gradient", "retrieval"):
+            streamed, cached = one[name]["streamed_ns_per_sample"], one[name]["in_cache_ns_per_sample"]
+            cells.append(f"{streamed:g} / {cached:g}")
+            savings.append(1 - cached / streamed)
+            need[name].append(cached / (3 * k[name]["floor_ns_per_sample"]))
+        rows.append(cells)
+
+    def span(values, fmt, unit):
+        lo, hi = fmt.format(min(values)), fmt.format(max(values))
+        return (lo if lo == hi else f"{lo}-{hi}") + unit
+    text = ARITHMETIC.format(saving=span([100 * max(v, 0.0) for v in savings], "{:.0f}", " %"),
+                             need_cost=span(need["cost_gradient"], "{:.1f}", "x"),
+                             need_ret=span(need["retrieval"], "{:.1f}", "x"))
+    return [text, "", *table(["samples", "cost + gradient, one thread: streamed / in cache (ns)",
+                              "retrieval, one thread: streamed / in cache (ns)"], rows)]
 
 
 def real_section(real: dict) -> list[str]:
