@@ -1,5 +1,6 @@
 """Subsets of the observations' columns that stand for all of them: evenly spread (the fit's start check, the
-identifiability check), or spread by their information (the vibration fit's Hessian)."""
+identifiability check), or spread by their information (the vibration fit's Hessian, the uncertainty where samples
+read between rows)."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -57,6 +58,37 @@ def information_columns(info: np.ndarray, *, most: int) -> tuple[np.ndarray, np.
     pick = np.minimum(np.searchsorted(np.cumsum(info), (np.arange(most) + 0.5) * total / most, side="right"), C - 1)
     keep, strata = np.unique(pick, return_counts=True)
     return keep, strata * (total / most) / np.maximum(info[keep], 1e-300)
+
+
+def standing_columns(obs: Observations, weights: np.ndarray, info: np.ndarray | None, *, most: int
+                     ) -> tuple[Observations, np.ndarray]:
+    """At most ``most`` columns spread by their information (:func:`information_columns`), and their weights times
+    the information each stands for: a sum of per-pixel information over them estimates the sum over all columns
+    (each pixel's images are the same, its share of the information that many times its own). All, as given, where
+    there are no more.
+
+    Parameters
+    ----------
+    obs : Observations
+    weights : ndarray, shape (K, C)
+        Inverse variances (counts^-2).
+    info : ndarray, shape (C,), or None
+        Each column's information (:func:`column_information`); needed only where there are more than ``most``.
+    most : int
+
+    Returns
+    -------
+    obs : Observations
+        Its columns.
+    weights : ndarray, shape (K, n)
+        Their weights scaled, in ``weights``' dtype.
+    """
+    if obs.columns.size <= most:
+        return obs, weights
+    if info is None:
+        raise ValueError(f"choosing {most} of {obs.columns.size} columns needs their information")
+    keep, stands = information_columns(info, most=most)
+    return obs.subset(keep), (weights[:, keep] * stands).astype(weights.dtype)
 
 
 def column_information(obs: Observations, params: dict, weights: np.ndarray) -> np.ndarray:

@@ -1,10 +1,16 @@
 """Columns that stand for all: spread by their information, each standing for its stratum's."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from dfxcorr.subsets import information_columns, spread_columns
+from dfxcorr import fit as F
+from dfxcorr.catalogue import PAPER_MODEL
+from dfxcorr.noise import noise_weights
+from dfxcorr.observations import displaced_reading
+from dfxcorr.subsets import column_information, information_columns, spread_columns, standing_columns
 
-from conftest import tiny_obs
+from conftest import random_params, tiny_obs
 
 
 def clinical_like(C=93):
@@ -68,3 +74,38 @@ def test_columns_without_finite_information_are_never_taken_and_nothing_asked_is
     assert information_columns(np.zeros(0), most=4)[0].size == 0
     with pytest.raises(ValueError, match="at least 1"):
         information_columns(info, most=0)
+
+
+def test_standing_columns_keep_the_information_of_all_and_all_when_fewer(rng):
+    """Their weights times what each stands for: the columns' information summed over them is that of all."""
+    obs = tiny_obs(rng, W=40)
+    params = random_params(rng, obs.n_frames, PAPER_MODEL)
+    w = np.asarray(noise_weights(obs, obs.counts), np.float64)
+    info = column_information(obs, params, w)
+    sub, sw = standing_columns(obs, w, info, most=6)
+    assert sub.columns.size <= 6 and sw.shape == sub.counts.shape and sw.dtype == w.dtype
+    np.testing.assert_allclose(column_information(sub, params, sw).sum(), info.sum(), rtol=1e-12)
+    assert standing_columns(obs, w, None, most=40) == (obs, w)
+    with pytest.raises(ValueError, match="information"):
+        standing_columns(obs, w, None, most=39)
+
+
+def test_the_uncertainty_between_rows_is_that_of_standing_columns_and_per_pixel_of_all(rng, monkeypatch):
+    """Where samples read between rows, the uncertainty is computed on UNCERTAINTY_COLUMNS columns standing for all
+    (how close that comes to all of them on realistic scans: scripts/parallax.py's pulls); per pixel, on all."""
+    obs = tiny_obs(rng, J=14, H=8, W=48)
+    shift = rng.uniform(-0.6, 0.6, obs.n_frames)[obs.frame]
+    reading, inside = displaced_reading(obs.row, obs.rows, shift)
+    between = replace(obs, reading=reading, use=obs.use & inside[:, None])
+    params = random_params(rng, obs.n_frames, ("phase_offset", "tilt"))
+    w = np.asarray(noise_weights(between, between.counts), np.float64)
+    every = F.uncertainty(between, params, w)
+    per_pixel = F.uncertainty(obs, params, w)
+    monkeypatch.setattr(F, "UNCERTAINTY_COLUMNS", 16)
+    sub, sw = standing_columns(between, w, column_information(between, params, w), most=16)
+    expected = F.uncertainty(sub, params, sw)
+    standing = F.uncertainty(between, params, w)
+    for name in params:
+        np.testing.assert_array_equal(standing[name], expected[name])
+        assert not np.allclose(standing[name], every[name], rtol=1e-6, atol=0)
+        np.testing.assert_array_equal(F.uncertainty(obs, params, w)[name], per_pixel[name])
