@@ -268,8 +268,8 @@ def run_fit(prep: Prepared, cfg: dict, moving: np.ndarray, *, columns: np.ndarra
     cols = columns
     fit_obs = fit_observations(prep, cols, moving)
     effects = resolve_effects(cfg, prep.scan, prep.reference, fit_obs)
-    # counted as integers: a float64 copy of the mask was 216 MB beside a full-resolution fit of 2.7e7 samples
-    used = fit_obs.segment_sum(fit_obs.use, np.int32) > 0
+    # counted compiled: a float64 copy of the mask was 216 MB beside a full-resolution fit of 2.7e7 samples
+    used = row_counts(fit_obs, fit_obs.use) > 0
     fit_obs.place(fit_mask, used)
     log.info("vibration fit (%s): %s on %d columns, %d pixels, %d frames", method, ", ".join(effects),
              fit_obs.columns.size, int(used.sum()), J)

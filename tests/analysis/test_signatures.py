@@ -118,3 +118,23 @@ def test_located_pixels_are_the_reduced_chi_square_of_their_solved_samples(model
     # data drawn from the model: about 1 along every axis
     assert np.nanmean(located.pixel) == pytest.approx(1.0, abs=0.1)
     assert np.nanmean(located.frame) == pytest.approx(1.0, abs=0.1)
+
+
+def test_samples_without_fringe_have_no_fringe_phase(model_scan):
+    """Samples outside the region of interest (no fringe: they monitor dose and background) are left out of the phase
+    signature. A variance excess in them alone is the column signature there, not a phase signature: labelled by
+    their phase, which is that of zero quadratures, they would all fall into one bin."""
+    shell, _ = model_scan
+    dark = np.zeros(shell.columns.size, bool)
+    dark[[2, 3, 11]] = True
+    flat = replace(shell, fc=np.where(dark, 0.0, shell.fc), fs=np.where(dark, 0.0, shell.fs),
+                   roi=np.broadcast_to(~dark, shell.counts.shape).copy())
+    rng = np.random.default_rng(6)
+    R, C = flat.rows.size, flat.columns.size
+    t, v, phi = rng.uniform(0.5, 1, (R, C)), rng.uniform(0.6, 1, (R, C)), rng.uniform(-np.pi, np.pi, (R, C))
+    images = M.Images(np.stack([t, t * v * np.cos(phi), t * v * np.sin(phi)], axis=-1), np.ones((R, C), bool))
+    ibar = M.expected(flat, M.design(flat, {}), images)
+    counts = rng.poisson(ibar) + np.where(dark, 1.0 * np.sqrt(ibar) * rng.normal(size=ibar.shape), 0.0)
+    sigs = signatures(replace(flat, counts=counts), {}, alpha=0.01)
+    assert ("column", "variance") in significant(sigs)
+    assert ("phase", "variance") not in significant(sigs)
