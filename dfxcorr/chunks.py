@@ -41,11 +41,28 @@ def row_chunks(starts: np.ndarray, n_blocks: int, *, per_thread: int = 4) -> np.
     ndarray of int64, shape (n + 1,)
         Chunk i holds rows ``bounds[i]:bounds[i + 1]``.
     """
-    R = starts.size
-    n = max(1, min(R, per_thread * numba.get_num_threads()))
-    rows = np.searchsorted(starts, np.linspace(0, n_blocks, n + 1), side="left")
-    rows[0], rows[-1] = 0, R
-    return np.unique(rows).astype(np.int64)
+    n = max(1, min(starts.size, per_thread * numba.get_num_threads()))
+    return row_bounds(starts, np.linspace(0, n_blocks, n + 1)[1:-1])
+
+
+def row_bounds(starts: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    """Row boundaries that cut the rows at the first row starting at or after each of the block positions ``blocks``
+    (whole rows, none empty): :func:`row_chunks`' and :meth:`Observations.row_ranges`'.
+
+    Parameters
+    ----------
+    starts : ndarray of int, shape (R,)
+        First block of each row.
+    blocks : ndarray, shape (n,)
+        Block positions to cut at, ascending.
+
+    Returns
+    -------
+    ndarray of int64, shape (m + 1,), m <= n + 1
+        Chunk i holds rows ``bounds[i]:bounds[i + 1]``, from 0 to R.
+    """
+    cuts = np.searchsorted(starts, blocks, side="left")
+    return np.unique(np.concatenate([[0], cuts, [starts.size]])).astype(np.int64)
 
 
 def over_chunks(rows, chunks: np.ndarray, before: tuple, after: tuple, outs: tuple) -> None:

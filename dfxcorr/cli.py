@@ -207,7 +207,7 @@ def reconstruct(scan, output, config_files, sets, method, tiff_dir, preview, ove
 
     out, cfg, outputs, dicom_export = _prepare_reconstruct(scan, output, config_files, sets, method, tiff_dir,
                                                            preview, overwrite, dicom)
-    # the header is not held through the run: its reference maps (29 MiB at full resolution) and its dark
+    # the header is not held through the run: its reference maps take 29 MiB at full resolution
     check.plan(read_scan(scan, allow_external=cfg["load"]["allow_external"], header_only=True), cfg, name=scan,
                outputs=outputs)
     t0 = time.perf_counter()

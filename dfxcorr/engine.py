@@ -187,35 +187,37 @@ def profiled_fisher(obs: Observations, ch: M.Channels, weights: np.ndarray, name
     """:func:`fisher`'s information and profiled correction at the images solved with ``weights`` (:func:`retrieve`).
 
     Where each pixel's images are its own (``obs.reading`` None) both are sums over the pixels: they are summed over
-    runs of rows of about ``samples`` samples (:meth:`Observations.row_runs`), each run's images solved on their own,
-    so that only one run's inverse normal matrices are held; the same values up to the order of the sums. Where the
-    samples read between rows, over all at once.
+    ranges of rows of about ``samples`` samples (:meth:`Observations.row_ranges`), each range's images solved on
+    their own, so that only one range's inverse normal matrices are held; the same values up to the order of the
+    sums. Where the samples read between rows, over all at once.
 
     Parameters
     ----------
     obs : Observations
+        The samples, per pixel or read between rows.
     ch : Channels
-        Channel values on ``obs``'s (frame, column) grid (the same for every run of rows).
+        Channel values on ``obs``'s (frame, column) grid (the same for every range of rows).
     weights : ndarray, shape (K, C)
         Inverse variances (counts^-2).
     names : sequence of str
-        Effects whose parameters the information is of.
+        Effects whose parameters the information is of, in :func:`dfxcorr.model.fisher_index`'s order.
     samples : float
-        Samples per run of rows.
+        Samples per range of rows.
 
     Returns
     -------
     plain, correction : ndarray, shape (P, P)
-        As :func:`fisher`'s, in :func:`dfxcorr.model.fisher_index`'s order.
+        As :func:`fisher`'s (per parameter unit squared), in :func:`dfxcorr.model.fisher_index`'s order.
     """
     def at_images(sub: Observations, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        out = retrieve(sub, ch, weights=w, keep_inverse=True, keep_expected=False)
+        # the between-rows information reads no inverse normal matrices
+        out = retrieve(sub, ch, weights=w, keep_inverse=sub.reading is None, keep_expected=False)
         return fisher(sub, ch, w, out["coef"], out["inverse"], names)
 
-    runs = [] if obs.reading is not None else obs.row_runs(samples)
-    if len(runs) <= 1:
+    ranges = [] if obs.reading is not None else obs.row_ranges(samples)
+    if len(ranges) <= 1:
         return at_images(obs, weights)
-    parts = (at_images(obs.of_rows(lo, hi), weights[obs.block_range(lo, hi)]) for lo, hi in runs)
+    parts = (at_images(obs.of_rows(lo, hi), weights[obs.block_range(lo, hi)]) for lo, hi in ranges)
     plain, corr = next(parts)
     for p, c in parts:
         plain += p

@@ -203,8 +203,7 @@ class _Problem:
             # images solved per pixel, by the compiled kernels, rather than the block-tridiagonal solve's
             self._spread[columns] = (replace(obs, reading=None), weights)
         obs, weights = self._spread[columns]
-        images = _solve(obs, params, weights, keep_inverse=True)
-        plain, corr = E.fisher(obs, _channels(obs, params), weights, images.coef, images.inverse, self.names)
+        plain, corr = E.profiled_fisher(obs, _channels(obs, params), weights, self.names)
         offsets = np.cumsum([0] + [int(np.prod(shp)) for shp in self.shapes])
         where = {n: (o, shp) for n, o, shp in zip(self.names, offsets[:-1], self.shapes, strict=True)}
         order = np.array([where[n][0] + (np.ravel_multi_index((j, m), where[n][1]) if j >= 0 else m)
@@ -716,9 +715,9 @@ def _model_weights(obs: Observations, params: dict, weights: np.ndarray, *, out:
                       out=out)["weights"]
 
 
-def _solve(obs: Observations, params: dict, weights: np.ndarray, *, keep_inverse: bool = False) -> M.Images:
+def _solve(obs: Observations, params: dict, weights: np.ndarray) -> M.Images:
     """Closed-form images for fixed parameters and weights."""
-    out = E.retrieve(obs, _channels(obs, params), weights=weights, keep_inverse=keep_inverse, keep_expected=False)
+    out = E.retrieve(obs, _channels(obs, params), weights=weights, keep_expected=False)
     return M.Images(out["coef"], out["valid"], out["inverse"], out["coupling"])
 
 

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import DTypeLike
 
 from . import kernels as K
-from .chunks import over_chunks
+from .chunks import over_chunks, row_bounds
 
 
 def lateral_coordinate(columns: np.ndarray, width: int) -> np.ndarray:
@@ -348,13 +348,12 @@ class Observations:
         step = max(int(samples // max(K, 1)), 1)
         return [np.arange(a, min(a + step, C)) for a in range(0, C, step)]
 
-    def row_runs(self, samples: float = 1e6) -> list[tuple[int, int]]:
-        """Positions of :attr:`rows` in consecutive runs ``(lo, hi)`` holding about ``samples`` samples each (whole
-        rows, at least one): the rows' counterpart of :meth:`column_chunks`, for :meth:`of_rows`."""
+    def row_ranges(self, samples: float = 1e6) -> list[tuple[int, int]]:
+        """Positions of :attr:`rows` in consecutive ranges ``(lo, hi)`` of about ``samples`` samples each (whole rows,
+        at least one): the rows' counterpart of :meth:`column_chunks`, for :meth:`of_rows`."""
         K, C = self.counts.shape
-        step = max(int(samples // max(C, 1)), 1)
-        # each run from the first row that starts at or after a multiple of ``step`` blocks
-        edges = np.unique(np.append(np.searchsorted(self.starts, np.arange(0, K, step)), self.rows.size))
+        step = max(int(samples // max(C, 1)), 1)  # blocks
+        edges = row_bounds(self.starts, np.arange(step, K, step))
         return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
     def block_range(self, lo: int, hi: int) -> slice:
@@ -368,7 +367,12 @@ class Observations:
         """The samples of the held rows ``lo:hi`` (positions in :attr:`rows`), without copies.
 
         Per-pixel work whose results add over pixels (the Fisher information where each pixel's images are its own)
-        done a run of rows at a time (:meth:`row_runs`) holds only that run's per-pixel arrays.
+        done a range of rows at a time (:meth:`row_ranges`) holds only that range's per-pixel arrays.
+
+        Parameters
+        ----------
+        lo, hi : int
+            First and one past the last position in :attr:`rows` (0 <= lo < hi <= R).
 
         Returns
         -------

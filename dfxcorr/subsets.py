@@ -75,26 +75,28 @@ def standing_columns(obs: Observations, weights: np.ndarray, info: np.ndarray | 
     info : ndarray, shape (C,), or None
         Each column's information (:func:`column_information`); needed only where there are more than ``most``.
     most : int
+        Columns to take at most.
 
     Returns
     -------
     obs : Observations
-        Its columns.
+        The observations of the columns taken (n <= ``most`` of them, ascending).
     weights : ndarray, shape (K, n)
-        Their weights scaled, in ``weights``' dtype.
+        Their weights (counts^-2) times the information each stands for, in ``weights``' dtype.
     """
     if obs.columns.size <= most:
         return obs, weights
-    if info is None:
-        raise ValueError(f"choosing {most} of {obs.columns.size} columns needs their information")
+    if info is None or np.shape(info) != obs.columns.shape:
+        raise ValueError(f"choosing {most} of {obs.columns.size} columns needs the information of each, got "
+                         f"{'none' if info is None else np.shape(info)}")
     keep, stands = information_columns(info, most=most)
     return obs.subset(keep), (weights[:, keep] * stands).astype(weights.dtype)
 
 
 def column_information(obs: Observations, params: dict, weights: np.ndarray) -> np.ndarray:
     """Each column's plain Fisher information in the phase channel, the sum over its samples of w (dIbar/dΦ)^2, (C,):
-    what :func:`information_columns` spreads the Hessian's columns by. One pass of the per-pixel cost kernel (where
-    samples read between rows as well: the Hessian's images are solved per pixel)."""
+    what :func:`information_columns` spreads columns by (the Hessian's, the uncertainty's between rows). One pass of
+    the per-pixel cost kernel (where samples read between rows as well: the images are solved per pixel)."""
     flat = replace(obs, reading=None)
     ch = M.channels(params, x=flat.x, n_frames=flat.n_frames)
     _, sums = E.reduced_cost(flat, ch, weights, square=True, channels=("phase",))

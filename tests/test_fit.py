@@ -236,9 +236,15 @@ def test_the_uncertainty_summed_over_runs_of_rows_is_the_one_of_all_at_once(monk
     w = F.initial_weights(obs, params)
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
     samples = 3 * obs.columns.size
-    assert len(obs.row_runs(samples)) > 3 and len(obs.row_runs(obs.counts.size)) == 1
+    ranges = obs.row_ranges(samples)
+    assert len(ranges) > 3 and len(obs.row_ranges(obs.counts.size)) == 1
     whole = E.profiled_fisher(obs, ch, w, PAPER_MODEL, samples=obs.counts.size)
+    solved, retrieve = [], E.retrieve
+    monkeypatch.setattr(E, "retrieve", lambda sub, *a, **k: solved.append(sub.rows.size) or retrieve(sub, *a, **k))
     runs = E.profiled_fisher(obs, ch, w, PAPER_MODEL, samples=samples)
+    monkeypatch.undo()
+    # each range's images solved on their own
+    assert solved == [hi - lo for lo, hi in ranges]
     for a, b in zip(runs, whole, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
     at_once = F.uncertainty(obs, params, w)

@@ -1,5 +1,6 @@
 """Motion-pixel masking (paper Sec. II-E) on a region that moves during the scan."""
 import logging
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -130,6 +131,16 @@ def test_a_start_in_the_basin_fits_every_frame_within_noise_and_one_frame_off_do
     off["phase_offset"][j] += np.pi / 2  # a quarter fringe: another basin for that frame
     assert start_misfit(obs, off) > 3 * START_CHI2
     assert start_misfit(obs, off, gauge_fraction=1.01) == np.inf  # no frame well determined: never a start
+    # a pixel left with two used samples is not solved: its samples' residuals, however wild, do not count
+    r = obs.rows.size // 2
+    blocks = np.arange(obs.starts[r], obs.starts[r + 1])
+    use = obs.use.copy()
+    use[blocks[2:], 0] = False
+    unsolved = replace(obs, use=use)
+    wild = obs.counts.copy()
+    wild[blocks[:2], 0] *= 10.0
+    assert start_misfit(replace(unsolved, counts=wild), truth_params(truth)) == start_misfit(unsolved,
+                                                                                             truth_params(truth))
 
 
 def test_the_fit_from_the_pilot_reaches_the_minimum_of_the_staged_fit(small_scan, caplog):

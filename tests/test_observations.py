@@ -114,9 +114,10 @@ def test_the_observations_of_a_run_of_rows_are_views_of_the_whole_ones():
     K, C = obs.counts.shape
     R = obs.rows.size
     obs = replace(obs, noise=rng.uniform(0.5, 2.0, (R, C)), roi=rng.random((K, C)) > 0.2,
-                  offset=rng.uniform(0.0, 5.0, (K, C)))
+                  offset=rng.uniform(0.0, 5.0, (K, C)), gain=2.5, electronic=7.0)
     lo, hi = 2, 5
     part = obs.of_rows(lo, hi)
+    assert (part.gain, part.electronic, part.shape) == (2.5, 7.0, obs.shape)
     blocks = np.flatnonzero(np.isin(obs.pixel, np.arange(lo, hi)))
     np.testing.assert_array_equal(part.rows, obs.rows[lo:hi])
     np.testing.assert_array_equal(part.row, obs.row[blocks])
@@ -136,20 +137,20 @@ def test_the_observations_of_a_run_of_rows_are_views_of_the_whole_ones():
             obs.block_range(*bad)
 
 
-def test_runs_of_rows_cover_the_rows_once_in_order_near_their_budget():
+def test_ranges_of_rows_cover_the_rows_once_in_order_near_their_budget():
     obs = tiny_obs(np.random.default_rng(8), J=20, H=12, W=6)
     K, C = obs.counts.shape
     per_row = np.diff(np.append(obs.starts, K)) * C
     for samples in (1, 3 * C, 40 * C):
-        runs = obs.row_runs(samples)
+        runs = obs.row_ranges(samples)
         lo, hi = np.array(runs).T
         assert lo[0] == 0 and hi[-1] == obs.rows.size and np.all(lo < hi) and np.array_equal(lo[1:], hi[:-1])
         held = np.array([per_row[a:b].sum() for a, b in runs])
-        # each run starts at the first row at or after a multiple of the budget: at most a row beyond it
+        # each range from the first row at or after a multiple of the budget: at most a row beyond it
         assert held.max() < max(samples, C) + per_row.max()
         assert len(runs) <= -(-K // max(samples // C, 1))
-    assert len(obs.row_runs(3 * C)) > 2
-    assert obs.row_runs(K * C) == [(0, obs.rows.size)]
+    assert len(obs.row_ranges(3 * C)) > 2
+    assert obs.row_ranges(K * C) == [(0, obs.rows.size)]
 
 
 def test_samples_that_read_between_rows_are_not_taken_a_run_of_rows_at_a_time():

@@ -86,8 +86,9 @@ def test_standing_columns_keep_the_information_of_all_and_all_when_fewer(rng):
     assert sub.columns.size <= 6 and sw.shape == sub.counts.shape and sw.dtype == w.dtype
     np.testing.assert_allclose(column_information(sub, params, sw).sum(), info.sum(), rtol=1e-12)
     assert standing_columns(obs, w, None, most=40) == (obs, w)
-    with pytest.raises(ValueError, match="information"):
-        standing_columns(obs, w, None, most=39)
+    for info_of in (None, info[:-1]):
+        with pytest.raises(ValueError, match="information"):
+            standing_columns(obs, w, info_of, most=39)
 
 
 def test_the_uncertainty_between_rows_is_that_of_standing_columns_and_per_pixel_of_all(rng, monkeypatch):
