@@ -152,50 +152,49 @@ def _repeat_retrieve(reps, *args):
 
 
 def arithmetic_share(obs: Observations, *, repeat: int, slab_bytes: int = 1 << 22) -> dict:
-    """Single-thread ns per sample of the two passes' compiled kernels over every row (the samples streamed from
-    memory) and over a slab of middle rows whose samples take at most ``slab_bytes``, repeated (held in cache): where
-    the two are close, a pass is bound by its arithmetic, and the memory floor is out of its reach."""
+    """Single-thread ns per sample of the two passes' compiled kernels, called as reduced_cost and retrieve call them,
+    over every row (the samples streamed from memory) and over a slab of middle rows whose samples take at most
+    ``slab_bytes`` (Observations.of_rows), repeated so that it stays in the last-level cache; the two alternated,
+    best of ``repeat`` each. Where the two are close, a pass is bound by its arithmetic, not by memory."""
     params = neutral_params(PAPER_MODEL, obs.n_frames)
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
     weights = np.asarray(noise_weights(obs, obs.counts), dtype=obs.counts.dtype)
-    bounds = K._bounds(obs)
-    fc, fs = obs.fringe
     n_c, rows = obs.columns.size, obs.rows.size
-    tile = -(-n_c // -(-n_c // K.TILE))
     turning, vis = K._turning(obs, ch.phase), K._c(ch.vis, np.float64)
     cost_out = (np.empty(n_c), *(np.empty((obs.n_frames, n_c)) for _ in range(3)), np.empty((3, n_c)),
                 np.empty((2, n_c)))
     need = np.isin(list(K.CHANNEL_IDS), ["phase", "visibility"])
-    slab = max(1, int(slab_bytes // (24 * obs.counts.size / rows)))
+    per_row = obs.counts.size / rows * sum(a.itemsize for a in (obs.counts, obs.tf, obs.fc, obs.fs, obs.dark, weights))
+    slab = max(1, int(slab_bytes // per_row))
     first = (rows - slab) // 2
+    parts = {"streamed": (obs, weights),
+             "in_cache": (obs.of_rows(first, first + slab), weights[obs.block_range(first, first + slab)])}
+
+    def cost(reps, sub, w):
+        _repeat_cost(reps, sub.counts, sub.tf, sub.fc, sub.fs, sub.dark, w, sub.frame, sub.y, sub.x, K._bounds(sub), 0,
+                     sub.rows.size, *turning, vis, ch.dose, ch.background, ch.harmonic, np.eye(2), False, need, K.TILE,
+                     *cost_out)
+
+    def retrieval(reps, sub, _):
+        n = sub.rows.size
+        _repeat_retrieve(reps, sub.counts, sub.tf, sub.fc, sub.fs, sub.dark, sub.dark, sub.use,
+                         np.zeros((0, 0), sub.tf.dtype), sub.frame, sub.y, sub.x, K._bounds(sub), np.array([0, n]),
+                         *turning, vis, ch.dose, ch.background, ch.harmonic, np.ones((n, n_c)), 0.0, 2, True, False,
+                         False, False, False, -(-n_c // -(-n_c // K.TILE)), np.empty((0, n_c), sub.tf.dtype))
     threads = numba.get_num_threads()
     numba.set_num_threads(1)
-    out: dict = {"slab_rows": slab}
-
-    def rows_of(lo, hi):
-        """The samples of rows lo:hi as arrays of their own (the retrieval's outputs are per row held)."""
-        b = slice(bounds[lo], bounds[hi])
-        return ((obs.counts[b], obs.tf[b], fc[b], fs[b], obs.dark[b]), weights[b], obs.use[b],
-                (obs.frame[b], obs.y[b], obs.x, bounds[lo:hi + 1] - bounds[lo]), hi - lo)
-
-    def cost(reps, samples, w, _, blocks, n):
-        _repeat_cost(reps, *samples, w, *blocks, 0, n, *turning, vis, ch.dose, ch.background, ch.harmonic, np.eye(2),
-                     False, need, tile, *cost_out)
-
-    def retrieval(reps, samples, _, use, blocks, n):
-        _repeat_retrieve(reps, *samples, samples[-1], use, np.zeros((0, 0), obs.tf.dtype), *blocks,
-                         np.array([0, n]), *turning, vis, ch.dose, ch.background, ch.harmonic, np.ones((n, n_c)), 0.0,
-                         2, True, False, False, False, False, tile, np.empty((0, n_c), obs.tf.dtype))
+    out: dict = {"slab_rows": slab, "slab_bytes": slab_bytes}
     try:
         for name, run in (("cost_gradient", cost), ("retrieval", retrieval)):
-            numbers = {}
-            for where, lo, hi in (("streamed", 0, rows), ("in_cache", first, first + slab)):
-                args = rows_of(lo, hi)
-                reps = max(1, obs.counts.size // args[0][0].size)
-                run(1, *args)
-                best = min(_seconds(functools.partial(run, reps, *args)) for _ in range(repeat))
-                numbers[f"{where}_ns_per_sample"] = round(best / reps / args[0][0].size * 1e9, 2)
-            out[name] = numbers
+            reps = {where: max(1, obs.counts.size // sub.counts.size) for where, (sub, _) in parts.items()}
+            best = dict.fromkeys(parts, np.inf)
+            for sub, w in parts.values():
+                run(1, sub, w)
+            for _ in range(repeat):
+                for where, (sub, w) in parts.items():
+                    seconds = _seconds(functools.partial(run, reps[where], sub, w))
+                    best[where] = min(best[where], seconds / reps[where] / sub.counts.size)
+            out[name] = {f"{where}_ns_per_sample": round(best[where] * 1e9, 2) for where in parts}
     finally:
         numba.set_num_threads(threads)
     return out

@@ -5,7 +5,7 @@ Reads docs/paper-study.json (scripts/paper_study.py), docs/benchmark.json (scrip
 docs/bench-baseline.json (scripts/bench_baseline.py), docs/bench-kernels.json (scripts/bench_kernels.py),
 docs/real-ipp.json (scripts/real_ipp.py), docs/diagnosis-study.json (scripts/diagnose_study.py),
 docs/diagnose-cost.json (scripts/diagnose_cost.py), docs/scatter-twin.json (scripts/scatter_twin.py),
-docs/parallax.json (scripts/parallax.py) and the
+docs/parallax.json (scripts/parallax.py), docs/uncertainty-columns.json (scripts/uncertainty_columns.py) and the
 evaluation's docs/table-*.json and docs/fig*.json (scripts/paper_figures.py), and writes
 - docs/measurements.md: every measurement with its machine, load and the script that makes it;
 - the table between the ``measured`` markers of README.md: one row per case, the same numbers.
@@ -173,10 +173,11 @@ cost evaluations ({evaluations} per scan at the defaults, above)."""
 
 ARITHMETIC = """\
 The same kernels on one thread, over every row (the samples streamed from memory) and over a slab of middle rows
-(at most 4 MiB of samples, held in cache), run again and again. The slab saves {saving} of the time: both passes are
-bound by their arithmetic (a cost evaluation turns, solves and differentiates each sample; a retrieval solves each
-pixel twice, reweighting in between, and sums its Pearson residuals), not by memory. Within 3x of the floor
-would need that arithmetic {need_cost} (cost) and {need_ret} (retrieval) faster than it runs from cache."""
+(at most {slab} MiB of samples, in the last-level cache), run again and again, the two alternated, best of each.
+The slab changes the time by {change}:
+{verdict} (a cost evaluation turns, solves and differentiates each sample; a retrieval solves each pixel twice,
+reweighting in between, and sums its Pearson residuals). Within 3x of the floor would need that arithmetic
+{need_cost} (cost) and {need_ret} (retrieval) faster than it runs from cache."""
 
 ANCHOR = """\
 The same scan as separate processes (start-up included), this version at its defaults against the paper's method
@@ -430,14 +431,20 @@ def arithmetic_rows(kern: dict) -> list[str]:
         for name in ("cost_gradient", "retrieval"):
             streamed, cached = one[name]["streamed_ns_per_sample"], one[name]["in_cache_ns_per_sample"]
             cells.append(f"{streamed:g} / {cached:g}")
-            savings.append(1 - cached / streamed)
+            savings.append(cached / streamed - 1)
             need[name].append(cached / (3 * k[name]["floor_ns_per_sample"]))
         rows.append(cells)
 
     def span(values, fmt, unit):
         lo, hi = fmt.format(min(values)), fmt.format(max(values))
         return (lo if lo == hi else f"{lo}-{hi}") + unit
-    text = ARITHMETIC.format(saving=span([100 * max(v, 0.0) for v in savings], "{:.0f}", " %"),
+    # what holding the samples in cache takes off a pass is the share memory has in it
+    share = max(0.0, -100 * min(savings))
+    verdict = (f"memory takes at most {share:.0f} % of either pass, so both are bound by their arithmetic"
+               if share < 50 else f"memory takes up to {share:.0f} % of a pass")
+    slab = {one["single_thread"].get("slab_bytes", 1 << 22) for _, one in cases}
+    text = ARITHMETIC.format(slab="/".join(f"{b / 2 ** 20:g}" for b in sorted(slab)),
+                             change=f"{100 * min(savings):+.0f} % to {100 * max(savings):+.0f} %", verdict=verdict,
                              need_cost=span(need["cost_gradient"], "{:.1f}", "x"),
                              need_ret=span(need["retrieval"], "{:.1f}", "x"))
     return [text, "", *table(["samples", "cost + gradient, one thread: streamed / in cache (ns)",
@@ -666,6 +673,26 @@ def parallax_section(par: dict) -> list[str]:
                     "defaults: chi-square; errors t / ln v / phi; time", "recommended", "twin"], rows)]
 
 
+def uncertainty_columns_section(rec: dict) -> list[str]:
+    """The between-rows uncertainty from standing columns against every column's (scripts/uncertainty_columns.py)."""
+    if not rec:
+        return []
+    rows = []
+    for name, r in rec["scans"].items():
+        for effect, q in r["ratio"].items():
+            rows.append([f"{name}, {' x '.join(str(n) for n in r['shape'])}", effect,
+                         f"{r['standing_columns']} of {r['columns']}", f"{q['median']:.4f}",
+                         f"{q['min']:.4f}-{q['max']:.4f}", f"{q['rms_deviation']:.4f}",
+                         f"{r['seconds']['standing']:.2f} / {r['seconds']['every column']:.2f}"])
+    return ["", "### The uncertainty between rows from standing columns", "",
+            f"`scripts/uncertainty_columns.py` -> `docs/uncertainty-columns.json`. Machine: {rec['machine']}. "
+            f"Simulated with kappa = {rec['parallax']:g} and reconstructed with it: each frame's standard error "
+            "from the columns spread by their information, each standing for its stratum, over that from every "
+            "column, and the seconds of each.", "",
+            *table(["scan", "effect", "columns", "median", "range", "rms deviation from 1",
+                    "seconds: standing / every column"], rows)]
+
+
 def evaluation_section(docs: Path) -> list[str]:
     tab = read(docs, "table-1mm.json")
     if not tab:
@@ -767,6 +794,7 @@ def measurements(docs: Path) -> str:
     lines += cost_section(read(docs, "diagnose-cost.json"))
     lines += scatter_twin_section(read(docs, "scatter-twin.json"))
     lines += parallax_section(read(docs, "parallax.json"))
+    lines += uncertainty_columns_section(read(docs, "uncertainty-columns.json"))
     lines += evaluation_section(docs)
     lines += ["", "## Identifiability, found rather than assumed", "", IDENTIFIABILITY]
     return "\n".join(lines) + "\n"
