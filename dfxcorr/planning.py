@@ -177,9 +177,10 @@ PILOT_SECONDS_PER_SAMPLE = 0.22e-6
 #: clinical scan, 0.11 on the paper study; docs/benchmark.json, load 3.4-4.1).
 REST_SECONDS_PER_SAMPLE = 0.08e-6
 #: How much slower the fit runs where the samples read between rows (``geometry.parallax``: one block-tridiagonal
-#: solve per column, :mod:`dfxcorr.kernels_between`): the same columns fitted, the paper study's fit 42.4 s against
-#: 16.8 s and 47.4 s against 18.3 s, the binned clinical scan's 15.3 s against 9.1 s (load 3.5-4.9).
-READ_BETWEEN_SLOWDOWN = 2.5
+#: solve per column, :mod:`dfxcorr.kernels_between`): the same columns fitted, the paper study's fit stage 2.31 s
+#: against 1.35 s, the binned clinical scan's 2.95 s against 1.36 s (docs/benchmark.json, load 1.3-1.7; it was 2.5
+#: before the uncertainty between rows took standing columns).
+READ_BETWEEN_SLOWDOWN = 2.0
 
 
 @dataclass(frozen=True)
