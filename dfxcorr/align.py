@@ -305,7 +305,7 @@ class LitStore:
         return (dark if offset is None else dark + offset), offset
 
     def row_runs(self, samples: float) -> list[tuple[int, int]]:
-        """Detector-row ranges [r0, r1) whose blocks hold at most ``samples`` samples (at least one row each),
+        """Runs of detector rows [r0, r1) whose blocks hold at most ``samples`` samples (at least one row each),
         covering every held row: pixels, and a pixel's frames, never straddle two of them."""
         rows, per_row = np.unique(self.row, return_counts=True)
         cap = max(int(samples / self.shape[2]), 1)  # blocks (row, frame)

@@ -38,7 +38,7 @@ def row_chunks(starts: np.ndarray, n_blocks: int, *, per_thread: int = 4) -> np.
 
     Returns
     -------
-    ndarray of int64, shape (n + 1,)
+    ndarray of int64, shape (m + 1,), m <= per_thread x threads
         Chunk i holds rows ``bounds[i]:bounds[i + 1]``.
     """
     n = max(1, min(starts.size, per_thread * numba.get_num_threads()))

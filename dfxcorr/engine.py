@@ -26,9 +26,9 @@ from .catalogue import effect
 from .noise import noise_weights, variance
 from .observations import Observations
 
-#: Samples of each run of rows on which :func:`profiled_fisher` solves the images: one run's inverse normal matrices,
+#: Samples of each range of rows on which :func:`profiled_fisher` solves the images: one range's inverse matrices,
 #: 72 bytes per pixel, are held at a time (a full-resolution clinical fit of 2.7e7 samples held its 1e6 pixels' 75 MB
-#: at once, at the process's peak; at its 26 samples per pixel a run holds about 11 MB).
+#: at once, at the process's peak; at its 26 samples per pixel a range holds about 11 MB).
 FISHER_SAMPLES = 4e6
 
 

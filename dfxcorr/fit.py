@@ -93,9 +93,9 @@ RIDGE = 0.01
 FACTOR_PIXELS = 30_000
 FACTOR_MIN_COLUMNS = 16
 #: Columns, spread by their information, on which the uncertainty is computed where samples read between rows: that
-#: Fisher information costs about 80 ns per sample (0.73 s on the paper study's 510 columns, 0.24 s on these).
-#: Against every column's, each frame's phi0 / phi1 standard error within 1.8 % (rms 0.2 %) there and 4.4 % (rms
-#: 0.4 %) on 204 columns (scripts/uncertainty_columns.py).
+#: Fisher information costs about 100 ns per sample (0.73 s on the paper study's 510 columns, 0.24 s on these).
+#: Against every column's, each frame's standard error within 1.8 % (rms 0.2 %) there and 4.8 % (rms 0.5 %) on 204
+#: columns (scripts/uncertainty_columns.py).
 UNCERTAINTY_COLUMNS = 128
 #: Above this many parameters the dense profiled Hessian (P x P, per thread in the Fisher kernel) is not
 #: formed and the diagonal preconditions (a clinical scan has 585; a long scan with many effects could

@@ -384,10 +384,10 @@ class Observations:
         ------
         ValueError
             Where the samples read the images between rows (:attr:`reading`): a row's images then depend on its
-            neighbours', and a run of rows is not a problem of its own.
+            neighbours', and a range of rows is not a problem of its own.
         """
         if self.reading is not None:
-            raise ValueError("samples that read the images between rows cannot be taken a run of rows at a time")
+            raise ValueError("samples that read the images between rows cannot be taken a range of rows at a time")
         at = self.block_range(lo, hi)
         return Observations(self.counts[at], self.tf[at], self.fc[at], self.fs[at], self.dark[at], self.use[at],
                             self.row[at], self.frame[at], self.columns, self.shape, self.gain, self.electronic,

@@ -82,7 +82,8 @@ def standing_columns(obs: Observations, weights: np.ndarray, info: np.ndarray | 
     obs : Observations
         The observations of the columns taken (n <= ``most`` of them, ascending).
     weights : ndarray, shape (K, n)
-        Their weights (counts^-2) times the information each stands for, in ``weights``' dtype.
+        Their weights (counts^-2) times how many times its own information each stands for
+        (:func:`information_columns`' ``stands``), in ``weights``' dtype.
     """
     if obs.columns.size <= most:
         return obs, weights

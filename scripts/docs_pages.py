@@ -424,14 +424,14 @@ def arithmetic_rows(kern: dict) -> list[str]:
              if "single_thread" in kern[key]]
     if not cases:
         return []
-    rows, savings, need = [], [], {"cost_gradient": [], "retrieval": []}
+    rows, changes, need = [], [], {"cost_gradient": [], "retrieval": []}
     for label, k in cases:
         one = k["single_thread"]
         cells = [label + f" (slab of {one['slab_rows']} rows)"]
         for name in ("cost_gradient", "retrieval"):
             streamed, cached = one[name]["streamed_ns_per_sample"], one[name]["in_cache_ns_per_sample"]
             cells.append(f"{streamed:g} / {cached:g}")
-            savings.append(cached / streamed - 1)
+            changes.append(cached / streamed - 1)
             need[name].append(cached / (3 * k[name]["floor_ns_per_sample"]))
         rows.append(cells)
 
@@ -439,12 +439,12 @@ def arithmetic_rows(kern: dict) -> list[str]:
         lo, hi = fmt.format(min(values)), fmt.format(max(values))
         return (lo if lo == hi else f"{lo}-{hi}") + unit
     # what holding the samples in cache takes off a pass is the share memory has in it
-    share = max(0.0, -100 * min(savings))
+    share = max(0.0, -100 * min(changes))
     verdict = (f"memory takes at most {share:.0f} % of either pass, so both are bound by their arithmetic"
-               if share < 50 else f"memory takes up to {share:.0f} % of a pass")
+               if share < 50 else f"memory takes up to {share:.0f} % of a pass, the rest is their arithmetic")
     slab = {one["single_thread"].get("slab_bytes", 1 << 22) for _, one in cases}
     text = ARITHMETIC.format(slab="/".join(f"{b / 2 ** 20:g}" for b in sorted(slab)),
-                             change=f"{100 * min(savings):+.0f} % to {100 * max(savings):+.0f} %", verdict=verdict,
+                             change=f"{100 * min(changes):+.0f} % to {100 * max(changes):+.0f} %", verdict=verdict,
                              need_cost=span(need["cost_gradient"], "{:.1f}", "x"),
                              need_ret=span(need["retrieval"], "{:.1f}", "x"))
     return [text, "", *table(["samples", "cost + gradient, one thread: streamed / in cache (ns)",
@@ -677,20 +677,23 @@ def uncertainty_columns_section(rec: dict) -> list[str]:
     """The between-rows uncertainty from standing columns against every column's (scripts/uncertainty_columns.py)."""
     if not rec:
         return []
-    rows = []
+    rows, times = [], []
     for name, r in rec["scans"].items():
+        scan = f"{name}, {' x '.join(str(n) for n in r['shape'])}"
         for effect, q in r["ratio"].items():
-            rows.append([f"{name}, {' x '.join(str(n) for n in r['shape'])}", effect,
-                         f"{r['standing_columns']} of {r['columns']}", f"{q['median']:.4f}",
+            rows.append([scan, effect, f"{r['standing_columns']} of {r['columns']}", f"{q['median']:.4f}",
                          f"{q['min']:.4f}-{q['max']:.4f}", f"{q['rms_deviation']:.4f}",
-                         f"{r['seconds']['standing']:.2f} / {r['seconds']['every column']:.2f}"])
+                         f"{q['frames']} ({q.get('finite_in_one_only', 0)})"])
+        times.append(f"{scan}: {r['seconds']['standing']:.2f} s from the standing columns, "
+                     f"{r['seconds']['every column']:.2f} s from every column"
+                     + (f" (load {r['load_average']:g})" if "load_average" in r else ""))
     return ["", "### The uncertainty between rows from standing columns", "",
             f"`scripts/uncertainty_columns.py` -> `docs/uncertainty-columns.json`. Machine: {rec['machine']}. "
             f"Simulated with kappa = {rec['parallax']:g} and reconstructed with it: each frame's standard error "
             "from the columns spread by their information, each standing for its stratum, over that from every "
-            "column, and the seconds of each.", "",
-            *table(["scan", "effect", "columns", "median", "range", "rms deviation from 1",
-                    "seconds: standing / every column"], rows)]
+            "column (frames finite in both; in brackets, those finite in only one).", "",
+            *table(["scan", "effect", "columns", "median", "range", "rms deviation from 1", "frames"], rows), "",
+            "Seconds of one computation each: " + "; ".join(times) + "."]
 
 
 def evaluation_section(docs: Path) -> list[str]:

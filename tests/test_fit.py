@@ -223,9 +223,9 @@ def test_the_hessian_of_a_few_columns_stands_for_all_where_their_information_dif
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_the_uncertainty_summed_over_runs_of_rows_is_the_one_of_all_at_once(monkeypatch, dtype):
-    """The Fisher information and its profiled correction are sums over pixels: summed over runs of rows, each with its
-    images solved on its own (E.profiled_fisher), they and the uncertainty are those of all rows at once."""
+def test_the_uncertainty_summed_over_ranges_of_rows_is_the_one_of_all_at_once(monkeypatch, dtype):
+    """The Fisher information and its profiled correction are sums over pixels: summed over ranges of rows, each with
+    its images solved on its own (E.profiled_fisher), they and the uncertainty are those of all rows at once."""
     from test_model import random_params, tiny_obs
 
     rng = np.random.default_rng(21)
@@ -334,3 +334,19 @@ def test_global_search_moves_a_weak_frame_back_into_its_basin(rng):
     same, _ = rescue_frames(obs, params, weights, np.array([0]), empirical_prior(params, good))
     again = same["phase_offset"][0, 0] + same["tilt"][0, 0] * obs.x
     assert np.all(np.abs(np.angle(np.exp(1j * (again - psi["true"])))) < np.pi / 2)
+
+
+def test_the_uncertainty_between_rows_keeps_no_inverse_matrices(monkeypatch):
+    """The between-rows Fisher information reads no inverse normal matrices: the retrieval before it keeps none."""
+    from test_engine import displaced
+    from test_model import random_params, tiny_obs
+
+    rng = np.random.default_rng(23)
+    obs = displaced(rng, tiny_obs(rng, J=14, H=8, W=5))
+    params = random_params(rng, obs.n_frames, ("phase_offset", "tilt"))
+    w = F.initial_weights(obs, params)
+    kept, retrieve = [], E.retrieve
+    monkeypatch.setattr(E, "retrieve",
+                        lambda sub, *a, **k: kept.append(k.get("keep_inverse")) or retrieve(sub, *a, **k))
+    unc = F.uncertainty(obs, params, w)
+    assert kept == [False] and np.isfinite(unc["phase_offset"]).any()

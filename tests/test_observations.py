@@ -1,12 +1,14 @@
 """The observations' fringe: the flat field's quadratures, what is derived from them, and the columns cut; the
-positions taken as slices; runs of rows taken as views."""
+positions taken as slices; ranges of rows taken as views."""
 from dataclasses import replace
 
+import numba
 import numpy as np
 import pytest
 
 import dfxcorr.align as align
 from dfxcorr.align import FRINGE_CHUNK, build_observations, collect_lit_rows
+from dfxcorr.chunks import row_bounds, row_chunks
 from dfxcorr.io import Reference, Scan
 from dfxcorr.observations import Reading, index_slice
 
@@ -108,7 +110,7 @@ def test_index_slice_leaves_positions_beyond_the_axis_to_refuse():
         np.zeros((2, 12))[:, index_slice(np.array([10, 11, 12]), 12)]
 
 
-def test_the_observations_of_a_run_of_rows_are_views_of_the_whole_ones():
+def test_the_observations_of_a_range_of_rows_are_views_of_the_whole_ones():
     rng = np.random.default_rng(7)
     obs = tiny_obs(rng, J=9, H=8, W=5)
     K, C = obs.counts.shape
@@ -142,13 +144,13 @@ def test_ranges_of_rows_cover_the_rows_once_in_order_near_their_budget():
     K, C = obs.counts.shape
     per_row = np.diff(np.append(obs.starts, K)) * C
     for samples in (1, 3 * C, 40 * C):
-        runs = obs.row_ranges(samples)
-        lo, hi = np.array(runs).T
+        ranges = obs.row_ranges(samples)
+        lo, hi = np.array(ranges).T
         assert lo[0] == 0 and hi[-1] == obs.rows.size and np.all(lo < hi) and np.array_equal(lo[1:], hi[:-1])
-        held = np.array([per_row[a:b].sum() for a, b in runs])
+        held = np.array([per_row[a:b].sum() for a, b in ranges])
         # each range from the first row at or after a multiple of the budget: at most a row beyond it
         assert held.max() < max(samples, C) + per_row.max()
-        assert len(runs) <= -(-K // max(samples // C, 1))
+        assert len(ranges) <= -(-K // max(samples // C, 1))
     assert len(obs.row_ranges(3 * C)) > 2
     assert obs.row_ranges(K * C) == [(0, obs.rows.size)]
 
@@ -158,3 +160,19 @@ def test_samples_that_read_between_rows_are_not_taken_a_run_of_rows_at_a_time():
     between = replace(obs, reading=Reading(obs.pixel.copy(), np.zeros(obs.pixel.size)))
     with pytest.raises(ValueError, match="between rows"):
         between.of_rows(0, 1)
+
+
+def test_rows_are_cut_at_the_first_row_starting_at_or_after_each_position():
+    """Where the cuts fall decides the compiled kernels' chunks, and so the order of their sums."""
+    starts = np.array([0, 2, 4, 9])
+    np.testing.assert_array_equal(row_bounds(starts, np.array([2.0])), [0, 1, 4])
+    np.testing.assert_array_equal(row_bounds(starts, np.array([2.5, 3.0, 9.0, 12.0])), [0, 2, 3, 4])
+    np.testing.assert_array_equal(row_bounds(starts, np.array([])), [0, 4])
+    np.testing.assert_array_equal(row_bounds(np.array([], int), np.array([1.0])), [0])
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        # 4 chunks of about 3 of 12 blocks: rows starting at or after 3, 6 and 9
+        np.testing.assert_array_equal(row_chunks(starts, 12, per_thread=4), [0, 2, 3, 4])
+    finally:
+        numba.set_num_threads(threads)
