@@ -177,8 +177,8 @@ PILOT_SECONDS_PER_SAMPLE = 0.22e-6
 #: clinical scan, 0.11 on the paper study; docs/benchmark.json, load 3.4-4.1).
 REST_SECONDS_PER_SAMPLE = 0.08e-6
 #: How much slower the fit runs where the samples read between rows (``geometry.parallax``: one block-tridiagonal
-#: solve per column, :mod:`dfxcorr.kernels_between`): the same columns fitted, the paper study's fit stage 2.31 s
-#: against 1.35 s, the binned clinical scan's 2.95 s against 1.36 s (docs/benchmark.json, load 1.0-1.7), each with 2
+#: solve per column, :mod:`dfxcorr.kernels_between`): the same columns fitted, the paper study's fit stage 2.24 s
+#: against 1.23 s, the binned clinical scan's 2.22 s against 1.32 s (docs/benchmark.json, load 1.1-1.7), each with 2
 #: cost evaluations more (12 / 10, 11 / 9); it was 2.5 before the uncertainty between rows took standing columns.
 READ_BETWEEN_SLOWDOWN = 2.0
 
