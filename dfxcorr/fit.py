@@ -719,7 +719,7 @@ def _model_weights(obs: Observations, params: dict, weights: np.ndarray, *, out:
 def _solve(obs: Observations, params: dict, weights: np.ndarray) -> M.Images:
     """Closed-form images for fixed parameters and weights."""
     out = E.retrieve(obs, _channels(obs, params), weights=weights, keep_expected=False)
-    return M.Images(out["coef"], out["valid"], out["inverse"], out["coupling"])
+    return M.Images(out["coef"], out["valid"])
 
 
 def uncertainty(obs: Observations, params: dict, weights: np.ndarray) -> dict[str, np.ndarray]:

@@ -140,15 +140,10 @@ def pass_numbers(obs: Observations, bandwidth: float, *, repeat: int) -> dict:
 
 
 @numba.njit
-def _repeat_cost(reps, *args):
+def _repeat(reps, kernel, *args):
+    """``reps`` calls of the compiled ``kernel``, from compiled code (no Python dispatch between them)."""
     for _ in range(reps):
-        K._cost_rows(*args)
-
-
-@numba.njit
-def _repeat_retrieve(reps, *args):
-    for _ in range(reps):
-        K._retrieve(*args)
+        kernel(*args)
 
 
 def arithmetic_share(obs: Observations, *, repeat: int, slab_bytes: int = 1 << 22) -> dict:
@@ -171,16 +166,16 @@ def arithmetic_share(obs: Observations, *, repeat: int, slab_bytes: int = 1 << 2
              "in_cache": (obs.of_rows(first, first + slab), weights[obs.block_range(first, first + slab)])}
 
     def cost(reps, sub, w):
-        _repeat_cost(reps, sub.counts, sub.tf, sub.fc, sub.fs, sub.dark, w, sub.frame, sub.y, sub.x, K._bounds(sub), 0,
-                     sub.rows.size, *turning, vis, ch.dose, ch.background, ch.harmonic, np.eye(2), False, need, K.TILE,
-                     *cost_out)
+        _repeat(reps, K._cost_rows, sub.counts, sub.tf, sub.fc, sub.fs, sub.dark, w, sub.frame, sub.y, sub.x,
+                K._bounds(sub), 0, sub.rows.size, *turning, vis, ch.dose, ch.background, ch.harmonic, np.eye(2), False,
+                need, K.TILE, *cost_out)
 
     def retrieval(reps, sub, _):
         n = sub.rows.size
-        _repeat_retrieve(reps, sub.counts, sub.tf, sub.fc, sub.fs, sub.dark, sub.dark, sub.use,
-                         np.zeros((0, 0), sub.tf.dtype), sub.frame, sub.y, sub.x, K._bounds(sub), np.array([0, n]),
-                         *turning, vis, ch.dose, ch.background, ch.harmonic, np.ones((n, n_c)), 0.0, 2, True, False,
-                         False, False, False, -(-n_c // -(-n_c // K.TILE)), np.empty((0, n_c), sub.tf.dtype))
+        _repeat(reps, K._retrieve, sub.counts, sub.tf, sub.fc, sub.fs, sub.dark, sub.dark, sub.use,
+                np.zeros((0, 0), sub.tf.dtype), sub.frame, sub.y, sub.x, K._bounds(sub), np.array([0, n]), *turning,
+                vis, ch.dose, ch.background, ch.harmonic, np.ones((n, n_c)), 0.0, 2, True, False, False, False, False,
+                -(-n_c // -(-n_c // K.TILE)), np.empty((0, n_c), sub.tf.dtype))
     threads = numba.get_num_threads()
     numba.set_num_threads(1)
     out: dict = {"slab_rows": slab, "slab_bytes": slab_bytes}

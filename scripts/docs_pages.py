@@ -63,6 +63,12 @@ def table(head: list[str], rows: list[list[Any]]) -> list[str]:
             + ["| " + " | ".join(str(c) for c in row) + " |" for row in rows])
 
 
+def span(values: list[float], fmt: str, unit: str = "") -> str:
+    """'lo-hi' of ``values`` in ``fmt`` with ``unit`` after it; one value where both read the same."""
+    lo, hi = fmt.format(min(values)), fmt.format(max(values))
+    return (lo if lo == hi else f"{lo}-{hi}") + unit
+
+
 def fmt_estimate(r: dict) -> str:
     """A concealed-effect run's estimate against the truth (a row of docs/diagnosis-study.json)."""
     e = r.get("estimate")
@@ -434,10 +440,6 @@ def arithmetic_rows(kern: dict) -> list[str]:
             changes.append(cached / streamed - 1)
             need[name].append(cached / (3 * k[name]["floor_ns_per_sample"]))
         rows.append(cells)
-
-    def span(values, fmt, unit):
-        lo, hi = fmt.format(min(values)), fmt.format(max(values))
-        return (lo if lo == hi else f"{lo}-{hi}") + unit
     # what holding the samples in cache takes off a pass is the share memory has in it
     share = max(0.0, -100 * min(changes))
     verdict = (f"memory takes at most {share:.0f} % of either pass, so both are bound by their arithmetic"
@@ -600,10 +602,6 @@ measured errors (the twin's column: the differential phase is left out of the pr
 def scatter_twin_section(twin: dict) -> list[str]:
     if not twin:
         return []
-
-    def span(values: list[float]) -> str:
-        return f"{min(values):.2f}-{max(values):.2f}x"
-
     runs, rows = twin["runs"], []
     for r in runs:
         e, q, pp = r["dark_field_error"], r["ratio_to_twin"], r["scatter_to_primary_per_pixel"]
@@ -621,10 +619,10 @@ def scatter_twin_section(twin: dict) -> list[str]:
             f"{twin['pixel_mm']:g} mm pixels, scan {' x '.join(str(n) for n in runs[0]['shape'])}.",
             SCATTER_TWIN, "",
             f"Goal: the recommended reconstruction's dark-field error within {twin['goal_ratio']:g}x of the twin's. "
-            f"Measured {span([r['ratio_to_twin']['recommended'] for r in runs])}; with the exact field "
-            f"{span([r['ratio_to_twin']['exact_field'] for r in runs])} (the recommended settings within "
-            f"{100 * apart:.1f} % of it); predicted from the scatter's shot noise alone "
-            f"{span([r['shot_noise_prediction']['ratio'] for r in runs])}.", "",
+            f"Measured {span([r['ratio_to_twin']['recommended'] for r in runs], '{:.2f}', 'x')}; with the exact "
+            f"field {span([r['ratio_to_twin']['exact_field'] for r in runs], '{:.2f}', 'x')} (the recommended "
+            f"settings within {100 * apart:.1f} % of it); predicted from the scatter's shot noise alone "
+            f"{span([r['shot_noise_prediction']['ratio'] for r in runs], '{:.2f}', 'x')}.", "",
             *table(["seed", "diagnosis", "recommended: dark-field error / twin's", "exact field", "shot-noise "
                     "prediction", "uncorrected", "twin's error (predicted)", "scatter / primary: band; pixels "
                     "p10 / p50 / p90"], rows)]
