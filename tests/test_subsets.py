@@ -1,13 +1,10 @@
 """Columns that stand for all: spread by their information, each standing for its stratum's."""
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
 from dfxcorr import fit as F
 from dfxcorr.catalogue import PAPER_MODEL
 from dfxcorr.noise import noise_weights
-from dfxcorr.observations import displaced_reading
 from dfxcorr.subsets import column_information, information_columns, spread_columns, standing_columns
 
 from conftest import random_params, tiny_obs
@@ -93,11 +90,11 @@ def test_standing_columns_keep_the_information_of_all_and_all_when_fewer(rng):
 
 def test_the_uncertainty_between_rows_is_that_of_standing_columns_and_per_pixel_of_all(rng, monkeypatch):
     """Where samples read between rows, the uncertainty is computed on UNCERTAINTY_COLUMNS columns standing for all
-    (how close that comes to all of them on realistic scans: scripts/parallax.py's pulls); per pixel, on all."""
+    (how close that comes to all of them on realistic scans: scripts/uncertainty_columns.py); per pixel, on all."""
+    from test_engine import displaced
+
     obs = tiny_obs(rng, J=14, H=8, W=48)
-    shift = rng.uniform(-0.6, 0.6, obs.n_frames)[obs.frame]
-    reading, inside = displaced_reading(obs.row, obs.rows, shift)
-    between = replace(obs, reading=reading, use=obs.use & inside[:, None])
+    between = displaced(rng, obs, spread=0.6)
     params = random_params(rng, obs.n_frames, ("phase_offset", "tilt"))
     w = np.asarray(noise_weights(between, between.counts), np.float64)
     every = F.uncertainty(between, params, w)
