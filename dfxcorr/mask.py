@@ -130,6 +130,10 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
     loses its information (a frame that lights one row has no other). Unmodelled vibrations would
     otherwise dominate the residual of bright, modulated pixels and hide the motion among them.
 
+    Each sample reads its own pixel's images here, also where the observations read them between rows
+    (``obs.reading``, a parallax): from the neutral start, steps on images coupled between rows went astray
+    (thorax, kappa 0.1: phi0 3.6 rad rms from the truth, against 0.009 with each pixel's own images).
+
     Returns
     -------
     dict
@@ -137,7 +141,7 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
     """
     names = PAPER_MODEL
     K.set_threads()
-    sub = obs.subset(np.arange(0, obs.columns.size, every))
+    sub = replace(obs.subset(np.arange(0, obs.columns.size, every)), reading=None)
     index = M.fisher_index(names, sub.n_frames)
     params = neutral_params(names, obs.n_frames)
     weights = noise_weights(sub, np.maximum(sub.counts, 1.0))
@@ -149,11 +153,8 @@ def pilot_vibrations(obs: Observations, *, iterations: int = 8, every: int = 4, 
         # no pixel seen in more frames than its images' unknowns: nothing to compare with
         outlier = z2 > (4.0 * np.median(z2[solved["valid"]]) if solved["valid"].any() else np.inf)
         w = np.where(outlier | ~solved["valid"], 0.0, 1.0)[sub.pixel] * weights
-        # the step's matrix need only be close (the gradient decides where the steps end): where samples read
-        # between rows, that of the images solved per pixel by the compiled kernels
-        flat = replace(sub, reading=None)
-        held = E.retrieve(flat, ch, weights=w, keep_inverse=True)
-        plain, corr = E.fisher(flat, ch, w, held["coef"], held["inverse"], names)
+        held = E.retrieve(sub, ch, weights=w, keep_inverse=True)
+        plain, corr = E.fisher(sub, ch, w, held["coef"], held["inverse"], names)
         # the reduced cost's gradient is that at the images solved with w (envelope theorem)
         grad = M.channel_adjoint(names, E.reduced_cost(sub, ch, w, channels=("phase", "visibility"))[1],
                                  x=sub.x)

@@ -158,3 +158,20 @@ def test_the_fit_from_the_pilot_reaches_the_minimum_of_the_staged_fit(small_scan
         assert np.all(np.abs(a - b)[good] < 0.05 * staged.uncertainty[name][good, 0]), name
     # and of the whole model: its chi-squares within one unit (a likelihood ratio of e^0.5)
     assert abs(fast.reduced_chi2 - staged.reduced_chi2) * staged.dof < 1.0
+
+
+def test_the_pilot_where_samples_read_between_rows_lands_near_the_truth(small_scan):
+    """Where the samples read the images between rows (a parallax, kappa 0.1 on 5 mm pixels) the pilot's steps use
+    each pixel's own images: with the images coupled between rows they went astray from the neutral start (6.7 rad
+    rms from the truth). Its phase offsets are as close to the truth as its twin's without parallax (measured 0.0072
+    and 0.0073 rad rms): within twice."""
+    errors = []
+    for kappa in (0.0, 0.1):
+        scan, truth = small_scan(**{"effects.parallax": kappa})
+        prep = prepare(scan, C.load([], [f"geometry.parallax={kappa}"]))
+        assert prep.observations(columns=np.arange(2)).reading is not None or not kappa
+        pilot = pilot_vibrations(prep.observations(columns=np.arange(scan.shape[2])))
+        good = frames_lighting(scan.position, scan.active_rows, scan.shape[1])
+        err = pilot["phase_offset"][good, 0] - truth["vib_phase_offset"][good]
+        errors.append(float(np.sqrt(np.mean((err - np.median(err)) ** 2))))
+    assert errors[1] < 2 * errors[0], errors
