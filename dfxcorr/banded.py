@@ -18,26 +18,43 @@ from scipy import sparse
 from .observations import Observations
 
 
-def forward(D: np.ndarray, U: np.ndarray) -> np.ndarray:
+def forward(D: np.ndarray, U: np.ndarray, *, tol: float = 1e-10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Inverses of the forward Schur complements F_q = D_q - U_{q-1}^T F_{q-1}^-1 U_{q-1}.
+
+    A row whose complement is singular (|det F_q| <= ``tol``, the diagonal scaled to 1: what the row's samples tell
+    is all in the rows before it, e.g. two rows read only by the samples between them) is held apart: its F is the
+    identity and its couplings are zero, so that it solves to 0 and its neighbours to their own, rather than to the
+    huge values of a near-singular elimination.
 
     Parameters
     ----------
     D : ndarray, shape (R, C, p, p)
-        Diagonal blocks (symmetric positive definite), C independent systems.
+        Diagonal blocks (symmetric positive definite, scaled to a unit diagonal), C independent systems.
     U : ndarray, shape (R, C, p, p)
         U[q] is the block coupling row q with row q + 1 (U[R - 1] is not read).
+    tol : float
 
     Returns
     -------
     Finv : ndarray, shape (R, C, p, p)
+    U : ndarray, shape (R, C, p, p)
+        The couplings, zero at the rows held apart.
+    held : ndarray of bool, shape (R, C)
+        The rows held apart.
     """
+    U = U.copy()
     Finv = np.empty_like(D)
-    Finv[0] = np.linalg.inv(D[0])
-    for q in range(1, D.shape[0]):
-        Ut = np.swapaxes(U[q - 1], -1, -2)
-        Finv[q] = np.linalg.inv(D[q] - Ut @ Finv[q - 1] @ U[q - 1])
-    return Finv
+    held = np.zeros(D.shape[:2], bool)
+    eye = np.eye(D.shape[-1])
+    for q in range(D.shape[0]):
+        F = D[q] - np.swapaxes(U[q - 1], -1, -2) @ Finv[q - 1] @ U[q - 1] if q else D[q]
+        held[q] = np.abs(np.linalg.det(F)) <= tol
+        F = np.where(held[q][:, None, None], eye, F)
+        if q:
+            U[q - 1][held[q]] = 0.0
+        U[q][held[q]] = 0.0
+        Finv[q] = np.linalg.inv(F)
+    return Finv, U, held
 
 
 def solve(Finv: np.ndarray, U: np.ndarray, rhs: np.ndarray) -> np.ndarray:
@@ -140,7 +157,7 @@ def factor_read_between(obs: Observations, columns: list[np.ndarray], weights: n
     Sample k's model is sum_a X_a ((1 - f_k) coef[lo_k, a] + f_k coef[lo_k + 1, a]), so the normal matrix of a
     column is block tridiagonal along the rows. Unknowns absent from every sample of a row (no fringe) are left
     out there, as in the per-pixel solve; a row is solvable with at least p samples reading it, the first column
-    present and a well-conditioned diagonal block.
+    present, a well-conditioned diagonal block and a well-conditioned complement in the elimination (:func:`forward`).
     """
     lo, hi, g = _read_shares(obs)
     R, p = obs.rows.size, len(columns)
@@ -167,7 +184,8 @@ def factor_read_between(obs: Observations, columns: list[np.ndarray], weights: n
     Ds[~valid] = np.eye(p)
     Us[~valid] = 0.0
     Us[:-1][~valid[1:]] = 0.0
-    return ReadBetween(scale, valid, forward(Ds, Us), Us)
+    Finv, Us, held = forward(Ds, Us)
+    return ReadBetween(scale, valid & ~held, Finv, Us)
 
 
 def read_between_rhs(obs: Observations, values: list[np.ndarray]) -> np.ndarray:

@@ -186,6 +186,14 @@ def _factor(D, U, used, i, scale, valid, Finv, Us):
             for b in range(3):
                 S[a, b] = Ds[r, a, b] - (Us[r - 1, 0, a] * T[0, b] + Us[r - 1, 1, a] * T[1, b]
                                          + Us[r - 1, 2, a] * T[2, b])
+        if abs(_det3(S)) <= 1e-10:
+            # all the row tells is in the rows before it: held at 0 apart from its neighbours (banded.forward)
+            valid[r] = False
+            for a in range(3):
+                for b in range(3):
+                    S[a, b] = 1.0 if a == b else 0.0
+                    Us[r - 1, a, b] = 0.0
+                    Us[r, a, b] = 0.0
         _inv3(S, Finv[r])
 
 

@@ -202,3 +202,23 @@ def test_the_weights_asked_into_an_array_land_there(case):
     done = E.retrieve(obs, ch, weights=into, next_weights=True, keep_expected=False, out=into)
     assert done["weights"] is into
     np.testing.assert_array_equal(into, plain["weights"])
+
+
+def test_rows_read_only_between_each_other_are_held_apart(case):
+    """Two rows that only the samples between them read, all at one fraction, tell one combination of their images:
+    the second row's complement in the elimination is singular. It is held at 0 (not the huge values of a
+    near-singular inverse), the same in the compiled loops and the numpy model, and every other row is solved."""
+    obs, ch = case
+    lo, hi, f = obs.read_rows()
+    reading = replace(obs.reading, frac=np.where(lo == 5, 0.4, obs.reading.frac))
+    use = obs.use.copy()
+    use[((hi == 5) & (lo == 4)) | (lo == 6) | ((lo == 5) & (f == 0)), 6] = False
+    obs = replace(obs, reading=reading, use=use)
+    want, got = E.model_retrieve(obs, ch, iterations=1), KB.retrieve(obs, ch, iterations=1)
+    np.testing.assert_array_equal(got["valid"], want["valid"])
+    assert not want["valid"][6, 6] and want["valid"][5, 6]
+    others = np.delete(want["valid"], 6, axis=1)
+    assert others.sum() == others.size - 1  # row 3 of column 4 (the case's)
+    close(got["coef"], want["coef"])
+    typical = np.abs(want["coef"][want["valid"]]).max()
+    assert np.abs(want["coef"]).max() <= typical
