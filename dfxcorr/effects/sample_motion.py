@@ -19,6 +19,12 @@ from .base import Context, EffectBase, Finding, Hypothesis, Option, Params, Poli
 #: The largest share of the scored pixels that a moving part of the sample may cover: a misfit spread wider is
 #: not sample motion (a blanket mask hides a misfit of the whole detector), and is reported where it is.
 MAX_SHARE = 0.1
+#: A moving part of the sample is one region: grown by :data:`REACH` pixels, the flagged pixels' largest group must
+#: hold at least this share of them. Measured (seed 11): a heart that moves, 256, 215 and 18 pixels flagged at
+#: amplitudes 0.3, 0.1 and 0.05, one group each; the edges of ribs and lungs under a parallax the model reads between
+#: rows (beam_path, kappa 0.02), 88 pixels in 10 groups, the largest 21.
+MIN_GROUPED = 0.5
+REACH = 2
 
 
 def motion_test(obs: Observations, params: Params, *, p_pixel: float = 1e-6, min_pixels: int = 5) -> Test[None]:
@@ -33,7 +39,7 @@ def motion_test(obs: Observations, params: Params, *, p_pixel: float = 1e-6, min
     Test
         Statistic: chi-square in excess of its dof over the flagged pixels; dof: flagged pixels; log_p:
         binomial (that many pixels below ``p_pixel`` by chance); ``flagged`` (H, W) bool. Not material where
-        the flagged pixels are more than :data:`MAX_SHARE` of those scored.
+        the flagged pixels are more than :data:`MAX_SHARE` of those scored, or scattered (:func:`grouped`).
     """
     score = motion_score(obs, params)
     dof = np.maximum(obs.segment_sum(obs.use, dtype=np.int64) - 3, 1)
@@ -52,8 +58,17 @@ def motion_test(obs: Observations, params: Params, *, p_pixel: float = 1e-6, min
     excess = obs.to_image(np.nan_to_num(score - 1) * dof, fill=0.0)
     log_p = binomial_log_tail(k, int(ok.sum()), p_pixel) if k >= min_pixels else 0.0
     stat = float(excess[flag].sum())
-    return Test(stat, k, float(np.exp(log_p)), log_p, None, explains=stat, material=k <= MAX_SHARE * ok.sum(),
-                flagged=flag)
+    return Test(stat, k, float(np.exp(log_p)), log_p, None, explains=stat,
+                material=bool(k <= MAX_SHARE * ok.sum() and grouped(flag) >= MIN_GROUPED), flagged=flag)
+
+
+def grouped(flag: np.ndarray) -> float:
+    """The share of the flagged pixels (H, W) in their largest group once each is grown by :data:`REACH` pixels (1
+    where none is flagged)."""
+    if not flag.any():
+        return 1.0
+    labels, count = ndimage.label(ndimage.binary_dilation(flag, iterations=REACH))
+    return float(np.bincount(labels[flag], minlength=count + 1).max() / flag.sum())
 
 
 def where_pixels(mask: np.ndarray) -> str:
@@ -99,9 +114,12 @@ class SampleMotion(EffectBase[None]):
 
     def unexplained(self, test: Test[None]) -> Unexplained:
         """The ``unexplained`` entry of pixels that disagree although masking them did not explain the misfit."""
-        why = ("masking them does not explain the misfit" if test.material else
-               f"more than {100 * MAX_SHARE:.0f} % of the pixels: no moving part of a sample")
         mask = _flagged(test)
+        share = grouped(mask)
+        why = ("masking them does not explain the misfit" if test.material else
+               f"scattered (the largest group holds {100 * share:.0f} % of them): no moving part of a sample"
+               if share < MIN_GROUPED else f"more than {100 * MAX_SHARE:.0f} % of the pixels: no moving part of a "
+                                           f"sample")
         return Unexplained("pixel", test.statistic, test.dof, test.p_value, where_pixels(mask),
                            f"{int(mask.sum())} pixels whose frames disagree beyond noise, in clusters; {why}")
 

@@ -100,7 +100,7 @@ def test_detector_rows_undo_the_centred_registration(rng):
 
 @pytest.mark.slow
 def test_concealed_parallax_is_named_first_and_its_correction_recovers_the_images():
-    """A source that travels with the gratings (kappa 0.02): beam_path is named first, kappa found, and the
+    """A source that travels with the gratings (kappa 0.02): beam_path is named alone, kappa found, and the
     reconstruction with the recommended setting brings the transmission closer to the truth.
 
     The images live on the pixel grid while the sample's edges move across the pixels by fractions of a row: what
@@ -110,7 +110,9 @@ def test_concealed_parallax_is_named_first_and_its_correction_recovers_the_image
     scan, truth, cfg = concealed("beam_path")
     diag = diagnose(scan, cfg)
     found = [e for e in diag.effects if e.detected]
-    assert found[0].name == "beam_path", [(e.name, e.statistic) for e in diag.effects]
+    assert [e.name for e in found] == ["beam_path"], [(e.name, e.statistic) for e in diag.effects]
+    # what the pixel grid leaves at the edges is no moving part of the sample: it is reported where it is
+    assert any(u.axis == "pixel" and "scattered" in u.description for u in diag.unexplained), diag.unexplained
     kappa = found[0].values["value"]
     assert kappa == pytest.approx(truth["beam_path"], rel=0.2)
     assert diag.final_chi2 < diag.initial_chi2
