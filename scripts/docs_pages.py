@@ -649,7 +649,8 @@ def parallax_section(par: dict) -> list[str]:
         def cell(rec: dict) -> str:
             e = rec["errors"]
             return (f"{rec['reduced_chi2']:.3f}; {e['transmission']:.4f} / {e['ln_dark_field']:.3f} / "
-                    f"{e['differential_phase']:.3f}; {rec['seconds']:.0f} s")
+                    f"{e['differential_phase']:.3f}; {rec['vibration_rmse']['phase_offset']:.4f} "
+                    f"({rec['vibration_pulls']['phase_offset']:.2f}); {rec['seconds']:.0f} s")
 
         rows.append([f"{r['kappa']:g}", ", ".join(d["found"]) or "nothing", kappa,
                      f"{d['reduced_chi2'][0]:.3f} -> {d['reduced_chi2'][1]:.3f}", ", ".join(d["unexplained"]) or "-",
@@ -663,12 +664,18 @@ def parallax_section(par: dict) -> list[str]:
              f"stay within a fraction of a row is found about that factor low), "
              f"x{par['interpolation_scale']['cubic convolution']:.3f} with cubic convolution."
              ] if "interpolation_scale" in par else []
+    if "cells_z2" in par:
+        scale.append("Images finer than the pixel grid, m cells per row, each pixel the mean of the cells under it "
+                     "where the frame sees it, fitted to every displacement of -0.3 to 0.3 rows at once (m = 1 is "
+                     "the model's reading between rows): mean z^2 " + ", ".join(
+                         f"m = {m}: {v:.3f}" for m, v in par["cells_z2"].items()) + ".")
     return ["", "## Beam paths that change during the scan", "",
             f"`scripts/parallax.py` -> `docs/parallax.json`. Machine: {par['machine']}. {par['pixel_mm']:g} mm "
             f"pixels, scan {' x '.join(str(n) for n in par['runs'][0]['shape'])}, flux {par['flux']:g}.", PARALLAX, "",
             f"Interpolation floor (mean z^2 of the transmission alone, per displacement): {floor}.", *scale, "",
             *table(["kappa", "diagnosis names", "kappa found", "diagnosis chi-square", "unexplained",
-                    "defaults: chi-square; errors t / ln v / phi; time", "recommended", "twin"], rows)]
+                    "defaults: chi-square; errors t / ln v / phi; phi0 RMSE (pull); time", "recommended", "twin"],
+                   rows)]
 
 
 def uncertainty_columns_section(rec: dict) -> list[str]:
