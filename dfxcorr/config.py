@@ -137,6 +137,10 @@ SCHEMA: dict[str, dict[str, Option]] = {
         "sigma": Option(6.0, "data-driven threshold: median + sigma robust standard deviations of the score",
                         _NUM, check=_positive),
         "dilate": Option(1, "grow the motion mask by this many pixels", int, check=_within(0, 1e6)),
+        "between_rows": Option(0.25, "where the samples read the images between rows (geometry.parallax), also leave "
+                                     "out of the vibration fit the pixels where that reading misses more than this "
+                                     "many noise standard deviations (the sample's detail finer than a row, moving "
+                                     "across the pixels); null: none", _NUM, check=_positive, nullable=True),
     },
     "vibration": {
         "phase_offset": Option(True, "fit phi0_j, the grating shift between exposures", bool),

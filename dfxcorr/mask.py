@@ -32,9 +32,10 @@ from .stats import chi2_log_tails
 from .subsets import spread_columns
 
 
-def motion_statistics(obs: Observations, params: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-pixel reduced residual, fringe sensitivity and degrees of freedom: what :func:`motion_score` and
-    :func:`mask_from_score` need.
+def motion_statistics(obs: Observations, params: dict, *, between_rows: bool = False
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pixel reduced residual, fringe sensitivity, degrees of freedom and what reading between rows misses: what
+    :func:`motion_score`, :func:`mask_from_score` and :func:`motion_mask` need.
 
     Pixels are independent here, so row blocks of a scan can be evaluated separately and their
     statistics combined by :func:`score_from_statistics`.
@@ -51,6 +52,8 @@ def motion_statistics(obs: Observations, params: dict) -> tuple[np.ndarray, np.n
     params : dict
         Effect parameters of the model to compare with (e.g. a pilot estimate of the paper's vibration model,
         :func:`pilot_vibrations`); ``{}`` compares with a model without per-frame terms (paper eq. 35).
+    between_rows : bool
+        Also evaluate :func:`between_rows_miss` (else ``miss`` is 0).
 
     Returns
     -------
@@ -59,6 +62,8 @@ def motion_statistics(obs: Observations, params: dict) -> tuple[np.ndarray, np.n
         (t v vf tf)^2 / Ibar per sample averaged over the pixel; NaN where the pixel could not be solved.
     dof : ndarray, shape (R, C)
         n - 3, the degrees of freedom of ``eps``.
+    miss : ndarray, shape (R, C)
+        :func:`between_rows_miss` at the model, NaN where ``eps`` is.
     """
     K.set_threads()
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
@@ -74,7 +79,51 @@ def motion_statistics(obs: Observations, params: dict) -> tuple[np.ndarray, np.n
         amp = obs.gather(np.hypot(solved["coef"][..., 1], solved["coef"][..., 2]))
         q = obs.segment_sum(weights * (amp * fringe_amp) ** 2) / n
     ok = solved["valid"] & (n > 3) & np.isfinite(eps) & np.isfinite(q)
-    return np.where(ok, eps, np.nan), np.where(ok, q, np.nan), n - 3
+    miss = between_rows_miss(obs, ch, solved["coef"], weights) if between_rows else np.zeros(n.shape)
+    return np.where(ok, eps, np.nan), np.where(ok, q, np.nan), n - 3, np.where(ok, miss, np.nan)
+
+
+def between_rows_miss(obs: Observations, ch: M.Channels, coef: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """What reading the images linearly between rows misses at each pixel, in noise standard deviations.
+
+    Where the samples read the images between two held rows (``obs.reading``, ``geometry.parallax``), linear
+    interpolation at the fraction f misses -f (1 - f) / 2 times the images' second derivative along the rows (the
+    next term of their Taylor series; exact for images quadratic along the rows). The second derivative is taken as
+    the images' second difference, read where the sample reads, carried into the sample's expected count by the
+    model's design and divided by the sample's noise. Large where the sample has structure finer than a row moving
+    across the pixels (the edges of ribs and lungs): what no images on the pixel grid describe, and what would
+    otherwise pull the per-frame estimates.
+
+    Parameters
+    ----------
+    obs : Observations
+    ch : Channels
+        The model's channel values (:func:`dfxcorr.model.channels`).
+    coef : ndarray, shape (R, C, 3)
+        The images (t, c, s) of the held rows.
+    weights : ndarray, shape (K, C)
+        Inverse noise variance of each sample, 0 where not used.
+
+    Returns
+    -------
+    ndarray, shape (R, C)
+        Root mean square over each pixel's used samples of the missed count over its noise standard deviation: 0
+        where the samples read their own row (``obs.reading`` None) and where a row read has no held neighbour on
+        both sides, NaN where the pixel has no used sample.
+    """
+    n = row_counts(obs, weights > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if obs.reading is None:
+            return np.where(n > 0, 0.0, np.nan)
+        rows = obs.rows
+        inner = (rows[1:-1] - rows[:-2] == 1) & (rows[2:] - rows[1:-1] == 1)
+        d2 = np.zeros_like(coef)
+        d2[1:-1] = np.where(inner[:, None, None], coef[:-2] - 2.0 * coef[1:-1] + coef[2:], 0.0)
+        g = obs.gather(d2)
+        dsg = M.design_channels(obs, ch)
+        _, _, f = obs.read_rows()
+        miss = (0.5 * f * (1.0 - f))[:, None] * (g[..., 0] * dsg.A + g[..., 1] * dsg.Bc + g[..., 2] * dsg.Bs)
+        return np.sqrt(obs.segment_sum(weights * miss ** 2) / n)
 
 
 def score_from_statistics(eps: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -98,8 +147,8 @@ def motion_score(obs: Observations, params: dict, *, chunk: float = 1e6) -> np.n
         About 1 for consistent pixels (a reduced chi-square with n - 3 degrees of freedom), NaN where
         the pixel could not be solved.
     """
-    eps, q, _ = (np.concatenate(a, axis=1) for a in zip(*(motion_statistics(obs.subset(c), params)
-                                                          for c in obs.column_chunks(chunk)), strict=True))
+    eps, q, _, _ = (np.concatenate(a, axis=1) for a in zip(*(motion_statistics(obs.subset(c), params)
+                                                             for c in obs.column_chunks(chunk)), strict=True))
     return score_from_statistics(eps, q)
 
 
@@ -259,7 +308,8 @@ def _dilated(moving: np.ndarray, n: int) -> np.ndarray:
 
 
 def motion_mask(blocks: Iterable[Observations], *, pilot: dict, threshold: float | None = None,
-                sigma: float = 6.0, dilate: int = 1) -> tuple[np.ndarray, np.ndarray, float]:
+                sigma: float = 6.0, dilate: int = 1, between_rows: float | None = None
+                ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Pixels whose frames disagree beyond noise and vibrations (paper Sec. II-E), block by block.
 
     Pixels are independent here, so the observations may come in blocks of detector rows (a scan that does
@@ -279,6 +329,10 @@ def motion_mask(blocks: Iterable[Observations], *, pilot: dict, threshold: float
     sigma : float
     dilate : int
         Grow the flagged region by this many pixels (its rim is partly affected too).
+    between_rows : float, optional
+        Where the samples read the images between rows: also leave out the pixels where that reading misses more
+        than this many noise standard deviations (:func:`between_rows_miss`, at the pilot); they take no part in the
+        motion score's threshold. None: none.
 
     Returns
     -------
@@ -288,19 +342,23 @@ def motion_mask(blocks: Iterable[Observations], *, pilot: dict, threshold: float
         The motion score (NaN where not computed).
     threshold : float
         The threshold used.
+    beyond : ndarray of bool, shape (H, W)
+        The pixels of ``moving`` left out for ``between_rows``.
     """
     images: dict[str, np.ndarray] = {}
     for obs in blocks:
         if not images:
             H, W = obs.shape[1:]
             images = {"eps": np.full((H, W), np.nan), "q": np.full((H, W), np.nan), "dof": np.zeros((H, W)),
-                      "fringe": np.zeros((H, W), bool)}
-        e, qq, d = motion_statistics(obs, pilot)
-        for key, values in (("eps", e), ("q", qq), ("dof", d),
+                      "miss": np.zeros((H, W)), "fringe": np.zeros((H, W), bool)}
+        e, qq, d, miss = motion_statistics(obs, pilot, between_rows=between_rows is not None)
+        for key, values in (("eps", e), ("q", qq), ("dof", d), ("miss", miss),
                             ("fringe", obs.segment_sum(obs.in_roi.astype(float)) > 0)):
             obs.place(images[key], values)
     if not images:
         raise ValueError("the motion mask needs observations")
     score = np.where(images["fringe"], score_from_statistics(images["eps"], images["q"]), np.nan)
-    moving, thr = mask_from_score(score, dof=images["dof"], threshold=threshold, sigma=sigma, dilate=dilate)
-    return moving, score, thr
+    beyond = images["fringe"] & (np.nan_to_num(images["miss"]) > (np.inf if between_rows is None else between_rows))
+    moving, thr = mask_from_score(np.where(beyond, np.nan, score), dof=images["dof"], threshold=threshold,
+                                  sigma=sigma, dilate=dilate)
+    return moving | beyond, score, thr, beyond

@@ -207,8 +207,12 @@ def fit_motion_mask(prep: Prepared, cfg: dict, plan: ColumnPlan, blocks: list[tu
     else:
         parts = (prep.observations(columns=plan.columns, rows=(blocks[i][0], blocks[min(i + per, len(blocks)) - 1][1]),
                                    dtype=np.float32) for i in range(0, len(blocks), per))
-    moving, _, thr = motion_mask(parts, pilot=pilot, threshold=m["threshold"], sigma=m["sigma"], dilate=m["dilate"])
-    log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int(moving.sum()), thr)
+    moving, _, thr, beyond = motion_mask(parts, pilot=pilot, threshold=m["threshold"], sigma=m["sigma"],
+                                         dilate=m["dilate"], between_rows=m["between_rows"])
+    log.info("motion mask: %d pixels above %.3g left out of the vibration fit", int((moving & ~beyond).sum()), thr)
+    if beyond.any():
+        log.info("motion mask: %d pixels where reading the images between rows misses more than %g noise standard "
+                 "deviations left out of the vibration fit", int(beyond.sum()), m["between_rows"])
     return moving
 
 

@@ -206,6 +206,7 @@ def test_the_hessian_of_a_few_columns_stands_for_all_where_their_information_dif
     evenly spread columns with the outermost two gave a median of 1.0-2.6 and a 90th percentile of 3-4.9 over six
     seeds, this 0.9-1.0 and 1.3-1.9)."""
     from scipy.linalg import eigh
+
     from test_model import random_params, tiny_obs
 
     rng = np.random.default_rng(5)

@@ -9,19 +9,12 @@ from dfxcorr import engine as E
 from dfxcorr import fisher_between as FB
 from dfxcorr import kernels_between as KB
 from dfxcorr import model as M
-from dfxcorr.observations import displaced_reading
 
 from conftest import modelled_counts, random_params, tiny_obs
+from test_engine import displaced
 
 NAMES = ("phase_offset", "tilt", "visibility_loss", "dose")
 WITH_ALL = NAMES + ("background", "harmonic")
-
-
-def displaced(rng, obs, spread=1.3):
-    """``obs`` with each frame reading the images up to ``spread`` rows off its own, samples reading outside unused."""
-    shift = rng.uniform(-spread, spread, obs.n_frames)[obs.frame]
-    reading, inside = displaced_reading(obs.row, obs.rows, shift)
-    return replace(obs, reading=reading, use=obs.use & inside[:, None])
 
 
 def close(got, want, rtol=1e-9):
