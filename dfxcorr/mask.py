@@ -350,15 +350,17 @@ def motion_mask(blocks: Iterable[Observations], *, pilot: dict, threshold: float
         if not images:
             H, W = obs.shape[1:]
             images = {"eps": np.full((H, W), np.nan), "q": np.full((H, W), np.nan), "dof": np.zeros((H, W)),
-                      "miss": np.zeros((H, W)), "fringe": np.zeros((H, W), bool)}
-        e, qq, d, miss = motion_statistics(obs, pilot, between_rows=between_rows is not None)
-        for key, values in (("eps", e), ("q", qq), ("dof", d), ("miss", miss),
+                      "beyond": np.zeros((H, W), bool), "fringe": np.zeros((H, W), bool)}
+        limit = np.inf if between_rows is None or obs.reading is None else between_rows
+        e, qq, d, miss = motion_statistics(obs, pilot, between_rows=bool(np.isfinite(limit)))
+        for key, values in (("eps", e), ("q", qq), ("dof", d), ("beyond", miss > limit),
                             ("fringe", obs.segment_sum(obs.in_roi.astype(float)) > 0)):
             obs.place(images[key], values)
     if not images:
         raise ValueError("the motion mask needs observations")
     score = np.where(images["fringe"], score_from_statistics(images["eps"], images["q"]), np.nan)
-    beyond = images["fringe"] & (np.nan_to_num(images["miss"]) > (np.inf if between_rows is None else between_rows))
-    moving, thr = mask_from_score(np.where(beyond, np.nan, score), dof=images["dof"], threshold=threshold,
-                                  sigma=sigma, dilate=dilate)
+    beyond = images["beyond"] & images["fringe"]
+    # a copy of the score only where pixels are left out for the reading between rows (66 MB at full resolution)
+    moving, thr = mask_from_score(np.where(beyond, np.nan, score) if beyond.any() else score, dof=images["dof"],
+                                  threshold=threshold, sigma=sigma, dilate=dilate)
     return moving | beyond, score, thr, beyond
