@@ -15,16 +15,19 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import sparse
 
+from .kernels import SINGULAR
 from .observations import Observations
 
 
-def forward(D: np.ndarray, U: np.ndarray, *, tol: float = 1e-10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def forward(D: np.ndarray, U: np.ndarray, *, tol: float = SINGULAR) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Inverses of the forward Schur complements F_q = D_q - U_{q-1}^T F_{q-1}^-1 U_{q-1}.
 
-    A row whose complement is singular (|det F_q| <= ``tol``, the diagonal scaled to 1: what the row's samples tell
-    is all in the rows before it, e.g. two rows read only by the samples between them) is held apart: its F is the
-    identity and its couplings are zero, so that it solves to 0 and its neighbours to their own, rather than to the
-    huge values of a near-singular elimination.
+    A row whose complement is near singular (|det F_q| <= ``tol``, the diagonal scaled to 1: what its samples tell
+    of some combination of its unknowns is already in the rows before it, e.g. two rows read only by the samples
+    between them at one fraction) is held apart, as a pixel or a row whose own block is near singular: its F is the
+    identity and its couplings are zero, so that it decouples from its neighbours (they are solved with it fixed at 0;
+    :meth:`ReadBetween.solve` sets it to 0) rather than taking the huge values of a near-singular elimination. Where
+    only some of its unknowns are undetermined the others are held too, at 0.
 
     Parameters
     ----------
@@ -33,6 +36,7 @@ def forward(D: np.ndarray, U: np.ndarray, *, tol: float = 1e-10) -> tuple[np.nda
     U : ndarray, shape (R, C, p, p)
         U[q] is the block coupling row q with row q + 1 (U[R - 1] is not read).
     tol : float
+        |det F_q| at or below which row q is held apart.
 
     Returns
     -------
@@ -179,7 +183,7 @@ def factor_read_between(obs: Observations, columns: list[np.ndarray], weights: n
     Ds += np.eye(p) * ~present[..., None, :]
     Us = np.zeros_like(U)
     Us[:-1] = U[:-1] / (scale[:-1, ..., :, None] * scale[1:, ..., None, :])
-    valid = (n_used >= present.sum(axis=-1)) & present[..., 0] & (np.abs(np.linalg.det(Ds)) > 1e-10)
+    valid = (n_used >= present.sum(axis=-1)) & present[..., 0] & (np.abs(np.linalg.det(Ds)) > SINGULAR)
     # a row that cannot be solved is held at 0, apart from its neighbours (their elimination stays finite)
     Ds[~valid] = np.eye(p)
     Us[~valid] = 0.0

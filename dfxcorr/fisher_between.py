@@ -23,10 +23,10 @@ from .kernels_between import _add_sample, _factor, _reading, _sample_values
 FRAME_GROUP = 16
 
 
-#: Where a block of N^-1 Y is cut off: rows past the block's own where its largest value has fallen below this
-#: fraction of its peak (N^-1 decays geometrically away from the diagonal, by about a quarter per row where the
-#: samples read evenly between rows). What it leaves out is of this order relative to the correction (5.6e-12
-#: measured with one nearly unsolvable row, the forward sweep being judged before F^-1 scales it).
+#: Where a block of N^-1 Y is cut off: rows past the block's own where its largest value (in the forward sweep, times
+#: the largest row sum of F^-1) has fallen below this fraction of its peak (N^-1 decays geometrically away from the
+#: diagonal, by about a quarter per row where the samples read evenly between rows). What it leaves out is of this
+#: order relative to the correction.
 DROP = 1e-14
 
 
@@ -55,6 +55,11 @@ def _solve_block(Y, p0, p1, r0, r1, scale, valid, Finv, Us, M, W):
                     val -= M[r, a, 0] * W[r - 1, 0, p] + M[r, a, 1] * W[r - 1, 1, p] + M[r, a, 2] * W[r - 1, 2, p]
                 W[r, a, p] = val
                 big = max(big, abs(val))
+        # judged on what the backward sweep makes of it: F_r^-1 can be large where a row is nearly undetermined
+        norm = 0.0
+        for a in range(3):
+            norm = max(norm, abs(Finv[r, a, 0]) + abs(Finv[r, a, 1]) + abs(Finv[r, a, 2]))
+        big *= norm
         peak = max(peak, big)
         if r > r1 and big <= DROP * peak:
             last = r

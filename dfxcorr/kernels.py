@@ -195,14 +195,19 @@ def _variance(g, m, quiet, electronic):
     return g * max(m - quiet, 1.0) + electronic
 
 
+#: |det| of a normal matrix scaled to a unit diagonal at or below which its unknowns count as undetermined (the pixel,
+#: or the row of images read between rows, is not solved): every solve of the images uses it.
+SINGULAR = 1e-10
+
+
 @njit(cache=True)
 def _normal(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used):
     """Closed-form solve of one pixel's 3x3 normal equations with the rules of ``model.solve_pixels``: valid, the
     coefficients (3) and the inverse normal matrix's entries i00, i01, i02, i11, i12, i22 (zeros where invalid).
 
     A column with zero diagonal is not an unknown; valid needs the first column, as many used samples as unknowns and
-    |det| > 1e-10 of the unit-diagonal matrix. Called where its loop over a tile's columns only keeps the inverse
-    (the retrieval's ``keep_inverse``); :data:`_normal_inlined` where that loop solves the tile's pixels.
+    |det| > :data:`SINGULAR` of the unit-diagonal matrix. Called where its loop over a tile's columns only keeps the
+    inverse (the retrieval's ``keep_inverse``); :data:`_normal_inlined` where that loop solves the tile's pixels.
     """
     p0, p1, p2 = n00 > 0, n11 > 0, n22 > 0
     s0 = np.sqrt(n00) if p0 else 1.0
@@ -218,7 +223,7 @@ def _normal(n00, n01, n02, n11, n12, n22, r0, r1, r2, n_used):
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
     det = a00 * c00 + a01 * c01 + a02 * c02
-    valid = p0 & (n_used >= (1.0 * p0 + p1 + p2)) & (abs(det) > 1e-10)
+    valid = p0 & (n_used >= (1.0 * p0 + p1 + p2)) & (abs(det) > SINGULAR)
     c11, c12, c22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
     b0, b1, b2 = r0 / s0, r1 / s1, r2 / s2
     # where invalid det may be 0: the quotients are then inf or nan, never selected

@@ -24,6 +24,7 @@ from numba import njit, prange
 from .kernels import (
     CHANNEL_IDS,
     HARMONIC_STEPS,
+    SINGULAR,
     _c,
     _derivatives,
     _design,
@@ -161,7 +162,7 @@ def _factor(D, U, used, i, scale, valid, Finv, Us):
                     Ds[r, a, b] = D[r, _SYM[a, b], i] / (scale[r, a] * scale[r, b])
                 else:
                     Ds[r, a, b] = 1.0 if a == b else 0.0
-        valid[r] = used[r, i] >= n_present and D[r, 0, i] > 0 and abs(_det3(Ds[r])) > 1e-10
+        valid[r] = used[r, i] >= n_present and D[r, 0, i] > 0 and abs(_det3(Ds[r])) > SINGULAR
         if not valid[r]:
             # a row that cannot be solved is held at 0, apart from its neighbours
             for a in range(3):
@@ -186,8 +187,9 @@ def _factor(D, U, used, i, scale, valid, Finv, Us):
             for b in range(3):
                 S[a, b] = Ds[r, a, b] - (Us[r - 1, 0, a] * T[0, b] + Us[r - 1, 1, a] * T[1, b]
                                          + Us[r - 1, 2, a] * T[2, b])
-        if abs(_det3(S)) <= 1e-10:
-            # all the row tells is in the rows before it: held at 0 apart from its neighbours (banded.forward)
+        if abs(_det3(S)) <= SINGULAR:
+            # what the row tells of some combination of its images is in the rows before it: held apart, at 0, as
+            # banded.forward does
             valid[r] = False
             for a in range(3):
                 for b in range(3):

@@ -447,7 +447,7 @@ def solve_pixels(obs: Observations, columns: list[np.ndarray], target: np.ndarra
     Ns = N / (scale[..., :, None] * scale[..., None, :])
     Ns = np.where(present[..., :, None] | present[..., None, :], Ns, 0.0) + np.eye(p) * ~present[..., None, :]
     # the determinant of the unit-diagonal matrix is scale-free; tiny means collinear columns
-    valid = (n_used >= present.sum(axis=-1)) & present[..., 0] & (np.abs(np.linalg.det(Ns)) > 1e-10)
+    valid = (n_used >= present.sum(axis=-1)) & present[..., 0] & (np.abs(np.linalg.det(Ns)) > kernels.SINGULAR)
     Ns[~valid] = np.eye(p)
     inv_s = np.linalg.inv(Ns)
     coef = np.einsum("...ab,...b->...a", inv_s, rhs / scale) / scale

@@ -79,9 +79,20 @@ def test_reduced_cost_skips_channels_not_asked_for(case):
     assert all(not np.any(s_) for s_ in sums[1:])
 
 
+def read_only_between(obs):
+    """``obs`` with rows 5 and 6 of column 6 read only by the samples between them, all at one fraction: they tell one
+    combination of their images, and row 6's complement in the elimination is singular (held apart)."""
+    lo, hi, f = obs.read_rows()
+    use = obs.use.copy()
+    use[((hi == 5) & (lo == 4)) | (lo == 6) | ((lo == 5) & (f == 0)), 6] = False
+    return replace(obs, reading=replace(obs.reading, frac=np.where(lo == 5, 0.4, obs.reading.frac)), use=use)
+
+
+@pytest.mark.parametrize("held", [False, True], ids=["", "a row held apart"])
 @pytest.mark.parametrize("profiled", [True, False])
-def test_fisher_information_equals_the_model(case, rng, profiled):
+def test_fisher_information_equals_the_model(case, rng, profiled, held):
     obs, ch = case
+    obs = read_only_between(obs) if held else obs
     names = WITH_ALL if np.any(ch.harmonic) else NAMES
     w = np.where(obs.use, 1.0 / np.maximum(obs.counts, 1.0), 0.0)
     dsg = M.design_channels(obs, ch)
@@ -197,21 +208,79 @@ def test_the_weights_asked_into_an_array_land_there(case):
     np.testing.assert_array_equal(into, plain["weights"])
 
 
-def test_rows_read_only_between_each_other_are_held_apart(case):
-    """Two rows that only the samples between them read, all at one fraction, tell one combination of their images:
-    the second row's complement in the elimination is singular. It is held at 0 (not the huge values of a
-    near-singular inverse), the same in the compiled loops and the numpy model, and every other row is solved."""
+def test_a_row_held_apart_is_held_alike_in_the_kernels_and_the_model(case):
+    """Row 6 of column 6 (:func:`read_only_between`) is held apart, the same in the compiled loops and the numpy
+    model; every other row is solved."""
     obs, ch = case
-    lo, hi, f = obs.read_rows()
-    reading = replace(obs.reading, frac=np.where(lo == 5, 0.4, obs.reading.frac))
-    use = obs.use.copy()
-    use[((hi == 5) & (lo == 4)) | (lo == 6) | ((lo == 5) & (f == 0)), 6] = False
-    obs = replace(obs, reading=reading, use=use)
+    obs = read_only_between(obs)
     want, got = E.model_retrieve(obs, ch, iterations=1), KB.retrieve(obs, ch, iterations=1)
     np.testing.assert_array_equal(got["valid"], want["valid"])
     assert not want["valid"][6, 6] and want["valid"][5, 6]
     others = np.delete(want["valid"], 6, axis=1)
     assert others.sum() == others.size - 1  # row 3 of column 4 (the case's)
     close(got["coef"], want["coef"])
-    typical = np.abs(want["coef"][want["valid"]]).max()
-    assert np.abs(want["coef"]).max() <= typical
+
+
+def test_a_row_held_apart_solves_as_the_least_squares_with_it_fixed_at_zero(rng):
+    """Rows 0 and 1 read only between them at one fraction, without a sine (absent on row 0), and row 1 coupled to
+    row 2 through transmission-only samples between them: what row 1's c and s add is all in row 0, its complement
+    is singular. Held apart, the numpy factors and the kernels' solve the least squares with row 1 fixed at 0, and
+    their inverse blocks are that problem's (a dense solve)."""
+    from dfxcorr import banded as B
+
+    R, p = 4, 3
+    phases = 2 * np.pi * np.arange(9) / 9
+    rows = [(0, 0.4, (1.0, np.cos(a), 0.0)) for a in phases]
+    rows += [(1, 0.3 + 0.05 * k, (1.0, 0.0, 0.0)) for k in range(6)]
+    rows += [(r, 0.5 if r == 2 else 0.0, (1.0, np.cos(a), np.sin(a))) for r in (2, 3) for a in phases]
+    A = np.zeros((len(rows), R * p))
+    for i, (lo, f, X) in enumerate(rows):
+        A[i, lo * p:lo * p + p] += (1 - f) * np.array(X)
+        if f:
+            A[i, lo * p + p:lo * p + 2 * p] += f * np.array(X)
+    b = A @ rng.normal(size=R * p) + 0.01 * rng.normal(size=len(rows))
+    N = A.T @ A
+    D = np.stack([N[r * p:r * p + p, r * p:r * p + p] for r in range(R)])
+    U = np.stack([N[r * p:r * p + p, r * p + p:r * p + 2 * p] if r + 1 < R else np.zeros((p, p)) for r in range(R)])
+    assert np.abs(U[1]).max() > 0
+    present = np.einsum("rii->ri", D) > 0
+    keep = [i for i in range(R * p) if i // p != 1 and present[i // p, i % p]]
+    x_want = np.zeros(R * p)
+    x_want[keep] = np.linalg.lstsq(A[:, keep], b, rcond=None)[0]
+    inv_want = np.zeros((R * p, R * p))
+    inv_want[np.ix_(keep, keep)] = np.linalg.inv(A[:, keep].T @ A[:, keep])
+    # numpy: the blocks scaled to a unit diagonal (an absent unknown's to the identity), factored
+    scale = np.sqrt(np.where(present, np.einsum("rii->ri", D), 1.0))
+    Ds = np.where(present[:, :, None] | present[:, None, :], D / (scale[:, :, None] * scale[:, None, :]), 0.0)
+    Ds += np.eye(p) * ~present[:, None, :]
+    Us = np.zeros_like(U)
+    Us[:-1] = U[:-1] / (scale[:-1, :, None] * scale[1:, None, :])
+    Finv, Uh, held = B.forward(Ds[:, None], Us[:, None])
+    np.testing.assert_array_equal(held[:, 0], [False, True, False, False])
+    fac = B.ReadBetween(scale[:, None], ~held, Finv, Uh)
+    rhs = (A.T @ b).reshape(R, 1, p, 1)
+    np.testing.assert_allclose(fac.solve(rhs).ravel(), x_want, atol=1e-10)
+    diag, upper = fac.inverse()
+    # the inverse's entries of unknowns present on both rows (an absent one is a placeholder)
+    both = present[:, :, None] & np.concatenate([present[1:], np.zeros((1, p), bool)])[:, None, :]
+    own = present[:, :, None] & present[:, None, :]
+    for r in range(R):
+        np.testing.assert_allclose(np.where(own[r], diag[r, 0], 0.0), inv_want[r * p:r * p + p, r * p:r * p + p],
+                                   atol=1e-10)
+        if r + 1 < R:
+            np.testing.assert_allclose(np.where(both[r], upper[r, 0], 0.0),
+                                       inv_want[r * p:r * p + p, r * p + p:r * p + 2 * p], atol=1e-10)
+    # the kernels: the six stored entries of each symmetric block
+    sym = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+    D6 = np.stack([D[:, i, j] for i, j in sym], axis=1)[..., None]
+    U6 = np.stack([U[:, i, j] for i, j in sym], axis=1)[..., None]
+    sc, ok, Fi, Un = np.empty((R, 3)), np.empty(R, bool), np.empty((R, 3, 3)), np.empty((R, 3, 3))
+    KB._factor(D6, U6, np.full((R, 1), 100.0), 0, sc, ok, Fi, Un)
+    np.testing.assert_array_equal(ok, ~held[:, 0])
+    x_got = np.empty((R, 3, 1))
+    KB._solve(rhs[:, 0], 0, sc, ok, Fi, Un, x_got)
+    np.testing.assert_allclose(x_got.ravel(), x_want, atol=1e-10)
+    dg, up = np.empty((R, 3, 3)), np.empty((R, 3, 3))
+    KB._inverse(sc, ok, Fi, Un, dg, up)
+    np.testing.assert_allclose(dg, diag[:, 0], atol=1e-10)
+    np.testing.assert_allclose(up, upper[:, 0], atol=1e-10)
