@@ -19,15 +19,20 @@ from .base import Context, EffectBase, Finding, Hypothesis, Option, Params, Poli
 #: The largest share of the scored pixels that a moving part of the sample may cover: a misfit spread wider is
 #: not sample motion (a blanket mask hides a misfit of the whole detector), and is reported where it is.
 MAX_SHARE = 0.1
-#: A moving part of the sample is one region: grown by :data:`REACH` pixels, the flagged pixels' largest group must
-#: hold at least this share of them. Measured (seed 11): a heart that moves, 256, 215 and 18 pixels flagged at
-#: amplitudes 0.3, 0.1 and 0.05, one group each; the edges of ribs and lungs under a parallax the model reads between
-#: rows (beam_path, kappa 0.02), 88 pixels in 10 groups, the largest 21.
+#: A moving part of the sample is one region: grown by :data:`REACH` pixels (steps along rows and columns), the
+#: flagged pixels' largest group must hold at least this share of them. Measured (seed 11): a heart that moves, 256,
+#: 215 and 18 pixels flagged at amplitudes 0.3, 0.1 and 0.05, one group each; the edges of ribs and lungs under a
+#: parallax the model reads between rows (beam_path, kappa 0.02), 88 pixels in 10 groups, the largest 21. Three or
+#: more moving parts of like size are reported as unexplained pixels too.
 MIN_GROUPED = 0.5
 REACH = 2
 
 
-def motion_test(obs: Observations, params: Params, *, p_pixel: float = 1e-6, min_pixels: int = 5) -> Test[None]:
+#: Why flagged pixels are no moving part of a sample (empty where they may be one).
+Reasons = tuple[str, ...]
+
+
+def motion_test(obs: Observations, params: Params, *, p_pixel: float = 1e-6, min_pixels: int = 5) -> Test[Reasons]:
     """Pixels whose frames disagree beyond noise and remaining vibration misfit, in clusters.
 
     The per-pixel score is :func:`dfxcorr.mask.motion_score` at the current model (a reduced
@@ -38,8 +43,9 @@ def motion_test(obs: Observations, params: Params, *, p_pixel: float = 1e-6, min
     -------
     Test
         Statistic: chi-square in excess of its dof over the flagged pixels; dof: flagged pixels; log_p:
-        binomial (that many pixels below ``p_pixel`` by chance); ``flagged`` (H, W) bool. Not material where
-        the flagged pixels are more than :data:`MAX_SHARE` of those scored, or scattered (:func:`grouped`).
+        binomial (that many pixels below ``p_pixel`` by chance); ``flagged`` (H, W) bool; payload: why the flagged
+        pixels are no moving part of a sample, more than :data:`MAX_SHARE` of those scored or scattered
+        (:func:`grouped`), and then not material.
     """
     score = motion_score(obs, params)
     dof = np.maximum(obs.segment_sum(obs.use, dtype=np.int64) - 3, 1)
@@ -58,8 +64,10 @@ def motion_test(obs: Observations, params: Params, *, p_pixel: float = 1e-6, min
     excess = obs.to_image(np.nan_to_num(score - 1) * dof, fill=0.0)
     log_p = binomial_log_tail(k, int(ok.sum()), p_pixel) if k >= min_pixels else 0.0
     stat = float(excess[flag].sum())
-    return Test(stat, k, float(np.exp(log_p)), log_p, None, explains=stat,
-                material=bool(k <= MAX_SHARE * ok.sum() and grouped(flag) >= MIN_GROUPED), flagged=flag)
+    share = grouped(flag)
+    reasons = ((f"more than {100 * MAX_SHARE:.0f} % of the pixels",) * bool(k > MAX_SHARE * ok.sum())
+               + (f"scattered (the largest group holds {100 * share:.0f} % of them)",) * (share < MIN_GROUPED))
+    return Test(stat, k, float(np.exp(log_p)), log_p, reasons, explains=stat, material=not reasons, flagged=flag)
 
 
 def grouped(flag: np.ndarray) -> float:
@@ -78,29 +86,29 @@ def where_pixels(mask: np.ndarray) -> str:
             if rows.size else "nowhere")
 
 
-def _flagged(test: Test[None]) -> np.ndarray:
+def _flagged(test: Test[Reasons]) -> np.ndarray:
     if test.flagged is None:
         raise ValueError("a motion test flags pixels")
     return test.flagged
 
 
-class SampleMotion(EffectBase[None]):
+class SampleMotion(EffectBase[Reasons]):
     entry = Effect("sample_motion", None, False, (), 0.0, "none",
                    "part of the sample moved during the scan: pixels whose frames disagree")
     policy = Policy(localised=True, pixelwise=True, astray_check=True)
     files = ("motion_mask.tif",)
 
-    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[None] | None:
+    def test(self, ctx: Context, state: State, flagged: np.ndarray) -> Test[Reasons] | None:
         if state.hypothesis.motion.any():
             return None
         d = ctx.cfg["diagnose"]
         return motion_test(state.obs, state.params, p_pixel=d["motion_p"], min_pixels=d["min_pixels"])
 
-    def trial(self, ctx: Context, state: State, test: Test[None]) -> Hypothesis:
+    def trial(self, ctx: Context, state: State, test: Test[Reasons]) -> Hypothesis:
         # the rim of a moving region is partly affected too
         return state.hypothesis.but(motion=ndimage.binary_dilation(_flagged(test), iterations=1))
 
-    def accepted(self, ctx: Context, before: State, after: State, test: Test[None]) -> Finding:
+    def accepted(self, ctx: Context, before: State, after: State, test: Test[Reasons]) -> Finding:
         motion = after.hypothesis.motion
         pixels = int(motion.sum())
 
@@ -112,14 +120,11 @@ class SampleMotion(EffectBase[None]):
         return Finding(where_pixels(_flagged(test)), f"{pixels} pixels", {"pixels": pixels},
                        options=(Option("mask.enabled", "true"),), files={self.files[0]: write})
 
-    def unexplained(self, test: Test[None]) -> Unexplained:
+    def unexplained(self, test: Test[Reasons]) -> Unexplained:
         """The ``unexplained`` entry of pixels that disagree although masking them did not explain the misfit."""
         mask = _flagged(test)
-        share = grouped(mask)
         why = ("masking them does not explain the misfit" if test.material else
-               f"scattered (the largest group holds {100 * share:.0f} % of them): no moving part of a sample"
-               if share < MIN_GROUPED else f"more than {100 * MAX_SHARE:.0f} % of the pixels: no moving part of a "
-                                           f"sample")
+               "; ".join(test.payload) + ": no moving part of a sample")
         return Unexplained("pixel", test.statistic, test.dof, test.p_value, where_pixels(mask),
                            f"{int(mask.sum())} pixels whose frames disagree beyond noise, in clusters; {why}")
 

@@ -1,7 +1,8 @@
 """sample_motion: a moving part of the sample is one region of pixels whose frames disagree."""
 import numpy as np
 
-from dfxcorr.effects.sample_motion import MIN_GROUPED, REACH, grouped
+from dfxcorr.effects import base
+from dfxcorr.effects.sample_motion import EFFECT, MIN_GROUPED, REACH, grouped
 
 
 def test_one_region_is_grouped_and_scattered_clusters_are_not():
@@ -22,3 +23,16 @@ def test_one_region_is_grouped_and_scattered_clusters_are_not():
         two[10, 10:13] = two[10, 13 + gap:16 + gap] = True
         assert grouped(two) == share
     assert grouped(np.zeros_like(disc)) == 1.0
+
+
+def test_the_unexplained_entry_says_why_the_pixels_are_no_moving_part():
+    """Pixels a moving part could be but whose masking explained nothing, and pixels that are none (the reasons
+    the test gave, each named)."""
+    flag = np.zeros((20, 30), bool)
+    flag[2, 3:6] = flag[12, 20:23] = True
+    for reasons, said in (((), "6 pixels whose frames disagree beyond noise, in clusters; masking them does not "),
+                          (("more than 10 % of the pixels",), "; more than 10 % of the pixels: no moving part"),
+                          (("too many", "scattered"), "; too many; scattered: no moving part of a sample")):
+        u = EFFECT.unexplained(base.Test(50.0, 6, 1e-9, np.log(1e-9), reasons, material=not reasons, flagged=flag))
+        assert u.axis == "pixel" and said in u.description, u.description
+        assert u.where == "6 pixels in rows 2-12, columns 3-22"
