@@ -241,8 +241,9 @@ How the decisions are made, and what the study's other cases show:
   pixels (six by expected count, six by detector row). A candidate is refused as a proxy where that test is
   significant and its sizes span more than `diagnose.proxy_spread` times the shared fit's; its signature is then
   reported unexplained along that axis. `pixel_noise` and the gain are held to the same rule along the detector's
-  rows and columns. `sample_motion` is localised: flagged pixels over 10 % of those scored are no moving part of a
-  sample and are reported as unexplained pixels. Where the final reduced chi-square stays above 2 the report says
+  rows and columns. `sample_motion` is localised: flagged pixels over 10 % of those scored, or scattered (grown by 2
+  pixels along rows and columns, their largest group holds less than half of them), are no moving part of a sample
+  and are reported as unexplained pixels. Where the final reduced chi-square stays above 2 the report says
   that the misfit is gross and names no physics for it.
 - **Not identifiable is not the same as absent.** A significant effect that the acquisition cannot identify gets
   a trial refit first; if it explains the misfit and no identifiable effect explains as much, the report says so,
@@ -635,7 +636,10 @@ sees it) is diagnosed, then reconstructed at the defaults and with the recommend
 transmission, ln dark field and differential phase (offsets removed). The images live on the pixel grid: what a
 pixel sees between two rows is their interpolation, while the sample's edges move across it by fractions of a row.
 The floor below is what that interpolation misses of the exactly displaced phantom, in photon-noise units at the
-scan's flux: no model on the pixel grid returns such a scan to the noise, and the same error biases kappa."""
+scan's flux: no model on the pixel grid returns such a scan to the noise, and the same error biases kappa. The images
+are held where each pixel sees the sample with the active area centred on it, and resampled to the detector's rows
+for the result: the last column compares the transmission on that grid with the phantom evaluated there, and that
+exact phantom, resampled to rows as the result is, with the truth (an error of the resampling alone)."""
 
 
 def parallax_section(par: dict) -> list[str]:
@@ -652,9 +656,11 @@ def parallax_section(par: dict) -> list[str]:
                     f"{e['differential_phase']:.3f}; {rec['vibration_rmse']['phase_offset']:.4f} "
                     f"({rec['vibration_pulls']['phase_offset']:.2f}); {rec['seconds']:.0f} s")
 
+        grid = r.get("transmission_at_true_kappa")
         rows.append([f"{r['kappa']:g}", ", ".join(d["found"]) or "nothing", kappa,
                      f"{d['reduced_chi2'][0]:.3f} -> {d['reduced_chi2'][1]:.3f}", ", ".join(d["unexplained"]) or "-",
-                     cell(r["defaults"]), cell(r["recommended"]), cell(r["twin"])])
+                     cell(r["defaults"]), cell(r["recommended"]), cell(r["twin"]),
+                     f"{grid['on_grid']:.4f} / {grid['resampled_truth']:.4f}" if grid else "-"])
     floor = ", ".join(f"{k} row: {v:.2f}" for k, v in par["interpolation_z2"].items())
     if "interpolation_z2_cubic" in par:
         floor += " (linear, the model's); with cubic convolution between four rows " + ", ".join(
@@ -674,7 +680,8 @@ def parallax_section(par: dict) -> list[str]:
             f"pixels, scan {' x '.join(str(n) for n in par['runs'][0]['shape'])}, flux {par['flux']:g}.", PARALLAX, "",
             f"Interpolation floor (mean z^2 of the transmission alone, per displacement): {floor}.", *scale, "",
             *table(["kappa", "diagnosis names", "kappa found", "diagnosis chi-square", "unexplained",
-                    "defaults: chi-square; errors t / ln v / phi; phi0 RMSE (pull); time", "recommended", "twin"],
+                    "defaults: chi-square; errors t / ln v / phi; phi0 RMSE (pull); time", "recommended", "twin",
+                    "t error at the true kappa: on the images' grid / the exact phantom there, resampled to rows"],
                    rows)]
 
 
