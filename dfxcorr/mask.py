@@ -119,10 +119,11 @@ def between_rows_miss(obs: Observations, ch: M.Channels, coef: np.ndarray, weigh
         inner = (rows[1:-1] - rows[:-2] == 1) & (rows[2:] - rows[1:-1] == 1)
         d2 = np.zeros_like(coef)
         d2[1:-1] = np.where(inner[:, None, None], coef[:-2] - 2.0 * coef[1:-1] + coef[2:], 0.0)
-        g = obs.gather(d2)
         dsg = M.design_channels(obs, ch)
+        # one image at a time: (K, C) temporaries rather than (K, C, 3)
+        miss = sum(obs.gather(d2[..., a]) * X for a, X in enumerate((dsg.A, dsg.Bc, dsg.Bs)))
         _, _, f = obs.read_rows()
-        miss = (0.5 * f * (1.0 - f))[:, None] * (g[..., 0] * dsg.A + g[..., 1] * dsg.Bc + g[..., 2] * dsg.Bs)
+        miss *= (0.5 * f * (1.0 - f))[:, None]
         return np.sqrt(obs.segment_sum(weights * miss ** 2) / n)
 
 
