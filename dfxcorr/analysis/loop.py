@@ -120,15 +120,16 @@ def ranked(tests: Mapping[str, Test[Any]], effects: Effects, alpha: float, *, no
 
     By their policy's order, then by the chi-square they explain; the noise-model effects (by order) just before
     the first localised one: a global variance excess is modelled after the mean effects that explain more, and
-    before localised outliers are judged against it. ``noise_first``: the noise-model effects before all others
-    (the decisions must not depend on the order: a test runs both).
+    before localised outliers are judged against it. A significant localised test places them so even where what
+    it flags is no candidate (not material: scattered pixels are outliers all the same). ``noise_first``: the
+    noise-model effects before all others (the decisions must not depend on the order: a test runs both).
     """
-    sig = [k for k in significant(tests, alpha) if tests[k].identifiable and tests[k].material]
+    sig = [k for k in significant(tests, alpha) if tests[k].identifiable]
     main = sorted((k for k in sig if not effects[k].policy.noise_model),
                   key=lambda k: (effects[k].policy.order, -tests[k].explains))
     noise = sorted((k for k in sig if effects[k].policy.noise_model), key=lambda k: effects[k].policy.order)
     at = 0 if noise_first else next((i for i, k in enumerate(main) if effects[k].policy.localised), len(main))
-    return main[:at] + noise + main[at:]
+    return [k for k in main[:at] + noise + main[at:] if tests[k].material]
 
 
 def strongest_unidentifiable(tests: Mapping[str, Test[Any]], effects: Effects, alpha: float,

@@ -193,6 +193,12 @@ def test_ranking_tiers_explained_chi_square_and_noise_before_pixels():
                                    Fake("immaterial", 700, policy=noise, material=False))}
     tests = {n: e.test(None, FakeState(_hypothesis(), [], 0, 0), None) for n, e in effects.items()}
     assert loop.ranked(tests, effects, 0.01) == ["lag", "offset", "big", "classes", "gain", "motion", "small"]
+    # scattered outliers (a localised test that names no candidate) place the noise model all the same
+    effects["motion"] = Fake("motion", 300, policy=Policy(localised=True), material=False)
+    tests["motion"] = effects["motion"].test(None, FakeState(_hypothesis(), [], 0, 0), None)
+    assert loop.ranked(tests, effects, 0.01) == ["lag", "offset", "big", "classes", "gain", "small"]
+    del effects["motion"], tests["motion"]
+    assert loop.ranked(tests, effects, 0.01) == ["lag", "offset", "big", "small", "classes", "gain"]
 
 
 def test_a_true_effect_is_named_and_a_significant_proxy_is_tried_and_refused():
