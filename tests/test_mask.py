@@ -183,28 +183,32 @@ def test_the_pilot_where_samples_read_between_rows_lands_near_the_truth(small_sc
 def test_the_miss_of_reading_between_rows_is_exact_for_images_quadratic_along_the_rows(rng):
     """Linear interpolation between rows misses -f (1 - f) c of an image a + b u + c u^2 read at u = lo + f: the
     estimate from the images' second differences is exactly that, in the expected counts over the noise, at every
-    pixel whose samples read only rows with both neighbours held; 0 where the samples read their own rows."""
+    pixel (the end rows take their neighbours' second difference); 0 where the samples read their own rows. A row
+    not solved (held at 0) spans no second difference and no sample reading it counts: still exact."""
     obs = tiny_obs(rng, J=16, H=9, W=11)
     params = random_params(rng, obs.n_frames, ("phase_offset", "tilt", "visibility_loss"))
     ch = M.channels(params, x=obs.x, n_frames=obs.n_frames)
     a, b, c = (rng.uniform(0.5, 1.0, (11, 3)), rng.normal(0.0, 0.1, (11, 3)), rng.normal(0.0, 0.05, (11, 3)))
     coef = a + b * obs.rows[:, None, None] + c * obs.rows[:, None, None] ** 2
+    valid = np.ones(coef.shape[:2], bool)
     w = np.where(obs.use, rng.uniform(0.5, 2.0, obs.counts.shape), 0.0)
-    assert np.all(between_rows_miss(obs, ch, coef, w)[row_counts(obs, w > 0) > 0] == 0.0)
+    assert np.all(between_rows_miss(obs, ch, coef, valid, w)[row_counts(obs, w > 0) > 0] == 0.0)
     obs = displaced(rng, obs, spread=0.9)
-    w = np.where(obs.use, w, 0.0)
-    got = between_rows_miss(obs, ch, coef, w)
     lo, hi, f = obs.read_rows()
     x = (obs.rows[lo] + f)[:, None, None]
     missed = (a + b * x + c * x ** 2) - ((1 - f)[:, None, None] * coef[lo] + f[:, None, None] * coef[hi])
     dsg = M.design_channels(obs, ch)
     counts = missed[..., 0] * dsg.A + missed[..., 1] * dsg.Bc + missed[..., 2] * dsg.Bs
-    n = row_counts(obs, w > 0)
-    want = np.sqrt(obs.segment_sum(w * counts ** 2) / np.maximum(n, 1))
-    edge = (lo == 0) | (hi == obs.rows.size - 1) & (f > 0) | (lo == obs.rows.size - 1)
-    inner = (row_counts(obs, (w > 0) & edge[:, None]) == 0) & (n > 0)
-    assert inner.sum() > 0.5 * inner.size and want[inner].min() > 0
-    np.testing.assert_allclose(got[inner], want[inner], rtol=1e-10)
+    for held in ((), ((4, 5),)):
+        valid, solved = np.ones(coef.shape[:2], bool), coef.copy()
+        for r, col in held:
+            valid[r, col], solved[r, col] = False, 0.0
+        counted = np.where(obs.gather_valid(valid), w, 0.0)
+        n = row_counts(obs, counted > 0)
+        want = np.sqrt(obs.segment_sum(counted * counts ** 2) / np.maximum(n, 1))
+        got = between_rows_miss(obs, ch, solved, valid, w)
+        assert np.all(n[~valid] == 0) and np.all(np.isnan(got[n == 0])) and want[n > 0].min() > 0
+        np.testing.assert_allclose(got[n > 0], want[n > 0], rtol=1e-10)
 
 
 @pytest.mark.slow
