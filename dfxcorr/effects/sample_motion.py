@@ -65,8 +65,9 @@ def motion_test(obs: Observations, params: Params, *, p_pixel: float = 1e-6, min
     log_p = binomial_log_tail(k, int(ok.sum()), p_pixel) if k >= min_pixels else 0.0
     stat = float(excess[flag].sum())
     share = grouped(flag)
-    reasons = ((f"more than {100 * MAX_SHARE:.0f} % of the pixels",) * bool(k > MAX_SHARE * ok.sum())
-               + (f"scattered (the largest group holds {100 * share:.0f} % of them)",) * (share < MIN_GROUPED))
+    checks = ((f"more than {100 * MAX_SHARE:.0f} % of the pixels", k > MAX_SHARE * ok.sum()),
+              (f"scattered (the largest group holds {100 * share:.0f} % of them)", share < MIN_GROUPED))
+    reasons = tuple(why for why, holds in checks if holds)
     return Test(stat, k, float(np.exp(log_p)), log_p, reasons, explains=stat, material=not reasons, flagged=flag)
 
 
